@@ -1,0 +1,232 @@
+"""The batched CEFC environment: the task core on top of a physics world.
+
+`BatchedCEFCEnv` is what training uses (B envs x N agents, numpy, one process); the PettingZoo
+wrapper (`cefc_mj.pettingzoo_env`) exposes one env of it. Both backends run through this class, so
+observations, rewards and metrics are the same code for particles and quadrotors.
+
+>>> from cefc_mj.env import BatchedCEFCEnv
+>>> from cefc_mj.task.config import TaskConfig
+>>> env = BatchedCEFCEnv(TaskConfig(n_agents=5, mode="formation"), n_envs=4, seed=0)
+>>> obs = env.reset()
+>>> obs.shape
+(4, 5, 63)
+>>> obs, reward, done, info = env.step(np.zeros((4, 5, 2)))
+>>> reward.shape, done.any(), sorted(info["reward_terms"])
+((4,), np.False_, ['R_c', 'R_f', 'R_n'])
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from cefc_mj.errors import ConfigError
+from cefc_mj.sim.particle import ParticleWorld
+from cefc_mj.sim.world import World
+from cefc_mj.task import rewards as R
+from cefc_mj.task.adversary import adversary_goal, pursuit_acceleration
+from cefc_mj.task.config import TaskConfig
+from cefc_mj.task.deviation import sample_deviation
+from cefc_mj.task.formation import agent_group_error, connected_groups, group_formation_error
+from cefc_mj.task.observation import build_cefc_observation, build_low_level_observation, layout_for
+from cefc_mj.task.scenario import sample_anchor, sample_scenario
+
+METRIC_NAMES = ("F", "N", "C", "E")
+
+
+class BatchedCEFCEnv:
+    """B independent CEFC episodes stepped together.
+
+    Rewards are the paper's team rewards [B]: R_L = 15 R_f + 4 R_n + 100 R_c in formation mode,
+    R_H = 10 R_t + 0.1 R_n + 100 R_e in cefc mode; `info["reward_terms"]` holds each unweighted term.
+    Episodes of all envs end together after `config.steps` steps; `reset(mask)` restarts some.
+    """
+
+    def __init__(self, config: TaskConfig, n_envs: int = 1, seed: int | None = 0, world: World | None = None):
+        if not isinstance(n_envs, int) or n_envs < 1:
+            raise ConfigError(f"n_envs={n_envs!r}: must be an integer >= 1")
+        if config.mode == "formation" and config.n_agents < 3:
+            raise ConfigError(f"n_agents={config.n_agents}: formation mode needs a group of at least 3 agents")
+        self.config = config
+        self.n_envs = n_envs
+        self.n_agents = config.n_agents
+        self.layout = layout_for(config)
+        self.world = world if world is not None else ParticleWorld(config, n_envs)
+        self.rng = np.random.default_rng(seed)
+        b, n, j = n_envs, config.n_agents, config.n_targets if config.mode == "cefc" else 0
+        self.t = np.zeros(b, dtype=int)
+        self.anchor = np.zeros((b, 2))
+        self.targets = np.zeros((b, j, 2))
+        self.urgency = np.ones((b, j))
+        self.obstacles = np.zeros((b, config.n_obstacles, 2))
+        self.prev_formation_reward = np.zeros(b)
+        self.metric_sums = {name: np.zeros(b) for name in METRIC_NAMES}
+        self.perceived_pos = np.zeros((b, n, 2))
+        self.lidar = np.full((b, n, config.n_lidar_rays), config.lidar_range)
+        self.labels = np.zeros((b, n), dtype=int)
+        self.agent_error = np.full((b, n), np.nan)
+        self._obs = np.zeros((b, n, self.layout.size), dtype=np.float32)
+
+    # ------------------------------------------------------------------ reset
+    def reset(self, mask: np.ndarray | None = None, seed: int | None = None) -> np.ndarray:
+        """Start new episodes in the masked envs (all by default); returns obs [B, N, D] of all envs."""
+        if seed is not None:
+            self.rng = np.random.default_rng(seed)
+        mask = np.ones(self.n_envs, dtype=bool) if mask is None else np.asarray(mask, dtype=bool)
+        if mask.shape != (self.n_envs,):
+            raise ConfigError(f"mask: expected shape ({self.n_envs},), got {mask.shape}")
+        count = int(mask.sum())
+        if count == 0:
+            return self._obs
+        scenario = sample_scenario(self.config, self.rng, count)
+        full = lambda arr, like: _scatter(mask, arr, like)  # noqa: E731 - expand masked rows to [B, ...]
+        self.world.reset(
+            mask, full(scenario.agent_pos, self.world.agent_pos), full(scenario.adversary_pos, self.world.adversary_pos),
+            full(scenario.obstacles, self.obstacles),
+        )
+        self.obstacles[mask] = scenario.obstacles
+        self.anchor[mask] = scenario.anchor
+        self.targets[mask] = scenario.targets
+        self.urgency[mask] = 1.0
+        self.t[mask] = 0
+        self.prev_formation_reward[mask] = 0.0
+        for total in self.metric_sums.values():
+            total[mask] = 0.0
+        self._observe(mask)
+        return self._obs
+
+    # ------------------------------------------------------------------ step
+    def step(self, actions: np.ndarray):
+        """Apply acceleration setpoints [B, N, 2] (m/s^2) for one decision step.
+
+        Returns (obs [B,N,D] float32, reward [B], done [B] bool, info). info["reward_terms"] maps each
+        unweighted reward term to [B]; at episode end info["metrics"] maps F, N, C, E to [B].
+        """
+        cfg = self.config
+        actions = np.asarray(actions, dtype=np.float64)
+        if actions.shape != (self.n_envs, self.n_agents, 2):
+            raise ConfigError(f"actions: expected shape ({self.n_envs}, {self.n_agents}, 2), got {actions.shape}")
+        if not np.isfinite(actions).all():
+            raise ConfigError("actions: contain NaN or inf")
+        if (self.t >= cfg.steps).any():
+            raise ConfigError("step() called on a finished episode; call reset(mask=done) first")
+        actions = np.clip(actions, -cfg.accel_max, cfg.accel_max)
+
+        if cfg.mode == "cefc" and cfg.adversary != "none":
+            goal = adversary_goal(cfg.adversary, self.world.adversary_pos, self.world.agent_pos, self.labels)
+            adversary_accel = pursuit_acceleration(
+                goal, self.world.adversary_pos, self.world.adversary_vel, cfg.adversary_speed_max, cfg.accel_max, cfg.dt
+            )
+        else:
+            adversary_accel = np.zeros((self.n_envs, 2))
+        self.world.step(actions, adversary_accel)
+        self.t += 1
+        if cfg.anchor_redraw_steps is not None:
+            redraw = (self.t % cfg.anchor_redraw_steps == 0) & (self.t < cfg.steps)
+            if redraw.any():
+                self.anchor[redraw] = sample_anchor(cfg, self.rng, self.obstacles[redraw], int(redraw.sum()))
+
+        pos = self.world.agent_pos
+        group_error, group_size, group_centre = self._groups(pos)
+        self._observe(np.ones(self.n_envs, dtype=bool))
+        terms, reward = self._rewards(pos, group_error, group_size, group_centre)
+        self._accumulate_metrics(pos)
+        done = self.t >= cfg.steps
+        info = {"reward_terms": terms, "t": self.t.copy()}
+        if done.any():
+            info["metrics"] = self.episode_metrics()
+        return self._obs, reward, done, info
+
+    # ------------------------------------------------------------------ pieces
+    def _groups(self, pos):
+        """Group labels, per-group HD error [B,G], sizes [B,G] and centres [B,G,2] from true positions."""
+        n = self.n_agents
+        if self.config.mode == "formation":
+            self.labels = np.zeros((self.n_envs, n), dtype=int)
+        else:
+            self.labels = connected_groups(pos, self.config.observation_distance)
+        error, size = group_formation_error(pos, self.labels, self.config.formation_spacing)
+        one_hot = self.labels[:, None, :] == np.arange(n)[None, :, None]
+        centre = np.einsum("bgn,bnk->bgk", one_hot, pos) / np.maximum(size, 1)[..., None]
+        self.agent_error = agent_group_error(error, self.labels)
+        return error, size, centre
+
+    def _observe(self, mask: np.ndarray) -> None:
+        cfg, world = self.config, self.world
+        true_pos = world.agent_pos
+        self.perceived_pos = true_pos + sample_deviation(self.rng, cfg.deviation, true_pos.shape[:2])
+        self.lidar = world.lidar(self.perceived_pos)
+        if cfg.mode == "formation":
+            obs = build_low_level_observation(cfg, self.perceived_pos, world.agent_vel, self.anchor, self.lidar)
+        else:
+            obs = build_cefc_observation(
+                cfg, self.perceived_pos, world.agent_vel, self.targets, self.urgency,
+                world.adversary_pos, world.adversary_vel, self.lidar,
+            )
+        self._obs[mask] = obs[mask]
+
+    def _rewards(self, pos, group_error, group_size, group_centre):
+        cfg, w = self.config, self.config.rewards
+        hd_sum = np.nansum(group_error, axis=-1)
+        r_f = R.formation_reward(hd_sum, self.prev_formation_reward, w.formation_lag)
+        self.prev_formation_reward = r_f
+        r_c = R.collision_reward(self.lidar, w)
+        if cfg.mode == "formation":
+            r_n = R.anchor_navigation_reward(pos, self.anchor)
+            terms = {"R_f": r_f, "R_n": r_n, "R_c": r_c}
+            reward = w.formation_weight * r_f + w.navigation_weight_low * r_n + w.collision_weight * r_c
+            return terms, reward
+        coverage = R.target_coverage(
+            group_error, group_size, group_centre, self.targets, cfg.formation_tolerance, cfg.target_radius
+        )
+        r_n = R.target_navigation_reward(pos, self.targets, self.urgency)
+        r_t = R.task_reward(coverage, self.urgency)
+        r_e = R.evasion_reward(pos, self.world.adversary_pos, w.evasion_alert_distance)
+        self.urgency = R.update_urgency(self.urgency, coverage, w.urgency_decay)
+        terms = {"R_f": r_f, "R_n": r_n, "R_t": r_t, "R_e": r_e, "R_c": r_c}
+        reward = w.task_weight * r_t + w.navigation_weight_high * r_n + w.evasion_weight * r_e
+        return terms, reward
+
+    def _accumulate_metrics(self, pos) -> None:
+        cfg = self.config
+        in_formation = np.nan_to_num(self.agent_error, nan=np.inf) < cfg.formation_tolerance
+        self.metric_sums["F"] += in_formation.mean(axis=-1)
+        self.metric_sums["N"] += np.linalg.norm(pos.mean(axis=1) - self.anchor, axis=-1) < cfg.navigation_tolerance
+        self.metric_sums["C"] += self.world.collisions().sum(axis=-1)
+        if cfg.mode == "cefc" and cfg.adversary != "none":
+            adv_dist = np.linalg.norm(pos - self.world.adversary_pos[:, None, :], axis=-1)
+            self.metric_sums["E"] += (adv_dist < cfg.rewards.evasion_alert_distance).any(axis=-1)
+
+    def episode_metrics(self) -> dict[str, np.ndarray]:
+        """F, N (steps), C (% of agent-steps in collision), E (steps) so far, each [B]."""
+        steps = np.maximum(self.t, 1)
+        return {
+            "F": self.metric_sums["F"].copy(),
+            "N": self.metric_sums["N"].copy(),
+            "C": 100.0 * self.metric_sums["C"] / (steps * self.n_agents),
+            "E": self.metric_sums["E"].copy(),
+        }
+
+    def global_state(self) -> np.ndarray:
+        """Centralized-critic input [B, S] float32: per agent (true position relative to the anchor
+        in formation mode, else absolute), velocity and LiDAR; in cefc mode also the adversary's
+        position and velocity and the targets with their urgency."""
+        world = self.world
+        pos = world.agent_pos
+        ref = self.anchor[:, None, :] if self.config.mode == "formation" else 0.0
+        parts = [np.concatenate([pos - ref, world.agent_vel, self.lidar], axis=-1).reshape(self.n_envs, -1)]
+        if self.config.mode == "cefc":
+            parts += [world.adversary_pos, world.adversary_vel, self.targets.reshape(self.n_envs, -1), self.urgency]
+        return np.concatenate(parts, axis=-1).astype(np.float32)
+
+    @property
+    def state_size(self) -> int:
+        n, m = self.n_agents, self.config.n_lidar_rays
+        extra = 0 if self.config.mode == "formation" else 4 + 3 * self.config.n_targets
+        return n * (4 + m) + extra
+
+
+def _scatter(mask: np.ndarray, rows: np.ndarray, like: np.ndarray) -> np.ndarray:
+    """An array shaped like `like` with `rows` in the masked positions (others copied from like)."""
+    out = np.array(like, dtype=np.float64, copy=True)
+    out[mask] = rows
+    return out

@@ -1,0 +1,148 @@
+"""Policy files and the loading API for evaluators.
+
+A policy file (`*.pt`) holds only what inference needs, readable with `torch.load(weights_only=True)`:
+
+    {"format": "cefc-mj/atm-policy", "version": 1, "net": ATMConfig as a dict,
+     "state_dict": {name: tensor}, "sha256": digest of the state dict, "meta": {...}}
+
+The digest makes an edited weight fail loudly; a file made for another observation shape, a
+truncated file or a foreign pickle all raise `CheckpointError` with one line. A model card
+(`*.json`, same stem) sits beside each shipped file (see `cefc_mj.train.model_card`).
+
+>>> policy = load_policy("atm_c6_step3")          # doctest: +SKIP  (resolved in POLICIES_DIR)
+>>> actions = policy.act(obs)                     # doctest: +SKIP  obs [B, N, 63] -> [B, N, 2]
+"""
+
+from __future__ import annotations
+
+import os
+import pickle
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from cefc_mj import paths
+from cefc_mj.errors import CheckpointError, ConfigError
+from cefc_mj.nn.atm import ATMActor, ATMConfig
+from cefc_mj.nn.layers import state_digest
+
+POLICY_FORMAT = "cefc-mj/atm-policy"
+POLICY_VERSION = 1
+
+
+def atomic_torch_save(payload: dict, path: Path) -> None:
+    """torch.save to a temporary file, then rename: a kill mid-write never leaves a torn file."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    torch.save(payload, tmp)
+    os.replace(tmp, path)
+
+
+def safe_torch_load(path: Path) -> dict:
+    """torch.load(weights_only=True) with every failure turned into one-line CheckpointError."""
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"{path}: no such checkpoint file")
+    try:
+        payload = torch.load(path, map_location="cpu", weights_only=True)
+    except (pickle.UnpicklingError, RuntimeError, EOFError, zipfile.BadZipFile, ValueError, OSError, KeyError) as e:
+        first = str(e).strip().splitlines()[0] if str(e).strip() else ""
+        raise CheckpointError(f"{path}: not a readable checkpoint ({type(e).__name__}: {first[:160]})") from None
+    if not isinstance(payload, dict):
+        raise CheckpointError(f"{path}: not a cefc-mj checkpoint (top level is {type(payload).__name__})")
+    return payload
+
+
+def save_policy(actor: ATMActor, path: Path, meta: dict | None = None) -> Path:
+    """Write `actor` as a policy file; `meta` (JSON-like: str/int/float/bool/list/dict) rides along."""
+    state = {k: v.detach().cpu().clone() for k, v in actor.state_dict().items()}
+    atomic_torch_save(
+        {
+            "format": POLICY_FORMAT,
+            "version": POLICY_VERSION,
+            "net": actor.cfg.to_dict(),
+            "state_dict": state,
+            "sha256": state_digest(state),
+            "meta": meta or {},
+        },
+        Path(path),
+    )
+    return Path(path)
+
+
+def load_actor(path: Path, obs_dim: int | None = None) -> tuple[ATMActor, dict]:
+    """(actor, meta) from a policy file. obs_dim, if given, must match the file's input size."""
+    payload = safe_torch_load(path)
+    if payload.get("format") != POLICY_FORMAT:
+        raise CheckpointError(f"{path}: not an AT-M policy file (format {payload.get('format')!r})")
+    if payload.get("version") != POLICY_VERSION:
+        raise CheckpointError(f"{path}: policy file version {payload.get('version')!r}, this code reads {POLICY_VERSION}")
+    state = payload.get("state_dict")
+    if not isinstance(state, dict) or not all(isinstance(v, torch.Tensor) for v in state.values()):
+        raise CheckpointError(f"{path}: policy file without a tensor state_dict")
+    if state_digest(state) != payload.get("sha256"):
+        raise CheckpointError(f"{path}: weights do not match the stored SHA-256 (file modified or corrupted)")
+    cfg = ATMConfig.from_dict(payload.get("net"))
+    if obs_dim is not None and cfg.obs_dim != obs_dim:
+        raise CheckpointError(f"{path}: made for observations of size {cfg.obs_dim}, this env gives {obs_dim}")
+    actor = ATMActor(cfg)
+    try:
+        actor.load_state_dict(state)
+    except RuntimeError as e:
+        raise CheckpointError(f"{path}: weights do not fit the described network ({str(e).splitlines()[0][:160]})") from None
+    actor.eval()
+    return actor, dict(payload.get("meta") or {})
+
+
+def resolve_policy_path(path_or_name: str | Path, policies_dir: Path | None = None) -> Path:
+    """A path to an existing file, or a name looked up as `<policies_dir>/<name>.pt`
+    (policies_dir defaults to `cefc_mj.paths.POLICIES_DIR`)."""
+    candidate = Path(path_or_name)
+    if candidate.is_file():
+        return candidate
+    base = Path(policies_dir) if policies_dir is not None else paths.POLICIES_DIR
+    for name in (candidate.name, candidate.name + ".pt"):
+        if (base / name).is_file():
+            return base / name
+    raise CheckpointError(f"no policy {str(path_or_name)!r}: not a file, and not found as {base / (candidate.name + '.pt')}")
+
+
+class Policy:
+    """A loaded low-level policy for evaluators: `act(obs [B, N, D]) -> actions [B, N, 2]`.
+
+    `act` is deterministic (the Gaussian mean, clipped per axis to accel_max as the env clips it)
+    and runs without gradients. Call `torch.set_num_threads(1)` in rollout loops: these networks
+    are far too small for intra-op threading.
+    """
+
+    def __init__(self, actor: ATMActor, meta: dict, name: str):
+        self.actor = actor
+        self.meta = meta
+        self.name = name
+
+    @property
+    def obs_dim(self) -> int:
+        return self.actor.cfg.obs_dim
+
+    @property
+    def safe(self) -> bool:
+        return self.actor.cfg.safe
+
+    @torch.no_grad()
+    def act(self, obs: np.ndarray) -> np.ndarray:
+        obs = np.asarray(obs)
+        if obs.ndim != 3 or obs.shape[-1] != self.obs_dim:
+            raise ConfigError(f"obs: expected shape [B, N, {self.obs_dim}], got {list(obs.shape)}")
+        mean = self.actor(torch.as_tensor(obs, dtype=torch.float32))
+        limit = self.actor.cfg.accel_max
+        return mean.clamp(-limit, limit).numpy().astype(np.float64)
+
+
+def load_policy(path_or_name: str | Path, policies_dir: Path | None = None, obs_dim: int | None = None) -> Policy:
+    """Load a policy by file path or by name in the policies folder (see resolve_policy_path)."""
+    path = resolve_policy_path(path_or_name, policies_dir)
+    actor, meta = load_actor(path, obs_dim)
+    return Policy(actor, meta, name=path.stem)

@@ -1,0 +1,96 @@
+"""The paper's MPE as a batched point-mass world: B envs x N agents in one process.
+
+Per decision step (semi-implicit Euler, dt = 0.1 s): v <- v + a dt, then the speed is clipped to
+speed_max (norm), then p <- p + v dt. A UAV whose disc overlaps an obstacle is in collision this
+step; it is pushed back onto the obstacle's surface and loses its inward velocity (an inelastic
+contact, so it cannot fly through obstacles). UAV-UAV overlaps are counted as collisions but not
+resolved. There is no damping: the quadrotor has none either (DESIGN §3).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from cefc_mj.task.config import TaskConfig
+from cefc_mj.task.lidar import lidar_ranges
+
+
+def clip_speed(velocity: np.ndarray, speed_max: float) -> np.ndarray:
+    """Scale velocities [..., 2] whose norm exceeds speed_max back onto it."""
+    speed = np.sqrt((velocity * velocity).sum(-1, keepdims=True))
+    return velocity * np.minimum(1.0, speed_max / np.maximum(speed, 1e-12))
+
+
+class ParticleWorld:
+    """Batched point-mass physics implementing the `World` protocol."""
+
+    def __init__(self, config: TaskConfig, n_envs: int):
+        self.config = config
+        self.n_envs = n_envs
+        self.n_agents = config.n_agents
+        self.dt = config.dt
+        b, n = n_envs, config.n_agents
+        self._pos = np.zeros((b, n, 2))
+        self._vel = np.zeros((b, n, 2))
+        self._adv_pos = np.zeros((b, 2))
+        self._adv_vel = np.zeros((b, 2))
+        self.obstacles = np.zeros((b, config.n_obstacles, 2))
+        self._collided = np.zeros((b, n), dtype=bool)
+
+    agent_pos = property(lambda self: self._pos)
+    agent_vel = property(lambda self: self._vel)
+    adversary_pos = property(lambda self: self._adv_pos)
+    adversary_vel = property(lambda self: self._adv_vel)
+
+    def reset(self, env_mask, agent_pos, adversary_pos, obstacles) -> None:
+        m = np.asarray(env_mask, dtype=bool)
+        self._pos[m] = agent_pos[m]
+        self._vel[m] = 0.0
+        self._adv_pos[m] = adversary_pos[m]
+        self._adv_vel[m] = 0.0
+        self.obstacles[m] = obstacles[m]
+        self._collided[m] = False
+
+    def step(self, agent_accel: np.ndarray, adversary_accel: np.ndarray) -> None:
+        cfg, dt = self.config, self.dt
+        self._vel = clip_speed(self._vel + agent_accel * dt, cfg.speed_max)
+        self._pos = self._pos + self._vel * dt
+        self._adv_vel = clip_speed(self._adv_vel + adversary_accel * dt, cfg.adversary_speed_max)
+        self._adv_pos = self._adv_pos + self._adv_vel * dt
+        self._collided = self._agent_overlap()
+        if self.obstacles.shape[1]:
+            self._resolve_obstacle_contacts()
+
+    def _agent_overlap(self) -> np.ndarray:
+        diff = self._pos[:, :, None, :] - self._pos[:, None, :, :]
+        d2 = (diff * diff).sum(-1)
+        n = self.n_agents
+        d2[:, np.arange(n), np.arange(n)] = np.inf
+        return (d2 < (2 * self.config.uav_radius) ** 2).any(-1)
+
+    def _resolve_obstacle_contacts(self) -> None:
+        contact_dist = self.config.obstacle_radius + self.config.uav_radius
+        offset = self._pos[:, :, None, :] - self.obstacles[:, None, :, :]  # [B, N, K, 2]
+        dist = np.sqrt((offset * offset).sum(-1))
+        nearest = dist.argmin(-1)  # obstacles are >= 2 r_uav apart: one contact at a time
+        d = np.take_along_axis(dist, nearest[..., None], -1)[..., 0]
+        hit = d < contact_dist
+        if not hit.any():
+            return
+        self._collided |= hit
+        normal = np.take_along_axis(offset, nearest[..., None, None], 2)[:, :, 0] / np.maximum(d, 1e-9)[..., None]
+        centre = np.take_along_axis(self.obstacles[:, None], nearest[..., None, None], 2)[:, :, 0]
+        surface = centre + normal * contact_dist
+        inward = np.minimum((self._vel * normal).sum(-1), 0.0)
+        self._pos = np.where(hit[..., None], surface, self._pos)
+        self._vel = np.where(hit[..., None], self._vel - inward[..., None] * normal, self._vel)
+
+    def lidar(self, origins: np.ndarray) -> np.ndarray:
+        cfg = self.config
+        return lidar_ranges(
+            origins, self.obstacles, cfg.obstacle_radius, self._pos, cfg.uav_radius,
+            cfg.n_lidar_rays, cfg.lidar_range, cfg.lidar_sees_agents,
+        )
+
+    def collisions(self) -> np.ndarray:
+        return self._collided

@@ -1,0 +1,44 @@
+"""Rule-based adversaries (DESIGN §4): pick a point to chase, fly at it at top speed.
+
+- "nearest_group": the centre of the nearest group with at least 3 members (the paper's default
+  behaviour of its PPO adversary); the nearest agent when there is no such group.
+- "r_nearest": the nearest agent (R-Nearest).
+- "r_largest": the centre of the largest group, nearest first among equals (R-Largest).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def adversary_goal(rule: str, adversary_pos: np.ndarray, agent_pos: np.ndarray, labels: np.ndarray) -> np.ndarray:
+    """The point [B, 2] the adversary chases. labels [B, N] are group labels (connected_groups)."""
+    b, n, _ = agent_pos.shape
+    agent_dist = np.linalg.norm(agent_pos - adversary_pos[:, None, :], axis=-1)
+    nearest_agent = agent_pos[np.arange(b), agent_dist.argmin(axis=-1)]
+    if rule == "r_nearest":
+        return nearest_agent
+    one_hot = labels[:, None, :] == np.arange(n)[None, :, None]  # [B, G, N]
+    size = one_hot.sum(-1)
+    centre = np.einsum("bgn,bnk->bgk", one_hot, agent_pos) / np.maximum(size, 1)[..., None]
+    centre_dist = np.linalg.norm(centre - adversary_pos[:, None, :], axis=-1)
+    if rule == "r_largest":
+        # Largest group first, ties broken by distance (a distance below 1e6 m never outweighs size).
+        score = np.where(size > 0, size * 1e6 - centre_dist, -np.inf)
+        return centre[np.arange(b), score.argmax(axis=-1)]
+    if rule == "nearest_group":
+        eligible = size >= 3
+        best = np.where(eligible, centre_dist, np.inf).argmin(axis=-1)
+        return np.where(eligible.any(-1)[:, None], centre[np.arange(b), best], nearest_agent)
+    raise ValueError(f"unknown adversary rule {rule!r}")
+
+
+def pursuit_acceleration(
+    goal: np.ndarray, position: np.ndarray, velocity: np.ndarray, speed_max: float, accel_max: float, dt: float
+) -> np.ndarray:
+    """Acceleration [B, 2] that turns the velocity towards speed_max along goal - position,
+    per-axis clipped to accel_max."""
+    offset = goal - position
+    dist = np.linalg.norm(offset, axis=-1, keepdims=True)
+    desired = speed_max * offset / np.maximum(dist, 1e-9)
+    return np.clip((desired - velocity) / dt, -accel_max, accel_max)

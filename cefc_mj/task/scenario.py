@@ -1,0 +1,120 @@
+"""Seeded scenario sampling: starts, targets, anchors, obstacles (DESIGN §4).
+
+Everything is drawn from one `numpy.random.Generator`, batched over envs; rejection sampling loops
+over slots (agents, obstacles) and vectorizes over envs. A placement that keeps failing raises
+`ConfigError` instead of hanging.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from cefc_mj.errors import ConfigError
+from cefc_mj.task.config import TaskConfig
+
+MAX_TRIES = 2000
+TARGET_CORNER_SIGNS = np.array([[-1.0, -1.0], [-1.0, 1.0], [1.0, -1.0], [1.0, 1.0]])
+
+
+@dataclass
+class Scenario:
+    """One batch of episode layouts. Arrays are [B, ...]."""
+
+    agent_pos: np.ndarray
+    """[B, N, 2] start positions."""
+    adversary_pos: np.ndarray
+    """[B, 2] adversary start."""
+    obstacles: np.ndarray
+    """[B, K, 2] obstacle centres."""
+    targets: np.ndarray
+    """[B, J, 2] target centres (J = n_targets; J = 0 in formation mode)."""
+    anchor: np.ndarray
+    """[B, 2] anchor point of the low-level game."""
+
+
+def _place(rng, count_envs, low, high, ok, what, arg):
+    """Draw one point per env in [low, high]^2 until ok(points, active) holds for every env."""
+    points = np.empty((count_envs, 2))
+    pending = np.ones(count_envs, dtype=bool)
+    for _ in range(MAX_TRIES):
+        idx = np.flatnonzero(pending)
+        if idx.size == 0:
+            return points
+        candidate = rng.uniform(low, high, size=(idx.size, 2))
+        good = ok(candidate, idx)
+        points[idx[good]] = candidate[good]
+        pending[idx[good]] = False
+    raise ConfigError(f"{arg}: could not place {what} after {MAX_TRIES} tries; lower the density or enlarge the arena")
+
+
+def sample_starts(cfg: TaskConfig, rng: np.random.Generator, n_envs: int) -> np.ndarray:
+    """Start positions [B, N, 2] uniform in [-s, s]^2, pairwise at least start_min_spacing apart."""
+    pos = np.empty((n_envs, cfg.n_agents, 2))
+    s = cfg.start_half_size
+    for i in range(cfg.n_agents):
+        placed = pos[:, :i]
+
+        def ok(candidate, idx, placed=placed):
+            if placed.shape[1] == 0:
+                return np.ones(len(idx), dtype=bool)
+            d = np.linalg.norm(placed[idx] - candidate[:, None, :], axis=-1)
+            return (d >= cfg.start_min_spacing).all(axis=-1)
+
+        pos[:, i] = _place(rng, n_envs, -s, s, ok, f"start position of agent {i}", "n_agents")
+    return pos
+
+
+def sample_obstacles(cfg: TaskConfig, rng: np.random.Generator, anchor: np.ndarray, targets: np.ndarray) -> np.ndarray:
+    """Obstacle centres [B, K, 2], clear of the start square, the anchor, the targets' centres
+    and each other."""
+    n_envs = anchor.shape[0]
+    k = cfg.n_obstacles
+    obstacles = np.empty((n_envs, k, 2))
+    keep_out = cfg.start_half_size + cfg.obstacle_radius + cfg.uav_radius
+    min_centre_dist = 2 * cfg.obstacle_radius + cfg.obstacle_min_gap
+    edge = cfg.arena_half_size - cfg.obstacle_radius
+    for j in range(k):
+        placed = obstacles[:, :j]
+
+        def ok(candidate, idx, placed=placed):
+            good = np.abs(candidate).max(axis=-1) > keep_out
+            good &= np.linalg.norm(candidate - anchor[idx], axis=-1) >= cfg.anchor_clearance
+            if targets.shape[1]:
+                good &= (np.linalg.norm(candidate[:, None] - targets[idx], axis=-1) >= cfg.anchor_clearance).all(-1)
+            if j:
+                good &= (np.linalg.norm(placed[idx] - candidate[:, None], axis=-1) >= min_centre_dist).all(-1)
+            return good
+
+        obstacles[:, j] = _place(rng, n_envs, -edge, edge, ok, f"obstacle {j + 1} of {k}", "obstacle_density")
+    return obstacles
+
+
+def sample_anchor(cfg: TaskConfig, rng: np.random.Generator, obstacles: np.ndarray | None, n_envs: int) -> np.ndarray:
+    """Anchor points [B, 2] uniform in [-h, h]^2, at least anchor_clearance from every obstacle."""
+    h = cfg.anchor_half_size
+
+    def ok(candidate, idx):
+        if obstacles is None or obstacles.shape[1] == 0:
+            return np.ones(len(idx), dtype=bool)
+        d = np.linalg.norm(obstacles[idx] - candidate[:, None], axis=-1)
+        return (d >= cfg.anchor_clearance).all(-1)
+
+    return _place(rng, n_envs, -h, h, ok, "an anchor clear of the obstacles", "obstacle_density")
+
+
+def sample_scenario(cfg: TaskConfig, rng: np.random.Generator, n_envs: int) -> Scenario:
+    """Sample B independent episode layouts from one generator."""
+    agent_pos = sample_starts(cfg, rng, n_envs)
+    if cfg.mode == "cefc":
+        choice = np.argsort(rng.random((n_envs, 4)), axis=-1)[:, : cfg.n_targets]
+        targets = TARGET_CORNER_SIGNS[choice] * cfg.target_corner
+    else:
+        targets = np.zeros((n_envs, 0, 2))
+    # The anchor is drawn first (obstacles keep clear of it); later redraws avoid the obstacles.
+    anchor = sample_anchor(cfg, rng, None, n_envs)
+    obstacles = sample_obstacles(cfg, rng, anchor, targets)
+    adversary_pos = np.broadcast_to(np.asarray(cfg.adversary_start, dtype=float), (n_envs, 2)).copy()
+    adversary_pos[:, 0] += rng.uniform(-cfg.start_half_size, cfg.start_half_size, size=n_envs)
+    return Scenario(agent_pos=agent_pos, adversary_pos=adversary_pos, obstacles=obstacles, targets=targets, anchor=anchor)

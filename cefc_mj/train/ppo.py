@@ -1,0 +1,104 @@
+"""The PPO pieces, as small pure functions checked against hand-computed values in tests/test_ppo.py.
+
+- `compute_gae`: generalized advantage estimation with time-limit truncation handled by
+  bootstrapping from the value of the episode's final state.
+- `clipped_policy_loss`: the clipped surrogate of paper eq. (6) with PPO's health statistics.
+- `ValueNorm`: running mean/variance of return targets; the critic predicts normalized returns.
+- `explained_variance`.
+"""
+
+from __future__ import annotations
+
+import torch
+
+
+def compute_gae(
+    rewards: torch.Tensor,
+    values: torch.Tensor,
+    next_values: torch.Tensor,
+    episode_end: torch.Tensor,
+    gamma: float,
+    lam: float,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Advantages and return targets, both [T, B], for rewards [T, B] collected over T steps.
+
+    values[t] = V(s_t); next_values[t] = V(s_{t+1}), where s_{t+1} is the state the step led to
+    (for a step that ended an episode: the episode's final state, before any reset). episode_end[t]
+    marks such steps; the advantage recursion does not cross them:
+
+        delta_t = r_t + gamma V(s_{t+1}) - V(s_t)
+        A_t     = delta_t + gamma lam (1 - end_t) A_{t+1}
+
+    Episodes in this task end only by the time limit, so the final state is always bootstrapped
+    (a truncation, not a termination). Returns = A + V.
+    """
+    steps = rewards.shape[0]
+    deltas = rewards + gamma * next_values - values
+    continues = 1.0 - episode_end.to(rewards.dtype)
+    advantages = torch.zeros_like(rewards)
+    running = torch.zeros_like(rewards[0])
+    for t in reversed(range(steps)):
+        running = deltas[t] + gamma * lam * continues[t] * running
+        advantages[t] = running
+    return advantages, advantages + values
+
+
+def clipped_policy_loss(
+    new_logp: torch.Tensor, old_logp: torch.Tensor, advantages: torch.Tensor, clip_eps: float
+) -> tuple[torch.Tensor, dict[str, float]]:
+    """-E[min(beta A, clip(beta, 1 - eps, 1 + eps) A)] with beta = exp(new - old).
+
+    Returns (loss, stats) with stats approx_kl (the low-variance estimator E[(beta - 1) - log beta])
+    and clipfrac (share of samples with |beta - 1| > eps).
+    """
+    log_ratio = new_logp - old_logp
+    ratio = log_ratio.exp()
+    unclipped = ratio * advantages
+    clipped = ratio.clamp(1.0 - clip_eps, 1.0 + clip_eps) * advantages
+    loss = -torch.min(unclipped, clipped).mean()
+    with torch.no_grad():
+        approx_kl = ((ratio - 1.0) - log_ratio).mean().item()
+        clipfrac = ((ratio - 1.0).abs() > clip_eps).float().mean().item()
+    return loss, {"approx_kl": approx_kl, "clipfrac": clipfrac}
+
+
+class ValueNorm(torch.nn.Module):
+    """Running mean and variance of return targets (exact, over every target seen so far, merged
+    batch by batch with the parallel-variance formula). The critic regresses normalize(returns);
+    its outputs are denormalized before GAE. The statistics are buffers, so they travel with
+    `state_dict()` into checkpoints."""
+
+    def __init__(self, epsilon: float = 1e-5):
+        super().__init__()
+        self.epsilon = epsilon
+        self.register_buffer("mean", torch.zeros((), dtype=torch.float64))
+        self.register_buffer("var", torch.ones((), dtype=torch.float64))
+        self.register_buffer("count", torch.zeros((), dtype=torch.float64))
+
+    @torch.no_grad()
+    def update(self, x: torch.Tensor) -> None:
+        x = x.detach().to(torch.float64).flatten()
+        batch_mean, batch_var, n = x.mean(), x.var(unbiased=False), x.numel()
+        total = self.count + n
+        delta = batch_mean - self.mean
+        m2 = self.var * self.count + batch_var * n + delta**2 * self.count * n / total
+        self.mean.copy_(self.mean + delta * n / total)
+        self.var.copy_(m2 / total)
+        self.count.copy_(total)
+
+    def std(self) -> torch.Tensor:
+        return (self.var + self.epsilon).sqrt()
+
+    def normalize(self, x: torch.Tensor) -> torch.Tensor:
+        return ((x.to(torch.float64) - self.mean) / self.std()).to(x.dtype)
+
+    def denormalize(self, x: torch.Tensor) -> torch.Tensor:
+        return (x.to(torch.float64) * self.std() + self.mean).to(x.dtype)
+
+
+def explained_variance(predicted: torch.Tensor, target: torch.Tensor) -> float:
+    """1 - Var[target - predicted] / Var[target]; 1 is perfect, 0 no better than a constant."""
+    var = target.var()
+    if var.item() == 0:
+        return float("nan")
+    return (1.0 - (target - predicted).var() / var).item()
