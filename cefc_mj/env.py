@@ -64,6 +64,8 @@ class BatchedCEFCEnv:
         self.lidar = np.full((b, n, config.n_lidar_rays), config.lidar_range)
         self.labels = np.zeros((b, n), dtype=int)
         self.agent_error = np.full((b, n), np.nan)
+        self.group_size = np.zeros((b, n), dtype=np.int64)
+        self.group_centre = np.zeros((b, n, 2))
         self._obs = np.zeros((b, n, self.layout.size), dtype=np.float32)
 
     # ------------------------------------------------------------------ reset
@@ -91,6 +93,7 @@ class BatchedCEFCEnv:
         self.prev_formation_reward[mask] = 0.0
         for total in self.metric_sums.values():
             total[mask] = 0.0
+        self._groups(self.world.agent_pos)
         self._observe(mask)
         return self._obs
 
@@ -112,7 +115,9 @@ class BatchedCEFCEnv:
         actions = np.clip(actions, -cfg.accel_max, cfg.accel_max)
 
         if cfg.mode == "cefc" and cfg.adversary != "none":
-            goal = adversary_goal(cfg.adversary, self.world.adversary_pos, self.world.agent_pos, self.labels)
+            goal = adversary_goal(
+                cfg.adversary, self.world.adversary_pos, self.world.agent_pos, self.group_size, self.group_centre
+            )
             adversary_accel = pursuit_acceleration(
                 goal, self.world.adversary_pos, self.world.adversary_vel, cfg.adversary_speed_max, cfg.accel_max, cfg.dt
             )
@@ -139,15 +144,13 @@ class BatchedCEFCEnv:
     # ------------------------------------------------------------------ pieces
     def _groups(self, pos):
         """Group labels, per-group HD error [B,G], sizes [B,G] and centres [B,G,2] from true positions."""
-        n = self.n_agents
         if self.config.mode == "formation":
-            self.labels = np.zeros((self.n_envs, n), dtype=int)
+            self.labels = np.zeros((self.n_envs, self.n_agents), dtype=np.int64)
         else:
             self.labels = connected_groups(pos, self.config.observation_distance)
-        error, size = group_formation_error(pos, self.labels, self.config.formation_spacing)
-        one_hot = self.labels[:, None, :] == np.arange(n)[None, :, None]
-        centre = np.einsum("bgn,bnk->bgk", one_hot, pos) / np.maximum(size, 1)[..., None]
+        error, size, centre = group_formation_error(pos, self.labels, self.config.formation_spacing)
         self.agent_error = agent_group_error(error, self.labels)
+        self.group_size, self.group_centre = size, centre
         return error, size, centre
 
     def _observe(self, mask: np.ndarray) -> None:
@@ -188,7 +191,7 @@ class BatchedCEFCEnv:
 
     def _accumulate_metrics(self, pos) -> None:
         cfg = self.config
-        in_formation = np.nan_to_num(self.agent_error, nan=np.inf) < cfg.formation_tolerance
+        in_formation = self.agent_error < cfg.formation_tolerance  # NaN (no formation group) compares False
         self.metric_sums["F"] += in_formation.mean(axis=-1)
         self.metric_sums["N"] += np.linalg.norm(pos.mean(axis=1) - self.anchor, axis=-1) < cfg.navigation_tolerance
         self.metric_sums["C"] += self.world.collisions().sum(axis=-1)

@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from cefc_mj.task.config import TaskConfig
+from cefc_mj.task.kernels import particle_step_kernel
 from cefc_mj.task.lidar import lidar_ranges
 
 
@@ -53,37 +54,12 @@ class ParticleWorld:
 
     def step(self, agent_accel: np.ndarray, adversary_accel: np.ndarray) -> None:
         cfg, dt = self.config, self.dt
-        self._vel = clip_speed(self._vel + agent_accel * dt, cfg.speed_max)
-        self._pos = self._pos + self._vel * dt
+        particle_step_kernel(
+            self._pos, self._vel, np.ascontiguousarray(agent_accel, dtype=np.float64), self.obstacles, dt,
+            cfg.speed_max, cfg.obstacle_radius + cfg.uav_radius, 2 * cfg.uav_radius, self._collided,
+        )
         self._adv_vel = clip_speed(self._adv_vel + adversary_accel * dt, cfg.adversary_speed_max)
         self._adv_pos = self._adv_pos + self._adv_vel * dt
-        self._collided = self._agent_overlap()
-        if self.obstacles.shape[1]:
-            self._resolve_obstacle_contacts()
-
-    def _agent_overlap(self) -> np.ndarray:
-        diff = self._pos[:, :, None, :] - self._pos[:, None, :, :]
-        d2 = (diff * diff).sum(-1)
-        n = self.n_agents
-        d2[:, np.arange(n), np.arange(n)] = np.inf
-        return (d2 < (2 * self.config.uav_radius) ** 2).any(-1)
-
-    def _resolve_obstacle_contacts(self) -> None:
-        contact_dist = self.config.obstacle_radius + self.config.uav_radius
-        offset = self._pos[:, :, None, :] - self.obstacles[:, None, :, :]  # [B, N, K, 2]
-        dist = np.sqrt((offset * offset).sum(-1))
-        nearest = dist.argmin(-1)  # obstacles are >= 2 r_uav apart: one contact at a time
-        d = np.take_along_axis(dist, nearest[..., None], -1)[..., 0]
-        hit = d < contact_dist
-        if not hit.any():
-            return
-        self._collided |= hit
-        normal = np.take_along_axis(offset, nearest[..., None, None], 2)[:, :, 0] / np.maximum(d, 1e-9)[..., None]
-        centre = np.take_along_axis(self.obstacles[:, None], nearest[..., None, None], 2)[:, :, 0]
-        surface = centre + normal * contact_dist
-        inward = np.minimum((self._vel * normal).sum(-1), 0.0)
-        self._pos = np.where(hit[..., None], surface, self._pos)
-        self._vel = np.where(hit[..., None], self._vel - inward[..., None] * normal, self._vel)
 
     def lidar(self, origins: np.ndarray) -> np.ndarray:
         cfg = self.config

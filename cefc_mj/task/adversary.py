@@ -11,17 +11,19 @@ from __future__ import annotations
 import numpy as np
 
 
-def adversary_goal(rule: str, adversary_pos: np.ndarray, agent_pos: np.ndarray, labels: np.ndarray) -> np.ndarray:
-    """The point [B, 2] the adversary chases. labels [B, N] are group labels (connected_groups)."""
-    b, n, _ = agent_pos.shape
-    agent_dist = np.linalg.norm(agent_pos - adversary_pos[:, None, :], axis=-1)
-    nearest_agent = agent_pos[np.arange(b), agent_dist.argmin(axis=-1)]
+def adversary_goal(
+    rule: str, adversary_pos: np.ndarray, agent_pos: np.ndarray, group_size: np.ndarray, group_centre: np.ndarray
+) -> np.ndarray:
+    """The point [B, 2] the adversary chases. group_size [B, G] and group_centre [B, G, 2] describe
+    the agents' groups (as returned by `group_formation_error`)."""
+    b = agent_pos.shape[0]
+    offset = agent_pos - adversary_pos[:, None, :]
+    nearest_agent = agent_pos[np.arange(b), (offset * offset).sum(-1).argmin(axis=-1)]
     if rule == "r_nearest":
         return nearest_agent
-    one_hot = labels[:, None, :] == np.arange(n)[None, :, None]  # [B, G, N]
-    size = one_hot.sum(-1)
-    centre = np.einsum("bgn,bnk->bgk", one_hot, agent_pos) / np.maximum(size, 1)[..., None]
-    centre_dist = np.linalg.norm(centre - adversary_pos[:, None, :], axis=-1)
+    size, centre = group_size, group_centre
+    centre_offset = centre - adversary_pos[:, None, :]
+    centre_dist = np.sqrt((centre_offset * centre_offset).sum(-1))
     if rule == "r_largest":
         # Largest group first, ties broken by distance (a distance below 1e6 m never outweighs size).
         score = np.where(size > 0, size * 1e6 - centre_dist, -np.inf)

@@ -10,6 +10,8 @@ import functools
 
 import numpy as np
 
+from cefc_mj.task.kernels import formation_error_kernel, groups_kernel
+
 
 @functools.lru_cache(maxsize=64)
 def _template(c: int, spacing: float) -> np.ndarray:
@@ -49,47 +51,45 @@ def directed_hausdorff(template: np.ndarray, points: np.ndarray, mask: np.ndarra
     return dist.min(axis=-1).max(axis=-1)
 
 
+@functools.lru_cache(maxsize=64)
+def template_table(max_size: int, spacing: float = 1.0) -> np.ndarray:
+    """[max_size+1, max_size, 2] table for the compiled kernel: row c holds Delta_c in its first c rows."""
+    table = np.zeros((max_size + 1, max_size, 2))
+    for c in range(3, max_size + 1):
+        table[c, :c] = formation_template(c, spacing)
+    table.setflags(write=False)
+    return table
+
+
 def connected_groups(positions: np.ndarray, radius: float) -> np.ndarray:
     """Connected components of the graph "distance < radius" per env.
 
     positions [B, N, 2] -> labels [B, N] int, each component labelled by its smallest member index
     (so labels are stable and comparable across steps).
     """
-    b, n, _ = positions.shape
-    diff = positions[:, :, None, :] - positions[:, None, :, :]
-    adjacency = np.einsum("bijk,bijk->bij", diff, diff) < radius * radius
-    labels = np.broadcast_to(np.arange(n), (b, n)).copy()
-    # Min-label propagation over the adjacency: converges in at most n - 1 rounds.
-    for _ in range(max(n - 1, 0)):
-        candidate = np.where(adjacency, labels[:, None, :], n).min(axis=-1)
-        if np.array_equal(candidate, labels):
-            break
-        labels = candidate
+    labels = np.empty(positions.shape[:2], dtype=np.int64)
+    groups_kernel(np.ascontiguousarray(positions, dtype=np.float64), float(radius), labels)
     return labels
 
 
 def group_formation_error(
     positions: np.ndarray, labels: np.ndarray, spacing: float = 1.0, min_size: int = 3
-) -> tuple[np.ndarray, np.ndarray]:
-    """Per-group Hausdorff formation error.
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per-group Hausdorff formation error HD(Delta_{n_g}, P_g) of the centred members.
 
     positions [B, N, 2], labels [B, N] (from `connected_groups`, or all zeros for "one group").
-    Returns (error [B, N], group_size [B, N]): error[b, g] is HD(Delta_{n_g}, P_g) for the group
-    labelled g (indexed by its label), NaN where label g is unused or the group has fewer than
-    `min_size` members; group_size[b, g] is that group's size (0 where unused).
+    Returns (error [B, G], size [B, G], centre [B, G, 2]) with G = N, indexed by group label:
+    error is NaN where a label is unused or its group has fewer than `min_size` members.
     """
     b, n, _ = positions.shape
-    one_hot = labels[:, None, :] == np.arange(n)[None, :, None]  # [B, G=N, N]
-    size = one_hot.sum(axis=-1)
-    centre = np.einsum("bgn,bnk->bgk", one_hot, positions) / np.maximum(size, 1)[..., None]
-    centred = positions[:, None, :, :] - centre[:, :, None, :]  # [B, G, N, 2]
-    error = np.full((b, n), np.nan)
-    for c in np.unique(size):
-        if c < min_size:
-            continue
-        sel = size == c
-        error[sel] = directed_hausdorff(formation_template(int(c), spacing)[None], centred[sel], one_hot[sel])
-    return error, size
+    error = np.empty((b, n))
+    size = np.empty((b, n), dtype=np.int64)
+    centre = np.empty((b, n, 2))
+    formation_error_kernel(
+        np.ascontiguousarray(positions, dtype=np.float64), np.ascontiguousarray(labels, dtype=np.int64),
+        template_table(n, float(spacing)), min_size, error, size, centre,
+    )
+    return error, size, centre
 
 
 def agent_group_error(error: np.ndarray, labels: np.ndarray) -> np.ndarray:

@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from cefc_mj.task.config import TaskConfig
+from cefc_mj.task.kernels import neighbours_kernel
 
 
 @dataclass(frozen=True)
@@ -70,27 +71,18 @@ def layout_for(cfg: TaskConfig) -> ObservationLayout:
 def neighbour_features(
     perceived_pos: np.ndarray, velocity: np.ndarray, slots: int, observation_distance: float
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Neighbours sorted by perceived distance, nearest first, padded to `slots`.
+    """Neighbours sorted by perceived distance, nearest first (ties by index), padded to `slots`.
 
     perceived_pos, velocity [B, N, 2] -> (features [B, N, slots, 4] = (p_j - p_i, v_j - v_i),
     mask [B, N, slots] float, 1 for a neighbour closer than observation_distance).
     """
     b, n, _ = perceived_pos.shape
-    rel_pos = perceived_pos[:, None, :, :] - perceived_pos[:, :, None, :]  # [B, i, j, 2]
-    rel_vel = velocity[:, None, :, :] - velocity[:, :, None, :]
-    dist = np.sqrt((rel_pos * rel_pos).sum(-1))
-    dist[:, np.arange(n), np.arange(n)] = np.inf
-    take = min(slots, n - 1)
-    order = np.argsort(dist, axis=-1, kind="stable")[:, :, :take]  # [B, N, take]
-    near = np.take_along_axis(dist, order, axis=-1) < observation_distance
-    feats = np.concatenate(
-        [np.take_along_axis(rel_pos, order[..., None], axis=2), np.take_along_axis(rel_vel, order[..., None], axis=2)],
-        axis=-1,
-    ) * near[..., None]
-    features = np.zeros((b, n, slots, 4))
-    mask = np.zeros((b, n, slots))
-    features[:, :, :take] = feats
-    mask[:, :, :take] = near
+    features = np.empty((b, n, slots, 4))
+    mask = np.empty((b, n, slots))
+    neighbours_kernel(
+        np.ascontiguousarray(perceived_pos, dtype=np.float64), np.ascontiguousarray(velocity, dtype=np.float64),
+        int(slots), float(observation_distance), features, mask,
+    )
     return features, mask
 
 

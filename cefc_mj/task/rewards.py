@@ -40,7 +40,7 @@ def target_coverage(
 
     group_error, group_size [B, G]; group_centre [B, G, 2]; targets [B, J, 2].
     """
-    in_formation = np.nan_to_num(group_error, nan=np.inf) < formation_tolerance  # [B, G]
+    in_formation = group_error < formation_tolerance  # [B, G]; NaN (not a formation group) compares False
     inside = np.linalg.norm(group_centre[:, :, None, :] - targets[:, None, :, :], axis=-1) < target_radius
     return (inside * (in_formation * group_size)[:, :, None]).sum(axis=1).astype(float)
 
