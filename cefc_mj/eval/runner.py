@@ -1,0 +1,221 @@
+"""Run evaluation episodes: a low-level policy flies the Table VIII game in either backend.
+
+The Table VIII episode (DESIGN §6): one group of c UAVs, no adversary or targets, obstacles at
+0.03 per m^2, 1000 decision steps, the anchor redrawn every 250 steps, under a wind and/or sensing
+deviation condition. `run_episode` returns the episode's metrics and, on request, an
+`EpisodeRecord` for Rerun and the top-down plot.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+import torch
+
+from cefc_mj import make_world
+from cefc_mj.env import BatchedCEFCEnv
+from cefc_mj.errors import ConfigError, SimulationDiverged
+from cefc_mj.eval.record import EpisodeRecord, airframe_parts_from_mjcf
+from cefc_mj.nn.policy_io import Policy, load_policy
+from cefc_mj.paths import MJCF_DIR
+from cefc_mj.task.config import TaskConfig
+from cefc_mj.task.formation import formation_template
+
+TABLE8_DENSITY = 0.03
+TABLE8_STEPS = 1000
+TABLE8_ANCHOR_REDRAW = 250
+TABLE8_FORMATIONS = (5, 6, 7, 8)
+FLIGHT_ALTITUDE = 2.0
+OBSTACLE_HEIGHT = 4.0
+
+CONDITIONS: dict[str, tuple[float, float]] = {
+    "SITL-S": (0.0, 0.0),
+    "Wind-3": (3.0, 0.0),
+    "Wind-5": (5.0, 0.0),
+    "Wind-8": (8.0, 0.0),
+    "Deviation-0.3": (0.0, 0.3),
+    "Deviation-0.5": (0.0, 0.5),
+    "Deviation-0.8": (0.0, 0.8),
+}
+"""Table VIII conditions: name -> (mean wind speed m/s, sensing deviation m). SITL-M is separate."""
+
+
+def condition_name(wind: float, deviation: float) -> str:
+    """The paper's name for a condition ("SITL-S", "Wind-8", "Deviation-0.5") or a combined one."""
+    parts = []
+    if wind:
+        parts.append(f"Wind-{wind:g}")
+    if deviation:
+        parts.append(f"Deviation-{deviation:g}")
+    return "+".join(parts) if parts else "SITL-S"
+
+
+def policy_name_for(policy: str, formation: int) -> str:
+    """Resolve a policy choice for formation c: "atm" -> the AT-M Step 3 policy of c, "safe" ->
+    AT-M-Safe of c, "student" -> the distilled student; anything else is a name or path."""
+    aliases = {"atm": f"atm_c{formation}_step3", "safe": f"atm_c{formation}_safe", "student": "atm_student"}
+    return aliases.get(policy, policy)
+
+
+@dataclass(frozen=True)
+class EpisodeSpec:
+    """One evaluation episode."""
+
+    formation: int
+    """c: number of UAVs in the group."""
+    seed: int
+    """Seeds the scenario, the sensing noise and the wind."""
+    backend: str = "mujoco"
+    """"mujoco" (quadrotors) or "particle"."""
+    wind: float = 0.0
+    """Mean wind speed (m/s), MuJoCo only."""
+    deviation: float = 0.0
+    """Sensing deviation d (m)."""
+    steps: int = TABLE8_STEPS
+    """Decision steps (0.1 s each)."""
+    policy: str = "atm"
+    """Policy choice (see policy_name_for)."""
+
+    @property
+    def condition(self) -> str:
+        return condition_name(self.wind, self.deviation)
+
+    def task_config(self) -> TaskConfig:
+        return TaskConfig(
+            n_agents=self.formation, mode="formation", obstacle_density=TABLE8_DENSITY, episode_steps=self.steps,
+            anchor_redraw_steps=TABLE8_ANCHOR_REDRAW, deviation=self.deviation,
+        )
+
+
+@dataclass
+class EpisodeResult:
+    """Metrics of one episode (F, N in steps; C in % of agent-steps), plus bookkeeping."""
+
+    spec: EpisodeSpec
+    F: float
+    N: float
+    C: float
+    steps: int
+    wall_s: float
+    diverged: str | None = None
+    """The cause, if the simulation diverged and the episode was stopped early."""
+    record: EpisodeRecord | None = field(default=None, repr=False)
+
+    def to_dict(self) -> dict:
+        out = {k: v for k, v in asdict(self).items() if k not in ("record", "spec")}
+        out.update(asdict(self.spec), condition=self.spec.condition)
+        return out
+
+
+def run_episode(spec: EpisodeSpec, policy: Policy | None = None, record: bool = False) -> EpisodeResult:
+    """Fly one episode. `policy` defaults to loading `spec.policy` for `spec.formation`."""
+    torch.set_num_threads(1)
+    config = spec.task_config()
+    if policy is None:
+        policy = load_policy(policy_name_for(spec.policy, spec.formation))
+    world = make_world(spec.backend, config, n_envs=1, wind=spec.wind, seed=spec.seed)
+    env = BatchedCEFCEnv(config, n_envs=1, seed=spec.seed, world=world)
+    if policy.obs_dim != env.layout.size:
+        raise ConfigError(
+            f"policy {policy.name!r} was trained for observations of size {policy.obs_dim}; "
+            f"this env gives {env.layout.size}"
+        )
+    recorder = _Recorder(env, spec) if record else None
+    start = time.perf_counter()
+    obs = env.reset()
+    diverged = None
+    info: dict = {}
+    for _ in range(spec.steps):
+        try:
+            obs, _, done, info = env.step(policy.act(obs))
+        except SimulationDiverged as e:
+            diverged = str(e)
+            break
+        if recorder is not None:
+            recorder.capture()
+        if done[0]:
+            break
+    metrics = info.get("metrics") or env.episode_metrics()
+    return EpisodeResult(
+        spec=spec,
+        F=float(metrics["F"][0]),
+        N=float(metrics["N"][0]),
+        C=float(metrics["C"][0]),
+        steps=int(env.t[0]),
+        wall_s=time.perf_counter() - start,
+        diverged=diverged,
+        record=recorder.finish() if recorder is not None and int(env.t[0]) > 0 else None,
+    )
+
+
+class _Recorder:
+    """Collects an EpisodeRecord step by step from the env (true states, perceived LiDAR origins)."""
+
+    def __init__(self, env: BatchedCEFCEnv, spec: EpisodeSpec):
+        self.env = env
+        self.spec = spec
+        self.rows: dict[str, list] = {k: [] for k in (
+            "agent_pos", "agent_quat", "agent_vel", "anchor", "lidar_origins", "lidar_ranges", "group_id",
+            "template_world", "collision", "hd_error", "anchor_distance", "wind_speed", "F", "N", "C")}
+        n = env.n_agents
+        self.template = formation_template(n, env.config.formation_spacing) if n >= 3 else None
+
+    def capture(self) -> None:
+        env, world, rows = self.env, self.env.world, self.rows
+        n = env.n_agents
+        pos3 = getattr(world, "body_pos", None)
+        if pos3 is not None:
+            rows["agent_pos"].append(np.asarray(pos3)[0].copy())
+            rows["agent_quat"].append(np.asarray(world.body_quat)[0].copy())
+        else:
+            rows["agent_pos"].append(np.concatenate([world.agent_pos[0], np.full((n, 1), FLIGHT_ALTITUDE)], -1))
+            rows["agent_quat"].append(np.tile([1.0, 0.0, 0.0, 0.0], (n, 1)))
+        rows["agent_vel"].append(world.agent_vel[0].copy())
+        rows["anchor"].append(env.anchor[0].copy())
+        rows["lidar_origins"].append(env.perceived_pos[0].copy())
+        rows["lidar_ranges"].append(env.lidar[0].copy())
+        rows["group_id"].append(env.labels[0].copy())
+        centre = world.agent_pos[0].mean(axis=0)
+        rows["template_world"].append(centre + self.template)
+        rows["collision"].append(world.collisions()[0].copy())
+        rows["hd_error"].append(float(env.agent_error[0, 0]))
+        rows["anchor_distance"].append(float(np.linalg.norm(centre - env.anchor[0])))
+        wind = getattr(world, "wind_speed", None)
+        rows["wind_speed"].append(float(np.asarray(wind).reshape(-1)[0]) if wind is not None else 0.0)
+        metrics = env.episode_metrics()
+        for key in ("F", "N", "C"):
+            rows[key].append(float(metrics[key][0]))
+
+    def finish(self) -> EpisodeRecord:
+        env, rows = self.env, self.rows
+        arr = {k: np.asarray(v) for k, v in rows.items()}
+        airframe = MJCF_DIR / "iris.xml"
+        return EpisodeRecord(
+            backend=self.spec.backend, condition=self.spec.condition, formation=self.spec.formation,
+            seed=self.spec.seed, dt=env.config.dt, flight_altitude=FLIGHT_ALTITUDE,
+            agent_pos=arr["agent_pos"], agent_quat=arr["agent_quat"], agent_vel=arr["agent_vel"],
+            obstacles=env.obstacles[0], obstacle_radius=env.config.obstacle_radius, obstacle_height=OBSTACLE_HEIGHT,
+            anchor=arr["anchor"], targets=np.zeros((0, 2)), lidar_origins=arr["lidar_origins"],
+            lidar_ranges=arr["lidar_ranges"], lidar_range=env.config.lidar_range, group_id=arr["group_id"],
+            template_world=arr["template_world"], collision=arr["collision"],
+            scalars={
+                "hd_error": arr["hd_error"], "anchor_distance": arr["anchor_distance"], "wind_speed": arr["wind_speed"],
+                "F_so_far": arr["F"], "N_so_far": arr["N"], "C_so_far": arr["C"],
+            },
+            airframe_parts=airframe_parts_from_mjcf(airframe) if airframe.is_file() else [],
+        )
+
+
+def summarize(results: list[EpisodeResult]) -> dict[str, float]:
+    """Mean F, N, C over episodes (and how many there were)."""
+    if not results:
+        return {"F": math.nan, "N": math.nan, "C": math.nan, "episodes": 0}
+    return {
+        "F": float(np.mean([r.F for r in results])),
+        "N": float(np.mean([r.N for r in results])),
+        "C": float(np.mean([r.C for r in results])),
+        "episodes": len(results),
+    }
