@@ -118,16 +118,15 @@ def main(argv: list[str] | None = None) -> int:
 def _single(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from cefc_mj.eval.runner import EpisodeSpec, condition_name, policy_name_for, run_episode, summarize
+    from cefc_mj.eval.runner import EpisodeSpec, condition_name, load_policy_for, run_episode, summarize
     from cefc_mj.eval.table8 import paper_table8, write_atomic
-    from cefc_mj.nn.policy_io import load_policy
 
     formations = args.formation or [5, 6, 7, 8]
     episodes = args.episodes or 1
     steps = args.steps or 1000
     condition = condition_name(args.wind, args.deviation)
     conditions = [(args.wind, args.deviation)] + ([(0.0, 0.0)] if condition != "SITL-S" else [])
-    policies = {c: load_policy(policy_name_for(args.policy, c)) for c in formations}  # fail before flying
+    policies = {c: load_policy_for(args.policy, c) for c in formations}  # fail before flying
     seeds = list(range(args.seed, args.seed + episodes))
     print(f"cefc-eval: {args.backend}, condition {condition}, policy {args.policy}, c = {formations}, "
           f"seeds {seeds}, {steps} steps per episode")
@@ -199,16 +198,15 @@ def _table8(args: argparse.Namespace, argv: list[str] | None) -> int:
     from tqdm import tqdm
 
     from cefc_mj import paths
-    from cefc_mj.eval.runner import policy_name_for
+    from cefc_mj.eval.runner import load_policy_for
     from cefc_mj.eval.table8 import (aggregate, report_csv, report_markdown, report_plot, run_grid, table8_specs,
                                      write_atomic)
-    from cefc_mj.nn.policy_io import load_policy
 
     formations = args.formation or [5, 6, 7, 8]
     episodes = args.episodes or 5
     steps = args.steps or 1000
     for c in formations:
-        load_policy(policy_name_for(args.policy, c))  # a missing checkpoint fails before the pool starts
+        load_policy_for(args.policy, c)  # a missing or misfit checkpoint fails before the pool starts
     out = args.report_dir or (paths.EVAL_DIR / "reports")
     specs = table8_specs(formations, episodes, args.seed, steps, args.backend, args.policy)
     cell_file = out / f"table8_cells_{args.backend}.jsonl"
@@ -258,6 +256,7 @@ def _emit_record(record, recording, png_dir: Path | None) -> None:
     if png_dir is not None:
         from cefc_mj.viz.plots import plot_episode
 
+        png_dir.mkdir(parents=True, exist_ok=True)
         plot_episode(record, png_dir / f"episode_c{record.formation}_{record.condition}_s{record.seed}.png")
 
 

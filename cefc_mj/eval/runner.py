@@ -23,6 +23,7 @@ from cefc_mj.nn.policy_io import Policy, load_policy
 from cefc_mj.paths import MJCF_DIR
 from cefc_mj.task.config import TaskConfig
 from cefc_mj.task.formation import formation_template
+from cefc_mj.task.observation import layout_for
 
 TABLE8_DENSITY = 0.03
 TABLE8_STEPS = 1000
@@ -58,6 +59,18 @@ def policy_name_for(policy: str, formation: int) -> str:
     AT-M-Safe of c, "student" -> the distilled student; anything else is a name or path."""
     aliases = {"atm": f"atm_c{formation}_step3", "safe": f"atm_c{formation}_safe", "student": "atm_student"}
     return aliases.get(policy, policy)
+
+
+def load_policy_for(choice: str, formation: int) -> Policy:
+    """Load the policy `choice` for formation c and check that it reads this game's observations."""
+    policy = load_policy(policy_name_for(choice, formation))
+    expected = layout_for(EpisodeSpec(formation=formation, seed=0).task_config()).size
+    if policy.obs_dim != expected:
+        raise ConfigError(
+            f"policy {policy.name!r} was trained for observations of size {policy.obs_dim}; "
+            f"the c = {formation} game gives {expected}"
+        )
+    return policy
 
 
 @dataclass(frozen=True)
@@ -115,14 +128,9 @@ def run_episode(spec: EpisodeSpec, policy: Policy | None = None, record: bool = 
     torch.set_num_threads(1)
     config = spec.task_config()
     if policy is None:
-        policy = load_policy(policy_name_for(spec.policy, spec.formation))
+        policy = load_policy_for(spec.policy, spec.formation)
     world = make_world(spec.backend, config, n_envs=1, wind=spec.wind, seed=spec.seed)
     env = BatchedCEFCEnv(config, n_envs=1, seed=spec.seed, world=world)
-    if policy.obs_dim != env.layout.size:
-        raise ConfigError(
-            f"policy {policy.name!r} was trained for observations of size {policy.obs_dim}; "
-            f"this env gives {env.layout.size}"
-        )
     recorder = _Recorder(env, spec) if record else None
     start = time.perf_counter()
     obs = env.reset()

@@ -10,14 +10,19 @@ is the slow, obvious numpy version the tests compare it with.
 
 from __future__ import annotations
 
+import functools
+
 import numba
 import numpy as np
 
 
+@functools.lru_cache(maxsize=16)
 def beam_directions(n_rays: int) -> np.ndarray:
-    """Unit beam directions [M, 2]; beam k at angle 2 pi k / M."""
+    """Unit beam directions [M, 2] (read-only); beam k at angle 2 pi k / M."""
     angles = 2.0 * np.pi * np.arange(n_rays) / n_rays
-    return np.stack([np.cos(angles), np.sin(angles)], axis=-1)
+    directions = np.stack([np.cos(angles), np.sin(angles)], axis=-1)
+    directions.setflags(write=False)
+    return directions
 
 
 @numba.njit(cache=True, fastmath=False)
@@ -26,6 +31,7 @@ def _lidar_kernel(origins, directions, obstacles, obstacle_radius, agents, agent
     n_rays = directions.shape[0]
     n_obstacles = obstacles.shape[1]
     n_bodies = agents.shape[1]
+    beam_step = 2.0 * np.pi / n_rays
     for b in range(n_envs):
         for i in range(n_agents):
             ox = origins[b, i, 0]
@@ -48,17 +54,25 @@ def _lidar_kernel(origins, directions, obstacles, obstacle_radius, agents, agent
                 if cc > (max_range + r) * (max_range + r):
                     continue
                 c_term = cc - r * r
-                for k in range(n_rays):
+                if c_term <= 0.0:  # the origin is inside this circle: every beam reads 0
+                    for k in range(n_rays):
+                        out[b, i, k] = 0.0
+                    continue
+                # Only beams within the circle's angular half-width asin(r / |c|) can hit it; one
+                # extra beam each side guards the rounding at tangency (the exact test decides).
+                centre_angle = np.arctan2(cy, cx)
+                half_width = np.arcsin(r / np.sqrt(cc))
+                first = int(np.floor((centre_angle - half_width) / beam_step))
+                last = int(np.ceil((centre_angle + half_width) / beam_step))
+                for kk in range(first, last + 1):
+                    k = kk % n_rays
                     proj = directions[k, 0] * cx + directions[k, 1] * cy
-                    if c_term <= 0.0:
-                        t = 0.0
-                    else:
-                        if proj <= 0.0:
-                            continue
-                        disc = proj * proj - c_term
-                        if disc < 0.0:
-                            continue
-                        t = proj - np.sqrt(disc)
+                    if proj <= 0.0:
+                        continue
+                    disc = proj * proj - c_term
+                    if disc < 0.0:
+                        continue
+                    t = proj - np.sqrt(disc)
                     if t < out[b, i, k]:
                         out[b, i, k] = t
 
