@@ -130,7 +130,7 @@ def _single(args: argparse.Namespace) -> int:
     seeds = list(range(args.seed, args.seed + episodes))
     print(f"cefc-eval: {args.backend}, condition {condition}, policy {args.policy}, c = {formations}, "
           f"seeds {seeds}, {steps} steps per episode")
-    recording = _open_recording(args)
+    recorded: list[Path] = []
     results: dict[tuple[int, str], list] = {}
     total = len(formations) * len(conditions) * episodes
     try:
@@ -140,13 +140,13 @@ def _single(args: argparse.Namespace) -> int:
                     for seed in seeds:
                         spec = EpisodeSpec(formation=c, seed=seed, backend=args.backend, wind=wind, deviation=dev,
                                            steps=steps, policy=args.policy)
-                        want_record = (recording is not None or args.png is not None) and (wind, dev) == conditions[0]
-                        result = run_episode(spec, policies[c], record=want_record)
+                        want_record = (args.rrd or args.spawn or args.png) and (wind, dev) == conditions[0]
+                        result = run_episode(spec, policies[c], record=bool(want_record))
                         if result.diverged:
                             tqdm.write(f"c={c} seed={seed} {spec.condition}: simulation diverged at step "
                                        f"{result.steps} ({result.diverged}); episode stopped", file=sys.stderr)
                         if result.record is not None:
-                            _emit_record(result.record, recording, args.png)
+                            recorded += _emit_record(result.record, args, many=len(formations) * episodes > 1)
                         results.setdefault((c, spec.condition), []).append(result)
                         bar.update(1)
     finally:
@@ -163,15 +163,9 @@ def _single(args: argparse.Namespace) -> int:
         }
         if args.json is not None:
             write_atomic(args.json, json.dumps(summary, indent=2))
-        if recording is not None:
-            from cefc_mj.viz.rerun_log import close_recording
-
-            close_recording(recording)
     print(_single_table(summary, paper_table8()))
-    if args.json is not None:
-        print(f"wrote {args.json}")
-    if args.rrd is not None:
-        print(f"wrote {args.rrd}  (open with: rerun {args.rrd})")
+    for path in ([args.json] if args.json is not None else []) + recorded:
+        print(f"wrote {path}" + (f"  (open with: rerun {path})" if path.suffix == ".rrd" else ""))
     return 0
 
 
@@ -240,24 +234,30 @@ def _table3(args: argparse.Namespace) -> int:
 
 
 # ---------------------------------------------------------------------------- recording
-def _open_recording(args: argparse.Namespace):
-    if args.rrd is None and not args.spawn:
-        return None
-    from cefc_mj.viz.rerun_log import open_recording
+def _emit_record(record, args: argparse.Namespace, many: bool) -> list[Path]:
+    """Send one episode to Rerun (a recording per episode: `--rrd run.rrd` becomes run_c5_s0.rrd etc.
+    when several episodes are recorded) and/or draw its top-down PNG. Returns the files written."""
+    written: list[Path] = []
+    tag = f"c{record.formation}_s{record.seed}"
+    if args.rrd is not None or args.spawn:
+        from cefc_mj.viz.rerun_log import close_recording, log_episode, open_recording
 
-    return open_recording(rrd_path=args.rrd, spawn=args.spawn)
-
-
-def _emit_record(record, recording, png_dir: Path | None) -> None:
-    if recording is not None:
-        from cefc_mj.viz.rerun_log import log_episode
-
-        log_episode(record, recording)
-    if png_dir is not None:
+        rrd = args.rrd
+        if rrd is not None and many:
+            rrd = rrd.with_name(f"{rrd.stem}_{tag}{rrd.suffix or '.rrd'}")
+        recording = open_recording(rrd_path=rrd, spawn=args.spawn, recording_id=f"{record.condition}_{tag}")
+        try:
+            log_episode(record, recording)
+        finally:
+            close_recording(recording)
+        if rrd is not None:
+            written.append(rrd)
+    if args.png is not None:
         from cefc_mj.viz.plots import plot_episode
 
-        png_dir.mkdir(parents=True, exist_ok=True)
-        plot_episode(record, png_dir / f"episode_c{record.formation}_{record.condition}_s{record.seed}.png")
+        args.png.mkdir(parents=True, exist_ok=True)
+        written.append(plot_episode(record, args.png / f"episode_{record.condition}_{tag}.png"))
+    return written
 
 
 if __name__ == "__main__":
