@@ -174,10 +174,9 @@ class _Recorder:
     def capture(self) -> None:
         env, world, rows = self.env, self.env.world, self.rows
         n = env.n_agents
-        pos3 = getattr(world, "body_pos", None)
-        if pos3 is not None:
-            rows["agent_pos"].append(np.asarray(pos3)[0].copy())
-            rows["agent_quat"].append(np.asarray(world.body_quat)[0].copy())
+        if hasattr(world, "drone_positions"):  # quadrotors: the drones' 3D poses (UAVs come first)
+            rows["agent_pos"].append(world.drone_positions[0, :n].copy())
+            rows["agent_quat"].append(world.drone_quaternions[0, :n].copy())
         else:
             rows["agent_pos"].append(np.concatenate([world.agent_pos[0], np.full((n, 1), FLIGHT_ALTITUDE)], -1))
             rows["agent_quat"].append(np.tile([1.0, 0.0, 0.0, 0.0], (n, 1)))
@@ -191,8 +190,8 @@ class _Recorder:
         rows["collision"].append(world.collisions()[0].copy())
         rows["hd_error"].append(float(env.agent_error[0, 0]))
         rows["anchor_distance"].append(float(np.linalg.norm(centre - env.anchor[0])))
-        wind = getattr(world, "wind_speed", None)
-        rows["wind_speed"].append(float(np.asarray(wind).reshape(-1)[0]) if wind is not None else 0.0)
+        wind = world.wind_vector[0, :2] if hasattr(world, "wind_vector") else np.zeros(2)
+        rows["wind_speed"].append(float(np.linalg.norm(wind)))
         metrics = env.episode_metrics()
         for key in ("F", "N", "C"):
             rows[key].append(float(metrics[key][0]))

@@ -1,0 +1,446 @@
+"""The MuJoCo quadrotor world: MJCF drones flown by the PX4-like cascade (World protocol).
+
+B envs, each its own MjModel copy + MjData: N UAVs (`uav<i>_`) and, unless disabled, one
+adversary quadrotor (`adv_`) are attached from the airframe MJCF into `assets/mjcf/arena.xml` with
+`mujoco.MjSpec`; K obstacles are world-welded cylinders (radius 0.4 m by default, geom group 1) compiled once
+and moved at reset by writing the env's `model.geom_pos` (no recompile). One decision step
+(0.1 s) holds the acceleration setpoints and runs `decision_dt / physics_dt` physics steps; each
+physics step runs the compiled cascade (cefc_mj.control.cascade), then `mj_step`.
+
+- Positions/velocities: the drones' true x-y from qpos/qvel.
+- LiDAR: `mj_multiRay` from the given origins at flight altitude, obstacles (static geoms, so
+  flg_static = 1) and, if lidar_sees_agents, the UAV footprints (group 2), excluding the casting
+  drone's body; the adversary (group 4) is not seen, as in the particle world. An origin inside a
+  circle reads 0 (the particle world's convention; a ray cast from inside a MuJoCo cylinder would
+  report the far wall).
+- Collisions: MuJoCo contacts of a UAV footprint with an obstacle or another UAV footprint at any
+  physics step of the last decision step. The adversary does not collide (the particle world's
+  adversary passes through obstacles too).
+- Divergence: non-finite state, a drone tilted past `flip_tilt_deg`, or a MuJoCo bad-qacc/qpos/qvel
+  warning raises `SimulationDiverged` naming env, drone and time; the env must be reset.
+
+>>> world = MujocoWorld(MujocoWorldConfig(), n_envs=1, n_agents=2, n_obstacles=1, seed=0)
+>>> import numpy as np
+>>> world.reset(np.ones(1, bool), np.array([[[0.0, 0.0], [1.0, 0.0]]]), np.array([[0.0, 5.0]]), np.array([[[3.0, 0.0]]]))
+>>> world.step(np.zeros((1, 2, 2)), np.zeros((1, 2)))
+>>> world.agent_pos.shape, world.lidar(world.agent_pos).shape
+((1, 2, 2), (1, 2, 24))
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from dataclasses import asdict, dataclass
+
+import mujoco
+import numpy as np
+
+from cefc_mj.control.airframe import load_airframe
+from cefc_mj.control.cascade import SP_AX, SP_VMAX, SP_Z, CascadeTiming, Px4Cascade, cascade_step
+from cefc_mj.control.params import load_params, params_path
+from cefc_mj.errors import ConfigError, SimulationDiverged
+from cefc_mj.paths import MJCF_DIR
+from cefc_mj.sim.wind import WindConfig, WindField
+from cefc_mj.task.config import TaskConfig
+
+OBSTACLE_GROUP = 1
+UAV_GROUP = 2
+ADVERSARY_GROUP = 4
+_PARKED = 1.0e3  # where obstacles wait before the first reset (far outside the arena)
+_BAD_STATE_WARNINGS = (mujoco.mjtWarning.mjWARN_BADQACC, mujoco.mjtWarning.mjWARN_BADQPOS, mujoco.mjtWarning.mjWARN_BADQVEL)
+
+
+@dataclass(frozen=True)
+class MujocoWorldConfig:
+    """Physics, controller and scene settings of the MuJoCo backend (validated at construction)."""
+
+    airframe: str = "iris"
+    """Airframe MJCF in assets/mjcf/ (without .xml)."""
+    params: str = "iris"
+    """Controller gains: a name in controllers/ (without .params) or a path to a .params file."""
+    physics_dt: float = 0.002
+    """Physics step (s); 0.002 = 500 Hz (DESIGN §3: 500 Hz or finer)."""
+    decision_dt: float = 0.1
+    """Decision step (s); a multiple of physics_dt."""
+    rate_loop_hz: float = 250.0
+    """Attitude + body-rate loop rate (Hz, >= 250; a divisor of the physics rate)."""
+    position_loop_hz: float = 100.0
+    """Offboard interface + altitude/thrust loop rate (Hz; a divisor of the physics rate)."""
+    flight_altitude: float = 2.0
+    """Altitude the drones hold and the LiDAR casts at (m)."""
+    speed_limit_tau: float = 0.35
+    """Time constant (s) with which the offboard interface pulls a speed that would exceed the limit
+    back onto it (a velocity loop of gain 1/tau, active only at the limit)."""
+    disturbance_tau: float = 0.1
+    """Low-pass time constant (s) of the external-push (wind) estimate the speed limiter cancels."""
+    flip_tilt_deg: float = 90.0
+    """A drone tilted past this angle counts as flipped: SimulationDiverged."""
+    obstacle_height: float = 4.0
+    """Height of the cylinder obstacles (m), from the floor."""
+    gravity: float = 9.81
+    """Gravity (m/s^2)."""
+
+    def validate(self) -> None:
+        """Raise ConfigError naming the first bad field."""
+        load_airframe(self.airframe)
+        params_path(self.params)
+        for name in ("physics_dt", "decision_dt", "rate_loop_hz", "position_loop_hz", "flight_altitude",
+                     "speed_limit_tau", "disturbance_tau", "obstacle_height", "gravity"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise ConfigError(f"mujoco.{name} must be a finite number > 0, got {value!r}")
+        if self.physics_dt > 0.002 + 1e-12:
+            raise ConfigError(f"mujoco.physics_dt must be <= 0.002 s (500 Hz or finer), got {self.physics_dt}")
+        if _ratio(self.decision_dt, self.physics_dt) is None:
+            raise ConfigError(f"mujoco.decision_dt = {self.decision_dt} must be a multiple of physics_dt = {self.physics_dt}")
+        if self.rate_loop_hz < 250:
+            raise ConfigError(f"mujoco.rate_loop_hz must be >= 250 (PX4-like), got {self.rate_loop_hz}")
+        for name in ("rate_loop_hz", "position_loop_hz"):
+            if _ratio(1.0 / getattr(self, name), self.physics_dt) is None:
+                raise ConfigError(f"mujoco.{name} = {getattr(self, name)} must divide the physics rate {1 / self.physics_dt:g} Hz")
+        if not 0 < self.flip_tilt_deg <= 180:
+            raise ConfigError(f"mujoco.flip_tilt_deg must be in (0, 180], got {self.flip_tilt_deg}")
+        if self.obstacle_height <= self.flight_altitude:
+            raise ConfigError(f"mujoco.obstacle_height = {self.obstacle_height} must exceed flight_altitude = {self.flight_altitude}")
+
+    def to_dict(self) -> dict:
+        """Plain dict for run records."""
+        return asdict(self)
+
+
+def _ratio(a: float, b: float) -> int | None:
+    """a / b if it is a positive integer (to 1e-9), else None."""
+    r = a / b
+    n = round(r)
+    return n if n >= 1 and abs(r - n) < 1e-9 * max(1.0, r) else None
+
+
+def build_scene(config: MujocoWorldConfig, n_agents: int, n_obstacles: int, with_adversary: bool, uav_radius: float,
+                obstacle_radius: float = 0.4) -> mujoco.MjModel:
+    """Compose arena + N UAVs (+ adversary) + K parked obstacle cylinders into one MjModel."""
+    airframe_file = MJCF_DIR / f"{config.airframe}.xml"
+    arena = mujoco.MjSpec.from_file(str(MJCF_DIR / "arena.xml"))
+    arena.option.timestep = config.physics_dt
+    arena.option.gravity = [0.0, 0.0, -config.gravity]
+    names = [f"uav{i}_" for i in range(n_agents)] + (["adv_"] if with_adversary else [])
+    for i, prefix in enumerate(names):
+        child = mujoco.MjSpec.from_file(str(airframe_file))
+        frame = arena.worldbody.add_frame(pos=[2.0 * i, 0.0, config.flight_altitude])
+        frame.attach_body(child.worldbody.first_body(), prefix, "")
+        footprint = arena.geom(f"{prefix}footprint")
+        if footprint is None or footprint.type != mujoco.mjtGeom.mjGEOM_CYLINDER:
+            raise ConfigError(f"airframe: {airframe_file} needs a cylinder geom named 'footprint' (the collision disc)")
+        footprint.size = [uav_radius, footprint.size[1], 0.0]
+        if prefix == "adv_":
+            footprint.contype = 0
+            footprint.conaffinity = 0
+            footprint.group = ADVERSARY_GROUP
+            footprint.rgba = [0.85, 0.15, 0.1, 0.5]
+    half_h = config.obstacle_height / 2.0
+    for k in range(n_obstacles):
+        arena.worldbody.add_geom(
+            name=f"obstacle{k}", type=mujoco.mjtGeom.mjGEOM_CYLINDER, size=[obstacle_radius, half_h, 0.0],
+            pos=[_PARKED + 2.0 * k, _PARKED, half_h], group=OBSTACLE_GROUP, contype=1, conaffinity=1,
+            rgba=[0.55, 0.45, 0.35, 1.0],
+        )
+    return arena.compile()
+
+
+class MujocoWorld:
+    """B envs of N Iris-class quadrotors (+ adversary) and K cylinders, implementing `World`.
+
+    Args:
+        config: physics/controller/scene settings.
+        n_envs, n_agents, n_obstacles: B, N, K (K is fixed for the world's life).
+        n_lidar_rays, lidar_range, lidar_sees_agents: LiDAR as in TaskConfig.
+        uav_radius: the footprint cylinder's radius (the same disc as the particle world).
+        obstacle_radius: radius of the cylinder obstacles (m).
+        speed_max, adversary_speed_max: horizontal speed limits kept by the offboard interface.
+        accel_max: per-axis clip of the acceleration setpoints (m/s^2).
+        wind: WindConfig or None for calm air.
+        with_adversary: False builds no adversary drone (Table VIII); step() then ignores
+            adversary_accel and adversary_pos/vel read zeros.
+        seed: seeds the world's numpy Generator (wind draws).
+    """
+
+    def __init__(self, config: MujocoWorldConfig, n_envs: int, n_agents: int, n_obstacles: int, *,
+                 n_lidar_rays: int = 24, lidar_range: float = 3.0, lidar_sees_agents: bool = True,
+                 uav_radius: float = 0.25, obstacle_radius: float = 0.4, speed_max: float = 1.0,
+                 adversary_speed_max: float = 0.75, accel_max: float = 2.0, wind: WindConfig | None = None, with_adversary: bool = True, seed: int = 0):
+        config.validate()
+        for name, value in (("n_envs", n_envs), ("n_agents", n_agents), ("n_lidar_rays", n_lidar_rays)):
+            if not isinstance(value, (int, np.integer)) or value < 1:
+                raise ConfigError(f"{name} must be an integer >= 1, got {value!r}")
+        if not isinstance(n_obstacles, (int, np.integer)) or n_obstacles < 0:
+            raise ConfigError(f"n_obstacles must be an integer >= 0, got {n_obstacles!r}")
+        for name, value in (("lidar_range", lidar_range), ("uav_radius", uav_radius), ("obstacle_radius", obstacle_radius),
+                            ("speed_max", speed_max),
+                            ("adversary_speed_max", adversary_speed_max), ("accel_max", accel_max)):
+            if not (math.isfinite(value) and value > 0):
+                raise ConfigError(f"{name} must be a finite number > 0, got {value!r}")
+        if wind is not None and not isinstance(wind, WindConfig):
+            raise ConfigError(f"wind must be a WindConfig or None, got {type(wind).__name__}")
+        self.config = config
+        self.n_envs, self.n_agents, self.n_obstacles = int(n_envs), int(n_agents), int(n_obstacles)
+        self.with_adversary = bool(with_adversary)
+        self.n_drones = self.n_agents + int(self.with_adversary)
+        self.n_lidar_rays, self.lidar_range, self.lidar_sees_agents = int(n_lidar_rays), float(lidar_range), bool(lidar_sees_agents)
+        self.uav_radius, self.obstacle_radius = float(uav_radius), float(obstacle_radius)
+        self.accel_max = float(accel_max)
+        self.dt = float(config.decision_dt)
+        self.n_substeps = _ratio(config.decision_dt, config.physics_dt)
+        self.rng = np.random.default_rng(seed)
+        self.wind_config = wind if wind is not None else WindConfig()
+        self.wind = WindField(self.wind_config, self.n_envs, self.rng)
+        self._wind_period = _ratio(self.wind_config.update_period, config.physics_dt)
+        if self._wind_period is None:
+            raise ConfigError(f"wind.update_period = {self.wind_config.update_period} must be a multiple of physics_dt = {config.physics_dt}")
+
+        self.airframe = load_airframe(config.airframe)
+        timing = CascadeTiming(config.physics_dt, _ratio(1.0 / config.rate_loop_hz, config.physics_dt),
+                               _ratio(1.0 / config.position_loop_hz, config.physics_dt))
+        self.cascade = Px4Cascade(self.airframe, load_params(config.params), timing, self.n_envs, self.n_drones,
+                                  speed_limit_tau=config.speed_limit_tau,
+                                  disturbance_tau=config.disturbance_tau, flip_tilt_deg=config.flip_tilt_deg,
+                                  gravity=config.gravity)
+        self.cascade.setpoint[:, :, SP_Z] = config.flight_altitude
+        self.cascade.setpoint[:, :self.n_agents, SP_VMAX] = speed_max
+        self.cascade.setpoint[:, self.n_agents:, SP_VMAX] = adversary_speed_max
+
+        base = build_scene(config, self.n_agents, self.n_obstacles, self.with_adversary, self.uav_radius, self.obstacle_radius)
+        self.models = [base] + [copy.deepcopy(base) for _ in range(self.n_envs - 1)]
+        self.datas = [mujoco.MjData(m) for m in self.models]
+        prefixes = [f"uav{i}_" for i in range(self.n_agents)] + (["adv_"] if self.with_adversary else [])
+        self.drone_body_ids = np.array([base.body(f"{p}{self.airframe.name}").id for p in prefixes])
+        if not np.array_equal(self.drone_body_ids, np.arange(1, self.n_drones + 1)) or base.nq != 7 * self.n_drones:
+            raise ConfigError("mujoco: the scene must hold the drones as bodies 1..D with one free joint each")
+        self.obstacle_geom_ids = np.array([base.geom(f"obstacle{k}").id for k in range(self.n_obstacles)], dtype=int)
+        self._geom_uav = np.full(base.ngeom, -1)  # geom id -> UAV index (footprints only)
+        for i in range(self.n_agents):
+            self._geom_uav[base.geom(f"uav{i}_footprint").id] = i
+        self._geom_obstacle = np.zeros(base.ngeom, dtype=bool)
+        self._geom_obstacle[self.obstacle_geom_ids] = True
+        d = self.n_drones
+        self._views = [(dat.qpos.reshape(d, 7), dat.qvel.reshape(d, 6), dat.ctrl.reshape(d, 4), dat.xfrc_applied[1:d + 1])
+                       for dat in self.datas]
+        self._tick = np.zeros(self.n_envs, dtype=np.int64)
+        self._collided = np.zeros((self.n_envs, self.n_agents), dtype=bool)
+        self.obstacles = np.full((self.n_envs, self.n_obstacles, 2), _PARKED)
+        angles = 2.0 * np.pi * np.arange(self.n_lidar_rays) / self.n_lidar_rays
+        self._ray_vec = np.stack([np.cos(angles), np.sin(angles), np.zeros_like(angles)], axis=1).ravel()
+        self._ray_group = np.array([0, 1, 1 if self.lidar_sees_agents else 0, 0, 0, 0], dtype=np.uint8)
+        self._ray_geomid = np.zeros(self.n_lidar_rays, dtype=np.int32)
+        self._drone_body_list = [int(i) for i in self.drone_body_ids]
+        self._ray_pnt = np.zeros(3)
+
+    # ------------------------------------------------------------------ World protocol
+    def reset(self, env_mask: np.ndarray, agent_pos: np.ndarray, adversary_pos: np.ndarray, obstacles: np.ndarray) -> None:
+        """Place the masked envs' drones (level hover at flight altitude, zero velocity) and obstacles."""
+        b, n, k = self.n_envs, self.n_agents, self.n_obstacles
+        mask = _check(np.asarray(env_mask, dtype=bool), (b,), "env_mask")
+        agent_pos = _check(agent_pos, (b, n, 2), "agent_pos")
+        adversary_pos = _check(adversary_pos, (b, 2), "adversary_pos")
+        obstacles = _check(obstacles, (b, k, 2), "obstacles")
+        alt = self.config.flight_altitude
+        for e in np.flatnonzero(mask):
+            model, data = self.models[e], self.datas[e]
+            mujoco.mj_resetData(model, data)
+            model.geom_pos[self.obstacle_geom_ids, :2] = obstacles[e]
+            self.obstacles[e] = obstacles[e]
+            qpos = self._views[e][0]
+            xy = np.concatenate([agent_pos[e], adversary_pos[e][None]]) if self.with_adversary else agent_pos[e]
+            qpos[:, :2] = xy
+            qpos[:, 2] = alt
+            qpos[:, 3:] = (1.0, 0.0, 0.0, 0.0)
+            self.cascade.reset(e)
+            self._views[e][2][:] = self.airframe.hover_thrust(self.config.gravity) * self.airframe.max_thrust
+            self._tick[e] = 0
+            self._collided[e] = False
+            self.wind.reset(e)
+            mujoco.mj_forward(model, data)
+
+    def step(self, agent_accel: np.ndarray, adversary_accel: np.ndarray) -> None:
+        """One decision step: hold the (per-axis clipped) setpoints for decision_dt of physics."""
+        b, n = self.n_envs, self.n_agents
+        a = self.accel_max
+        agent_accel = np.clip(_check(agent_accel, (b, n, 2), "agent_accel"), -a, a)
+        sp = self.cascade.setpoint
+        sp[:, :n, SP_AX:SP_AX + 2] = agent_accel
+        if self.with_adversary:
+            sp[:, n, SP_AX:SP_AX + 2] = np.clip(_check(adversary_accel, (b, 2), "adversary_accel"), -a, a)
+        self._collided[:] = False
+        state, prm, k, mix, eff, rotors = self.cascade.state, self.cascade.prm, self.cascade.k, self.cascade.mix, self.cascade.eff, self.cascade.rotors
+        period = self._wind_period
+        for e in range(b):
+            model, data = self.models[e], self.datas[e]
+            qpos, qvel, ctrl, xfrc = self._views[e]
+            s_e, sp_e, wind_e = state[e], sp[e], self.wind.vector[e]
+            tick = int(self._tick[e])
+            for _ in range(self.n_substeps):
+                if tick and tick % period == 0:
+                    self.wind.update(e, tick * self.config.physics_dt)
+                bad = cascade_step(tick, qpos, qvel, ctrl, xfrc, s_e, sp_e, wind_e, prm, k, mix, eff, rotors)
+                if bad >= 0:
+                    self._tick[e] = tick
+                    self._diverged(e, bad)
+                mujoco.mj_step(model, data)
+                tick += 1
+                if data.ncon:
+                    self._record_contacts(e, data)
+            self._tick[e] = tick
+            for w in _BAD_STATE_WARNINGS:
+                if data.warning[w].number:
+                    raise SimulationDiverged(f"env {e}: MuJoCo {mujoco.mjtWarning(w).name} (unstable physics) before t = {self.sim_time[e]:.3f} s")
+
+    @property
+    def agent_pos(self) -> np.ndarray:
+        """[B, N, 2] true positions (m)."""
+        return np.stack([v[0][:self.n_agents, :2] for v in self._views])
+
+    @property
+    def agent_vel(self) -> np.ndarray:
+        """[B, N, 2] true velocities (m/s)."""
+        return np.stack([v[1][:self.n_agents, :2] for v in self._views])
+
+    @property
+    def adversary_pos(self) -> np.ndarray:
+        """[B, 2] (zeros without an adversary)."""
+        if not self.with_adversary:
+            return np.zeros((self.n_envs, 2))
+        return np.stack([v[0][self.n_agents, :2] for v in self._views])
+
+    @property
+    def adversary_vel(self) -> np.ndarray:
+        """[B, 2] (zeros without an adversary)."""
+        if not self.with_adversary:
+            return np.zeros((self.n_envs, 2))
+        return np.stack([v[1][self.n_agents, :2] for v in self._views])
+
+    def lidar(self, origins: np.ndarray) -> np.ndarray:
+        """Ranges [B, N, M] cast from origins [B, N, 2] at flight altitude (see the module docstring)."""
+        b, n, m = self.n_envs, self.n_agents, self.n_lidar_rays
+        origins = _check(origins, (b, n, 2), "origins")
+        out = np.empty((b, n, m))
+        pnt, geomid, vec, group, cutoff = self._ray_pnt, self._ray_geomid, self._ray_vec, self._ray_group, self.lidar_range
+        pnt[2] = self.config.flight_altitude
+        for e in range(b):
+            model, data = self.models[e], self.datas[e]
+            for i in range(n):
+                pnt[0] = origins[e, i, 0]
+                pnt[1] = origins[e, i, 1]
+                mujoco.mj_multiRay(model, data, pnt, vec, group, 1, self._drone_body_list[i], geomid, out[e, i], None, m, cutoff)
+        out[out < 0] = self.lidar_range  # no hit within the cutoff
+        np.minimum(out, self.lidar_range, out=out)
+        inside = _inside_any(origins, self.obstacles, self.obstacle_radius)
+        if self.lidar_sees_agents:
+            pos = self.agent_pos
+            gap = origins[:, :, None, :] - pos[:, None, :, :]
+            within = (gap * gap).sum(-1) <= self.uav_radius**2
+            within[:, np.arange(n), np.arange(n)] = False
+            inside |= within.any(-1)
+        out[inside] = 0.0
+        return out
+
+    def collisions(self) -> np.ndarray:
+        """[B, N] bool: UAV touched an obstacle or another UAV during the last decision step."""
+        return self._collided.copy()
+
+    # ------------------------------------------------------------------ read-only extras (visualisation, tests)
+    @property
+    def drone_positions(self) -> np.ndarray:
+        """[B, D, 3] positions of all drones (UAVs first, then the adversary)."""
+        return np.stack([v[0][:, :3] for v in self._views])
+
+    @property
+    def drone_quaternions(self) -> np.ndarray:
+        """[B, D, 4] attitudes [w, x, y, z] (body -> world)."""
+        return np.stack([v[0][:, 3:7] for v in self._views])
+
+    @property
+    def drone_velocities(self) -> np.ndarray:
+        """[B, D, 3] linear velocities (m/s)."""
+        return np.stack([v[1][:, :3] for v in self._views])
+
+    @property
+    def motor_thrusts(self) -> np.ndarray:
+        """[B, D, 4] rotor thrusts (N) applied at the last physics step, PX4 motor order."""
+        return np.stack([v[2].copy() for v in self._views])
+
+    @property
+    def motor_speeds(self) -> np.ndarray:
+        """[B, D, 4] rotor speeds (rad/s)."""
+        return np.stack([self.cascade.motor_speeds(e).copy() for e in range(self.n_envs)])
+
+    @property
+    def drag_forces(self) -> np.ndarray:
+        """[B, D, 6] rotor-drag force (N) and torque (N m) about the centre of mass, world frame, last physics step."""
+        return np.stack([v[3].copy() for v in self._views])
+
+    @property
+    def wind_vector(self) -> np.ndarray:
+        """[B, 3] current wind velocity (m/s)."""
+        return self.wind.vector.copy()
+
+    @property
+    def sim_time(self) -> np.ndarray:
+        """[B] simulated seconds since each env's reset."""
+        return self._tick * self.config.physics_dt
+
+    def tilt_deg(self) -> np.ndarray:
+        """[B, D] tilt of each drone's body z axis from vertical (deg)."""
+        q = self.drone_quaternions
+        upright = 1.0 - 2.0 * (q[..., 1] ** 2 + q[..., 2] ** 2)
+        return np.degrees(np.arccos(np.clip(upright, -1.0, 1.0)))
+
+    # ------------------------------------------------------------------ internals
+    def _record_contacts(self, env: int, data: mujoco.MjData) -> None:
+        geoms = data.contact.geom[:data.ncon]
+        uav = self._geom_uav[geoms]  # [ncon, 2]
+        obstacle = self._geom_obstacle[geoms]
+        hit = (uav >= 0) & ((uav[:, ::-1] >= 0) | obstacle[:, ::-1])
+        self._collided[env, uav[hit]] = True
+
+    def _diverged(self, env: int, drone: int) -> None:
+        qpos, qvel = self._views[env][0][drone], self._views[env][1][drone]
+        who = f"uav {drone}" if drone < self.n_agents else "adversary"
+        t = self._tick[env] * self.config.physics_dt
+        if not (np.isfinite(qpos).all() and np.isfinite(qvel).all()):
+            raise SimulationDiverged(f"env {env}: {who} state became NaN/inf at t = {t:.3f} s")
+        tilt = self.tilt_deg()[env, drone]
+        raise SimulationDiverged(f"env {env}: {who} flipped (tilt {tilt:.0f} deg > {self.config.flip_tilt_deg:g}) at t = {t:.3f} s")
+
+
+def _check(array, shape: tuple[int, ...], name: str) -> np.ndarray:
+    """As float64 (bool for masks) with the exact shape and finite values, else ConfigError."""
+    arr = np.asarray(array)
+    if arr.shape != shape:
+        raise ConfigError(f"{name} must have shape {list(shape)}, got {list(arr.shape)}")
+    if arr.dtype != bool:
+        arr = arr.astype(np.float64, copy=False)
+        if not np.isfinite(arr).all():
+            raise ConfigError(f"{name} contains NaN or inf")
+    return arr
+
+
+def _inside_any(origins: np.ndarray, centres: np.ndarray, radius: float) -> np.ndarray:
+    """[B, N] origin lies inside (or on) one of the circles centres [B, K, 2]."""
+    if centres.shape[1] == 0:
+        return np.zeros(origins.shape[:2], dtype=bool)
+    gap = origins[:, :, None, :] - centres[:, None, :, :]
+    return ((gap * gap).sum(-1) <= radius * radius).any(-1)
+
+
+def make_mujoco_world(task: TaskConfig, n_envs: int = 1, wind: float = 0.0, seed: int | None = None,
+                      config: MujocoWorldConfig | None = None) -> MujocoWorld:
+    """The MuJoCo world for a task: its counts, radii, speed limits and LiDAR, plus a wind of mean
+    speed `wind` (m/s, Gazebo wind-plugin semantics; 0 for calm air)."""
+    return MujocoWorld(
+        config or MujocoWorldConfig(), n_envs=n_envs, n_agents=task.n_agents, n_obstacles=task.n_obstacles,
+        n_lidar_rays=task.n_lidar_rays, lidar_range=task.lidar_range, lidar_sees_agents=task.lidar_sees_agents,
+        uav_radius=task.uav_radius, obstacle_radius=task.obstacle_radius, speed_max=task.speed_max,
+        adversary_speed_max=task.adversary_speed_max, accel_max=task.accel_max,
+        wind=WindConfig(mean_speed=float(wind)) if wind else None,
+        with_adversary=task.mode == "cefc" and task.adversary != "none",
+        seed=0 if seed is None else seed,
+    )

@@ -1,0 +1,306 @@
+"""The compiled PX4-like cascade against a slow, obvious numpy reference; parameter and airframe errors."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from cefc_mj.control import cascade as C
+from cefc_mj.control.airframe import load_airframe, px4_mixer
+from cefc_mj.control.params import PARAM_NAMES, load_params, parse_params
+from cefc_mj.errors import ConfigError
+from cefc_mj.paths import CONTROLLERS_DIR
+
+
+# ----------------------------------------------------------------------------- numpy reference
+def qmul(a, b):
+    """Hamilton product of [w, x, y, z] quaternions."""
+    w1, v1 = a[0], np.asarray(a[1:])
+    w2, v2 = b[0], np.asarray(b[1:])
+    return np.concatenate([[w1 * w2 - v1 @ v2], w1 * v2 + w2 * v1 + np.cross(v1, v2)])
+
+
+def conj(q):
+    return np.array([q[0], -q[1], -q[2], -q[3]])
+
+
+def rot(q):
+    """Body -> world rotation matrix of a [w, x, y, z] quaternion (scipy wants [x, y, z, w])."""
+    return Rotation.from_quat([q[1], q[2], q[3], q[0]]).as_matrix()
+
+
+def quat_of(matrix):
+    x, y, z, w = Rotation.from_matrix(matrix).as_quat()
+    q = np.array([w, x, y, z])
+    return q if q[0] >= 0 else -q
+
+
+def lowpass_alpha(cutoff, dt):
+    return 1.0 if cutoff <= 0 else dt / (dt + 1.0 / (2 * math.pi * cutoff))
+
+
+def desaturate(u, vec, umin, umax, reduce_only):
+    def gain(u):
+        ks = [0.0]
+        for i in range(4):
+            if abs(vec[i]) < 0.2:
+                continue
+            if u[i] < umin:
+                ks.append((umin - u[i]) / vec[i])
+            if u[i] > umax:
+                ks.append((umax - u[i]) / vec[i])
+        return min(ks) + max(ks)
+
+    g = gain(u)
+    if reduce_only and g > 0:
+        return u
+    u = u + g * vec
+    return u + 0.5 * gain(u) * vec
+
+
+def reference_tick(tick, qpos, qvel, ctrl, s, sp, wind, p, k, mix, eff, rotors):
+    """One physics step of the cascade for one drone, written for reading, not speed.
+
+    qpos [7], qvel [6], ctrl [4] (the thrusts of the previous step), s [N_STATE] (copied), sp [4],
+    p {PX4 name: value}, k the constants array. Returns (s, ctrl, xfrc).
+    """
+    s, ctrl = s.copy(), ctrl.copy()
+    g, m, dt_phys = k[C.K_G], k[C.K_MASS], k[C.K_DT]
+    pos, q, v, body_rate = qpos[:3], qpos[3:], qvel[:3], qvel[3:]
+    R = rot(q)
+    omega = s[C.S_OMEGA:C.S_OMEGA + 4]
+
+    if tick % int(k[C.K_POS_DIV]) == 0:
+        dt = dt_phys * k[C.K_POS_DIV]
+        drag_gain = k[C.K_CRD] * np.abs(omega).sum() / m
+        measured = (v[:2] - s[C.S_VXY_PREV:C.S_VXY_PREV + 2]) / dt
+        explained = ctrl.sum() / m * R[:2, 2] - drag_gain * v[:2]
+        beta = dt / (dt + k[C.K_DIST_TAU])
+        s[C.S_DIST:C.S_DIST + 2] += beta * (measured - explained - s[C.S_DIST:C.S_DIST + 2])
+        s[C.S_VXY_PREV:C.S_VXY_PREV + 2] = v[:2]
+        push = s[C.S_DIST:C.S_DIST + 2]
+        acc = sp[C.SP_AX:C.SP_AX + 2].copy()
+        tau, vmax = k[C.K_SPEED_TAU], sp[C.SP_VMAX]
+        predicted = v[:2] + (acc + push) * tau
+        if np.linalg.norm(predicted) > vmax:
+            acc = (predicted / np.linalg.norm(predicted) * vmax - v[:2]) / tau - push
+        acc = acc + drag_gain * v[:2]
+        s[C.S_ACC_CMD:C.S_ACC_CMD + 2] = acc
+
+        vz_sp = np.clip(p["MPC_Z_P"] * (sp[C.SP_Z] - pos[2]), -p["MPC_Z_VEL_MAX_DN"], p["MPC_Z_VEL_MAX_UP"])
+        vz_dot = (v[2] - s[C.S_VZ_PREV]) / dt
+        s[C.S_VZ_PREV] = v[2]
+        err_z = vz_sp - v[2]
+        az = p["MPC_Z_VEL_P_ACC"] * err_z + s[C.S_Z_INT] - p["MPC_Z_VEL_D_ACC"] * vz_dot
+        body_z = np.array([acc[0], acc[1], g]) / np.linalg.norm([acc[0], acc[1], g])
+        tilt, max_tilt = math.acos(body_z[2]), math.radians(p["MPC_TILTMAX_AIR"])
+        if tilt > max_tilt:
+            horizontal = body_z[:2] / np.linalg.norm(body_z[:2])
+            body_z = np.array([*(math.sin(max_tilt) * horizontal), math.cos(max_tilt)])
+        hover = p["MPC_THR_HOVER"]
+        collective = max((az * hover / g + hover) / body_z[2], p["MPC_THR_MIN"])
+        thr = body_z * collective
+        if (thr[2] <= p["MPC_THR_MIN"] and err_z <= 0) or (thr[2] >= p["MPC_THR_MAX"] and err_z >= 0):
+            err_z = 0.0
+        txy = np.linalg.norm(thr[:2])
+        thr[2] = min(thr[2], math.sqrt(p["MPC_THR_MAX"] ** 2 - min(txy, p["MPC_THR_XY_MARG"]) ** 2))
+        txy_max = math.sqrt(max(p["MPC_THR_MAX"] ** 2 - thr[2] ** 2, 0.0))
+        if txy > txy_max:
+            thr[:2] *= txy_max / txy
+        s[C.S_Z_INT] = np.clip(s[C.S_Z_INT] + err_z * p["MPC_Z_VEL_I_ACC"] * dt, -g, g)
+        z_axis = thr / np.linalg.norm(thr)
+        x_axis = np.cross([0.0, 1.0, 0.0], z_axis)
+        x_axis /= np.linalg.norm(x_axis)
+        s[C.S_QSP:C.S_QSP + 4] = quat_of(np.column_stack([x_axis, np.cross(z_axis, x_axis), z_axis]))
+        s[C.S_THRUST] = np.linalg.norm(thr)
+
+    u = s[C.S_U:C.S_U + 4].copy()
+    if tick % int(k[C.K_RATE_DIV]) == 0:
+        dt = dt_phys * k[C.K_RATE_DIV]
+        qd = s[C.S_QSP:C.S_QSP + 4]
+        e_z, e_zd = R[:, 2], rot(qd)[:, 2]
+        axis = np.cross(e_z, e_zd)
+        angle = math.atan2(np.linalg.norm(axis), e_z @ e_zd)
+        rv = axis / np.linalg.norm(axis) * angle if np.linalg.norm(axis) > 0 else np.zeros(3)
+        qd_red = qmul(quat_of(Rotation.from_rotvec(rv).as_matrix()), q)
+        q_mix = qmul(conj(qd_red), qd)
+        q_mix = q_mix if q_mix[0] >= 0 else -q_mix
+        w = p["MC_YAW_WEIGHT"]
+        qd = qmul(qd_red, [math.cos(w * math.acos(min(q_mix[0], 1.0))), 0, 0, math.sin(w * math.asin(q_mix[3]))])
+        qe = qmul(conj(q), qd)
+        qe = qe if qe[0] >= 0 else -qe
+        gains = np.array([p["MC_ROLL_P"], p["MC_PITCH_P"], p["MC_YAW_P"] / w])
+        limits = np.radians([p["MC_ROLLRATE_MAX"], p["MC_PITCHRATE_MAX"], p["MC_YAWRATE_MAX"]])
+        rate_sp = np.clip(2 * qe[1:] * gains, -limits, limits)
+
+        axes = [("MC_ROLLRATE_", "MC_RR_INT_LIM"), ("MC_PITCHRATE_", "MC_PR_INT_LIM"), ("MC_YAWRATE_", "MC_YR_INT_LIM")]
+        ang_acc = (body_rate - s[C.S_RATE_PREV:C.S_RATE_PREV + 3]) / dt
+        s[C.S_RATE_PREV:C.S_RATE_PREV + 3] = body_rate
+        s[C.S_ANG_ACC:C.S_ANG_ACC + 3] += lowpass_alpha(p["IMU_DGYRO_CUTOFF"], dt) * (ang_acc - s[C.S_ANG_ACC:C.S_ANG_ACC + 3])
+        err = rate_sp - body_rate
+        torque = np.array([
+            p[a + "K"] * (p[a + "P"] * err[i] - p[a + "D"] * s[C.S_ANG_ACC + i]) + s[C.S_RATE_INT + i] + p[a + "FF"] * rate_sp[i]
+            for i, (a, _) in enumerate(axes)
+        ])
+        s[C.S_YAW_TQ] += lowpass_alpha(p["MC_YAW_TQ_CUTOFF"], dt) * (torque[2] - s[C.S_YAW_TQ])
+        control = np.array([torque[0], torque[1], s[C.S_YAW_TQ], s[C.S_THRUST]])
+        u = mix[:, 0] * control[0] + mix[:, 1] * control[1] + mix[:, 3] * control[3]
+        u = desaturate(u, mix[:, 3], 0, 1, True)
+        u = desaturate(u, mix[:, 0], 0, 1, False)
+        u = desaturate(u, mix[:, 1], 0, 1, False)
+        u = desaturate(u + mix[:, 2] * control[2], mix[:, 2], 0, 1.15, False)
+        u = np.clip(desaturate(u, mix[:, 3], 0, 1, True), 0, 1)
+        unallocated = control[:3] - (eff @ u)[:3]
+        for i, (a, lim) in enumerate(axes):
+            e = err[i]
+            s[C.S_SAT_POS + i] = float(unallocated[i] > 1e-6)
+            s[C.S_SAT_NEG + i] = float(unallocated[i] < -1e-6)
+            if unallocated[i] > 1e-6:
+                e = min(e, 0.0)
+            if unallocated[i] < -1e-6:
+                e = max(e, 0.0)
+            factor = max(0.0, 1 - (e / math.radians(400)) ** 2)
+            s[C.S_RATE_INT + i] = np.clip(s[C.S_RATE_INT + i] + factor * p[a + "I"] * p[a + "K"] * e * dt, -p[lim], p[lim])
+        s[C.S_U:C.S_U + 4] = u
+
+    # motors: asymmetric first-order lag on the rotor speed, thrust k omega^2
+    reference = k[C.K_WMAX] * np.sqrt(np.clip(u, 0, 1))
+    alpha = np.where(reference > omega, k[C.K_ALPHA_UP], k[C.K_ALPHA_DOWN])
+    omega = alpha * omega + (1 - alpha) * reference
+    s[C.S_OMEGA:C.S_OMEGA + 4] = omega
+    force, torque = np.zeros(3), np.zeros(3)
+    for i in range(4):
+        r_body = rotors[i, :3]
+        v_rotor = v + R @ np.cross(body_rate, r_body) - wind
+        along = v_rotor @ R[:, 2]
+        v_perp = v_rotor - along * R[:, 2]
+        ctrl[i] = k[C.K_KT] * omega[i] ** 2 * np.clip(1 - abs(along) / 25, 0, 1)
+        f = -abs(omega[i]) * k[C.K_CRD] * v_perp
+        force += f
+        torque += np.cross(R @ r_body, f) - abs(omega[i]) * rotors[i, 3] * k[C.K_CRM] * v_perp
+    return s, ctrl, np.concatenate([force, torque])
+
+
+def random_case(rng, cascade, n_drones):
+    """Random but physical states: tilts up to ~35 deg, speeds up to 3 m/s, spinning rotors."""
+    qpos = np.zeros((n_drones, 7))
+    qpos[:, :2] = rng.uniform(-5, 5, (n_drones, 2))
+    qpos[:, 2] = rng.uniform(1.5, 2.5, n_drones)
+    rv = rng.normal(0, 0.35, (n_drones, 3))
+    xyzw = Rotation.from_rotvec(rv).as_quat()
+    qpos[:, 3:] = xyzw[:, [3, 0, 1, 2]]
+    qvel = rng.normal(0, 1.0, (n_drones, 6))
+    ctrl = rng.uniform(2, 6, (n_drones, 4))
+    s = np.zeros((n_drones, C.N_STATE))
+    s[:, C.S_OMEGA:C.S_OMEGA + 4] = rng.uniform(500, 1000, (n_drones, 4))
+    s[:, C.S_U:C.S_U + 4] = rng.uniform(0.3, 0.7, (n_drones, 4))
+    s[:, C.S_QSP:C.S_QSP + 4] = Rotation.from_rotvec(rng.normal(0, 0.2, (n_drones, 3))).as_quat()[:, [3, 0, 1, 2]]
+    s[:, C.S_THRUST] = rng.uniform(0.3, 0.8, n_drones)
+    for col, scale in ((C.S_RATE_INT, 0.1), (C.S_RATE_PREV, 1.0), (C.S_ANG_ACC, 5.0), (C.S_DIST, 1.0), (C.S_VXY_PREV, 1.0)):
+        width = 2 if col in (C.S_DIST, C.S_VXY_PREV) else 3
+        s[:, col:col + width] = rng.normal(0, scale, (n_drones, width))
+    s[:, C.S_YAW_TQ] = rng.normal(0, 0.05, n_drones)
+    s[:, C.S_Z_INT] = rng.normal(0, 0.5, n_drones)
+    s[:, C.S_VZ_PREV] = rng.normal(0, 0.3, n_drones)
+    sp = np.column_stack([rng.uniform(-2, 2, (n_drones, 2)), np.full(n_drones, 2.0), np.full(n_drones, 1.0)])
+    wind = np.array([*rng.normal(0, 4, 2), 0.0])
+    return qpos, qvel, ctrl, s, sp, wind
+
+
+@pytest.fixture(scope="module")
+def cascade():
+    return C.Px4Cascade(load_airframe("iris"), load_params("iris"), C.CascadeTiming(0.002, 2, 5), n_envs=1, n_drones=6)
+
+
+@pytest.mark.parametrize("tick", [0, 1, 2, 5])  # all loops / motors only / + rate loop / + position loop
+def test_compiled_cascade_matches_numpy_reference(cascade, tick):
+    rng = np.random.default_rng(tick)
+    p = dict(zip(PARAM_NAMES, cascade.prm))
+    for _ in range(5):
+        qpos, qvel, ctrl, s, sp, wind = random_case(rng, cascade, 6)
+        s_fast, ctrl_fast, xfrc_fast = s.copy(), ctrl.copy(), np.zeros((6, 6))
+        bad = C.cascade_step(tick, qpos, qvel, ctrl_fast, xfrc_fast, s_fast, sp, wind, cascade.prm, cascade.k,
+                                cascade.mix, cascade.eff, cascade.rotors)
+        assert bad == -1
+        for d in range(6):
+            s_ref, ctrl_ref, xfrc_ref = reference_tick(tick, qpos[d], qvel[d], ctrl[d], s[d], sp[d], wind, p, cascade.k,
+                                                       cascade.mix, cascade.eff, cascade.rotors)
+            # atol 1e-6: a motor command saturated at 0 is 0 +- 1e-15 in either implementation, and
+            # the rotor speed follows sqrt(command) (rad/s of order 1e3 elsewhere)
+            np.testing.assert_allclose(s_fast[d], s_ref, rtol=1e-9, atol=1e-6)
+            np.testing.assert_allclose(ctrl_fast[d], ctrl_ref, rtol=1e-7)
+            np.testing.assert_allclose(xfrc_fast[d], xfrc_ref, rtol=1e-7, atol=1e-9)
+
+
+def test_kernel_flags_nan_and_flipped_drones(cascade):
+    rng = np.random.default_rng(7)
+    qpos, qvel, ctrl, s, sp, wind = random_case(rng, cascade, 6)
+    args = (cascade.prm, cascade.k, cascade.mix, cascade.eff, cascade.rotors)
+    qpos[3, 0] = np.nan
+    assert C.cascade_step(0, qpos, qvel, ctrl, np.zeros((6, 6)), s, sp, wind, *args) == 3
+    qpos[3, 0] = 0.0
+    qpos[4, 3:] = (0.0, 1.0, 0.0, 0.0)  # upside down
+    assert C.cascade_step(0, qpos, qvel, ctrl, np.zeros((6, 6)), s, sp, wind, *args) == 4
+
+
+# ----------------------------------------------------------------------------- mixer and airframe
+def test_mixer_inverts_the_rotor_effectiveness():
+    airframe = load_airframe("iris")
+    mix, eff = px4_mixer(airframe)
+    torque_per_unit = airframe.effectiveness() @ mix
+    # normalised axes are decoupled; roll and pitch share one scale (PX4's normalisation)
+    assert np.allclose(torque_per_unit - np.diag(np.diag(torque_per_unit)), 0, atol=1e-9)
+    assert torque_per_unit[0, 0] == pytest.approx(torque_per_unit[1, 1])
+    # collective thrust 1 = all motors at full thrust
+    assert np.allclose(mix[:, 3], 1.0) and torque_per_unit[3, 3] == pytest.approx(4 * airframe.max_thrust)
+    # equal commands make no torque: hover needs no trim
+    assert np.allclose((airframe.effectiveness() @ np.full(4, 0.5))[:3], 0, atol=1e-12)
+    assert np.allclose(eff @ mix, np.eye(4))
+
+
+def test_rotor_spin_directions_are_quad_x():
+    airframe = load_airframe("iris")
+    # PX4 quad-X: motors 1, 2 (front-right, back-left) counter-clockwise; 3, 4 clockwise
+    assert airframe.spin.tolist() == [1, 1, -1, -1]
+    assert airframe.rotor_pos[0, :2].tolist() == [0.13, -0.22] and airframe.rotor_pos[2, :2].tolist() == [0.13, 0.22]
+    assert airframe.max_thrust == pytest.approx(5.84e-6 * 1100**2)
+
+
+def test_unknown_airframe_is_a_config_error():
+    with pytest.raises(ConfigError, match="unknown airframe 'iriss'"):
+        load_airframe("iriss")
+
+
+# ----------------------------------------------------------------------------- parameter files
+def iris_text():
+    return (CONTROLLERS_DIR / "iris.params").read_text()
+
+
+@pytest.mark.parametrize("name, value", [("MC_ROLLRATE_P", "0.9"), ("MPC_TILTMAX_AIR", "95"), ("MC_YAW_WEIGHT", "-0.1"), ("MPC_THR_HOVER", "nan")])
+def test_parameter_outside_px4_range_is_named(name, value):
+    lines = [f"{name} {value}" if line.split()[:1] == [name] else line for line in iris_text().splitlines()]
+    with pytest.raises(ConfigError, match=rf"parameter {name} = .* outside PX4's range") as info:
+        parse_params("\n".join(lines), "iris.params")
+    assert "\n" not in str(info.value)
+
+
+def test_parameter_file_errors():
+    with pytest.raises(ConfigError, match="unknown parameter file 'nope'"):
+        load_params("nope")
+    with pytest.raises(ConfigError, match="unknown parameter MC_ROLL_PP"):
+        parse_params(iris_text() + "\nMC_ROLL_PP 1.0\n")
+    with pytest.raises(ConfigError, match="missing parameter MC_YAW_P"):
+        parse_params("\n".join(line for line in iris_text().splitlines() if not line.startswith("MC_YAW_P ")))
+    with pytest.raises(ConfigError, match="MC_ROLL_P = 'fast' is not a number"):
+        parse_params(iris_text().replace("MC_ROLL_P         6.5", "MC_ROLL_P fast"))
+    with pytest.raises(ConfigError, match="MC_ROLL_P is set twice"):
+        parse_params(iris_text() + "\nMC_ROLL_P 6.0\n")
+
+
+def test_shipped_parameter_file_loads():
+    params = load_params("iris")
+    assert set(params) == set(PARAM_NAMES)
+    assert params["MPC_THR_HOVER"] == pytest.approx(load_airframe("iris").hover_thrust(), abs=0.005)
