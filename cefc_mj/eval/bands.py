@@ -1,0 +1,77 @@
+"""Regression bands on the Table VIII metrics (F, N, C) for a CI-sized subset of the grid.
+
+The bands are set from this project's own full-grid run (the cell file that `cefc-eval --protocol
+table8` keeps) and stored in `eval/table8_bands.json` together with how they were set. The
+regression test (`tests/test_table8_regression.py`) re-flies the subset and fails, naming the
+metric, when a change in physics, controller or policy moves a metric out of its band.
+
+    python -m cefc_mj.eval.bands eval/reports/table8_cells_mujoco.jsonl   # rewrite eval/table8_bands.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+from pathlib import Path
+
+from cefc_mj import paths
+from cefc_mj.eval.table8 import load_cells, write_atomic
+
+BANDS_FILE = paths.EVAL_DIR / "table8_bands.json"
+SUBSET_FORMATIONS = (5, 8)
+SUBSET_CONDITIONS = ("SITL-S", "Wind-8", "Deviation-0.8")
+SUBSET_SEED = 0
+STEP_TOLERANCE = 60.0
+"""Half-width of the F and N bands in decision steps (6 % of a 1000-step episode): wide enough for
+floating-point differences between machines, narrow enough to catch a real regression."""
+COLLISION_TOLERANCE = 0.5
+"""Half-width of the C band (percentage points) where collisions are allowed at all."""
+
+
+def make_bands(cell_file: Path) -> dict:
+    """Bands around the subset's episodes in `cell_file` (seed SUBSET_SEED)."""
+    rows = [r for r in load_cells(cell_file).values() if r["seed"] == SUBSET_SEED and r["backend"] == "mujoco"]
+    cells: dict[str, dict] = {}
+    for c in SUBSET_FORMATIONS:
+        for cond in SUBSET_CONDITIONS:
+            match = [r for r in rows if r["formation"] == c and r["condition"] == cond]
+            if not match:
+                raise SystemExit(f"{cell_file}: no mujoco episode for c={c} {cond} seed {SUBSET_SEED}")
+            r = match[0]
+            band = {m: [max(0.0, r[m] - STEP_TOLERANCE), min(float(r["steps"]), r[m] + STEP_TOLERANCE)] for m in "FN"}
+            # Qualitative facts of the paper (Table VIII): no collisions except at Deviation-0.8.
+            band["C"] = [0.0, 0.0] if cond != "Deviation-0.8" else [0.0, r["C"] + COLLISION_TOLERANCE]
+            band["measured"] = {m: r[m] for m in "FNC"}
+            cells.setdefault(str(c), {})[cond] = band
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=paths.PROJECT_ROOT)
+    return {
+        "how_set": (
+            f"From the project's own full-grid run ({cell_file.name}), seed {SUBSET_SEED}, 1000 steps: F and N within "
+            f"+-{STEP_TOLERANCE:g} steps of the measured value; C = 0 except at Deviation-0.8 (the paper's qualitative "
+            f"facts), where C <= measured + {COLLISION_TOLERANCE:g} points. The test also checks that Wind-8 and "
+            "Deviation-0.8 have lower F+N than SITL-S."
+        ),
+        "commit": commit.stdout.strip() or "unknown",
+        "seed": SUBSET_SEED,
+        "steps": 1000,
+        "policy": rows[0]["policy"] if rows else "atm",
+        "cells": cells,
+    }
+
+
+def load_bands(path: Path = BANDS_FILE) -> dict:
+    return json.loads(Path(path).read_text())
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("cells", type=Path, help="the table8 cell file (JSON lines) of a full-grid run")
+    parser.add_argument("--out", type=Path, default=BANDS_FILE)
+    args = parser.parse_args()
+    write_atomic(args.out, json.dumps(make_bands(args.cells), indent=2) + "\n")
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()
