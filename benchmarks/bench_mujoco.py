@@ -3,13 +3,21 @@
 Full loop per decision step (0.1 s): observation assembly + one 3x128 MLP forward for all agents
 (batch N, torch.set_num_threads(1)) -> MujocoWorld.step (50 physics steps at 500 Hz, each running
 the compiled PX4-like cascade for every drone) -> LiDAR (mj_multiRay, 10 Hz). Physics only: the
-same compiled scene stepped with `mj_step` alone, motors held at hover thrust.
+same compiled scene stepped with `mj_step` alone (one Python call per step), each drone held up by
+its weight in xfrc_applied (the world applies the rotor thrusts there).
 
     .venv/bin/python benchmarks/bench_mujoco.py            # 8, 16, 32, 64 drones, 30 obstacles
     .venv/bin/python benchmarks/bench_mujoco.py --drones 8 --seconds 20
+    .venv/bin/python benchmarks/bench_mujoco.py --episode  # + wall time of Table VIII episodes
+
+--episode also times whole Table VIII episodes (BatchedCEFCEnv: task core, observations, metrics,
+LiDAR, the MLP policy; 1000 decision steps, density 0.05, anchor redraws) for 5 and 8 drones in
+Wind-8, the conditions of the evaluation grid's slowest cells.
 
 RTF = simulated seconds / wall seconds, best of `--rounds` alternating rounds of each.
-Target (issue 3): full >= 0.5 x physics-only.
+Target (issue 3): full >= 0.5 x physics-only, i.e. about 100x real time for 8 drones on one quiet
+core. Since the rotor thrusts moved to xfrc_applied, physics-only runs twice as fast as before and the
+ratio understates the full loop's gain; compare full-loop RTFs (docs/mujoco_world.md, Performance).
 """
 
 from __future__ import annotations
@@ -44,7 +52,7 @@ def physics_only_rtf(world: MujocoWorld, seconds: float) -> float:
     model = world.models[0]
     data = mujoco.MjData(model)
     data.qpos[:] = world.datas[0].qpos
-    data.ctrl[:] = world.airframe.hover_thrust() * world.airframe.max_thrust
+    data.xfrc_applied[world.drone_body_ids, 2] = world.airframe.mass * world.config.gravity
     mujoco.mj_forward(model, data)
     n = int(round(seconds / model.opt.timestep))
     start = time.perf_counter()
@@ -80,6 +88,34 @@ def full_loop_rtf(world: MujocoWorld, policy: torch.nn.Module, seconds: float) -
     return seconds / (time.perf_counter() - start), {k: v / steps * 1e3 for k, v in parts.items()}
 
 
+def episode_wall_time(formation: int, wind: float, steps: int, seed: int = 0) -> tuple[float, float]:
+    """(wall seconds, C) of one Table VIII episode flown by an untrained 3x128 MLP (tanh, 2 m/s^2)."""
+    from cefc_mj import make_world
+    from cefc_mj.env import BatchedCEFCEnv
+    from cefc_mj.eval.runner import EpisodeSpec
+
+    spec = EpisodeSpec(formation=formation, seed=seed, backend="mujoco", wind=wind, steps=steps)
+    config = spec.task_config()
+    env = BatchedCEFCEnv(config, n_envs=1, seed=seed, world=make_world("mujoco", config, n_envs=1, wind=wind, seed=seed))
+    torch.manual_seed(seed)
+    obs = env.reset()
+    policy = torch.nn.Sequential(
+        torch.nn.Linear(obs.shape[-1], 128), torch.nn.Tanh(), torch.nn.Linear(128, 128), torch.nn.Tanh(),
+        torch.nn.Linear(128, 128), torch.nn.Tanh(), torch.nn.Linear(128, 2), torch.nn.Tanh(),
+    )
+    with torch.no_grad():
+        policy[-2].weight.mul_(0.5)
+    start = time.perf_counter()
+    info: dict = {}
+    for _ in range(steps):
+        with torch.no_grad():
+            action = 2.0 * policy(torch.as_tensor(obs, dtype=torch.float32)).numpy().astype(np.float64)
+        obs, _, done, info = env.step(action)
+        if done[0]:
+            break
+    return time.perf_counter() - start, float(env.episode_metrics()["C"][0])
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--drones", type=int, nargs="+", default=[8, 16, 32, 64], help="UAV counts to measure")
@@ -87,6 +123,8 @@ def main() -> None:
     parser.add_argument("--seconds", type=float, default=10.0, help="simulated seconds per measurement")
     parser.add_argument("--rounds", type=int, default=3, help="alternating rounds per measurement (best kept)")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--episode", action="store_true", help="also time Table VIII episodes (5 and 8 drones, Wind-8)")
+    parser.add_argument("--episode-steps", type=int, default=1000, help="decision steps per timed episode")
     args = parser.parse_args()
     torch.set_num_threads(1)
     torch.manual_seed(args.seed)
@@ -114,6 +152,12 @@ def main() -> None:
                 full, parts = rtf, round_parts
         print(f"{n:>6} {physics:>17.1f} {full:>14.1f} {full / physics:>6.2f}   "
               f"{parts['step']:.2f} / {parts['lidar']:.2f} / {parts['policy']:.2f}")
+    if args.episode:
+        print(f"\nTable VIII episode, {args.episode_steps} decision steps, Wind-8 (wall seconds, best of {args.rounds}):")
+        for formation in (5, 8):
+            episode_wall_time(formation, 8.0, 5, seed=args.seed)  # warm up
+            wall = min(episode_wall_time(formation, 8.0, args.episode_steps, seed=args.seed + r)[0] for r in range(args.rounds))
+            print(f"  {formation} drones: {wall:.2f} s ({args.episode_steps * 0.1 / wall:.0f}x real time)")
 
 
 if __name__ == "__main__":

@@ -61,13 +61,13 @@ def desaturate(u, vec, umin, umax, reduce_only):
     return u + 0.5 * gain(u) * vec
 
 
-def reference_tick(tick, qpos, qvel, ctrl, s, sp, wind, p, k, mix, eff, rotors):
+def reference_tick(tick, qpos, qvel, s, sp, wind, p, k, mix, eff, rotors):
     """One physics step of the cascade for one drone, written for reading, not speed.
 
-    qpos [7], qvel [6], ctrl [4] (the thrusts of the previous step), s [N_STATE] (copied), sp [4],
-    p {PX4 name: value}, k the constants array. Returns (s, ctrl, xfrc).
+    qpos [7], qvel [6], s [N_STATE] (copied), sp [4], p {PX4 name: value}, k the constants array.
+    Returns (s, xfrc): the new state and the wrench on the body (world frame, about the CoM).
     """
-    s, ctrl = s.copy(), ctrl.copy()
+    s = s.copy()
     g, m, dt_phys = k[C.K_G], k[C.K_MASS], k[C.K_DT]
     pos, q, v, body_rate = qpos[:3], qpos[3:], qvel[:3], qvel[3:]
     R = rot(q)
@@ -76,17 +76,25 @@ def reference_tick(tick, qpos, qvel, ctrl, s, sp, wind, p, k, mix, eff, rotors):
     if tick % int(k[C.K_POS_DIV]) == 0:
         dt = dt_phys * k[C.K_POS_DIV]
         drag_gain = k[C.K_CRD] * np.abs(omega).sum() / m
+        velocity_mode = k[C.K_OFFBOARD] == C.OFFBOARD_VELOCITY
         measured = (v[:2] - s[C.S_VXY_PREV:C.S_VXY_PREV + 2]) / dt
-        explained = ctrl.sum() / m * R[:2, 2] - drag_gain * v[:2]
-        beta = dt / (dt + k[C.K_DIST_TAU])
-        s[C.S_DIST:C.S_DIST + 2] += beta * (measured - explained - s[C.S_DIST:C.S_DIST + 2])
         s[C.S_VXY_PREV:C.S_VXY_PREV + 2] = v[:2]
-        push = s[C.S_DIST:C.S_DIST + 2]
-        acc = sp[C.SP_AX:C.SP_AX + 2].copy()
-        tau, vmax = k[C.K_SPEED_TAU], sp[C.SP_VMAX]
-        predicted = v[:2] + (acc + push) * tau
-        if np.linalg.norm(predicted) > vmax:
-            acc = (predicted / np.linalg.norm(predicted) * vmax - v[:2]) / tau - push
+        if velocity_mode:  # PX4 _velocityControl on the ramped setpoint, feed-forward = ramp slope
+            ff = sp[C.SP_AX:C.SP_AX + 2]
+            s[C.S_VSP:C.S_VSP + 2] += ff * dt
+            s[C.S_VEL_DOT:C.S_VEL_DOT + 2] += lowpass_alpha(p["MPC_VELD_LP"], dt) * (measured - s[C.S_VEL_DOT:C.S_VEL_DOT + 2])
+            err_xy = s[C.S_VSP:C.S_VSP + 2] - v[:2]
+            acc = ff + p["MPC_XY_VEL_P_ACC"] * err_xy + s[C.S_VEL_INT:C.S_VEL_INT + 2] - p["MPC_XY_VEL_D_ACC"] * s[C.S_VEL_DOT:C.S_VEL_DOT + 2]
+        else:
+            explained = s[C.S_THRUST_N:C.S_THRUST_N + 4].sum() / m * R[:2, 2] - drag_gain * v[:2]
+            beta = dt / (dt + k[C.K_DIST_TAU])
+            s[C.S_DIST:C.S_DIST + 2] += beta * (measured - explained - s[C.S_DIST:C.S_DIST + 2])
+            push = s[C.S_DIST:C.S_DIST + 2]
+            acc = sp[C.SP_AX:C.SP_AX + 2].copy()
+            tau, vmax = k[C.K_SPEED_TAU], sp[C.SP_VMAX]
+            predicted = v[:2] + (acc + push) * tau
+            if np.linalg.norm(predicted) > vmax:
+                acc = (predicted / np.linalg.norm(predicted) * vmax - v[:2]) / tau - push
         acc = acc + drag_gain * v[:2]
         s[C.S_ACC_CMD:C.S_ACC_CMD + 2] = acc
 
@@ -111,6 +119,11 @@ def reference_tick(tick, qpos, qvel, ctrl, s, sp, wind, p, k, mix, eff, rotors):
         if txy > txy_max:
             thr[:2] *= txy_max / txy
         s[C.S_Z_INT] = np.clip(s[C.S_Z_INT] + err_z * p["MPC_Z_VEL_I_ACC"] * dt, -g, g)
+        if velocity_mode:  # tracking anti-windup: the acceleration the saturated thrust still produces
+            produced = thr[:2] * g / hover
+            if acc @ acc > produced @ produced:
+                err_xy = err_xy - 2.0 / p["MPC_XY_VEL_P_ACC"] * (acc - produced)
+            s[C.S_VEL_INT:C.S_VEL_INT + 2] += err_xy * p["MPC_XY_VEL_I_ACC"] * dt
         z_axis = thr / np.linalg.norm(thr)
         x_axis = np.cross([0.0, 1.0, 0.0], z_axis)
         x_axis /= np.linalg.norm(x_axis)
@@ -172,16 +185,24 @@ def reference_tick(tick, qpos, qvel, ctrl, s, sp, wind, p, k, mix, eff, rotors):
     omega = alpha * omega + (1 - alpha) * reference
     s[C.S_OMEGA:C.S_OMEGA + 4] = omega
     force, torque = np.zeros(3), np.zeros(3)
+    drag_force, drag_torque = np.zeros(3), np.zeros(3)
     for i in range(4):
         r_body = rotors[i, :3]
         v_rotor = v + R @ np.cross(body_rate, r_body) - wind
         along = v_rotor @ R[:, 2]
         v_perp = v_rotor - along * R[:, 2]
-        ctrl[i] = k[C.K_KT] * omega[i] ** 2 * np.clip(1 - abs(along) / 25, 0, 1)
+        thrust = k[C.K_KT] * omega[i] ** 2 * np.clip(1 - abs(along) / 25, 0, 1)
+        s[C.S_THRUST_N + i] = thrust
         f = -abs(omega[i]) * k[C.K_CRD] * v_perp
-        force += f
-        torque += np.cross(R @ r_body, f) - abs(omega[i]) * rotors[i, 3] * k[C.K_CRM] * v_perp
-    return s, ctrl, np.concatenate([force, torque])
+        drag_force += f
+        drag_torque += np.cross(R @ r_body, f) - abs(omega[i]) * rotors[i, 3] * k[C.K_CRM] * v_perp
+        # what MuJoCo's <motor site=rotor_i gear="0 0 1 0 0 -spin_i km"> applies: the thrust along the
+        # rotor axis at the rotor, plus the yaw reaction torque about the rotor axis
+        f_thrust = thrust * R[:, 2]
+        force += f_thrust
+        torque += np.cross(R @ r_body, f_thrust) - rotors[i, 3] * k[C.K_KM] * thrust * R[:, 2]
+    s[C.S_DRAG:C.S_DRAG + 6] = np.concatenate([drag_force, drag_torque])
+    return s, np.concatenate([force + drag_force, torque + drag_torque])
 
 
 def random_case(rng, cascade, n_drones):
@@ -193,26 +214,28 @@ def random_case(rng, cascade, n_drones):
     xyzw = Rotation.from_rotvec(rv).as_quat()
     qpos[:, 3:] = xyzw[:, [3, 0, 1, 2]]
     qvel = rng.normal(0, 1.0, (n_drones, 6))
-    ctrl = rng.uniform(2, 6, (n_drones, 4))
     s = np.zeros((n_drones, C.N_STATE))
+    s[:, C.S_THRUST_N:C.S_THRUST_N + 4] = rng.uniform(2, 6, (n_drones, 4))
     s[:, C.S_OMEGA:C.S_OMEGA + 4] = rng.uniform(500, 1000, (n_drones, 4))
     s[:, C.S_U:C.S_U + 4] = rng.uniform(0.3, 0.7, (n_drones, 4))
     s[:, C.S_QSP:C.S_QSP + 4] = Rotation.from_rotvec(rng.normal(0, 0.2, (n_drones, 3))).as_quat()[:, [3, 0, 1, 2]]
     s[:, C.S_THRUST] = rng.uniform(0.3, 0.8, n_drones)
-    for col, scale in ((C.S_RATE_INT, 0.1), (C.S_RATE_PREV, 1.0), (C.S_ANG_ACC, 5.0), (C.S_DIST, 1.0), (C.S_VXY_PREV, 1.0)):
-        width = 2 if col in (C.S_DIST, C.S_VXY_PREV) else 3
+    for col, scale in ((C.S_RATE_INT, 0.1), (C.S_RATE_PREV, 1.0), (C.S_ANG_ACC, 5.0), (C.S_DIST, 1.0), (C.S_VXY_PREV, 1.0),
+                       (C.S_VSP, 1.0), (C.S_VEL_INT, 1.0), (C.S_VEL_DOT, 2.0)):
+        width = 2 if col in (C.S_DIST, C.S_VXY_PREV, C.S_VSP, C.S_VEL_INT, C.S_VEL_DOT) else 3
         s[:, col:col + width] = rng.normal(0, scale, (n_drones, width))
     s[:, C.S_YAW_TQ] = rng.normal(0, 0.05, n_drones)
     s[:, C.S_Z_INT] = rng.normal(0, 0.5, n_drones)
     s[:, C.S_VZ_PREV] = rng.normal(0, 0.3, n_drones)
     sp = np.column_stack([rng.uniform(-2, 2, (n_drones, 2)), np.full(n_drones, 2.0), np.full(n_drones, 1.0)])
     wind = np.array([*rng.normal(0, 4, 2), 0.0])
-    return qpos, qvel, ctrl, s, sp, wind
+    return qpos, qvel, s, sp, wind
 
 
-@pytest.fixture(scope="module")
-def cascade():
-    return C.Px4Cascade(load_airframe("iris"), load_params("iris"), C.CascadeTiming(0.002, 2, 5), n_envs=1, n_drones=6)
+@pytest.fixture(scope="module", params=["velocity", "acceleration"])
+def cascade(request):
+    return C.Px4Cascade(load_airframe("iris"), load_params("iris"), C.CascadeTiming(0.002, 2, 5), n_envs=1, n_drones=6,
+                        offboard=request.param)
 
 
 @pytest.mark.parametrize("tick", [0, 1, 2, 5])  # all loops / motors only / + rate loop / + position loop
@@ -220,30 +243,52 @@ def test_compiled_cascade_matches_numpy_reference(cascade, tick):
     rng = np.random.default_rng(tick)
     p = dict(zip(PARAM_NAMES, cascade.prm))
     for _ in range(5):
-        qpos, qvel, ctrl, s, sp, wind = random_case(rng, cascade, 6)
-        s_fast, ctrl_fast, xfrc_fast = s.copy(), ctrl.copy(), np.zeros((6, 6))
-        bad = C.cascade_step(tick, qpos, qvel, ctrl_fast, xfrc_fast, s_fast, sp, wind, cascade.prm, cascade.k,
-                                cascade.mix, cascade.eff, cascade.rotors)
+        qpos, qvel, s, sp, wind = random_case(rng, cascade, 6)
+        if tick == 0:  # large setpoints: the tilt limit and the horizontal anti-windup engage
+            sp[:3, C.SP_AX:C.SP_AY + 1] *= 6.0
+        s_fast, xfrc_fast = s.copy(), np.zeros((6, 6))
+        bad = C.cascade_step(tick, qpos, qvel, xfrc_fast, s_fast, sp, wind, cascade.prm, cascade.k,
+                             cascade.mix, cascade.eff, cascade.rotors)
         assert bad == -1
         for d in range(6):
-            s_ref, ctrl_ref, xfrc_ref = reference_tick(tick, qpos[d], qvel[d], ctrl[d], s[d], sp[d], wind, p, cascade.k,
-                                                       cascade.mix, cascade.eff, cascade.rotors)
+            s_ref, xfrc_ref = reference_tick(tick, qpos[d], qvel[d], s[d], sp[d], wind, p, cascade.k,
+                                             cascade.mix, cascade.eff, cascade.rotors)
             # atol 1e-6: a motor command saturated at 0 is 0 +- 1e-15 in either implementation, and
             # the rotor speed follows sqrt(command) (rad/s of order 1e3 elsewhere)
             np.testing.assert_allclose(s_fast[d], s_ref, rtol=1e-9, atol=1e-6)
-            np.testing.assert_allclose(ctrl_fast[d], ctrl_ref, rtol=1e-7)
             np.testing.assert_allclose(xfrc_fast[d], xfrc_ref, rtol=1e-7, atol=1e-9)
 
 
 def test_kernel_flags_nan_and_flipped_drones(cascade):
     rng = np.random.default_rng(7)
-    qpos, qvel, ctrl, s, sp, wind = random_case(rng, cascade, 6)
+    qpos, qvel, s, sp, wind = random_case(rng, cascade, 6)
     args = (cascade.prm, cascade.k, cascade.mix, cascade.eff, cascade.rotors)
     qpos[3, 0] = np.nan
-    assert C.cascade_step(0, qpos, qvel, ctrl, np.zeros((6, 6)), s, sp, wind, *args) == 3
+    assert C.cascade_step(0, qpos, qvel, np.zeros((6, 6)), s, sp, wind, *args) == 3
     qpos[3, 0] = 0.0
     qpos[4, 3:] = (0.0, 1.0, 0.0, 0.0)  # upside down
-    assert C.cascade_step(0, qpos, qvel, ctrl, np.zeros((6, 6)), s, sp, wind, *args) == 4
+    assert C.cascade_step(0, qpos, qvel, np.zeros((6, 6)), s, sp, wind, *args) == 4
+
+
+def test_velocity_command_integrates_like_the_particle_world():
+    """Ten position ticks per decision step of slope x period land v_sp on clip_norm(v_sp + a dt)."""
+    cascade = C.Px4Cascade(load_airframe("iris"), load_params("iris"), C.CascadeTiming(0.002, 2, 5), n_envs=2, n_drones=3)
+    cascade.setpoint[..., C.SP_VMAX] = 1.0
+    rng = np.random.default_rng(0)
+    v = np.zeros((2, 3, 2))
+    for _ in range(30):
+        a = rng.uniform(-2, 2, (2, 3, 2))
+        cascade.command(a, 0.1)
+        for _ in range(10):  # what the position loop does at each of its ticks (0.01 s)
+            cascade.state[..., C.S_VSP:C.S_VSP + 2] += cascade.setpoint[..., C.SP_AX:C.SP_AY + 1] * 0.01
+        v = v + a * 0.1
+        v = v * np.minimum(1.0, 1.0 / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-12))
+        np.testing.assert_allclose(cascade.state[..., C.S_VSP:C.S_VSP + 2], v, atol=1e-12)
+    # the feed-forward is the acceleration itself until the speed limit clips
+    cascade.reset(0)
+    cascade.reset(1)
+    cascade.command(np.full((2, 3, 2), 0.3), 0.1)
+    np.testing.assert_allclose(cascade.setpoint[..., C.SP_AX:C.SP_AY + 1], 0.3)
 
 
 # ----------------------------------------------------------------------------- mixer and airframe

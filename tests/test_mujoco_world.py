@@ -46,7 +46,24 @@ def test_hover_holds_position_with_weight_shared_by_the_motors():
 
 
 def test_tracking_an_acceleration_setpoint():
+    # offboard "velocity": the action ramps the velocity setpoint exactly as the particle world
+    # integrates velocity, and is also the PID's feed-forward, so the speed follows within the
+    # cascade's ~0.1 s of delay (P on the remaining error, I for rotor drag the model misses)
     world = single_drone()
+    positions, tilts = fly(world, (0.25, 0.0), 20)  # 2 s
+    v_at_2s = world.agent_vel[0, 0].copy()
+    np.testing.assert_allclose(world.velocity_setpoints[0, 0], (0.5, 0.0), atol=1e-12)
+    settle, settle_tilts = fly(world, (0.0, 0.0), 5)
+    v = world.agent_vel[0, 0]
+    assert v_at_2s[0] == pytest.approx(0.5, rel=0.10)
+    assert v[0] == pytest.approx(0.5, rel=0.05)
+    assert abs(v_at_2s[1]) < 1e-6 and abs(v[1]) < 1e-6
+    assert max(tilts.max(), settle_tilts.max()) <= 45.0
+    assert np.abs(np.concatenate([positions, settle])[:, 2] - 2.0).max() < 0.10
+
+
+def test_tracking_an_acceleration_setpoint_open_loop():
+    world = single_drone(offboard="acceleration")
     positions, tilts = fly(world, (0.25, 0.0), 20)  # 2 s
     v_at_2s = world.agent_vel[0, 0, 0]
     # the cascade answers with ~0.25 s of delay (attitude P 6.5, rate P 0.15): once the setpoint
@@ -60,23 +77,31 @@ def test_tracking_an_acceleration_setpoint():
     assert np.abs(np.concatenate([positions, settle])[:, 2] - 2.0).max() < 0.10
 
 
-def test_speed_limits_hold_at_full_acceleration():
-    world = MujocoWorld(MujocoWorldConfig(), n_envs=1, n_agents=1, n_obstacles=0, seed=0)
+# offboard "velocity" limits the velocity *setpoint*, as PX4 does: at full diagonal acceleration
+# (2.83 m/s^2) the ~0.1 s tracking lag overshoots it by 7.5 % (UAV; adversary 10 %), and the integral
+# that the lag charged lets go over a few seconds (1.02 m/s at 3 s). The open-loop interface's
+# predictive limiter peaks at 1.000.
+@pytest.mark.parametrize("offboard, overshoot, final", [("velocity", 0.12, 0.03), ("acceleration", 0.03, 0.02)])
+def test_speed_limits_hold_at_full_acceleration(offboard, overshoot, final):
+    world = MujocoWorld(MujocoWorldConfig(offboard=offboard), n_envs=1, n_agents=1, n_obstacles=0, seed=0)
     world.reset(ALL, np.zeros((1, 1, 2)), np.array([[0.0, 5.0]]), np.zeros((1, 0, 2)))
     speeds, adversary_speeds = [], []
     for _ in range(30):
         world.step(np.full((1, 1, 2), 2.0), np.array([[-2.0, 2.0]]))
         speeds.append(np.linalg.norm(world.agent_vel[0, 0]))
         adversary_speeds.append(np.linalg.norm(world.adversary_vel[0]))
-    assert max(speeds) < 1.0 * 1.03 and speeds[-1] == pytest.approx(1.0, abs=0.02)
-    assert max(adversary_speeds) < 0.75 * 1.03 and adversary_speeds[-1] == pytest.approx(0.75, abs=0.02)
+    assert max(speeds) < 1.0 * (1 + overshoot) and speeds[-1] == pytest.approx(1.0, abs=final)
+    assert max(adversary_speeds) < 0.75 * (1 + overshoot) and adversary_speeds[-1] == pytest.approx(0.75, abs=final)
+    if offboard == "velocity":
+        np.testing.assert_allclose(np.linalg.norm(world.velocity_setpoints[0], axis=-1), [1.0, 0.75], rtol=1e-12)
     assert world.tilt_deg().max() < 45.0
 
 
 def test_wind_drag_matches_the_rotor_drag_formula():
-    # one physics step from a level hover at rest: the relative airspeed is exactly -wind
+    # one physics step from a level hover at rest: the relative airspeed is exactly -wind (a single
+    # physics step is not a whole position-loop period, which only the open-loop interface allows)
     wind = WindConfig(mean_speed=8.0, speed_sigma=0.0, direction=0.3)
-    world = single_drone(wind=wind, decision_dt=0.002)
+    world = single_drone(wind=wind, decision_dt=0.002, offboard="acceleration")
     w = world.wind_vector[0]
     assert np.linalg.norm(w) == pytest.approx(8.0) and math.atan2(w[1], w[0]) == pytest.approx(0.3)
     omega = world.motor_speeds[0, 0].copy()
@@ -92,9 +117,57 @@ def test_wind_drag_matches_the_rotor_drag_formula():
     np.testing.assert_allclose(accel, expected[:2] / MASS, rtol=0.01)
 
 
-def test_strong_wind_drifts_the_drone_downwind_at_held_altitude():
+def test_rotor_wrench_equals_mujoco_thrust_actuators():
+    """The cascade applies the rotor thrusts through xfrc_applied; MuJoCo's site-mounted <motor>
+    actuators of the airframe file, fed the same thrusts at the same pose, give the same generalized forces."""
+    import mujoco
+
+    from cefc_mj.control import cascade as C
+    from cefc_mj.paths import MJCF_DIR
+
+    world = single_drone(wind=WindConfig(mean_speed=5.0, direction=1.0))
+    fly(world, (1.5, -1.0), 3)  # tilted, turning, rotors unequal
+    c = world.cascade
+    qpos, qvel = world.datas[0].qpos.reshape(1, 7).copy(), world.datas[0].qvel.reshape(1, 6).copy()
+    state, xfrc = c.state[0].copy(), np.zeros((1, 6))
+    C.cascade_step(1, qpos, qvel, xfrc, state, c.setpoint[0], world.wind.vector[0], c.prm, c.k, c.mix, c.eff, c.rotors)
+    thrusts = state[0, C.S_THRUST_N:C.S_THRUST_N + 4]
+    applied = xfrc[0] - state[0, C.S_DRAG:C.S_DRAG + 6]  # the thrust part of the wrench
+    data = mujoco.MjData(world.models[0])
+    data.qpos[:] = qpos[0]
+    mujoco.mj_forward(world.models[0], data)
+    ours = np.zeros(6)
+    mujoco.mj_applyFT(world.models[0], data, applied[:3], applied[3:], data.xipos[1], 1, ours)
+    reference = mujoco.MjModel.from_xml_path(str(MJCF_DIR / "iris.xml"))
+    ref_data = mujoco.MjData(reference)
+    ref_data.qpos[:] = qpos[0]
+    ref_data.ctrl[:] = thrusts
+    mujoco.mj_forward(reference, ref_data)
+    np.testing.assert_allclose(ours, ref_data.qfrc_actuator, rtol=1e-9, atol=1e-12)
+    assert np.abs(ours[3:]).max() > 1e-3 and np.ptp(thrusts) > 1e-3  # unequal rotors, real torques
+
+
+def test_strong_wind_is_rejected_by_the_velocity_loop():
+    # offboard "velocity", zero setpoint, Wind-8 (push ~3 m/s^2): the drone drifts downwind until the
+    # velocity integral (MPC_XY_VEL_I_ACC 0.4) has taken the push, push / I ~ 7.5 m, then holds
     direction = 0.3
     world = single_drone(wind=WindConfig(mean_speed=8.0, direction=direction))
+    downwind = np.array([math.cos(direction), math.sin(direction)])
+    positions, tilts = fly(world, (0.0, 0.0), 300)  # 30 s
+    along = positions[:, :2] @ downwind
+    assert along[49] > 3.0  # drifts at first (5 s)
+    assert along.max() < 10.0
+    # then holds: over the last 5 s it moves less than 1 m (0.2 m/s on average; the open-loop
+    # interface drifts at the 1 m/s limit, ~5 m). What remains is the PI loop's answer to the wind
+    # redraws every 0.5 s (sigma 1.6 m/s, a push of ~0.6 m/s^2): 0.03-1.2 m over 8 seeds at 20-25 s.
+    assert np.linalg.norm(positions[-1, :2] - positions[-51, :2]) < 1.0
+    assert np.abs(positions[:, 2] - 2.0).max() < 0.15
+    assert max(tilts) < 45.0
+
+
+def test_strong_wind_drifts_the_drone_downwind_with_the_open_loop_interface():
+    direction = 0.3
+    world = single_drone(wind=WindConfig(mean_speed=8.0, direction=direction), offboard="acceleration")
     downwind = np.array([math.cos(direction), math.sin(direction)])
     positions, speeds, tilts = [], [], []
     for _ in range(50):  # 5 s, zero setpoint
@@ -111,6 +184,42 @@ def test_strong_wind_drifts_the_drone_downwind_at_held_altitude():
     # wind (a step of up to ~2 m/s^2 in push) overshoots it for a few tenths of a second
     assert np.mean(speeds[25:]) < 1.15
     assert max(tilts) < 45.0
+
+
+def smooth_actions(rng, steps, n, tau=0.5, scale=2.0, dt=0.1):
+    """Ornstein-Uhlenbeck actions [steps, n, 2] (correlation time tau, std scale), clipped to +-2 m/s^2."""
+    out, x, beta = np.zeros((steps, n, 2)), np.zeros((n, 2)), dt / tau
+    for t in range(steps):
+        x = x - beta * x + math.sqrt(2 * beta) * rng.normal(0.0, 1.0, (n, 2))
+        out[t] = np.clip(scale * x, -2.0, 2.0)
+    return out
+
+
+def test_velocity_response_stays_close_to_the_particle_world():
+    """Sim-to-sim fidelity: the same action sequence in both worlds. The velocity setpoint is the
+    particle world's velocity (to rounding); the quadrotor's velocity follows it with the cascade's
+    ~0.1 s lag: RMS 0.204-0.215 m/s over 5 seeds for these actions (OU, tau 0.5 s, std 2 m/s^2, often
+    at the bound; 0.13 m/s for tau 1 s, std 1 m/s^2). The open-loop interface: 0.233-0.242 m/s."""
+    from cefc_mj.sim.particle import ParticleWorld
+    from cefc_mj.task.config import TaskConfig
+
+    n = 4
+    actions = smooth_actions(np.random.default_rng(0), 100, n)  # 10 s
+    start = np.stack([np.arange(n) * 3.0, np.zeros(n)], 1)[None]
+    task = TaskConfig(n_agents=n, mode="formation", obstacle_density=0.0)
+    particle = ParticleWorld(task, 1)
+    particle.reset(ALL, start, np.zeros((1, 2)), np.zeros((1, task.n_obstacles, 2)))
+    world = MujocoWorld(MujocoWorldConfig(), n_envs=1, n_agents=n, n_obstacles=0, with_adversary=False, seed=0)
+    world.reset(ALL, start, np.zeros((1, 2)), np.zeros((1, 0, 2)))
+    errors = []
+    for a in actions:
+        particle.step(a[None], np.zeros((1, 2)))
+        world.step(a[None], np.zeros((1, 2)))
+        np.testing.assert_allclose(world.velocity_setpoints[0], particle.agent_vel[0], atol=1e-12)
+        errors.append(world.agent_vel[0] - particle.agent_vel[0])
+    rms = math.sqrt((np.array(errors) ** 2).sum(-1).mean())
+    assert rms < 0.25
+    assert np.linalg.norm(world.agent_pos[0] - particle.agent_pos[0], axis=-1).max() < 0.4
 
 
 def test_wind_redraws_every_half_second_around_the_mean():
@@ -197,20 +306,44 @@ def test_contacts_with_obstacles_and_uavs_are_collisions_adversary_is_not():
     assert world.agent_pos[0, 0, 0] < 1.5 - 0.4  # the obstacle stopped it
 
 
+def test_obstacles_moved_at_reset_collide_among_many():
+    # each obstacle is its own body moved through body_pos: with several geoms moved inside one body
+    # MuJoCo's compiled bounding-volume tree went stale and a drone flew through them
+    world = MujocoWorld(MujocoWorldConfig(), n_envs=1, n_agents=1, n_obstacles=30, with_adversary=False, seed=0)
+    obstacles = np.stack([np.full(30, 1.5), 3.0 * np.arange(30) - 3.0 * 12], 1)[None]  # one on the path at (1.5, 0)
+    world.reset(ALL, np.zeros((1, 1, 2)), np.zeros((1, 2)), obstacles)
+    hit = np.zeros(1, dtype=bool)
+    for _ in range(30):
+        world.step(np.array([[[1.0, 0.0]]]), np.zeros((1, 2)))
+        hit |= world.collisions()[0]
+    assert hit[0]
+    assert world.agent_pos[0, 0, 0] < 1.5 - 0.4
+
+
 # ----------------------------------------------------------------------------- determinism
-def run_episode(seed):
-    world = MujocoWorld(MujocoWorldConfig(), n_envs=2, n_agents=3, n_obstacles=2, wind=WindConfig(mean_speed=3.0), seed=seed)
+def run_episode(seed, steps=10, **config):
+    world = MujocoWorld(MujocoWorldConfig(**config), n_envs=2, n_agents=3, n_obstacles=2, wind=WindConfig(mean_speed=3.0), seed=seed)
     rng = np.random.default_rng(0)
     world.reset(np.ones(2, bool), rng.uniform(-2, 2, (2, 3, 2)), np.array([[0.0, 6.0], [0.0, -6.0]]), np.array([[[4.0, 4.0], [-4.0, 4.0]]] * 2))
-    for _ in range(10):
+    collisions = []
+    for _ in range(steps):
         world.step(rng.uniform(-2, 2, (2, 3, 2)), rng.uniform(-2, 2, (2, 2)))
-    return np.stack([d.qpos.copy() for d in world.datas])
+        collisions.append(world.collisions())
+    return np.stack([d.qpos.copy() for d in world.datas]), np.array(collisions)
 
 
 def test_same_seed_same_trajectory_bit_for_bit():
-    a, b = run_episode(11), run_episode(11)
+    a, b = run_episode(11)[0], run_episode(11)[0]
     assert np.array_equal(a, b)
-    assert not np.array_equal(a, run_episode(12))  # the seed drives the wind
+    assert not np.array_equal(a, run_episode(12)[0])  # the seed drives the wind
+
+
+def test_compiled_and_python_physics_loops_agree_bit_for_bit():
+    # 3 s with wind redraws inside decision steps' reach and UAV-UAV / UAV-obstacle contacts
+    qpos, collisions = run_episode(5, steps=30)
+    qpos_py, collisions_py = run_episode(5, steps=30, physics_loop="python")
+    assert np.array_equal(qpos, qpos_py) and np.array_equal(collisions, collisions_py)
+    assert collisions.any()
 
 
 # ----------------------------------------------------------------------------- protocol, divergence, bad input
@@ -241,6 +374,9 @@ def test_nan_state_and_flipped_drone_raise_simulation_diverged():
     (lambda: MujocoWorld(MujocoWorldConfig(rate_loop_hz=200), 1, 1, 0), "rate_loop_hz must be >= 250"),
     (lambda: MujocoWorld(MujocoWorldConfig(position_loop_hz=300), 1, 1, 0), "position_loop_hz = 300 must divide"),
     (lambda: MujocoWorld(MujocoWorldConfig(), 1, 1, -1), "n_obstacles must be an integer >= 0"),
+    (lambda: MujocoWorld(MujocoWorldConfig(offboard="position"), 1, 1, 0), "mujoco.offboard must be one of velocity, acceleration"),
+    (lambda: MujocoWorld(MujocoWorldConfig(decision_dt=0.002), 1, 1, 0), "mujoco.decision_dt = 0.002 must be a whole number of position-loop periods"),
+    (lambda: MujocoWorld(MujocoWorldConfig(physics_loop="c"), 1, 1, 0), "mujoco.physics_loop must be one of compiled, python"),
 ])
 def test_bad_configuration_is_one_clear_line(make, message):
     with pytest.raises(ConfigError, match=message) as info:

@@ -1,11 +1,17 @@
 """PX4-like cascaded multicopter controller, vectorized over drones, compiled with numba.
 
 One call of `cascade_step` runs one physics step (default 500 Hz) for all D drones of one env,
-reading MuJoCo's qpos/qvel and writing its ctrl (rotor thrusts) and xfrc_applied (rotor drag):
+reading MuJoCo's qpos/qvel and writing xfrc_applied (rotor thrusts, yaw reaction torques, rotor
+drag); `run_physics` runs a whole stretch of physics steps (cascade + `mj_step`) in one compiled call:
 
-    offboard interface (position-loop rate, default 100 Hz)
-        horizontal acceleration setpoint -> speed limiter (with an external-push estimate) ->
-        + calm-air rotor-drag feed-forward
+    offboard interface (position-loop rate, default 100 Hz), one of
+        "velocity": the action integrated into a velocity setpoint (ramped over the decision step,
+        norm-clipped to the speed limit, as the particle world integrates velocity) + its derivative
+        as acceleration feed-forward -> PX4's horizontal velocity PID (integral with PX4's tracking
+        anti-windup, D on the low-passed velocity derivative)
+        "acceleration": the acceleration setpoint open loop -> speed limiter (with an
+        external-push estimate)
+        either way + calm-air rotor-drag feed-forward
     PositionControl (same rate): altitude P -> climb-rate PID (integral, anti-windup) ->
         thrust vector: body_z = normalize(a_x, a_y, g), tilt <= MPC_TILTMAX_AIR, collective =
         hover-scaled vertical thrust / cos(tilt) >= MPC_THR_MIN, vertical-priority saturation ->
@@ -17,9 +23,11 @@ reading MuJoCo's qpos/qvel and writing its ctrl (rotor thrusts) and xfrc_applied
     ControlAllocationSequentialDesaturation (airmode off): pseudo-inverse mix, thrust reduced only,
         roll/pitch desaturation, yaw mixed last with 15 % headroom
     motor model (every physics step): omega -> omega_ref with the asymmetric first-order lag
-        (exact discretisation), thrust = k omega^2 (reduced with axial airspeed as Gazebo), written to
-        the MuJoCo thrust actuators; rotor drag and rolling moment on the relative airspeed written
-        to xfrc_applied.
+        (exact discretisation), thrust = k omega^2 (reduced with axial airspeed as Gazebo); rotor
+        thrusts with their moments and yaw reaction torques, rotor drag and rolling moment on the
+        relative airspeed, summed into xfrc_applied (world frame, about the centre of mass). This is
+        the wrench MuJoCo's site-mounted `<motor>` actuators of the airframe file would apply, without
+        their per-step transmission Jacobians.
 
 Frames: world ENU, body FLU (MuJoCo's). PX4 works in NED/FRD; every formula here is PX4's with
 z (and the sign of vertical quantities) flipped, e.g. body_z = normalize(-a_x, -a_y, g) in NED is
@@ -36,6 +44,9 @@ from dataclasses import dataclass
 
 import numba
 import numpy as np
+from llvmlite import ir
+from numba.core import types
+from numba.extending import intrinsic
 
 from cefc_mj.control.airframe import Airframe, px4_mixer
 from cefc_mj.control.params import PARAM_NAMES
@@ -43,18 +54,25 @@ from cefc_mj.control.params import PARAM_NAMES
 # ----------------------------------------------------------------------------- layouts
 # parameter positions (numba folds module-level ints into constants)
 (MPC_Z_P, MPC_Z_VEL_P_ACC, MPC_Z_VEL_I_ACC, MPC_Z_VEL_D_ACC, MPC_Z_VEL_MAX_UP, MPC_Z_VEL_MAX_DN,
+ MPC_XY_VEL_P_ACC, MPC_XY_VEL_I_ACC, MPC_XY_VEL_D_ACC, MPC_VELD_LP,
  MPC_TILTMAX_AIR, MPC_THR_HOVER, MPC_THR_MIN, MPC_THR_MAX, MPC_THR_XY_MARG,
  MC_ROLL_P, MC_PITCH_P, MC_YAW_P, MC_YAW_WEIGHT, MC_ROLLRATE_MAX, MC_PITCHRATE_MAX, MC_YAWRATE_MAX,
  MC_ROLLRATE_P, MC_ROLLRATE_I, MC_ROLLRATE_D, MC_ROLLRATE_FF, MC_ROLLRATE_K, MC_RR_INT_LIM,
  MC_PITCHRATE_P, MC_PITCHRATE_I, MC_PITCHRATE_D, MC_PITCHRATE_FF, MC_PITCHRATE_K, MC_PR_INT_LIM,
  MC_YAWRATE_P, MC_YAWRATE_I, MC_YAWRATE_D, MC_YAWRATE_FF, MC_YAWRATE_K, MC_YR_INT_LIM,
- MC_YAW_TQ_CUTOFF, IMU_DGYRO_CUTOFF) = range(38)
-assert len(PARAM_NAMES) == 38 and PARAM_NAMES[MC_ROLL_P] == "MC_ROLL_P" and PARAM_NAMES[IMU_DGYRO_CUTOFF] == "IMU_DGYRO_CUTOFF"
+ MC_YAW_TQ_CUTOFF, IMU_DGYRO_CUTOFF) = range(42)
+assert len(PARAM_NAMES) == 42 and PARAM_NAMES[MPC_VELD_LP] == "MPC_VELD_LP" and PARAM_NAMES[MC_ROLL_P] == "MC_ROLL_P"
+assert PARAM_NAMES[IMU_DGYRO_CUTOFF] == "IMU_DGYRO_CUTOFF"
 
 # constants array `k`
 (K_DT, K_RATE_DIV, K_POS_DIV, K_G, K_MASS, K_KT, K_WMAX, K_ALPHA_UP, K_ALPHA_DOWN, K_CRD, K_CRM,
- K_SPEED_TAU, K_COS_FLIP, K_DIST_TAU) = range(14)
-N_CONSTS = 14
+ K_SPEED_TAU, K_COS_FLIP, K_DIST_TAU, K_KM, K_OFFBOARD) = range(16)
+N_CONSTS = 16
+
+# offboard interfaces (k[K_OFFBOARD])
+OFFBOARD_ACCELERATION = 0
+OFFBOARD_VELOCITY = 1
+OFFBOARD_MODES = {"velocity": OFFBOARD_VELOCITY, "acceleration": OFFBOARD_ACCELERATION}
 
 # per-drone state columns `s`
 S_OMEGA = 0      # 4 rotor speeds (rad/s)
@@ -72,9 +90,15 @@ S_SAT_NEG = 28   # 3 flags: ... negative direction
 S_ACC_CMD = 31   # 2 horizontal acceleration actually commanded (after limiter + feed-forward)
 S_DIST = 33      # 2 low-passed external horizontal acceleration estimate (wind push), m/s^2
 S_VXY_PREV = 35  # 2 horizontal velocity at the previous position tick
-N_STATE = 37
+S_THRUST_N = 37  # 4 rotor thrusts (N) applied at the last physics step
+S_VSP = 41       # 2 horizontal velocity setpoint (offboard "velocity")
+S_VEL_INT = 43   # 2 horizontal velocity integrator (m/s^2)
+S_VEL_DOT = 45   # 2 low-passed horizontal velocity derivative (D term)
+S_DRAG = 47      # 6 rotor drag + rolling moment (world force N, torque N m about the CoM), last physics step
+N_STATE = 53
 
-# per-drone setpoint columns `sp`
+# per-drone setpoint columns `sp`: SP_AX, SP_AY = the acceleration setpoint ("acceleration") or the
+# feed-forward, i.e. the slope of the velocity-setpoint ramp ("velocity"; see Px4Cascade.command)
 SP_AX, SP_AY, SP_Z, SP_VMAX = range(4)
 
 
@@ -145,42 +169,61 @@ def _lowpass_alpha(cutoff_hz, dt):
 
 # ----------------------------------------------------------------------------- loops
 @numba.njit(cache=True, inline="always")
-def _position_loop(d, qpos, qvel, ctrl, s, sp, prm, k):
+def _position_loop(d, qpos, qvel, s, sp, prm, k):
     """Offboard interface + PositionControl for drone d: writes the attitude and thrust setpoints."""
     dt = k[K_DT] * k[K_POS_DIV]
     g = k[K_G]
     vx, vy, vz = qvel[d, 0], qvel[d, 1], qvel[d, 2]
-
-    # external horizontal acceleration the vehicle does not command (wind): measured acceleration
-    # minus what the thrust vector and the modelled calm-air rotor drag explain, low-passed
-    w, x, y, z = qpos[d, 3], qpos[d, 4], qpos[d, 5], qpos[d, 6]
-    thrust_n = 0.0
     om_sum = 0.0
     for i in range(4):
-        thrust_n += ctrl[d, i]
         om_sum += abs(s[d, S_OMEGA + i])
     drag_gain = k[K_CRD] * om_sum / k[K_MASS]
-    a_thr = thrust_n / k[K_MASS]
-    dist_x = (vx - s[d, S_VXY_PREV]) / dt - a_thr * 2.0 * (x * z + w * y) + drag_gain * vx
-    dist_y = (vy - s[d, S_VXY_PREV + 1]) / dt - a_thr * 2.0 * (y * z - w * x) + drag_gain * vy
-    beta = dt / (dt + k[K_DIST_TAU])
-    s[d, S_DIST] += beta * (dist_x - s[d, S_DIST])
-    s[d, S_DIST + 1] += beta * (dist_y - s[d, S_DIST + 1])
-    s[d, S_VXY_PREV] = vx
-    s[d, S_VXY_PREV + 1] = vy
+    velocity_mode = k[K_OFFBOARD] == OFFBOARD_VELOCITY
 
-    # offboard interface: the setpoint passes unchanged (open loop, as PX4 treats an acceleration
-    # setpoint) unless the speed it leads to within tau would exceed vmax; then a velocity loop of
-    # gain 1/tau, which also cancels the estimated external push, pulls the speed onto the limit
-    ax, ay = sp[d, SP_AX], sp[d, SP_AY]
-    tau = k[K_SPEED_TAU]
-    vmax = sp[d, SP_VMAX]
-    ex, ey = s[d, S_DIST], s[d, S_DIST + 1]
-    px, py = vx + (ax + ex) * tau, vy + (ay + ey) * tau
-    pn = math.sqrt(px * px + py * py)
-    if pn > vmax:
-        ax = (px * vmax / pn - vx) / tau - ex
-        ay = (py * vmax / pn - vy) / tau - ey
+    if velocity_mode:
+        # the velocity setpoint ramps with the feed-forward slope (Px4Cascade.command makes it land on
+        # the particle world's velocity at the end of the decision step); PX4 _velocityControl with
+        # the derivative of the measured velocity low-passed at MPC_VELD_LP
+        s[d, S_VSP] += sp[d, SP_AX] * dt
+        s[d, S_VSP + 1] += sp[d, SP_AY] * dt
+        a_vd = _lowpass_alpha(prm[MPC_VELD_LP], dt)
+        s[d, S_VEL_DOT] += a_vd * ((vx - s[d, S_VXY_PREV]) / dt - s[d, S_VEL_DOT])
+        s[d, S_VEL_DOT + 1] += a_vd * ((vy - s[d, S_VXY_PREV + 1]) / dt - s[d, S_VEL_DOT + 1])
+        s[d, S_VXY_PREV] = vx
+        s[d, S_VXY_PREV + 1] = vy
+        err_x = s[d, S_VSP] - vx
+        err_y = s[d, S_VSP + 1] - vy
+        ax = sp[d, SP_AX] + prm[MPC_XY_VEL_P_ACC] * err_x + s[d, S_VEL_INT] - prm[MPC_XY_VEL_D_ACC] * s[d, S_VEL_DOT]
+        ay = sp[d, SP_AY] + prm[MPC_XY_VEL_P_ACC] * err_y + s[d, S_VEL_INT + 1] - prm[MPC_XY_VEL_D_ACC] * s[d, S_VEL_DOT + 1]
+    else:
+        # external horizontal acceleration the vehicle does not command (wind): measured acceleration
+        # minus what the thrust vector and the modelled calm-air rotor drag explain, low-passed
+        w, x, y, z = qpos[d, 3], qpos[d, 4], qpos[d, 5], qpos[d, 6]
+        thrust_n = 0.0
+        for i in range(4):
+            thrust_n += s[d, S_THRUST_N + i]
+        a_thr = thrust_n / k[K_MASS]
+        dist_x = (vx - s[d, S_VXY_PREV]) / dt - a_thr * 2.0 * (x * z + w * y) + drag_gain * vx
+        dist_y = (vy - s[d, S_VXY_PREV + 1]) / dt - a_thr * 2.0 * (y * z - w * x) + drag_gain * vy
+        beta = dt / (dt + k[K_DIST_TAU])
+        s[d, S_DIST] += beta * (dist_x - s[d, S_DIST])
+        s[d, S_DIST + 1] += beta * (dist_y - s[d, S_DIST + 1])
+        s[d, S_VXY_PREV] = vx
+        s[d, S_VXY_PREV + 1] = vy
+
+        # the setpoint passes unchanged (open loop, as PX4 treats an acceleration setpoint) unless
+        # the speed it leads to within tau would exceed vmax; then a velocity loop of gain 1/tau,
+        # which also cancels the estimated external push, pulls the speed onto the limit
+        ax, ay = sp[d, SP_AX], sp[d, SP_AY]
+        tau = k[K_SPEED_TAU]
+        vmax = sp[d, SP_VMAX]
+        ex, ey = s[d, S_DIST], s[d, S_DIST + 1]
+        px, py = vx + (ax + ex) * tau, vy + (ay + ey) * tau
+        pn = math.sqrt(px * px + py * py)
+        if pn > vmax:
+            ax = (px * vmax / pn - vx) / tau - ex
+            ay = (py * vmax / pn - vy) / tau - ey
+        err_x = err_y = 0.0
     # calm-air rotor-drag feed-forward (the vehicle knows its rotor speeds, not the wind)
     ax += drag_gain * vx
     ay += drag_gain * vy
@@ -224,6 +267,16 @@ def _position_loop(d, qpos, qvel, ctrl, s, sp, prm, k):
         tx, ty = tx * txy_max / txy, ty * txy_max / txy
     z_int = s[d, S_Z_INT] + err_z * prm[MPC_Z_VEL_I_ACC] * dt
     s[d, S_Z_INT] = min(max(z_int, -g), g)
+    if velocity_mode:
+        # PX4's tracking anti-windup: while the thrust saturation (tilt limit, vertical priority)
+        # cuts the horizontal acceleration, the integrator is driven to unsaturate it
+        prod_x, prod_y = tx * g / hover, ty * g / hover
+        if ax * ax + ay * ay > prod_x * prod_x + prod_y * prod_y:
+            arw = 2.0 / prm[MPC_XY_VEL_P_ACC]
+            err_x -= arw * (ax - prod_x)
+            err_y -= arw * (ay - prod_y)
+        s[d, S_VEL_INT] += err_x * prm[MPC_XY_VEL_I_ACC] * dt
+        s[d, S_VEL_INT + 1] += err_y * prm[MPC_XY_VEL_I_ACC] * dt
 
     # ControlMath::thrustToAttitude / bodyzToAttitude with yaw setpoint 0
     thrust = math.sqrt(tx * tx + ty * ty + tz * tz)
@@ -366,8 +419,9 @@ def _rate_loop(d, qpos, qvel, s, prm, k, mix, eff):
 
 
 @numba.njit(cache=True, inline="always")
-def _motors_and_drag(d, qpos, qvel, ctrl, xfrc, s, k, rotors, wind):
-    """Motor lag, thrust to the actuators, rotor drag + rolling moment to xfrc_applied (drone d)."""
+def _motors_and_drag(d, qpos, qvel, xfrc, s, k, rotors, wind):
+    """Motor lag; rotor thrusts, yaw reaction torques, rotor drag and rolling moments summed into
+    xfrc_applied (world frame, about the centre of mass) for drone d."""
     w, x, y, z = qpos[d, 3], qpos[d, 4], qpos[d, 5], qpos[d, 6]
     # body -> world rotation
     r00, r01, r02 = 1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)
@@ -376,6 +430,7 @@ def _motors_and_drag(d, qpos, qvel, ctrl, xfrc, s, k, rotors, wind):
     wx, wy, wz = qvel[d, 3], qvel[d, 4], qvel[d, 5]
     fx = fy = fz = 0.0
     mx = my = mz = 0.0
+    thrust = tbx = tby = tbz = 0.0  # total thrust (N) and its torque in the body frame
     for i in range(4):
         # motor lag towards the commanded speed; thrust = k omega^2 is linear in the command
         ref = k[K_WMAX] * math.sqrt(min(max(s[d, S_U + i], 0.0), 1.0))
@@ -392,7 +447,14 @@ def _motors_and_drag(d, qpos, qvel, ctrl, xfrc, s, k, rotors, wind):
         vpar = vx * r02 + vy * r12 + vz * r22
         vx, vy, vz = vx - vpar * r02, vy - vpar * r12, vz - vpar * r22
         scalar = min(max(1.0 - abs(vpar) / 25.0, 0.0), 1.0)  # Gazebo: no thrust at 25 m/s axial airspeed
-        ctrl[d, i] = k[K_KT] * om * om * scalar
+        t_i = k[K_KT] * om * om * scalar
+        s[d, S_THRUST_N + i] = t_i
+        # a <motor site=rotor_i gear="0 0 1 0 0 -spin_i km">: force t_i along body z at the rotor,
+        # torque r_i x (0, 0, t_i) + (0, 0, -spin_i km t_i) (a CCW rotor pushes the body clockwise)
+        thrust += t_i
+        tbx += py * t_i
+        tby -= px * t_i
+        tbz -= rotors[i, 3] * k[K_KM] * t_i
         drag = -abs(om) * k[K_CRD]
         dfx, dfy, dfz = drag * vx, drag * vy, drag * vz
         fx += dfx
@@ -406,12 +468,18 @@ def _motors_and_drag(d, qpos, qvel, ctrl, xfrc, s, k, rotors, wind):
         mx += ry * dfz - rz * dfy + roll * vx
         my += rz * dfx - rx * dfz + roll * vy
         mz += rx * dfy - ry * dfx + roll * vz
-    xfrc[d, 0], xfrc[d, 1], xfrc[d, 2] = fx, fy, fz
-    xfrc[d, 3], xfrc[d, 4], xfrc[d, 5] = mx, my, mz
+    s[d, S_DRAG], s[d, S_DRAG + 1], s[d, S_DRAG + 2] = fx, fy, fz
+    s[d, S_DRAG + 3], s[d, S_DRAG + 4], s[d, S_DRAG + 5] = mx, my, mz
+    xfrc[d, 0] = fx + r02 * thrust
+    xfrc[d, 1] = fy + r12 * thrust
+    xfrc[d, 2] = fz + r22 * thrust
+    xfrc[d, 3] = mx + r00 * tbx + r01 * tby + r02 * tbz
+    xfrc[d, 4] = my + r10 * tbx + r11 * tby + r12 * tbz
+    xfrc[d, 5] = mz + r20 * tbx + r21 * tby + r22 * tbz
 
 
 @numba.njit(cache=True)
-def cascade_step(tick, qpos, qvel, ctrl, xfrc, s, sp, wind, prm, k, mix, eff, rotors):
+def cascade_step(tick, qpos, qvel, xfrc, s, sp, wind, prm, k, mix, eff, rotors):
     """One physics step of the cascade for all drones of one env.
 
     Returns -1, or the index of the first drone whose state is non-finite or tilted past the flip
@@ -434,11 +502,47 @@ def cascade_step(tick, qpos, qvel, ctrl, xfrc, s, sp, wind, prm, k, mix, eff, ro
                 bad = d
             continue
         if run_pos:
-            _position_loop(d, qpos, qvel, ctrl, s, sp, prm, k)
+            _position_loop(d, qpos, qvel, s, sp, prm, k)
         if run_rate:
             _rate_loop(d, qpos, qvel, s, prm, k, mix, eff)
-        _motors_and_drag(d, qpos, qvel, ctrl, xfrc, s, k, rotors, wind)
+        _motors_and_drag(d, qpos, qvel, xfrc, s, k, rotors, wind)
     return bad
+
+
+@intrinsic
+def _call_step(typingctx, fn, model, data):
+    """Call the C function `void fn(const mjModel*, mjData*)` at address fn (all three are integers)."""
+    sig = types.void(types.uintp, types.uintp, types.uintp)
+
+    def codegen(context, builder, signature, args):
+        ptr = ir.IntType(8).as_pointer()
+        fnty = ir.FunctionType(ir.VoidType(), [ptr, ptr])
+        fptr = builder.inttoptr(args[0], fnty.as_pointer())
+        builder.call(fptr, [builder.inttoptr(args[1], ptr), builder.inttoptr(args[2], ptr)])
+        return context.get_dummy_value()
+
+    return sig, codegen
+
+
+@numba.njit(cache=True)
+def run_physics(tick, n_steps, step_fn, model, data, qpos, qvel, xfrc, contacts, collided, s, sp, wind, prm, k, mix,
+                eff, rotors):
+    """n_steps physics steps of one env from `tick`: the cascade, then MuJoCo's `mj_step` (called
+    through its C address `step_fn` on the mjModel/mjData addresses `model`, `data`), all compiled.
+
+    contacts [N, 2]: per UAV the MuJoCo contact-sensor counts (all contacts of its footprint, those
+    with the floor); collided [N] is set where the first exceeds the second after a step.
+    Returns (steps run, bad drone or -1); a bad drone (see cascade_step) stops before its mj_step.
+    """
+    for j in range(n_steps):
+        bad = cascade_step(tick + j, qpos, qvel, xfrc, s, sp, wind, prm, k, mix, eff, rotors)
+        if bad >= 0:
+            return j, bad
+        _call_step(step_fn, model, data)
+        for i in range(collided.shape[0]):
+            if contacts[i, 0] > contacts[i, 1]:
+                collided[i] = True
+    return n_steps, -1
 
 
 # ----------------------------------------------------------------------------- wrapper
@@ -461,12 +565,15 @@ class Px4Cascade:
     >>> from cefc_mj.control.params import load_params
     >>> c = Px4Cascade(load_airframe("iris"), load_params("iris"), CascadeTiming(0.002, 2, 5), n_envs=1, n_drones=3)
     >>> c.state.shape
-    (1, 3, 37)
+    (1, 3, 53)
     """
 
     def __init__(self, airframe: Airframe, params: dict[str, float], timing: CascadeTiming, n_envs: int, n_drones: int,
                  speed_limit_tau: float = 0.35, disturbance_tau: float = 0.1, flip_tilt_deg: float = 90.0,
-                 gravity: float = 9.81):
+                 gravity: float = 9.81, offboard: str = "velocity"):
+        if offboard not in OFFBOARD_MODES:
+            raise ValueError(f"offboard must be one of {', '.join(OFFBOARD_MODES)}, got {offboard!r}")
+        self.offboard = offboard
         self.airframe = airframe
         self.params = params
         self.timing = timing
@@ -487,6 +594,8 @@ class Px4Cascade:
         k[K_SPEED_TAU] = speed_limit_tau
         k[K_COS_FLIP] = math.cos(math.radians(flip_tilt_deg))
         k[K_DIST_TAU] = disturbance_tau
+        k[K_KM] = airframe.moment_constant
+        k[K_OFFBOARD] = OFFBOARD_MODES[offboard]
         self.k = k
         self.rotors = np.concatenate([airframe.rotor_pos, airframe.spin[:, None]], axis=1)
         self.gravity = gravity
@@ -502,9 +611,42 @@ class Px4Cascade:
         s[:, S_U:S_U + 4] = hover_u
         s[:, S_QSP] = 1.0
         s[:, S_THRUST] = hover_u
+        s[:, S_THRUST_N:S_THRUST_N + 4] = hover_u * self.airframe.max_thrust
         self.setpoint[env, :, SP_AX:SP_AY + 1] = 0.0
+
+    def command(self, accel: np.ndarray, decision_dt: float) -> None:
+        """Hand the offboard interface one decision step's horizontal acceleration setpoints [B, D, 2].
+
+        "acceleration": the setpoint itself. "velocity": the velocity setpoint is integrated as the
+        particle world integrates velocity, v_sp <- clip_norm(v_sp + a dt, vmax), and reached by a
+        ramp over the decision step: the feed-forward is the ramp's slope (v_sp_new - v_sp) / dt, which
+        is a unless the speed limit clips, and the position loop adds slope x its period to v_sp at
+        each of its ticks (decision_dt must be a whole number of position-loop periods).
+        """
+        sp = self.setpoint
+        if self.offboard == "acceleration":
+            sp[:, :, SP_AX:SP_AY + 1] = accel
+            return
+        vsp = self.state[:, :, S_VSP:S_VSP + 2]
+        target = vsp + accel * decision_dt
+        speed = np.sqrt((target * target).sum(-1))
+        vmax = sp[:, :, SP_VMAX]
+        scale = np.where(speed > vmax, vmax / np.maximum(speed, 1e-300), 1.0)
+        sp[:, :, SP_AX:SP_AY + 1] = (target * scale[..., None] - vsp) / decision_dt
 
     # read-only views for tests and visualisation
     def motor_speeds(self, env: int) -> np.ndarray:
         """[D, 4] rotor speeds (rad/s)."""
         return self.state[env, :, S_OMEGA:S_OMEGA + 4]
+
+    def motor_thrusts(self, env: int) -> np.ndarray:
+        """[D, 4] rotor thrusts (N) applied at the last physics step."""
+        return self.state[env, :, S_THRUST_N:S_THRUST_N + 4]
+
+    def drag_wrenches(self, env: int) -> np.ndarray:
+        """[D, 6] rotor drag + rolling moment (world force N, torque N m about the CoM), last physics step."""
+        return self.state[env, :, S_DRAG:S_DRAG + 6]
+
+    def velocity_setpoints(self, env: int) -> np.ndarray:
+        """[D, 2] horizontal velocity setpoints (m/s; offboard "velocity")."""
+        return self.state[env, :, S_VSP:S_VSP + 2]

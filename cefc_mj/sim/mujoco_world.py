@@ -2,10 +2,16 @@
 
 B envs, each its own MjModel copy + MjData: N UAVs (`uav<i>_`) and, unless disabled, one
 adversary quadrotor (`adv_`) are attached from the airframe MJCF into `assets/mjcf/arena.xml` with
-`mujoco.MjSpec`; K obstacles are world-welded cylinders (radius 0.4 m by default, geom group 1) compiled once
-and moved at reset by writing the env's `model.geom_pos` (no recompile). One decision step
-(0.1 s) holds the acceleration setpoints and runs `decision_dt / physics_dt` physics steps; each
-physics step runs the compiled cascade (cefc_mj.control.cascade), then `mj_step`.
+`mujoco.MjSpec` (rigid body and footprint only: the airframe's thrust actuators and visual geoms are
+left out, the cascade applies the rotor wrenches through xfrc_applied); K obstacles are cylinders
+(radius 0.4 m by default, geom group 1), each in its own world-welded body, compiled once and moved
+at reset by writing the env's `model.body_pos` (no recompile). Moving geoms inside one body instead
+(`model.geom_pos`) would leave the bounding-volume trees MuJoCo compiled for the body stale: its
+collision midphase and its rays would then miss the moved obstacles. One decision step (0.1 s)
+hands the setpoints to the offboard interface (`offboard`: "velocity" or "acceleration") and runs
+`decision_dt / physics_dt` physics steps; each physics step runs the compiled cascade
+(cefc_mj.control.cascade), then `mj_step`, all in one compiled call up to the next wind redraw
+(`physics_loop = "compiled"`) or from Python (`"python"`, the same arithmetic).
 
 - Positions/velocities: the drones' true x-y from qpos/qvel.
 - LiDAR: `mj_multiRay` from the given origins at flight altitude, obstacles (static geoms, so
@@ -14,7 +20,8 @@ physics step runs the compiled cascade (cefc_mj.control.cascade), then `mj_step`
   circle reads 0 (the particle world's convention; a ray cast from inside a MuJoCo cylinder would
   report the far wall).
 - Collisions: MuJoCo contacts of a UAV footprint with an obstacle or another UAV footprint at any
-  physics step of the last decision step. The adversary does not collide (the particle world's
+  physics step of the last decision step, read from two MuJoCo contact sensors per UAV (all contacts
+  of its footprint, those with the floor). The adversary does not collide (the particle world's
   adversary passes through obstacles too).
 - Divergence: non-finite state, a drone tilted past `flip_tilt_deg`, or a MuJoCo bad-qacc/qpos/qvel
   warning raises `SimulationDiverged` naming env, drone and time; the env must be reset.
@@ -30,14 +37,17 @@ physics step runs the compiled cascade (cefc_mj.control.cascade), then `mj_step`
 from __future__ import annotations
 
 import copy
+import ctypes
 import math
+import warnings
 from dataclasses import asdict, dataclass
+from pathlib import Path
 
 import mujoco
 import numpy as np
 
 from cefc_mj.control.airframe import load_airframe
-from cefc_mj.control.cascade import SP_AX, SP_VMAX, SP_Z, CascadeTiming, Px4Cascade, cascade_step
+from cefc_mj.control.cascade import OFFBOARD_MODES, SP_VMAX, SP_Z, CascadeTiming, Px4Cascade, cascade_step, run_physics
 from cefc_mj.control.params import load_params, params_path
 from cefc_mj.errors import ConfigError, SimulationDiverged
 from cefc_mj.paths import MJCF_DIR
@@ -49,6 +59,21 @@ UAV_GROUP = 2
 ADVERSARY_GROUP = 4
 _PARKED = 1.0e3  # where obstacles wait before the first reset (far outside the arena)
 _BAD_STATE_WARNINGS = (mujoco.mjtWarning.mjWARN_BADQACC, mujoco.mjtWarning.mjWARN_BADQPOS, mujoco.mjtWarning.mjWARN_BADQVEL)
+_VISUAL_GROUP = 3  # the airframe file's visual-only geoms and rotor sites
+PHYSICS_LOOPS = ("compiled", "python")
+
+
+def _mj_step_address() -> int | None:
+    """C address of mj_step in the MuJoCo library the bindings loaded (None if it cannot be found)."""
+    for lib in sorted(Path(mujoco.__file__).parent.glob("libmujoco*")):
+        try:
+            return ctypes.cast(ctypes.CDLL(str(lib)).mj_step, ctypes.c_void_p).value
+        except (OSError, AttributeError):
+            continue
+    return None
+
+
+_MJ_STEP = _mj_step_address()
 
 
 @dataclass(frozen=True)
@@ -69,17 +94,31 @@ class MujocoWorldConfig:
     """Offboard interface + altitude/thrust loop rate (Hz; a divisor of the physics rate)."""
     flight_altitude: float = 2.0
     """Altitude the drones hold and the LiDAR casts at (m)."""
+    offboard: str = "velocity"
+    """What the offboard interface makes of the policy's acceleration setpoint (docs/mujoco_world.md):
+    "velocity" integrates it into a velocity setpoint as the particle world integrates velocity and
+    flies that with PX4's velocity PID (acceleration feed-forward; the integral rejects wind);
+    "acceleration" passes it open loop to PX4's acceleration -> thrust path (DESIGN §8 literally;
+    wind then degrades tracking, and Wind-8 outpushes the 2 m/s^2 action bound)."""
     speed_limit_tau: float = 0.35
-    """Time constant (s) with which the offboard interface pulls a speed that would exceed the limit
-    back onto it (a velocity loop of gain 1/tau, active only at the limit)."""
+    """offboard = "acceleration": time constant (s) with which the interface pulls a speed that would
+    exceed the limit back onto it (a velocity loop of gain 1/tau, active only at the limit)."""
     disturbance_tau: float = 0.1
-    """Low-pass time constant (s) of the external-push (wind) estimate the speed limiter cancels."""
+    """offboard = "acceleration": low-pass time constant (s) of the external-push (wind) estimate the
+    speed limiter cancels."""
     flip_tilt_deg: float = 90.0
     """A drone tilted past this angle counts as flipped: SimulationDiverged."""
     obstacle_height: float = 4.0
     """Height of the cylinder obstacles (m), from the floor."""
     gravity: float = 9.81
     """Gravity (m/s^2)."""
+    physics_loop: str = "compiled"
+    """"compiled": cascade + mj_step run in one numba call per stretch of physics steps (mj_step called
+    through its C address); "python": one Python round-trip per physics step. Same arithmetic, same
+    trajectories bit for bit; "python" is the fallback (and is used if the library is not found)."""
+    visual_geoms: bool = False
+    """Keep the airframe's visual-only geoms and rotor sites (group 3) in the compiled scene, for a MuJoCo
+    viewer. They cannot collide, but they cost about a quarter of mj_step (kinematics, collision)."""
 
     def validate(self) -> None:
         """Raise ConfigError naming the first bad field."""
@@ -103,6 +142,15 @@ class MujocoWorldConfig:
             raise ConfigError(f"mujoco.flip_tilt_deg must be in (0, 180], got {self.flip_tilt_deg}")
         if self.obstacle_height <= self.flight_altitude:
             raise ConfigError(f"mujoco.obstacle_height = {self.obstacle_height} must exceed flight_altitude = {self.flight_altitude}")
+        if self.offboard not in OFFBOARD_MODES:
+            raise ConfigError(f"mujoco.offboard must be one of {', '.join(OFFBOARD_MODES)}, got {self.offboard!r}")
+        if self.offboard == "velocity" and _ratio(self.decision_dt * self.position_loop_hz, 1.0) is None:
+            raise ConfigError(f"mujoco.decision_dt = {self.decision_dt} must be a whole number of position-loop periods "
+                              f"(1 / {self.position_loop_hz:g} Hz) with offboard = 'velocity'")
+        if self.physics_loop not in PHYSICS_LOOPS:
+            raise ConfigError(f"mujoco.physics_loop must be one of {', '.join(PHYSICS_LOOPS)}, got {self.physics_loop!r}")
+        if not isinstance(self.visual_geoms, bool):
+            raise ConfigError(f"mujoco.visual_geoms must be a bool, got {self.visual_geoms!r}")
 
     def to_dict(self) -> dict:
         """Plain dict for run records."""
@@ -118,7 +166,8 @@ def _ratio(a: float, b: float) -> int | None:
 
 def build_scene(config: MujocoWorldConfig, n_agents: int, n_obstacles: int, with_adversary: bool, uav_radius: float,
                 obstacle_radius: float = 0.4) -> mujoco.MjModel:
-    """Compose arena + N UAVs (+ adversary) + K parked obstacle cylinders into one MjModel."""
+    """Compose arena + N UAVs (+ adversary) + K parked obstacle cylinders (+ 2 contact sensors per UAV,
+    sensordata[2i:2i+2] = contacts of UAV i's footprint: all, with the floor) into one MjModel."""
     airframe_file = MJCF_DIR / f"{config.airframe}.xml"
     arena = mujoco.MjSpec.from_file(str(MJCF_DIR / "arena.xml"))
     arena.option.timestep = config.physics_dt
@@ -126,6 +175,11 @@ def build_scene(config: MujocoWorldConfig, n_agents: int, n_obstacles: int, with
     names = [f"uav{i}_" for i in range(n_agents)] + (["adv_"] if with_adversary else [])
     for i, prefix in enumerate(names):
         child = mujoco.MjSpec.from_file(str(airframe_file))
+        for actuator in list(child.actuators):  # the cascade applies the rotor wrenches (xfrc_applied)
+            child.delete(actuator)
+        if not config.visual_geoms:
+            for element in [g for g in child.geoms if g.group == _VISUAL_GROUP] + [x for x in child.sites if x.group == _VISUAL_GROUP]:
+                child.delete(element)
         frame = arena.worldbody.add_frame(pos=[2.0 * i, 0.0, config.flight_altitude])
         frame.attach_body(child.worldbody.first_body(), prefix, "")
         footprint = arena.geom(f"{prefix}footprint")
@@ -139,11 +193,20 @@ def build_scene(config: MujocoWorldConfig, n_agents: int, n_obstacles: int, with
             footprint.rgba = [0.85, 0.15, 0.1, 0.5]
     half_h = config.obstacle_height / 2.0
     for k in range(n_obstacles):
-        arena.worldbody.add_geom(
+        # one world-welded body per obstacle, moved through model.body_pos: the geom never moves in its
+        # body's frame, so the bounding volumes MuJoCo compiles for collisions and rays stay valid
+        arena.worldbody.add_body(name=f"obstacle{k}", pos=[_PARKED + 2.0 * k, _PARKED, half_h]).add_geom(
             name=f"obstacle{k}", type=mujoco.mjtGeom.mjGEOM_CYLINDER, size=[obstacle_radius, half_h, 0.0],
-            pos=[_PARKED + 2.0 * k, _PARKED, half_h], group=OBSTACLE_GROUP, contype=1, conaffinity=1,
-            rgba=[0.55, 0.45, 0.35, 1.0],
+            group=OBSTACLE_GROUP, contype=1, conaffinity=1, rgba=[0.55, 0.45, 0.35, 1.0],
         )
+    floor = next((g.name for g in arena.geoms if g.type == mujoco.mjtGeom.mjGEOM_PLANE), None)
+    if floor is None:
+        raise ConfigError("mujoco: assets/mjcf/arena.xml needs a plane geom (the floor)")
+    found = [1 << int(mujoco.mjtConDataField.mjCONDATA_FOUND), 0, 1]  # data = "found" (count), no reduction, 1 slot
+    for i in range(n_agents):
+        geom = dict(type=mujoco.mjtSensor.mjSENS_CONTACT, objtype=mujoco.mjtObj.mjOBJ_GEOM, objname=f"uav{i}_footprint", intprm=found)
+        arena.add_sensor(name=f"uav{i}_contacts", **geom)
+        arena.add_sensor(name=f"uav{i}_floor_contacts", reftype=mujoco.mjtObj.mjOBJ_GEOM, refname=floor, **geom)
     return arena.compile()
 
 
@@ -203,7 +266,7 @@ class MujocoWorld:
         self.cascade = Px4Cascade(self.airframe, load_params(config.params), timing, self.n_envs, self.n_drones,
                                   speed_limit_tau=config.speed_limit_tau,
                                   disturbance_tau=config.disturbance_tau, flip_tilt_deg=config.flip_tilt_deg,
-                                  gravity=config.gravity)
+                                  gravity=config.gravity, offboard=config.offboard)
         self.cascade.setpoint[:, :, SP_Z] = config.flight_altitude
         self.cascade.setpoint[:, :self.n_agents, SP_VMAX] = speed_max
         self.cascade.setpoint[:, self.n_agents:, SP_VMAX] = adversary_speed_max
@@ -215,17 +278,21 @@ class MujocoWorld:
         self.drone_body_ids = np.array([base.body(f"{p}{self.airframe.name}").id for p in prefixes])
         if not np.array_equal(self.drone_body_ids, np.arange(1, self.n_drones + 1)) or base.nq != 7 * self.n_drones:
             raise ConfigError("mujoco: the scene must hold the drones as bodies 1..D with one free joint each")
+        if base.nu or base.nsensordata != 2 * self.n_agents:
+            raise ConfigError("mujoco: the scene must have no actuators and exactly the UAVs' contact sensors")
         self.obstacle_geom_ids = np.array([base.geom(f"obstacle{k}").id for k in range(self.n_obstacles)], dtype=int)
-        self._geom_uav = np.full(base.ngeom, -1)  # geom id -> UAV index (footprints only)
-        for i in range(self.n_agents):
-            self._geom_uav[base.geom(f"uav{i}_footprint").id] = i
-        self._geom_obstacle = np.zeros(base.ngeom, dtype=bool)
-        self._geom_obstacle[self.obstacle_geom_ids] = True
-        d = self.n_drones
-        self._views = [(dat.qpos.reshape(d, 7), dat.qvel.reshape(d, 6), dat.ctrl.reshape(d, 4), dat.xfrc_applied[1:d + 1])
+        self.obstacle_body_ids = np.array([base.body(f"obstacle{k}").id for k in range(self.n_obstacles)], dtype=int)
+        d, n = self.n_drones, self.n_agents
+        # per env: qpos [D, 7], qvel [D, 6], xfrc_applied [D, 6], contact counts [N, 2] (views into MjData)
+        self._views = [(dat.qpos.reshape(d, 7), dat.qvel.reshape(d, 6), dat.xfrc_applied[1:d + 1], dat.sensordata.reshape(n, 2))
                        for dat in self.datas]
+        self._compiled = config.physics_loop == "compiled" and _MJ_STEP is not None
+        if config.physics_loop == "compiled" and not self._compiled:
+            warnings.warn("mujoco: mj_step's C address not found next to the bindings; physics_loop falls back to 'python'",
+                          RuntimeWarning, stacklevel=2)
         self._tick = np.zeros(self.n_envs, dtype=np.int64)
         self._collided = np.zeros((self.n_envs, self.n_agents), dtype=bool)
+        self._accel = np.zeros((self.n_envs, self.n_drones, 2))
         self.obstacles = np.full((self.n_envs, self.n_obstacles, 2), _PARKED)
         angles = 2.0 * np.pi * np.arange(self.n_lidar_rays) / self.n_lidar_rays
         self._ray_vec = np.stack([np.cos(angles), np.sin(angles), np.zeros_like(angles)], axis=1).ravel()
@@ -246,7 +313,7 @@ class MujocoWorld:
         for e in np.flatnonzero(mask):
             model, data = self.models[e], self.datas[e]
             mujoco.mj_resetData(model, data)
-            model.geom_pos[self.obstacle_geom_ids, :2] = obstacles[e]
+            model.body_pos[self.obstacle_body_ids, :2] = obstacles[e]
             self.obstacles[e] = obstacles[e]
             qpos = self._views[e][0]
             xy = np.concatenate([agent_pos[e], adversary_pos[e][None]]) if self.with_adversary else agent_pos[e]
@@ -254,44 +321,59 @@ class MujocoWorld:
             qpos[:, 2] = alt
             qpos[:, 3:] = (1.0, 0.0, 0.0, 0.0)
             self.cascade.reset(e)
-            self._views[e][2][:] = self.airframe.hover_thrust(self.config.gravity) * self.airframe.max_thrust
             self._tick[e] = 0
             self._collided[e] = False
             self.wind.reset(e)
             mujoco.mj_forward(model, data)
 
     def step(self, agent_accel: np.ndarray, adversary_accel: np.ndarray) -> None:
-        """One decision step: hold the (per-axis clipped) setpoints for decision_dt of physics."""
+        """One decision step: hand the (per-axis clipped) setpoints to the offboard interface and run
+        decision_dt of physics."""
         b, n = self.n_envs, self.n_agents
         a = self.accel_max
-        agent_accel = np.clip(_check(agent_accel, (b, n, 2), "agent_accel"), -a, a)
-        sp = self.cascade.setpoint
-        sp[:, :n, SP_AX:SP_AX + 2] = agent_accel
+        accel = self._accel
+        accel[:, :n] = np.clip(_check(agent_accel, (b, n, 2), "agent_accel"), -a, a)
         if self.with_adversary:
-            sp[:, n, SP_AX:SP_AX + 2] = np.clip(_check(adversary_accel, (b, 2), "adversary_accel"), -a, a)
+            accel[:, n] = np.clip(_check(adversary_accel, (b, 2), "adversary_accel"), -a, a)
+        self.cascade.command(accel, self.dt)
         self._collided[:] = False
-        state, prm, k, mix, eff, rotors = self.cascade.state, self.cascade.prm, self.cascade.k, self.cascade.mix, self.cascade.eff, self.cascade.rotors
-        period = self._wind_period
         for e in range(b):
-            model, data = self.models[e], self.datas[e]
-            qpos, qvel, ctrl, xfrc = self._views[e]
-            s_e, sp_e, wind_e = state[e], sp[e], self.wind.vector[e]
-            tick = int(self._tick[e])
-            for _ in range(self.n_substeps):
-                if tick and tick % period == 0:
-                    self.wind.update(e, tick * self.config.physics_dt)
-                bad = cascade_step(tick, qpos, qvel, ctrl, xfrc, s_e, sp_e, wind_e, prm, k, mix, eff, rotors)
-                if bad >= 0:
-                    self._tick[e] = tick
-                    self._diverged(e, bad)
-                mujoco.mj_step(model, data)
-                tick += 1
-                if data.ncon:
-                    self._record_contacts(e, data)
-            self._tick[e] = tick
+            self._advance(e, self.n_substeps)
+            data = self.datas[e]
             for w in _BAD_STATE_WARNINGS:
                 if data.warning[w].number:
                     raise SimulationDiverged(f"env {e}: MuJoCo {mujoco.mjtWarning(w).name} (unstable physics) before t = {self.sim_time[e]:.3f} s")
+
+    def _advance(self, e: int, n_steps: int) -> None:
+        """n_steps physics steps of env e, redrawing its wind on the plugin's schedule."""
+        c = self.cascade
+        model, data = self.models[e], self.datas[e]
+        qpos, qvel, xfrc, contacts = self._views[e]
+        s_e, sp_e, wind_e, collided = c.state[e], c.setpoint[e], self.wind.vector[e], self._collided[e]
+        period = self._wind_period
+        tick = int(self._tick[e])
+        end = tick + n_steps
+        while tick < end:
+            if tick and tick % period == 0:
+                self.wind.update(e, tick * self.config.physics_dt)
+            stop = min(end, (tick // period + 1) * period)  # the next wind redraw
+            if self._compiled:
+                done, bad = run_physics(tick, stop - tick, _MJ_STEP, model._address, data._address, qpos, qvel, xfrc,
+                                        contacts, collided, s_e, sp_e, wind_e, c.prm, c.k, c.mix, c.eff, c.rotors)
+            else:
+                done, bad = stop - tick, -1
+                for j in range(stop - tick):
+                    bad = cascade_step(tick + j, qpos, qvel, xfrc, s_e, sp_e, wind_e, c.prm, c.k, c.mix, c.eff, c.rotors)
+                    if bad >= 0:
+                        done = j
+                        break
+                    mujoco.mj_step(model, data)
+                    collided |= contacts[:, 0] > contacts[:, 1]
+            tick += done
+            if bad >= 0:
+                self._tick[e] = tick
+                self._diverged(e, bad)
+        self._tick[e] = tick
 
     @property
     def agent_pos(self) -> np.ndarray:
@@ -365,7 +447,12 @@ class MujocoWorld:
     @property
     def motor_thrusts(self) -> np.ndarray:
         """[B, D, 4] rotor thrusts (N) applied at the last physics step, PX4 motor order."""
-        return np.stack([v[2].copy() for v in self._views])
+        return np.stack([self.cascade.motor_thrusts(e).copy() for e in range(self.n_envs)])
+
+    @property
+    def velocity_setpoints(self) -> np.ndarray:
+        """[B, D, 2] the offboard interface's horizontal velocity setpoints (m/s; offboard = "velocity")."""
+        return np.stack([self.cascade.velocity_setpoints(e).copy() for e in range(self.n_envs)])
 
     @property
     def motor_speeds(self) -> np.ndarray:
@@ -375,7 +462,7 @@ class MujocoWorld:
     @property
     def drag_forces(self) -> np.ndarray:
         """[B, D, 6] rotor-drag force (N) and torque (N m) about the centre of mass, world frame, last physics step."""
-        return np.stack([v[3].copy() for v in self._views])
+        return np.stack([self.cascade.drag_wrenches(e).copy() for e in range(self.n_envs)])
 
     @property
     def wind_vector(self) -> np.ndarray:
@@ -394,13 +481,6 @@ class MujocoWorld:
         return np.degrees(np.arccos(np.clip(upright, -1.0, 1.0)))
 
     # ------------------------------------------------------------------ internals
-    def _record_contacts(self, env: int, data: mujoco.MjData) -> None:
-        geoms = data.contact.geom[:data.ncon]
-        uav = self._geom_uav[geoms]  # [ncon, 2]
-        obstacle = self._geom_obstacle[geoms]
-        hit = (uav >= 0) & ((uav[:, ::-1] >= 0) | obstacle[:, ::-1])
-        self._collided[env, uav[hit]] = True
-
     def _diverged(self, env: int, drone: int) -> None:
         qpos, qvel = self._views[env][0][drone], self._views[env][1][drone]
         who = f"uav {drone}" if drone < self.n_agents else "adversary"
