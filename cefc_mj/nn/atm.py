@@ -57,13 +57,22 @@ class ATMConfig:
     safe_margin: float = 0.2
     """How much shorter the Safe transform reports a beam that sees something (m)."""
     log_std_init: float = 0.0
-    """Initial log standard deviation of the Gaussian head (std 1 m/s^2 at 0)."""
+    """Initial log standard deviation of the Gaussian head."""
+    action: str = "velocity"
+    """What the Gaussian head outputs. "acceleration": the acceleration setpoint itself (m/s^2).
+    "velocity": a velocity setpoint v* (m/s) that a fixed proportional loop turns into the
+    acceleration setpoint u = clip(velocity_gain (v* - v), +-accel_max) with v the own velocity
+    from the observation (see `to_acceleration`)."""
+    velocity_gain: float = 5.0
+    """Gain of the velocity loop (1/s) when action == "velocity"."""
 
     def __post_init__(self) -> None:
         names = [name for name, _ in self.layout]
         missing = [p for p in (*FORMATION_PARTS, OBSTACLE_PART) if p not in names]
         if missing:
             raise CheckpointError(f"observation layout {names} lacks the AT-M input part(s) {missing}")
+        if self.action not in ("acceleration", "velocity") or self.velocity_gain <= 0:
+            raise CheckpointError(f"invalid AT-M action head: {self.action!r}, gain {self.velocity_gain}")
         if self.hidden < 1 or self.act_dim < 1 or self.lidar_range <= 0 or self.accel_max <= 0:
             raise CheckpointError(f"invalid AT-M shape: {self}")
 
@@ -118,6 +127,7 @@ class ATMActor(nn.Module):
         self.register_buffer("formation_index", formation_index, persistent=False)
         self.register_buffer("free_lidar", torch.full((lidar.stop - lidar.start,), float(cfg.lidar_range)), persistent=False)
         self.lidar_slice = lidar
+        self.velocity_slice = cfg.part("own_velocity")
         self.formation = mlp([len(formation_index), h, h, h], activate_last=True)
         self.obstacle = mlp([lidar.stop - lidar.start, h, h, h], activate_last=True)
         self.output = mlp([h, h, h, cfg.act_dim], activate_last=False, last_gain=0.01)
@@ -140,6 +150,13 @@ class ATMActor(nn.Module):
         mean = self(obs)
         return torch.distributions.Normal(mean, self.log_std.exp().expand_as(mean))
 
+    def to_acceleration(self, command: torch.Tensor, obs: torch.Tensor) -> torch.Tensor:
+        """The acceleration setpoint (m/s^2, clipped per axis) for a head output `command`."""
+        limit = self.cfg.accel_max
+        if self.cfg.action == "velocity":
+            command = self.cfg.velocity_gain * (command - obs[..., self.velocity_slice])
+        return command.clamp(-limit, limit)
+
 
 def merge_step3(step1: ATMActor, step2: ATMActor) -> ATMActor:
     """AT-M Step 3's initial actor: formation & output modules (and log-std) from Step 1, the
@@ -153,8 +170,10 @@ def merge_step3(step1: ATMActor, step2: ATMActor) -> ATMActor:
 
 
 class Critic(nn.Module):
-    """Centralized value function V(s) over the env's global state: input LayerNorm, then a 3-layer
-    MLP with hidden 128 (paper Sec. V-A). Predicts the *normalized* return (see ValueNorm)."""
+    """Centralized value function: input LayerNorm, then a 3-layer MLP with hidden 128 (paper
+    Sec. V-A). The trainer feeds it the env's global state concatenated with one agent's
+    observation (MAPPO's agent-specific global state) and it predicts that agent's *normalized*
+    return (see ValueNorm and cefc_mj.train.mappo)."""
 
     def __init__(self, state_dim: int, hidden: int = 128):
         super().__init__()

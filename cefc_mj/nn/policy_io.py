@@ -9,8 +9,10 @@ The digest makes an edited weight fail loudly; a file made for another observati
 truncated file or a foreign pickle all raise `CheckpointError` with one line. A model card
 (`*.json`, same stem) sits beside each shipped file (see `cefc_mj.train.model_card`).
 
->>> policy = load_policy("atm_c6_step3")          # doctest: +SKIP  (resolved in POLICIES_DIR)
->>> actions = policy.act(obs)                     # doctest: +SKIP  obs [B, N, 63] -> [B, N, 2]
+Example (the name is resolved in POLICIES_DIR; obs [B, N, 63] -> actions [B, N, 2]):
+
+>>> policy = load_policy("atm_c6_step3")   # doctest: +SKIP
+>>> actions = policy.act(obs)              # doctest: +SKIP
 """
 
 from __future__ import annotations
@@ -113,8 +115,8 @@ def resolve_policy_path(path_or_name: str | Path, policies_dir: Path | None = No
 class Policy:
     """A loaded low-level policy for evaluators: `act(obs [B, N, D]) -> actions [B, N, 2]`.
 
-    `act` is deterministic (the Gaussian mean, clipped per axis to accel_max as the env clips it)
-    and runs without gradients. Call `torch.set_num_threads(1)` in rollout loops: these networks
+    `act` is deterministic (the Gaussian mean, turned into an acceleration setpoint by the actor's
+    action head and clipped per axis to accel_max as the env clips it) and runs without gradients. Call `torch.set_num_threads(1)` in rollout loops: these networks
     are far too small for intra-op threading.
     """
 
@@ -136,9 +138,8 @@ class Policy:
         obs = np.asarray(obs)
         if obs.ndim != 3 or obs.shape[-1] != self.obs_dim:
             raise ConfigError(f"obs: expected shape [B, N, {self.obs_dim}], got {list(obs.shape)}")
-        mean = self.actor(torch.as_tensor(obs, dtype=torch.float32))
-        limit = self.actor.cfg.accel_max
-        return mean.clamp(-limit, limit).numpy().astype(np.float64)
+        obs_t = torch.as_tensor(obs, dtype=torch.float32)
+        return self.actor.to_acceleration(self.actor(obs_t), obs_t).numpy().astype(np.float64)
 
 
 def load_policy(path_or_name: str | Path, policies_dir: Path | None = None, obs_dim: int | None = None) -> Policy:
