@@ -186,11 +186,12 @@ def test_table3_rows_keyed_like_the_paper(tmp_path):
         run_table3([9], policies_dir=tmp_path)
 
 
-def test_embedded_paper_table3_matches_the_shared_transcription():
+def test_shipped_paper_table3_matches_the_shared_transcription():
     path = Path(__file__).resolve().parents[2] / "shared" / "reference" / "paper_tables.json"
     if not path.is_file():
         pytest.skip("the project's shared reference folder is not next to this checkout")
     shared = json.loads(path.read_text())["table3_atm_mpe"]
+    assert PAPER_TABLE3["6"]["AT-M-Step3"] == {"R_L": -96.0, "F": 49.72, "N": 36.66, "C": 0.78}
     for c, rows_c in PAPER_TABLE3.items():
         for method, row in rows_c.items():
             assert [row[k] for k in ("R_L", "F", "N", "C")] == shared[c][method], (c, method)

@@ -74,6 +74,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help=f"formation size c, one of {FORMATIONS}")
     p.add_argument("--step", type=int, required=True, choices=(1, 2, 3), help="AT-M step")
     p.add_argument("--safe", action="store_true", help="AT-M-Safe (with --step 3)")
+    p.add_argument("--deviation", type=float, default=0.0, metavar="M",
+                   help="train under sensing deviation M (m); with --step 3 this is AT-M-Robust, fine-tuned from "
+                        "the Step 3 policy and written as atm_c<C>_robust (default 0)")
     p.add_argument("--density", type=float, default=None, help="training obstacle density per m^2 (default: the step's)")
     _common(p, "100it")
     _ppo_args(p)
@@ -105,7 +108,8 @@ def run(args) -> None:
     if args.command == "lowlevel":
         from cefc_mj.train.lowlevel import train_lowlevel
 
-        cfg = LowLevelConfig(formation=args.formation, step=args.step, safe=args.safe, budget=budget, seed=args.seed,
+        cfg = LowLevelConfig(formation=args.formation, step=args.step, safe=args.safe, deviation=args.deviation,
+                             budget=budget, seed=args.seed,
                              obstacle_density=args.density, ppo=_ppo_from(args))
         card = train_lowlevel(cfg, args.out, args.policies_dir, resume=args.resume, show_progress=show)
         print(f"{card['name']}: {card['iterations']} iterations, {card['agent_steps']} agent-steps, "

@@ -30,31 +30,18 @@ TABLE3_DENSITY = 0.05
 TABLE3_EPISODES = 50
 TABLE3_STEPS = 100
 TABLE3_FORMATIONS = (6, 7, 8)
-METHODS = ("AT-M-Step1", "AT-M-Step2", "AT-M-Step3", "AT-M-Safe", "Student")
-"""Row names as the paper writes them (the student is this project's addition)."""
+METHODS = ("AT-M-Step1", "AT-M-Step2", "AT-M-Step3", "AT-M-Safe", "AT-M-Robust", "Student")
+"""Row names as the paper writes them (AT-M-Robust and the student are this project's additions)."""
 COLUMNS = ("R_L", "F", "N", "C")
-# The paper's Table III (CI-HRL, TNNLS 2025), AT-M rows, as transcribed in the project's
-# shared/reference/paper_tables.json ("table3_atm_mpe"; tests check the two agree).
-PAPER_TABLE3 = {
-    "6": {
-        "AT-M-Step1": {"R_L": -424.45, "F": 59.64, "N": 46.2, "C": 11.4},
-        "AT-M-Step2": {"R_L": -96.56, "F": 17.7, "N": 35.5, "C": 0.86},
-        "AT-M-Step3": {"R_L": -96.0, "F": 49.72, "N": 36.66, "C": 0.78},
-        "AT-M-Safe": {"R_L": -46.28, "F": 29.54, "N": 24.24, "C": 0.36},
-    },
-    "7": {
-        "AT-M-Step1": {"R_L": -660.84, "F": 55.78, "N": 40.26, "C": 19.46},
-        "AT-M-Step2": {"R_L": -125.84, "F": 8.14, "N": 28.4, "C": 1.08},
-        "AT-M-Step3": {"R_L": -94.32, "F": 40.24, "N": 24.26, "C": 0.74},
-        "AT-M-Safe": {"R_L": -55.61, "F": 23.92, "N": 16.88, "C": 0.46},
-    },
-    "8": {
-        "AT-M-Step1": {"R_L": -506.48, "F": 45.84, "N": 53.92, "C": 13.2},
-        "AT-M-Step2": {"R_L": -266.94, "F": 0.1, "N": 1.68, "C": 2.56},
-        "AT-M-Step3": {"R_L": -106.94, "F": 41.52, "N": 36.9, "C": 1.14},
-        "AT-M-Safe": {"R_L": -72.57, "F": 20.26, "N": 26.6, "C": 0.62},
-    },
-}
+
+
+def _paper_table3() -> dict[str, dict[str, dict[str, float]]]:
+    """The paper's Table III AT-M rows from the shipped transcription (eval/paper_tables.json)."""
+    raw = json.loads((paths.EVAL_DIR / "paper_tables.json").read_text())["table3_atm_mpe"]
+    return {c: {m: dict(zip(COLUMNS, v)) for m, v in rows.items() if m.startswith("AT-M")} for c, rows in raw.items()}
+
+
+PAPER_TABLE3 = _paper_table3()
 
 
 def policy_file_for(method: str, formation: int) -> str:
@@ -63,6 +50,8 @@ def policy_file_for(method: str, formation: int) -> str:
         return "atm_student"
     if method == "AT-M-Safe":
         return f"atm_c{formation}_safe"
+    if method == "AT-M-Robust":
+        return f"atm_c{formation}_robust"
     return f"atm_c{formation}_step{method[-1]}"
 
 

@@ -153,6 +153,10 @@ class LowLevelConfig:
     """Seeds network init, action sampling and every iteration's episodes."""
     obstacle_density: float | None = None
     """Training obstacle density (per m^2); None: the step's default (0 / 0.03 / 0.03)."""
+    deviation: float = 0.0
+    """Sensing deviation d (m) during training. With step 3 and d > 0 this is AT-M-Robust: the Step 3
+    policy fine-tuned while every agent perceives from a noisy position (DESIGN §7), so that it
+    keeps its distance from neighbours it sees up to ~1 m off (this project's addition)."""
     hidden: int = 128
     """Hidden width of the AT-M modules."""
     critic_hidden: int = 128
@@ -174,13 +178,22 @@ class LowLevelConfig:
 
     @property
     def name(self) -> str:
-        """Stage name, also the policy file stem: atm_c6_step3, atm_c6_safe."""
-        return f"atm_c{self.formation}_safe" if self.safe else f"atm_c{self.formation}_step{self.step}"
+        """Stage name, also the policy file stem: atm_c6_step3, atm_c6_safe, atm_c6_robust."""
+        if self.safe:
+            return f"atm_c{self.formation}_safe"
+        return f"atm_c{self.formation}_robust" if self.robust else f"atm_c{self.formation}_step{self.step}"
+
+    @property
+    def robust(self) -> bool:
+        """AT-M-Robust: a Step 3 fine-tune under sensing deviation."""
+        return self.step == 3 and self.deviation > 0
 
     @property
     def method(self) -> str:
         """The method name as the paper's Table III writes it."""
-        return "AT-M-Safe" if self.safe else f"AT-M-Step{self.step}"
+        if self.safe:
+            return "AT-M-Safe"
+        return "AT-M-Robust" if self.robust else f"AT-M-Step{self.step}"
 
     def validate(self) -> None:
         if self.formation not in FORMATIONS:
@@ -191,6 +204,11 @@ class LowLevelConfig:
             _fail("safe", self.safe, "AT-M-Safe fine-tunes the Step 3 policy: use it with step 3")
         if not isinstance(self.budget, Budget):
             _fail("budget", self.budget, "must be a Budget")
+        if not isinstance(self.deviation, (int, float)) or not 0 <= self.deviation <= 2.0:
+            _fail("deviation", self.deviation, "must be in [0, 2] m")
+        if self.deviation > 0 and (self.step != 3 or self.safe):
+            _fail("deviation", self.deviation, "training under sensing deviation fine-tunes the Step 3 policy: "
+                  "use it with step 3 and without --safe")
         if self.obstacle_density is not None and not 0 <= self.obstacle_density <= 0.2:
             _fail("obstacle_density", self.obstacle_density, "must be in [0, 0.2] per m^2")
         for name in ("hidden", "critic_hidden", "checkpoint_every"):

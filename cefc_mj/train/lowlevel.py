@@ -42,7 +42,7 @@ PROGRESS_KEYS = ("reward_per_step", "metric/F", "metric/N", "metric/C", "approx_
 
 def task_config_for(cfg: LowLevelConfig) -> TaskConfig:
     """The low-level game of a stage: one group of c agents, an anchor, the step's obstacle density."""
-    return TaskConfig(n_agents=cfg.formation, mode="formation", obstacle_density=cfg.density)
+    return TaskConfig(n_agents=cfg.formation, mode="formation", obstacle_density=cfg.density, deviation=cfg.deviation)
 
 
 def stage_name(formation: int, step: int, safe: bool = False) -> str:
@@ -86,7 +86,7 @@ def initial_networks(cfg: LowLevelConfig, task: TaskConfig, out: Path) -> tuple[
     value_norm = ValueNorm()
     if cfg.step != 3:
         return actor, critic, value_norm, {"actor": "random", "critic": "random"}
-    if cfg.safe:
+    if cfg.safe or cfg.robust:
         src, src_actor = _source_state(out, stage_name(cfg.formation, 3), cfg.name)
         actor.load_state_dict(src_actor.state_dict())
         origin = {"actor": stage_name(cfg.formation, 3), "critic": stage_name(cfg.formation, 3)}
