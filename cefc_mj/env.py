@@ -101,7 +101,8 @@ class BatchedCEFCEnv:
     def step(self, actions: np.ndarray):
         """Apply acceleration setpoints [B, N, 2] (m/s^2) for one decision step.
 
-        Returns (obs [B,N,D] float32, reward [B], done [B] bool, info). info["reward_terms"] maps each
+        Returns (obs [B,N,D] float32, reward [B], done [B] bool, info); the obs array is the env's own
+        buffer, overwritten by the next step or reset (copy it to keep it). info["reward_terms"] maps each
         unweighted reward term to [B]; at episode end info["metrics"] maps F, N, C, E to [B].
         """
         cfg = self.config

@@ -30,6 +30,7 @@ from torch import nn
 
 from cefc_mj.errors import CheckpointError
 from cefc_mj.nn.layers import mlp
+from cefc_mj.task.observation import ObservationLayout, low_level_layout
 
 FORMATION_PARTS = ("anchor", "own_velocity", "neighbours", "neighbour_mask")
 """Observation parts that the formation & navigation module F_f reads, in this order."""
@@ -81,18 +82,11 @@ class ATMConfig:
         return sum(size for _, size in self.layout)
 
     def part(self, name: str) -> slice:
-        start = 0
-        for part, size in self.layout:
-            if part == name:
-                return slice(start, start + size)
-            start += size
-        raise KeyError(name)
+        return ObservationLayout(self.layout)[name]
 
     @classmethod
     def from_task(cls, task_cfg, **overrides) -> "ATMConfig":
         """The actor shape for a low-level TaskConfig (its layout, LiDAR range and action bound)."""
-        from cefc_mj.task.observation import low_level_layout
-
         return cls(
             layout=low_level_layout(task_cfg).parts,
             lidar_range=task_cfg.lidar_range,
