@@ -38,7 +38,7 @@ COLUMNS = ("R_L", "F", "N", "C")
 def _paper_table3() -> dict[str, dict[str, dict[str, float]]]:
     """The paper's Table III AT-M rows from the shipped transcription (eval/paper_tables.json)."""
     raw = json.loads((paths.EVAL_DIR / "paper_tables.json").read_text())["table3_atm_mpe"]
-    return {c: {m: dict(zip(COLUMNS, v)) for m, v in rows.items() if m.startswith("AT-M")} for c, rows in raw.items()}
+    return {c: {m: dict(zip(COLUMNS, v)) for m, v in rows.items() if m.startswith("AT-M")} for c, rows in raw.items() if c.isdigit()}
 
 
 PAPER_TABLE3 = _paper_table3()
