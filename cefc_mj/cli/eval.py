@@ -119,7 +119,8 @@ def _single(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from cefc_mj.eval.runner import EpisodeSpec, condition_name, load_policy_for, run_episode, summarize
-    from cefc_mj.eval.table8 import paper_table8, write_atomic
+    from cefc_mj.eval.table8 import paper_table8
+    from cefc_mj.fileio import write_atomic
 
     formations = args.formation or [5, 6, 7, 8]
     episodes = args.episodes or 1
@@ -147,7 +148,7 @@ def _single(args: argparse.Namespace) -> int:
                                        f"{result.steps} ({result.diverged}); episode stopped", file=sys.stderr)
                         if result.record is not None:
                             recorded += _emit_record(result.record, args, many=len(formations) * episodes > 1)
-                        results.setdefault((c, spec.condition), []).append(result)
+                        results.setdefault((c, spec.condition), []).append(result.to_dict())
                         bar.update(1)
     finally:
         summary = {
@@ -155,8 +156,8 @@ def _single(args: argparse.Namespace) -> int:
             "wind": args.wind, "deviation": args.deviation, "steps": steps, "seeds": seeds,
             "rows": {
                 str(c): {
-                    cond: {**summarize(res), "episodes_detail": [r.to_dict() for r in res]}
-                    for (cc, cond), res in results.items() if cc == c
+                    cond: {**summarize(rows), "episodes_detail": rows}
+                    for (cc, cond), rows in results.items() if cc == c
                 }
                 for c in formations
             },
@@ -193,8 +194,8 @@ def _table8(args: argparse.Namespace, argv: list[str] | None) -> int:
 
     from cefc_mj import paths
     from cefc_mj.eval.runner import load_policy_for
-    from cefc_mj.eval.table8 import (aggregate, report_csv, report_markdown, report_plot, run_grid, table8_specs,
-                                     write_atomic)
+    from cefc_mj.eval.table8 import aggregate, report_csv, report_markdown, report_plot, run_grid, table8_specs
+    from cefc_mj.fileio import write_atomic
 
     formations = args.formation or [5, 6, 7, 8]
     episodes = args.episodes or 5

@@ -16,7 +16,8 @@ import subprocess
 from pathlib import Path
 
 from cefc_mj import paths
-from cefc_mj.eval.table8 import load_cells, write_atomic
+from cefc_mj.eval.table8 import load_cells
+from cefc_mj.fileio import write_atomic
 
 BANDS_FILE = paths.EVAL_DIR / "table8_bands.json"
 SUBSET_FORMATIONS = (5, 8)

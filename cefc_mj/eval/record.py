@@ -16,13 +16,13 @@ from __future__ import annotations
 
 import dataclasses
 import os
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from cefc_mj.errors import ConfigError
+from cefc_mj.fileio import atomic_write
 
 PART_KINDS = ("box", "cylinder", "capsule", "sphere", "ellipsoid")
 
@@ -228,7 +228,7 @@ class EpisodeRecord:
                     arrays[f"part/{attr}"] = np.array([getattr(p, attr) for p in value]).reshape(-1, width)
             elif value is not None:
                 arrays[f.name] = np.asarray(value)
-        _atomic_write(path, lambda fh: np.savez_compressed(fh, **arrays))
+        atomic_write(path, lambda fh: np.savez_compressed(fh, **arrays))
         return path
 
     @classmethod
@@ -254,20 +254,6 @@ class EpisodeRecord:
         for name in ("formation", "seed"):
             kwargs[name] = int(kwargs[name])
         return cls(**kwargs)
-
-
-def _atomic_write(path: Path, write) -> None:
-    """Call `write(file_object)` on a temp file next to `path`, then rename it onto `path`."""
-    if not path.parent.is_dir():
-        raise ConfigError(f"{path}: folder {path.parent} does not exist")
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            write(fh)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 # ----------------------------------------------------------------------------- synthetic episodes

@@ -170,8 +170,7 @@ class _Recorder:
         self.rows: dict[str, list] = {k: [] for k in (
             "agent_pos", "agent_quat", "agent_vel", "anchor", "lidar_origins", "lidar_ranges", "group_id",
             "template_world", "collision", "hd_error", "anchor_distance", "wind_speed", "F", "N", "C")}
-        n = env.n_agents
-        self.template = formation_template(n, env.config.formation_spacing) if n >= 3 else None
+        self.template = formation_template(env.n_agents, env.config.formation_spacing)
 
     def capture(self) -> None:
         env, world, rows = self.env, self.env.world, self.rows
@@ -218,13 +217,9 @@ class _Recorder:
         )
 
 
-def summarize(results: list[EpisodeResult]) -> dict[str, float]:
-    """Mean F, N, C over episodes (and how many there were)."""
-    if not results:
+def summarize(episodes: list[dict]) -> dict[str, float]:
+    """Mean F, N, C over episodes (`EpisodeResult.to_dict()` rows), and how many there were."""
+    if not episodes:
         return {"F": math.nan, "N": math.nan, "C": math.nan, "episodes": 0}
-    return {
-        "F": float(np.mean([r.F for r in results])),
-        "N": float(np.mean([r.N for r in results])),
-        "C": float(np.mean([r.C for r in results])),
-        "episodes": len(results),
-    }
+    means = {m: float(np.mean([e[m] for e in episodes])) for m in "FNC"}
+    return {**means, "episodes": len(episodes)}

@@ -17,7 +17,8 @@ from pathlib import Path
 import numpy as np
 
 from cefc_mj import paths
-from cefc_mj.eval.runner import CONDITIONS, EpisodeResult, EpisodeSpec, run_episode, summarize
+from cefc_mj.fileio import write_atomic
+from cefc_mj.eval.runner import CONDITIONS, EpisodeSpec, run_episode, summarize
 
 PAPER_TABLES = paths.EVAL_DIR / "paper_tables.json"
 
@@ -101,14 +102,8 @@ def aggregate(rows: list[dict]) -> dict[str, dict[str, dict[str, float]]]:
         for cond in CONDITIONS:
             cell = [r for r in rows if r["formation"] == c and r["condition"] == cond]
             if cell:
-                table[str(c)][cond] = summarize([_as_result(r) for r in cell])
+                table[str(c)][cond] = summarize(cell)
     return table
-
-
-def _as_result(row: dict) -> EpisodeResult:
-    spec = EpisodeSpec(**{k: row[k] for k in ("formation", "seed", "backend", "wind", "deviation", "steps", "policy")})
-    return EpisodeResult(spec=spec, F=row["F"], N=row["N"], C=row["C"], steps=row["steps"], wall_s=row["wall_s"],
-                         diverged=row.get("diverged"))
 
 
 def retention(table: dict, c: str, cond: str) -> float:
@@ -117,14 +112,6 @@ def retention(table: dict, c: str, cond: str) -> float:
     if not calm or not cell or calm["F"] + calm["N"] == 0:
         return float("nan")
     return (cell["F"] + cell["N"]) / (calm["F"] + calm["N"])
-
-
-def write_atomic(path: Path, data: bytes | str) -> None:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_bytes(data.encode() if isinstance(data, str) else data)
-    os.replace(tmp, path)
 
 
 def report_markdown(table: dict, meta: dict) -> str:

@@ -17,7 +17,6 @@ Example (the name is resolved in POLICIES_DIR; obs [B, N, 63] -> actions [B, N, 
 
 from __future__ import annotations
 
-import os
 import pickle
 import zipfile
 from pathlib import Path
@@ -27,6 +26,7 @@ import torch
 
 from cefc_mj import paths
 from cefc_mj.errors import CheckpointError, ConfigError
+from cefc_mj.fileio import atomic_write
 from cefc_mj.nn.atm import ATMActor, ATMConfig
 from cefc_mj.nn.layers import state_digest
 
@@ -38,9 +38,7 @@ def atomic_torch_save(payload: dict, path: Path) -> None:
     """torch.save to a temporary file, then rename: a kill mid-write never leaves a torn file."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    torch.save(payload, tmp)
-    os.replace(tmp, path)
+    atomic_write(path, lambda fh: torch.save(payload, fh))
 
 
 def safe_torch_load(path: Path) -> dict:

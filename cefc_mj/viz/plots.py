@@ -21,7 +21,8 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from matplotlib.patches import Circle
 
-from cefc_mj.eval.record import EpisodeRecord, _atomic_write
+from cefc_mj.eval.record import EpisodeRecord
+from cefc_mj.fileio import atomic_write
 
 _ZONE_RADIUS = 1.0  # N counts steps with the swarm centre within 1 m of the anchor (DESIGN §5)
 
@@ -84,5 +85,5 @@ def plot_episode(record: EpisodeRecord, path: str | os.PathLike, dpi: int = 120)
     ax.set_title(episode_title(record), fontsize=10)
     ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, frameon=False)
     fig.tight_layout()
-    _atomic_write(path, lambda fh: fig.savefig(fh, format="png"))
+    atomic_write(path, lambda fh: fig.savefig(fh, format="png"))
     return path
