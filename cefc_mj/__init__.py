@@ -40,7 +40,7 @@ def make_world(backend: str, config: TaskConfig, n_envs: int = 1, wind: float = 
             raise ConfigError("wind: the particle backend has no wind model; use backend='mujoco'")
         from cefc_mj.sim.particle import ParticleWorld
 
-        return ParticleWorld(config, n_envs)
+        return ParticleWorld(config, n_envs, seed=seed)
     from cefc_mj.sim.mujoco_world import make_mujoco_world
 
     return make_mujoco_world(config, n_envs=n_envs, wind=wind, seed=seed)

@@ -50,7 +50,7 @@ class BatchedCEFCEnv:
         self.n_envs = n_envs
         self.n_agents = config.n_agents
         self.layout = layout_for(config)
-        self.world = world if world is not None else ParticleWorld(config, n_envs)
+        self.world = world if world is not None else ParticleWorld(config, n_envs, seed=seed)
         self.rng = np.random.default_rng(seed)
         b, n, j = n_envs, config.n_agents, config.n_targets if config.mode == "cefc" else 0
         self.t = np.zeros(b, dtype=int)
@@ -61,6 +61,8 @@ class BatchedCEFCEnv:
         self.prev_formation_reward = np.zeros(b)
         self.metric_sums = {name: np.zeros(b) for name in METRIC_NAMES}
         self.perceived_pos = np.zeros((b, n, 2))
+        self.env_deviation = np.full(b, config.deviation)
+        """Each env's sensing deviation d (m) this episode (drawn at reset with deviation_sampling='uniform')."""
         self.lidar = np.full((b, n, config.n_lidar_rays), config.lidar_range)
         self.labels = np.zeros((b, n), dtype=int)
         self.agent_error = np.full((b, n), np.nan)
@@ -73,6 +75,8 @@ class BatchedCEFCEnv:
         """Start new episodes in the masked envs (all by default); returns obs [B, N, D] of all envs."""
         if seed is not None:
             self.rng = np.random.default_rng(seed)
+            if isinstance(self.world, ParticleWorld):  # its velocity noise belongs to the episode too
+                self.world.rng = np.random.default_rng((seed, 1))
         mask = np.ones(self.n_envs, dtype=bool) if mask is None else np.asarray(mask, dtype=bool)
         if mask.shape != (self.n_envs,):
             raise ConfigError(f"mask: expected shape ({self.n_envs},), got {mask.shape}")
@@ -86,6 +90,8 @@ class BatchedCEFCEnv:
             full(scenario.obstacles, self.obstacles),
         )
         self.obstacles[mask] = scenario.obstacles
+        if self.config.deviation_sampling == "uniform":
+            self.env_deviation[mask] = self.rng.uniform(0.0, self.config.deviation, count)
         self.anchor[mask] = scenario.anchor
         self.targets[mask] = scenario.targets
         self.urgency[mask] = 1.0
@@ -157,8 +163,10 @@ class BatchedCEFCEnv:
     def _observe(self, mask: np.ndarray) -> None:
         cfg, world = self.config, self.world
         true_pos = world.agent_pos
-        self.perceived_pos = true_pos + sample_deviation(self.rng, cfg.deviation, true_pos.shape[:2])
+        self.perceived_pos = true_pos + sample_deviation(self.rng, self.env_deviation, true_pos.shape[:2])
         self.lidar = world.lidar(self.perceived_pos)
+        # The collision reward scores true clearances (like the metrics), not what the noisy LiDAR shows.
+        self.true_lidar = world.lidar(true_pos) if cfg.deviation > 0 else self.lidar
         if cfg.mode == "formation":
             obs = build_low_level_observation(cfg, self.perceived_pos, world.agent_vel, self.anchor, self.lidar)
         else:
@@ -173,7 +181,8 @@ class BatchedCEFCEnv:
         hd_sum = np.nansum(group_error, axis=-1)
         r_f = R.formation_reward(hd_sum, self.prev_formation_reward, w.formation_lag)
         self.prev_formation_reward = r_f
-        r_c = R.collision_reward(self.lidar, w)
+        self.agent_collision_penalty = R.collision_penalty(self.true_lidar.min(axis=-1), w)
+        r_c = -self.agent_collision_penalty.sum(axis=-1)  # R_c = -sum_i CR_i (eq. 16)
         if cfg.mode == "formation":
             r_n = R.anchor_navigation_reward(pos, self.anchor)
             terms = {"R_f": r_f, "R_n": r_n, "R_c": r_c}

@@ -83,6 +83,63 @@ def test_acceleration_integrates_to_speed_limit():
     assert np.linalg.norm(world.adversary_vel[0]) == pytest.approx(0.75)
 
 
+def test_response_time_is_a_first_order_lag_behind_the_commanded_velocity():
+    """tau = 0.1 s at dt = 0.1 s: v moves half-way to the commanded velocity each step."""
+    cfg = TaskConfig(n_agents=1, response_time=0.1)
+    world = ParticleWorld(cfg, 1)
+    world.reset(np.ones(1, bool), np.zeros((1, 1, 2)), np.zeros((1, 2)), np.zeros((1, 0, 2)))
+    commanded, expected = 0.0, 0.0
+    for t in range(12):
+        accel = 2.0 if t < 4 else 0.0  # the commanded velocity ramps to 0.8 m/s and holds
+        world.step(np.array([[[accel, 0.0]]]), np.zeros((1, 2)))
+        commanded += accel * cfg.dt
+        expected += 0.5 * (commanded - expected)
+        assert world.agent_vel[0, 0, 0] == pytest.approx(expected)
+    assert 0.79 < world.agent_vel[0, 0, 0] < 0.8  # converged from below, never overshooting
+
+
+def test_velocity_noise_kicks_have_the_configured_spread_and_follow_the_seed():
+    def velocities(seed):
+        env = BatchedCEFCEnv(TaskConfig(n_agents=4, mode="formation", velocity_noise=0.08), n_envs=50, seed=seed)
+        env.reset(seed=seed)
+        env.step(np.zeros((50, 4, 2)))  # from rest with zero action: the velocity is the kick alone
+        return env.world.agent_vel.copy()
+
+    v = velocities(3)
+    assert v.std() == pytest.approx(0.08, rel=0.1) and abs(v.mean()) < 0.01
+    np.testing.assert_array_equal(v, velocities(3))
+    assert not np.array_equal(v, velocities(4))
+
+
+def test_uniform_deviation_sampling_draws_each_env_its_own_level():
+    env = BatchedCEFCEnv(TaskConfig(n_agents=4, mode="formation", deviation=0.8, deviation_sampling="uniform"),
+                         n_envs=64, seed=0)
+    env.reset()
+    first = env.env_deviation.copy()
+    assert ((first >= 0) & (first <= 0.8)).all() and first.std() > 0.15
+    env.step(np.zeros((64, 4, 2)))
+    offset = np.linalg.norm(env.perceived_pos - env.world.agent_pos, axis=-1).mean(axis=1)  # [B]
+    assert np.corrcoef(offset, first)[0, 1] > 0.9  # each env perceives with its own level
+    env.reset(mask=np.arange(64) < 32)
+    assert (env.env_deviation[32:] == first[32:]).all() and (env.env_deviation[:32] != first[:32]).all()
+
+
+def test_collision_reward_scores_true_clearance_under_deviation():
+    """Two agents 0.4 m apart (touching) are penalised whatever their noisy LiDAR shows."""
+    from cefc_mj.task.rewards import collision_penalty
+
+    cfg = TaskConfig(n_agents=3, mode="formation", deviation=0.8)
+    env = BatchedCEFCEnv(cfg, n_envs=8, seed=0)
+    env.reset()
+    start = np.array([[0.0, 0.0], [0.4, 0.0], [0.0, 3.0]]) + np.array([4.0, -8.0])
+    env.world.reset(np.ones(8, bool), np.repeat(start[None], 8, 0), np.zeros((8, 2)), env.obstacles + 50.0)
+    env.step(np.zeros((8, 3, 2)))
+    true_penalty = collision_penalty(env.world.lidar(env.world.agent_pos).min(-1), cfg.rewards)
+    np.testing.assert_allclose(env.agent_collision_penalty, true_penalty)
+    assert (true_penalty[:, :2] > 0).all()
+    assert not np.allclose(env.lidar, env.true_lidar)  # the observation is noisy, the reward is not
+
+
 def rollout(seed, mode="cefc", steps=50, **kw):
     env = BatchedCEFCEnv(TaskConfig(n_agents=6, mode=mode, obstacle_density=0.03, **kw), n_envs=3, seed=seed)
     rng = np.random.default_rng(seed)

@@ -77,8 +77,6 @@ def test_collision_reward_three_cases():
     d = np.array([[0.1, 0.3, 0.6]])
     cr = R.collision_penalty(d, p)
     np.testing.assert_allclose(cr, [[24 * 0.1 + 3, 8 * 0.2 + 1, 0.0]])
-    lidar = np.stack([np.full(24, v) for v in [0.1, 0.3, 0.6]])[None]
-    assert R.collision_reward(lidar, p)[0] == pytest.approx(-(5.4 + 2.6))
 
 
 def test_formation_reward_lag():

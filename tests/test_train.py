@@ -212,11 +212,11 @@ def test_agent_collision_credit_splits_the_team_collision_term():
     for _ in range(30):  # fly around randomly until some agents are near something
         obs, reward, _, info = env.step(rng.uniform(-2, 2, (6, 5, 2)))
     terms, w = info["reward_terms"], task.rewards
-    per_agent = trainer.agent_rewards(reward, terms["R_c"], obs[..., env.layout["lidar"]], w)
+    per_agent = trainer.agent_rewards(reward, terms["R_c"], env.agent_collision_penalty, w)
     shared = w.formation_weight * terms["R_f"] + w.navigation_weight_low * terms["R_n"]
     # sum_i (shared - 100 CR_i) = N shared + 100 R_c, because R_c = -sum_i CR_i.
     np.testing.assert_allclose(per_agent.sum(1), 5 * shared + w.collision_weight * terms["R_c"], rtol=1e-4, atol=1e-2)
     assert (terms["R_c"] < 0).any()  # the check above is not vacuous
     team = MAPPO(task, PPOConfig(n_envs=6, collision_credit="team"), actor, Critic(5 * 28 + 63), seed=0)
-    np.testing.assert_allclose(team.agent_rewards(reward, terms["R_c"], obs[..., env.layout["lidar"]], w),
+    np.testing.assert_allclose(team.agent_rewards(reward, terms["R_c"], env.agent_collision_penalty, w),
                                np.repeat(reward[:, None], 5, 1), rtol=1e-6)

@@ -77,6 +77,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--deviation", type=float, default=0.0, metavar="M",
                    help="train under sensing deviation M (m); with --step 3 this is AT-M-Robust, fine-tuned from "
                         "the Step 3 policy and written as atm_c<C>_robust (default 0)")
+    p.add_argument("--deviation-sampling", choices=("fixed", "uniform"), default="fixed",
+                   help="fixed: every episode at --deviation; uniform: each env draws its episode's deviation from "
+                        "[0, --deviation] (default fixed)")
+    p.add_argument("--response-time", type=float, default=0.0, metavar="S",
+                   help="velocity lag (s) of the particle world; about 0.1 matches the MuJoCo quadrotor (default 0, "
+                        "the paper's MPE)")
+    p.add_argument("--velocity-noise", type=float, default=0.0, metavar="MPS",
+                   help="std (m/s) of per-step velocity kicks in the particle world, a real vehicle's tracking "
+                        "error; about 0.1 matches the MuJoCo quadrotor (default 0)")
     p.add_argument("--density", type=float, default=None, help="training obstacle density per m^2 (default: the step's)")
     _common(p, "100it")
     _ppo_args(p)
@@ -109,6 +118,8 @@ def run(args) -> None:
         from cefc_mj.train.lowlevel import train_lowlevel
 
         cfg = LowLevelConfig(formation=args.formation, step=args.step, safe=args.safe, deviation=args.deviation,
+                             deviation_sampling=args.deviation_sampling, response_time=args.response_time,
+                             velocity_noise=args.velocity_noise,
                              budget=budget, seed=args.seed,
                              obstacle_density=args.density, ppo=_ppo_from(args))
         card = train_lowlevel(cfg, args.out, args.policies_dir, resume=args.resume, show_progress=show)

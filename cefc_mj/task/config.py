@@ -120,6 +120,15 @@ class TaskConfig:
     """Where the adversary starts (m); its x is jittered by the scenario sampler."""
     deviation: float = 0.0
     """Sensing deviation d (m): each agent perceives from p + delta, |delta| ~ |Normal(d, d/4)|."""
+    deviation_sampling: str = "fixed"
+    """"fixed": every episode uses `deviation`. "uniform": each env draws its episode's d uniformly
+    from [0, deviation] at reset (training under a range of sensing quality)."""
+    response_time: float = 0.0
+    """Particle world only: time constant (s) of the first-order lag between the commanded velocity
+    (the integrated action) and the velocity; 0 is the paper's MPE (no lag)."""
+    velocity_noise: float = 0.0
+    """Particle world only: std (m/s, per axis) of a Gaussian kick added to every UAV's velocity each
+    step, standing in for the tracking error of a real vehicle; 0 is the paper's MPE."""
     rewards: RewardConfig = field(default_factory=RewardConfig)
     """Reward parameters."""
 
@@ -173,7 +182,8 @@ class TaskConfig:
             finite(name, value)
             if value <= 0:
                 fail(name, value, "must be > 0")
-        for name in ("obstacle_density", "start_min_spacing", "obstacle_min_gap", "anchor_clearance", "deviation"):
+        for name in ("obstacle_density", "start_min_spacing", "obstacle_min_gap", "anchor_clearance", "deviation",
+                     "response_time", "velocity_noise"):
             value = getattr(self, name)
             finite(name, value)
             if value < 0:
@@ -190,6 +200,8 @@ class TaskConfig:
             fail("max_neighbours", self.max_neighbours, f"must be >= n_agents - 1 = {self.n_agents - 1}")
         if not isinstance(self.n_targets, int) or not 0 <= self.n_targets <= 4:
             fail("n_targets", self.n_targets, "must be an integer in 0..4")
+        if self.deviation_sampling not in ("fixed", "uniform"):
+            fail("deviation_sampling", self.deviation_sampling, "must be 'fixed' or 'uniform'")
         if self.adversary not in ADVERSARY_RULES:
             fail("adversary", self.adversary, f"must be one of {', '.join(ADVERSARY_RULES)}")
         if self.start_half_size >= self.arena_half_size:

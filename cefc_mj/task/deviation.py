@@ -9,10 +9,14 @@ from __future__ import annotations
 import numpy as np
 
 
-def sample_deviation(rng: np.random.Generator, deviation: float, shape: tuple[int, int]) -> np.ndarray:
-    """Deviation vectors [B, N, 2] for a mean magnitude `deviation` (m); zeros when it is 0."""
-    if deviation == 0:
+def sample_deviation(rng: np.random.Generator, deviation: float | np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """Deviation vectors [B, N, 2] for a mean magnitude `deviation` (m), a number or one per env [B];
+    zeros (and no random draw) when it is 0 everywhere."""
+    deviation = np.asarray(deviation, dtype=np.float64)
+    if not deviation.any():
         return np.zeros((*shape, 2))
+    if deviation.ndim == 1:
+        deviation = deviation[:, None]
     magnitude = np.abs(rng.normal(deviation, deviation / 4.0, size=shape))
     angle = rng.uniform(0.0, 2.0 * np.pi, size=shape)
     return magnitude[..., None] * np.stack([np.cos(angle), np.sin(angle)], axis=-1)

@@ -116,19 +116,30 @@ def formation_error_kernel(pos, labels, templates, min_size, error, size, centre
 
 
 @numba.njit(cache=True)
-def particle_step_kernel(pos, vel, accel, obstacles, dt, speed_max, contact_dist, uav_diameter, collided):
+def particle_step_kernel(pos, vel, vel_cmd, accel, kick, obstacles, dt, speed_max, response, contact_dist,
+                         uav_diameter, collided):
     """Semi-implicit Euler with a speed clip, UAV-UAV overlap flags, and inelastic obstacle
-    contacts (pushed back onto the surface, inward velocity removed). Updates in place."""
+    contacts (pushed back onto the surface, inward velocity removed). The action integrates into the
+    commanded velocity vel_cmd; the velocity follows it by the first-order factor `response` in (0, 1]
+    per step (1: no lag, the paper's MPE), then gets the disturbance `kick` [B, N, 2] (m/s) added
+    before the position update. Updates in place."""
     n_envs, n, _ = pos.shape
     k_obs = obstacles.shape[1]
     for b in range(n_envs):
         for i in range(n):
-            vx = vel[b, i, 0] + accel[b, i, 0] * dt
-            vy = vel[b, i, 1] + accel[b, i, 1] * dt
+            vx = vel_cmd[b, i, 0] + accel[b, i, 0] * dt
+            vy = vel_cmd[b, i, 1] + accel[b, i, 1] * dt
             speed = np.sqrt(vx * vx + vy * vy)
             if speed > speed_max:
                 vx *= speed_max / speed
                 vy *= speed_max / speed
+            vel_cmd[b, i, 0] = vx
+            vel_cmd[b, i, 1] = vy
+            if response < 1.0:
+                vx = vel[b, i, 0] + response * (vx - vel[b, i, 0])
+                vy = vel[b, i, 1] + response * (vy - vel[b, i, 1])
+            vx += kick[b, i, 0]
+            vy += kick[b, i, 1]
             vel[b, i, 0] = vx
             vel[b, i, 1] = vy
             pos[b, i, 0] += vx * dt
@@ -162,3 +173,7 @@ def particle_step_kernel(pos, vel, accel, obstacles, dt, speed_max, contact_dist
             if vn < 0.0:
                 vel[b, i, 0] -= vn * nx
                 vel[b, i, 1] -= vn * ny
+            vn = vel_cmd[b, i, 0] * nx + vel_cmd[b, i, 1] * ny
+            if vn < 0.0:
+                vel_cmd[b, i, 0] -= vn * nx
+                vel_cmd[b, i, 1] -= vn * ny

@@ -73,8 +73,3 @@ def collision_penalty(min_range: np.ndarray, params: RewardConfig) -> np.ndarray
     return np.where(
         min_range < params.safety_distance, near, np.where(min_range < params.collision_alert_distance, alert, 0.0)
     )
-
-
-def collision_reward(lidar: np.ndarray, params: RewardConfig) -> np.ndarray:
-    """R_c = -sum_i CR_i (eq. 16) from LiDAR ranges [B, N, M]."""
-    return -collision_penalty(lidar.min(axis=-1), params).sum(axis=-1)

@@ -157,6 +157,15 @@ class LowLevelConfig:
     """Sensing deviation d (m) during training. With step 3 and d > 0 this is AT-M-Robust: the Step 3
     policy fine-tuned while every agent perceives from a noisy position (DESIGN §7), so that it
     keeps its distance from neighbours it sees up to ~1 m off (this project's addition)."""
+    deviation_sampling: str = "fixed"
+    """"fixed": every training episode uses `deviation`; "uniform": each env draws its episode's d
+    from [0, deviation], so one policy learns calm and noisy sensing alike."""
+    response_time: float = 0.0
+    """Velocity lag (s) of the particle world during training (TaskConfig.response_time); 0 is the
+    paper's MPE, about 0.1 matches the MuJoCo quadrotor's velocity loop."""
+    velocity_noise: float = 0.0
+    """Std (m/s) of the particle world's per-step velocity kicks during training
+    (TaskConfig.velocity_noise); 0 is the paper's MPE."""
     hidden: int = 128
     """Hidden width of the AT-M modules."""
     critic_hidden: int = 128
@@ -209,6 +218,12 @@ class LowLevelConfig:
         if self.deviation > 0 and (self.step != 3 or self.safe):
             _fail("deviation", self.deviation, "training under sensing deviation fine-tunes the Step 3 policy: "
                   "use it with step 3 and without --safe")
+        if self.deviation_sampling not in ("fixed", "uniform"):
+            _fail("deviation_sampling", self.deviation_sampling, "must be 'fixed' or 'uniform'")
+        if not isinstance(self.response_time, (int, float)) or not 0 <= self.response_time <= 1.0:
+            _fail("response_time", self.response_time, "must be in [0, 1] s")
+        if not isinstance(self.velocity_noise, (int, float)) or not 0 <= self.velocity_noise <= 1.0:
+            _fail("velocity_noise", self.velocity_noise, "must be in [0, 1] m/s")
         if self.obstacle_density is not None and not 0 <= self.obstacle_density <= 0.2:
             _fail("obstacle_density", self.obstacle_density, "must be in [0, 0.2] per m^2")
         for name in ("hidden", "critic_hidden", "checkpoint_every"):

@@ -42,7 +42,9 @@ PROGRESS_KEYS = ("reward_per_step", "metric/F", "metric/N", "metric/C", "approx_
 
 def task_config_for(cfg: LowLevelConfig) -> TaskConfig:
     """The low-level game of a stage: one group of c agents, an anchor, the step's obstacle density."""
-    return TaskConfig(n_agents=cfg.formation, mode="formation", obstacle_density=cfg.density, deviation=cfg.deviation)
+    return TaskConfig(n_agents=cfg.formation, mode="formation", obstacle_density=cfg.density, deviation=cfg.deviation,
+                      deviation_sampling=cfg.deviation_sampling, response_time=cfg.response_time,
+                      velocity_noise=cfg.velocity_noise)
 
 
 def stage_name(formation: int, step: int, safe: bool = False) -> str:
@@ -110,7 +112,7 @@ def _last_csv_row(run_dir: Path) -> dict:
 
 def _check_same_run(saved: dict, cfg: LowLevelConfig, path: Path) -> None:
     """A resumed run must have the same config except its budget (which may be extended)."""
-    mine = cfg.to_dict()
+    mine, saved = cfg.to_dict(), LowLevelConfig.from_dict(saved).to_dict()  # fields added later: defaults
     diffs = [k for k in mine if k not in ("budget", "checkpoint_every") and saved.get(k) != mine[k]]
     if diffs:
         raise ConfigError(f"--resume: {path} was made with different settings ({', '.join(diffs)}); use another --out")

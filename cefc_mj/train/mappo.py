@@ -30,7 +30,6 @@ import torch
 from cefc_mj.env import BatchedCEFCEnv
 from cefc_mj.nn.atm import ATMActor, Critic
 from cefc_mj.task.config import TaskConfig
-from cefc_mj.task.rewards import collision_penalty
 from cefc_mj.train.config import PPOConfig
 from cefc_mj.train.ppo import ValueNorm, clipped_policy_loss, compute_gae, explained_variance
 
@@ -85,7 +84,6 @@ class MAPPO:
         obs = env.reset(seed=iteration_seed(self.seed, self.iteration)).copy()
         state = env.global_state()
         buf = {k: [] for k in ("obs", "next_obs", "actions", "logp", "states", "next_states", "rewards", "episode_end")}
-        lidar = env.layout["lidar"]
         w = self.task_cfg.rewards
         episode_return = np.zeros(env.n_envs)
         term_sums: dict[str, np.ndarray] = {}
@@ -98,7 +96,7 @@ class MAPPO:
             logp = torch.distributions.Normal(mean, std).log_prob(action).sum(-1)
             next_obs, reward, done, info = env.step(self.actor.to_acceleration(action, obs_t).numpy())
             next_state = env.global_state()
-            agent_reward = self.agent_rewards(reward, info["reward_terms"]["R_c"], next_obs[..., lidar], w)
+            agent_reward = self.agent_rewards(reward, info["reward_terms"]["R_c"], env.agent_collision_penalty, w)
             for k, v in (("obs", obs_t), ("next_obs", torch.from_numpy(next_obs.copy())), ("actions", action),
                          ("logp", logp), ("states", torch.from_numpy(state)),
                          ("next_states", torch.from_numpy(next_state)), ("rewards", torch.from_numpy(agent_reward)),
@@ -125,13 +123,13 @@ class MAPPO:
         }
         return Rollout(**{k: torch.stack(v) for k, v in buf.items()}, stats=stats)
 
-    def agent_rewards(self, team_reward: np.ndarray, team_collision: np.ndarray, next_lidar: np.ndarray,
+    def agent_rewards(self, team_reward: np.ndarray, team_collision: np.ndarray, own: np.ndarray,
                       w) -> np.ndarray:
-        """Per-agent learning rewards [B, N] from the team reward [B] (see the module docstring)."""
+        """Per-agent learning rewards [B, N] from the team reward [B] and each agent's collision
+        penalty CR_i >= 0 [B, N] (see the module docstring)."""
         n = self.env.n_agents
         if self.ppo.collision_credit == "team":
             return np.repeat(team_reward[:, None], n, axis=1).astype(np.float32)
-        own = collision_penalty(next_lidar.astype(np.float64).min(axis=-1), w)  # CR_i >= 0, [B, N]
         shared = team_reward - w.collision_weight * team_collision  # 15 R_f + 4 R_n
         return (shared[:, None] - w.collision_weight * own).astype(np.float32)
 
