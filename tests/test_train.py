@@ -2,6 +2,7 @@
 
 import csv
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -121,6 +122,10 @@ def test_resume_reproduces_the_uninterrupted_run(tmp_path):
     other = LowLevelConfig(formation=3, step=2, budget=Budget(iterations=3), ppo=PPOConfig(n_envs=5))
     with pytest.raises(ConfigError, match="different settings"):
         train_lowlevel(other, tmp_path / "b", tmp_path / "pb", resume=True, show_progress=False, evaluate=False)
+    # Thread counts are how a run executes, not what it learns: a resume may change them.
+    threads = LowLevelConfig(formation=3, step=2, budget=Budget(iterations=3), ppo=replace(ppo, update_threads=2))
+    assert train_lowlevel(threads, tmp_path / "b", tmp_path / "pb", resume=True, show_progress=False,
+                          evaluate=False)["iterations"] == 3
 
 
 def test_student_reproduces_teachers_on_held_out_observations(tmp_path):

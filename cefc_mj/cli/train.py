@@ -51,11 +51,14 @@ def _ppo_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--lr", type=float, default=d.lr, help=f"Adam learning rate (default {d.lr})")
     p.add_argument("--credit", choices=("agent", "team"), default=d.collision_credit,
                    help=f"collision credit: per agent or the paper's team reward (default {d.collision_credit})")
+    p.add_argument("--threads", type=int, default=d.update_threads,
+                   help=f"torch threads of the PPO update; 1 when several trainings share the CPU (default "
+                        f"{d.update_threads})")
 
 
 def _ppo_from(args) -> PPOConfig:
     ppo = PPOConfig(n_envs=args.envs, epochs=args.epochs, minibatches=args.minibatches, lr=args.lr,
-                    collision_credit=args.credit)
+                    collision_credit=args.credit, update_threads=args.threads)
     ppo.validate()
     return ppo
 

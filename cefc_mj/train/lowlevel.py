@@ -111,9 +111,16 @@ def _last_csv_row(run_dir: Path) -> dict:
 
 
 def _check_same_run(saved: dict, cfg: LowLevelConfig, path: Path) -> None:
-    """A resumed run must have the same config except its budget (which may be extended)."""
-    mine, saved = cfg.to_dict(), LowLevelConfig.from_dict(saved).to_dict()  # fields added later: defaults
-    diffs = [k for k in mine if k not in ("budget", "checkpoint_every") and saved.get(k) != mine[k]]
+    """A resumed run must have the same config except its budget (which may be extended) and how
+    many threads it uses."""
+    def comparable(config: LowLevelConfig) -> dict:
+        d = config.to_dict()
+        d.pop("budget"), d.pop("checkpoint_every")
+        d["ppo"] = {k: v for k, v in d["ppo"].items() if k not in ("rollout_threads", "update_threads")}
+        return d
+
+    mine, theirs = comparable(cfg), comparable(LowLevelConfig.from_dict(saved))  # fields added later: defaults
+    diffs = [k for k in mine if theirs.get(k) != mine[k]]
     if diffs:
         raise ConfigError(f"--resume: {path} was made with different settings ({', '.join(diffs)}); use another --out")
 
