@@ -64,6 +64,10 @@ class BatchedCEFCEnv:
         self.env_deviation = np.full(b, config.deviation)
         """Each env's sensing deviation d (m) this episode (drawn at reset with deviation_sampling='uniform')."""
         self.lidar = np.full((b, n, config.n_lidar_rays), config.lidar_range)
+        self.true_lidar = self.lidar
+        """LiDAR cast from the true positions (the collision reward's input; `lidar` is what agents see)."""
+        self.agent_collision_penalty = np.zeros((b, n))
+        """CR_i of the last step (eq. 17) from the true clearances, [B, N]; R_c = -its sum."""
         self.labels = np.zeros((b, n), dtype=int)
         self.agent_error = np.full((b, n), np.nan)
         self.group_size = np.zeros((b, n), dtype=np.int64)

@@ -111,6 +111,11 @@ def test_velocity_noise_kicks_have_the_configured_spread_and_follow_the_seed():
     assert not np.array_equal(v, velocities(4))
 
 
+def test_particle_only_settings_are_refused_by_mujoco():
+    with pytest.raises(ConfigError, match="response_time"):
+        cefc_mj.make_world("mujoco", TaskConfig(n_agents=3, response_time=0.1))
+
+
 def test_uniform_deviation_sampling_draws_each_env_its_own_level():
     env = BatchedCEFCEnv(TaskConfig(n_agents=4, mode="formation", deviation=0.8, deviation_sampling="uniform"),
                          n_envs=64, seed=0)

@@ -515,6 +515,9 @@ def make_mujoco_world(task: TaskConfig, n_envs: int = 1, wind: float = 0.0, seed
                       config: MujocoWorldConfig | None = None) -> MujocoWorld:
     """The MuJoCo world for a task: its counts, radii, speed limits and LiDAR, plus a wind of mean
     speed `wind` (m/s, Gazebo wind-plugin semantics; 0 for calm air)."""
+    for name in ("response_time", "velocity_noise"):  # the quadrotor has its own lag and tracking error
+        if getattr(task, name):
+            raise ConfigError(f"{name}={getattr(task, name)}: a particle-world setting; the MuJoCo world must keep it 0")
     return MujocoWorld(
         config or MujocoWorldConfig(), n_envs=n_envs, n_agents=task.n_agents, n_obstacles=task.n_obstacles,
         n_lidar_rays=task.n_lidar_rays, lidar_range=task.lidar_range, lidar_sees_agents=task.lidar_sees_agents,

@@ -69,9 +69,9 @@ class ParticleWorld:
         else:
             kick = self._no_kick
         particle_step_kernel(
-            self._pos, self._vel, self._vel_cmd, np.ascontiguousarray(agent_accel, dtype=np.float64), kick, self.obstacles,
-            dt, cfg.speed_max, self._response, cfg.obstacle_radius + cfg.uav_radius, 2 * cfg.uav_radius,
-            self._collided,
+            self._pos, self._vel, self._vel_cmd, np.ascontiguousarray(agent_accel, dtype=np.float64), kick,
+            self.obstacles, dt, cfg.speed_max, self._response, cfg.obstacle_radius + cfg.uav_radius,
+            2 * cfg.uav_radius, self._collided,
         )
         self._adv_vel = clip_speed(self._adv_vel + adversary_accel * dt, cfg.adversary_speed_max)
         self._adv_pos = self._adv_pos + self._adv_vel * dt

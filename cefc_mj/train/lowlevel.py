@@ -115,7 +115,8 @@ def _check_same_run(saved: dict, cfg: LowLevelConfig, path: Path) -> None:
     many threads it uses."""
     def comparable(config: LowLevelConfig) -> dict:
         d = config.to_dict()
-        d.pop("budget"), d.pop("checkpoint_every")
+        for key in ("budget", "checkpoint_every"):
+            del d[key]
         d["ppo"] = {k: v for k, v in d["ppo"].items() if k not in ("rollout_threads", "update_threads")}
         return d
 
