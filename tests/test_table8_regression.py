@@ -1,4 +1,4 @@
-"""Regression tests on the Table VIII metrics: a CI-sized subset of the grid (c = 5 and 8; calm,
+"""Regression tests on the Table VIII metrics: a CI-sized subset of the grid (c = 5..8; calm,
 Wind-8, Deviation-0.8; seed 0; 1000 steps) flown on MuJoCo quadrotors with the shipped AT-M policies,
 checked against the bands in eval/table8_bands.json (how they were set is written there), and against
 the paper's qualitative facts (known gaps of the current policies are strict xfails)."""

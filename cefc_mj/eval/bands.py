@@ -20,7 +20,7 @@ from cefc_mj.eval.table8 import load_cells
 from cefc_mj.fileio import write_atomic
 
 BANDS_FILE = paths.EVAL_DIR / "table8_bands.json"
-SUBSET_FORMATIONS = (5, 8)
+SUBSET_FORMATIONS = (5, 6, 7, 8)
 SUBSET_CONDITIONS = ("SITL-S", "Wind-8", "Deviation-0.8")
 SUBSET_SEED = 0
 STEP_TOLERANCE = 60.0
