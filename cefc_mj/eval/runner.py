@@ -59,7 +59,8 @@ def policy_name_for(policy: str, formation: int) -> str:
     AT-M-Safe of c, "robust" -> AT-M-Robust of c, "student" -> the distilled student; anything else
     is a name or path."""
     aliases = {"atm": f"atm_c{formation}_step3", "safe": f"atm_c{formation}_safe",
-               "robust": f"atm_c{formation}_robust", "student": "atm_student"}
+               "robust": f"atm_c{formation}_robust", "quad": f"atm_c{formation}_quad",
+               "student": "atm_student"}
     return aliases.get(policy, policy)
 
 

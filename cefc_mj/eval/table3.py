@@ -52,6 +52,8 @@ def policy_file_for(method: str, formation: int) -> str:
         return f"atm_c{formation}_safe"
     if method == "AT-M-Robust":
         return f"atm_c{formation}_robust"
+    if method == "AT-M-Quad":
+        return f"atm_c{formation}_quad"
     return f"atm_c{formation}_step{method[-1]}"
 
 

@@ -187,10 +187,12 @@ class LowLevelConfig:
 
     @property
     def name(self) -> str:
-        """Stage name, also the policy file stem: atm_c6_step3, atm_c6_safe, atm_c6_robust."""
+        """Stage name, also the policy file stem: atm_c6_step3, atm_c6_safe, atm_c6_robust, atm_c6_quad."""
         if self.safe:
             return f"atm_c{self.formation}_safe"
-        return f"atm_c{self.formation}_robust" if self.robust else f"atm_c{self.formation}_step{self.step}"
+        if self.robust:
+            return f"atm_c{self.formation}_robust"
+        return f"atm_c{self.formation}_quad" if self.quad else f"atm_c{self.formation}_step{self.step}"
 
     @property
     def robust(self) -> bool:
@@ -198,11 +200,23 @@ class LowLevelConfig:
         return self.step == 3 and self.deviation > 0
 
     @property
+    def quad(self) -> bool:
+        """AT-M-Quad: a Step 3 fine-tune with quadrotor-like lag and/or tracking noise, exact sensing."""
+        return self.step == 3 and self.deviation == 0 and (self.response_time > 0 or self.velocity_noise > 0)
+
+    @property
+    def fine_tune(self) -> bool:
+        """Starts from the Step 3 result (Safe, Robust, Quad) rather than from Steps 1 and 2."""
+        return self.safe or self.robust or self.quad
+
+    @property
     def method(self) -> str:
-        """The method name as the paper's Table III writes it."""
+        """The method name as the paper's Table III writes it (Robust and Quad are this project's)."""
         if self.safe:
             return "AT-M-Safe"
-        return "AT-M-Robust" if self.robust else f"AT-M-Step{self.step}"
+        if self.robust:
+            return "AT-M-Robust"
+        return "AT-M-Quad" if self.quad else f"AT-M-Step{self.step}"
 
     def validate(self) -> None:
         if self.formation not in FORMATIONS:
@@ -224,6 +238,9 @@ class LowLevelConfig:
             _fail("response_time", self.response_time, "must be in [0, 1] s")
         if not isinstance(self.velocity_noise, (int, float)) or not 0 <= self.velocity_noise <= 1.0:
             _fail("velocity_noise", self.velocity_noise, "must be in [0, 1] m/s")
+        if (self.response_time > 0 or self.velocity_noise > 0) and (self.step != 3 or self.safe):
+            _fail("response_time/velocity_noise", (self.response_time, self.velocity_noise),
+                  "quadrotor-like dynamics fine-tune the Step 3 policy: use them with step 3 and without --safe")
         if self.obstacle_density is not None and not 0 <= self.obstacle_density <= 0.2:
             _fail("obstacle_density", self.obstacle_density, "must be in [0, 0.2] per m^2")
         for name in ("hidden", "critic_hidden", "checkpoint_every"):

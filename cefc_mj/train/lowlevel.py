@@ -88,7 +88,7 @@ def initial_networks(cfg: LowLevelConfig, task: TaskConfig, out: Path) -> tuple[
     value_norm = ValueNorm()
     if cfg.step != 3:
         return actor, critic, value_norm, {"actor": "random", "critic": "random"}
-    if cfg.safe or cfg.robust:
+    if cfg.fine_tune:
         src, src_actor = _source_state(out, stage_name(cfg.formation, 3), cfg.name)
         actor.load_state_dict(src_actor.state_dict())
         origin = {"actor": stage_name(cfg.formation, 3), "critic": stage_name(cfg.formation, 3)}
