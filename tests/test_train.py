@@ -51,6 +51,14 @@ def test_budget_and_config_validation():
     cfg = LowLevelConfig(formation=6, step=3, budget=Budget(seconds=60.0))
     assert LowLevelConfig.from_dict(json.loads(json.dumps(cfg.to_dict()))) == cfg
     assert (cfg.density, cfg.name, cfg.method) == (0.03, "atm_c6_step3", "AT-M-Step3")
+    # Fine-tunes of Step 3: sensing deviation makes Robust, quadrotor-like dynamics alone make Quad.
+    robust = LowLevelConfig(formation=6, step=3, deviation=0.8, response_time=0.15, budget=Budget(iterations=1))
+    quad = LowLevelConfig(formation=6, step=3, response_time=0.15, velocity_noise=0.1, budget=Budget(iterations=1))
+    assert (robust.name, robust.method, robust.fine_tune) == ("atm_c6_robust", "AT-M-Robust", True)
+    assert (quad.name, quad.method, quad.fine_tune) == ("atm_c6_quad", "AT-M-Quad", True)
+    assert not cfg.fine_tune
+    with pytest.raises(ConfigError, match="velocity_noise"):
+        LowLevelConfig(formation=6, step=1, velocity_noise=0.1, budget=Budget(iterations=1))
 
 
 def test_pipeline_plan_splits_the_budget():
@@ -95,6 +103,10 @@ def test_every_stage_trains_and_exports(tmp_path):
     safe = load_policy("atm_c3_safe", pol)
     assert safe.safe and not load_policy("atm_c3_step3", pol).safe
     assert read_state(out / "atm_c3_safe" / "state.pt")["origin"]["actor"] == "atm_c3_step3"
+    cfg_quad = LowLevelConfig(formation=3, step=3, response_time=0.15, velocity_noise=0.1, budget=Budget(iterations=1),
+                              ppo=TINY)
+    assert train_lowlevel(cfg_quad, out, pol, show_progress=False, evaluate=False)["init"]["actor"] == "atm_c3_step3"
+    assert json.loads((pol / "atm_c3_quad.json").read_text())["task"]["velocity_noise"] == 0.1
 
 
 def test_resume_reproduces_the_uninterrupted_run(tmp_path):

@@ -39,8 +39,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--steps", type=int, metavar="T", help="decision steps per episode (default 1000; table3 100)")
     p.add_argument("--seed", type=int, default=0, metavar="S", help="first seed; episode k uses S+k (default 0)")
     p.add_argument("--policy", default="atm", metavar="NAME|PATH",
-                   help="atm (AT-M Step 3 of each c, default), safe, robust (AT-M-Robust, c = 5..8), student, "
-                        "a name in policies/, or a .pt path")
+                   help="atm (AT-M Step 3 of each c, default), safe, robust (AT-M-Robust, c = 5..8), quad "
+                        "(AT-M-Quad, c = 5..8), student, a name in policies/, or a .pt path")
     p.add_argument("--sitl-m", action="store_true", help="run every UAV's policy in its own process (SITL-M)")
     p.add_argument("--rrd", type=Path, metavar="PATH", help="record the episodes to a Rerun .rrd file")
     p.add_argument("--spawn", action="store_true", help="stream the episodes to a live Rerun viewer")

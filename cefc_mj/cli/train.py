@@ -85,7 +85,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "[0, --deviation] (default fixed)")
     p.add_argument("--response-time", type=float, default=0.0, metavar="S",
                    help="velocity lag (s) of the particle world; about 0.1 matches the MuJoCo quadrotor (default 0, "
-                        "the paper's MPE)")
+                        "the paper's MPE). With --step 3 and no --deviation this is AT-M-Quad, fine-tuned from the "
+                        "Step 3 policy and written as atm_c<C>_quad")
     p.add_argument("--velocity-noise", type=float, default=0.0, metavar="MPS",
                    help="std (m/s) of per-step velocity kicks in the particle world, a real vehicle's tracking "
                         "error; about 0.1 matches the MuJoCo quadrotor (default 0)")

@@ -23,6 +23,7 @@ import torch
 from cefc_mj import paths
 from cefc_mj.env import BatchedCEFCEnv
 from cefc_mj.errors import ConfigError
+from cefc_mj.fileio import write_atomic
 from cefc_mj.nn.policy_io import Policy, load_policy
 from cefc_mj.task.config import TaskConfig
 
@@ -30,8 +31,8 @@ TABLE3_DENSITY = 0.05
 TABLE3_EPISODES = 50
 TABLE3_STEPS = 100
 TABLE3_FORMATIONS = (6, 7, 8)
-METHODS = ("AT-M-Step1", "AT-M-Step2", "AT-M-Step3", "AT-M-Safe", "AT-M-Robust", "Student")
-"""Row names as the paper writes them (AT-M-Robust and the student are this project's additions)."""
+METHODS = ("AT-M-Step1", "AT-M-Step2", "AT-M-Step3", "AT-M-Safe", "AT-M-Robust", "AT-M-Quad", "Student")
+"""Row names as the paper writes them (AT-M-Robust, AT-M-Quad and the student are this project's additions)."""
 COLUMNS = ("R_L", "F", "N", "C")
 
 
@@ -119,7 +120,7 @@ def run_table3(formations=TABLE3_FORMATIONS, episodes: int = TABLE3_EPISODES, se
         result[str(c)] = rows
     if json_path is not None:
         Path(json_path).parent.mkdir(parents=True, exist_ok=True)
-        Path(json_path).write_text(json.dumps(result, indent=2) + "\n")
+        write_atomic(Path(json_path), json.dumps(result, indent=2) + "\n")
     return result
 
 
