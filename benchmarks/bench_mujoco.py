@@ -15,7 +15,7 @@ LiDAR, the MLP policy; 1000 decision steps, density 0.05, anchor redraws) for 5 
 Wind-8, the conditions of the evaluation grid's slowest cells.
 
 RTF = simulated seconds / wall seconds, best of `--rounds` alternating rounds of each.
-Target (issue 3): full >= 0.5 x physics-only, i.e. about 100x real time for 8 drones on one quiet
+Target: full loop >= 0.5 x physics-only, i.e. about 100x real time for 8 drones on one quiet
 core. Since the rotor thrusts moved to xfrc_applied, physics-only runs twice as fast as before and the
 ratio understates the full loop's gain; compare full-loop RTFs (docs/mujoco_world.md, Performance).
 """

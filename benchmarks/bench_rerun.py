@@ -1,8 +1,8 @@
-"""Cost of recording an episode to Rerun (issue 5: at most +20 % wall time per episode).
+"""Cost of recording an episode to Rerun (budget: at most +20 % wall time per episode).
 
 Logs a synthetic episode (default 1000 steps, 8 UAVs, 24 LiDAR beams, the test airframe) to an
 .rrd file with `log_episode` and prints the median time to log and to flush + close, against the
-wall time of a 1000-step MuJoCo episode from DESIGN §10 (100 s simulated at 30x-110x real time).
+wall time of a 1000-step MuJoCo episode from docs/design.md §10 (100 s simulated at 30x-110x real time).
 
     .venv/bin/python benchmarks/bench_rerun.py [--steps 1000] [--agents 8] [--beams 24] [--repeats 5]
 """

@@ -53,9 +53,10 @@ def make_env(
     wind: float = 0.0,
     deviation: float = 0.0,
     seed: int | None = None,
+    render_mode: str | None = None,
     **task_options,
 ):
-    """The CEFC game as a PettingZoo `ParallelEnv` (agents `uav_0 .. uav_{N-1}`).
+    """The CEFC game as a PettingZoo `ParallelEnv` (agents `uav_0 .. uav_{N-1}`; docs/pettingzoo.md).
 
     Args:
         backend: "particle" (the paper's MPE, point masses) or "mujoco" (quadrotors with a PX4-like
@@ -64,19 +65,25 @@ def make_env(
         wind: mean wind speed (m/s), MuJoCo backend only.
         deviation: sensing deviation d (m), both backends.
         seed: seeds the scenario, sensing noise and wind; the same seed gives the same rollout.
+        render_mode: None, "rgb_array" (`env.render()` returns an [H, W, 3] uint8 frame; MuJoCo
+            renders offscreen with OpenGL, EGL when there is no display) or "human" (streams every
+            step to a live Rerun viewer).
         **task_options: any `TaskConfig` field, e.g. mode="formation", obstacle_density=0.03.
 
     Raises:
         ConfigError (a ValueError) naming the bad argument.
     """
     from cefc_mj.env import BatchedCEFCEnv
-    from cefc_mj.pettingzoo_env import CEFCParallelEnv
+    from cefc_mj.pettingzoo_env import CEFCParallelEnv, check_render_mode, prefer_headless_gl
 
     if backend not in BACKENDS:
         raise ConfigError(f"backend={backend!r}: must be one of {', '.join(BACKENDS)}")
+    check_render_mode(render_mode)
     config = make_task_config(n_agents=n_agents, deviation=deviation, **task_options)
+    if backend == "mujoco" and render_mode == "rgb_array":
+        prefer_headless_gl()  # before the world imports mujoco, which reads MUJOCO_GL once
     world = make_world(backend, config, n_envs=1, wind=wind, seed=seed)
-    return CEFCParallelEnv(BatchedCEFCEnv(config, n_envs=1, seed=seed, world=world))
+    return CEFCParallelEnv(BatchedCEFCEnv(config, n_envs=1, seed=seed, world=world), render_mode=render_mode)
 
 
 __all__ = ["make_env", "make_task_config", "make_world", "TaskConfig", "ConfigError", "BACKENDS"]

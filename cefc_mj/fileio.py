@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import stat
 import tempfile
 from pathlib import Path
 from typing import BinaryIO, Callable
@@ -10,15 +11,37 @@ from typing import BinaryIO, Callable
 from cefc_mj.errors import ConfigError
 
 
+def current_umask() -> int:
+    """The process umask (read from /proc on Linux; elsewhere set and restored at once)."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("Umask:"):
+                return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
 def atomic_write(path: Path, write: Callable[[BinaryIO], object]) -> None:
     """Call `write(file_object)` on a temp file next to `path`, then rename it onto `path`.
-    The folder must exist (ConfigError otherwise)."""
+    The folder must exist (ConfigError otherwise).
+
+    The file gets the mode a plain `open(path, "w")` would give it: the existing file's mode when
+    one is replaced, else 0o666 less the umask (mkstemp alone would leave it private, 0o600).
+    """
     path = Path(path)
     if not path.parent.is_dir():
         raise ConfigError(f"{path}: folder {path.parent} does not exist")
+    try:
+        mode = stat.S_IMODE(path.stat().st_mode)
+    except FileNotFoundError:
+        mode = 0o666 & ~current_umask()
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
         with os.fdopen(fd, "wb") as fh:
+            os.fchmod(fh.fileno(), mode)
             write(fh)
         os.replace(tmp, path)
     except BaseException:

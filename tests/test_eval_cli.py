@@ -1,4 +1,5 @@
-"""cefc-eval: bad input ends in one clear line with exit code 2; a small particle run writes its JSON."""
+"""cefc-eval: bad input ends in one clear line with exit code 2 before anything is flown or written;
+a small particle run writes its JSON, PNGs and Rerun recording, creating their folders."""
 
 import json
 import subprocess
@@ -7,6 +8,7 @@ import sys
 import pytest
 import torch
 
+import cefc_mj.eval.table8 as table8
 from cefc_mj.cli.eval import main
 from cefc_mj.nn.atm import ATMActor, ATMConfig
 from cefc_mj.nn.policy_io import save_policy
@@ -33,62 +35,142 @@ def wrong_shape_policy(tmp_path_factory):
 def run_cli(argv, capsys):
     with pytest.raises(SystemExit) as exc:
         main(argv)
-    return exc.value.code, capsys.readouterr().err
+    out = capsys.readouterr()
+    return exc.value.code, out.out, out.err
 
 
-@pytest.mark.parametrize(
-    "argv, needle",
-    [
-        (["--wind", "-1"], "--wind"),
-        (["--deviation", "nan"], "--deviation"),
-        (["--formation", "2"], "--formation 2"),
-        (["--episodes", "0"], "--episodes"),
-        (["--policy", "no_such_policy"], "no_such_policy"),
-        (["--json", "{file}/out.json"], "--json"),
-        (["--rrd", "{file}/x.rrd"], "--rrd"),
-        (["--backend", "particle", "--wind", "3"], "--wind"),
-        (["--sitl-m"], "--sitl-m"),
-    ],
-)
-def test_bad_input_one_line_exit_2(argv, needle, capsys, tmp_path):
+def tree(root):
+    return sorted(str(p.relative_to(root)) for p in root.rglob("*"))
+
+
+BAD_INPUTS = [
+    (["--wind", "-1"], "--wind -1"),
+    (["--wind", "1e9"], "maximum speed"),
+    (["--wind", "inf"], "--wind inf"),
+    (["--deviation", "nan"], "--deviation nan"),
+    (["--deviation", "11"], "--deviation 11"),
+    (["--formation", "2"], "--formation 2"),
+    (["--formation", "5", "5"], "listed twice"),
+    (["--episodes", "0"], "--episodes 0"),
+    (["--episodes", "1000000000"], "1..10000"),
+    (["--steps", "0"], "--steps 0"),
+    (["--steps", "100001"], "1..100000"),
+    (["--seed", "-1"], "--seed -1"),
+    (["--seed", "4294967295", "--episodes", "2"], "largest seed"),
+    (["--seed", "abc"], "invalid int value"),
+    (["--workers", "0"], "--workers 0"),
+    (["--workers", "2", "--rrd", "run.rrd"], "--workers 2"),
+    (["--policy", "no_such_policy"], "no_such_policy"),
+    (["--policy", "robust", "--formation", "3"], "atm_c3_robust"),
+    (["--json", "{file}/out.json"], "is a file, not a folder"),
+    (["--json", "{tmp}"], "is a folder"),
+    (["--json", "/nonexistent/x.json"], "will not create /nonexistent"),
+    (["--json", "/proc/forbidden/x.json"], "/proc"),
+    (["--rrd", "{file}/x.rrd"], "--rrd"),
+    (["--rrd", "/nonexistent/x.rrd"], "will not create /nonexistent"),
+    (["--png", "{file}"], "is a file, not a folder"),
+    (["--png", "/nonexistent/png"], "will not create /nonexistent"),
+    (["--backend", "particle", "--wind", "3"], "no wind model"),
+    (["--sitl-m"], "not implemented"),
+    (["--report-dir", "reports"], "only --protocol table8"),
+    (["--fresh"], "only --protocol table8"),
+    (["--protocol", "table8", "--wind", "3"], "its own 7 conditions"),
+    (["--protocol", "table8", "--deviation", "0.5"], "its own 7 conditions"),
+    (["--protocol", "table8", "--backend", "particle"], "needs --backend mujoco"),
+    (["--protocol", "table8", "--png", "png"], "--protocol single only"),
+    (["--protocol", "table8", "--report-dir", "{file}"], "is a file, not a folder"),
+    (["--protocol", "table8", "--report-dir", "/nonexistent/reports"], "will not create /nonexistent"),
+    (["--protocol", "table3"], "--backend particle"),
+    (["--protocol", "table3", "--backend", "particle", "--deviation", "0.3"], "exact sensing"),
+    (["--protocol", "table3", "--backend", "particle", "--workers", "2"], "one batch"),
+    (["--protocol", "table3", "--backend", "particle", "--policy", "quad", "--formation", "3"], "atm_c3_quad"),
+]
+
+
+@pytest.mark.parametrize("argv, needle", BAD_INPUTS, ids=[" ".join(a) for a, _ in BAD_INPUTS])
+def test_bad_input_one_line_exit_2_nothing_flown_or_written(argv, needle, capsys, tmp_path, monkeypatch):
+    work = tmp_path / "cwd"
+    work.mkdir()
     (tmp_path / "a_file").write_text("not a folder")
-    argv = [a.replace("{file}", str(tmp_path / "a_file")) for a in argv]
-    code, err = run_cli(argv, capsys)
+    monkeypatch.chdir(work)
+    flown = []
+    monkeypatch.setattr(table8, "_fly", lambda *a, **k: flown.append(a) or pytest.fail("an episode was flown"))
+    argv = [a.replace("{file}", str(tmp_path / "a_file")).replace("{tmp}", str(tmp_path)) for a in argv]
+    before = tree(tmp_path)
+    code, out, err = run_cli(argv, capsys)
     assert code == 2
     lines = [line for line in err.strip().splitlines() if line]
-    assert len(lines) == 1 and needle in lines[0] and "Traceback" not in err
+    assert len(lines) == 1 and needle in lines[0] and "Traceback" not in err, err
+    assert lines[0].startswith("cefc-eval: error: ")
+    assert out == "" and not flown
+    assert tree(tmp_path) == before
 
 
 def test_checkpoint_for_another_observation_size(wrong_shape_policy, capsys):
-    code, err = run_cli(["--backend", "particle", "--formation", "5", "--steps", "5", "--policy", str(wrong_shape_policy)], capsys)
-    assert code == 2 and "observations of size 51" in err and len(err.strip().splitlines()) == 1
+    code, out, err = run_cli(["--backend", "particle", "--formation", "5", "--steps", "5", "--policy",
+                              str(wrong_shape_policy)], capsys)
+    assert code == 2 and "observations of size 51" in err and len(err.strip().splitlines()) == 1 and out == ""
 
 
-def test_unknown_flag_value_via_subprocess():
-    proc = subprocess.run([sys.executable, "-m", "cefc_mj.cli.eval", "--backend", "bullet"], capture_output=True, text=True)
-    assert proc.returncode == 2 and "invalid choice" in proc.stderr and "Traceback" not in proc.stderr
+@pytest.mark.parametrize("argv, needle", [
+    (["--backend", "bullet"], "invalid choice"),
+    (["--json", "/nonexistent/x.json"], "will not create /nonexistent"),
+    (["--wind", "1e9"], "maximum speed"),
+    (["--protocol", "table8", "--deviation", "0.3"], "its own 7 conditions"),
+])
+def test_bad_input_via_subprocess(argv, needle, tmp_path):
+    proc = subprocess.run([sys.executable, "-m", "cefc_mj.cli.eval", *argv], capture_output=True, text=True,
+                          cwd=tmp_path, timeout=120)
+    assert proc.returncode == 2 and needle in proc.stderr and "Traceback" not in proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1 and proc.stdout == ""
+    assert list(tmp_path.iterdir()) == []
 
 
-def test_particle_single_run_writes_json_and_png(random_policy, tmp_path, capsys):
-    out = tmp_path / "res.json"
+def test_version_and_help_say_sitl_m_is_not_available(capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["--version"])
+    assert exc.value.code == 0 and capsys.readouterr().out.startswith("cefc-eval 0.")
+    with pytest.raises(SystemExit):
+        main(["--help"])
+    assert "not yet available" in " ".join(capsys.readouterr().out.split())
+
+
+def test_particle_single_run_writes_json_and_png_into_new_folders(random_policy, tmp_path, capsys):
+    out = tmp_path / "new" / "res.json"
     code = main(["--backend", "particle", "--formation", "5", "--steps", "30", "--deviation", "0.3",
                  "--policy", str(random_policy), "--json", str(out), "--png", str(tmp_path / "png")])
     assert code == 0
     data = json.loads(out.read_text())
-    assert data["condition"] == "Deviation-0.3" and data["seeds"] == [0]
+    assert data["condition"] == "Deviation-0.3" and data["seeds"] == [0] and data["comparable_to_paper"] is False
     rows = data["rows"]["5"]
     assert set(rows) == {"Deviation-0.3", "SITL-S"}
     for cell in rows.values():
         assert 0 <= cell["F"] <= 30 and 0 <= cell["N"] <= 30 and 0 <= cell["C"] <= 100 and cell["episodes"] == 1
+        assert cell["F_std"] is None and len(cell["episodes_detail"]) == 1
+    assert data["provenance"]["policies"]["5"]["sha256"] and data["provenance"]["library_versions"]["mujoco"]
     assert list((tmp_path / "png").glob("*.png"))
-    assert "Table VIII metrics" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "Table VIII metrics" in printed and "not comparable" in printed and "calm reference" in printed
 
 
-def test_rrd_recording_read_back(random_policy, tmp_path):
-    """--rrd writes a Rerun file whose entities say what they are."""
+def test_single_with_workers_uses_a_pool(random_policy, tmp_path, capsys):
+    """--workers 2 flies the episodes in two processes and gives the same numbers as one process."""
+    argv = ["--backend", "particle", "--formation", "5", "--steps", "15", "--episodes", "2", "--deviation", "0.5",
+            "--policy", str(random_policy)]
+    assert main(argv + ["--json", str(tmp_path / "one.json")]) == 0
+    assert main(argv + ["--workers", "2", "--json", str(tmp_path / "two.json")]) == 0
+    one, two = (json.loads((tmp_path / f"{n}.json").read_text())["rows"] for n in ("one", "two"))
+    for cond in ("SITL-S", "Deviation-0.5"):
+        f_one, f_two = ([e["F"] for e in rows["5"][cond]["episodes_detail"]] for rows in (one, two))
+        assert f_one == f_two
+        assert one["5"][cond]["F_std"] is not None
+
+
+def test_rrd_recording_into_a_missing_folder_read_back(random_policy, tmp_path):
+    """--rrd writes a Rerun file (its missing folder created, like --png's) whose entities say what they are."""
     import rerun as rr
 
-    rrd = tmp_path / "run.rrd"
+    rrd = tmp_path / "missing" / "run.rrd"
     assert main(["--backend", "particle", "--formation", "5", "--steps", "20", "--policy", str(random_policy),
                  "--rrd", str(rrd)]) == 0
     paths = set()
@@ -96,3 +178,32 @@ def test_rrd_recording_read_back(random_policy, tmp_path):
         paths.add(str(chunk.entity_path))
     expected = {"/world/uav_0", "/world/uav_4/lidar", "/world/obstacles", "/world/anchor", "/metrics/hd_error"}
     assert expected <= paths and "/world/uav_5" not in paths  # five UAVs flew
+
+
+def test_output_that_fails_at_the_end_is_one_line_after_the_table(random_policy, tmp_path, capsys, monkeypatch):
+    """A write that fails after the run (disk full) prints the table first, then one line, exit 1."""
+    import cefc_mj.fileio
+
+    def disk_full(path, data):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(cefc_mj.fileio, "write_atomic", disk_full)
+    with pytest.raises(SystemExit) as exc:
+        main(["--backend", "particle", "--formation", "5", "--steps", "5", "--policy", str(random_policy),
+              "--json", str(tmp_path / "r.json")])
+    out = capsys.readouterr()
+    assert exc.value.code == 1 and "Table VIII metrics" in out.out
+    last = out.err.strip().splitlines()[-1]
+    assert last == f"cefc-eval: error: could not write {tmp_path / 'r.json'}: No space left on device"
+
+
+def test_interrupted_table8_says_how_to_resume(tmp_path, capsys, monkeypatch):
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(table8, "run_grid", interrupted)
+    assert main(["--protocol", "table8", "--formation", "5", "--episodes", "1", "--steps", "10"]) == 130
+    err = capsys.readouterr().err
+    assert list(tmp_path.iterdir()) == []  # the report folder is made by run_grid, right before its first write
+    assert "resume with:" in err and "--report-dir" in err and "table8-atm-mujoco-" in err

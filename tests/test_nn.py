@@ -133,3 +133,28 @@ def test_bad_files_raise_one_line_checkpoint_errors(tmp_path):
         assert "\n" not in str(err.value), name
     with pytest.raises(CheckpointError, match="size 63"):
         load_actor(good, obs_dim=70)
+
+
+@pytest.mark.parametrize("name", ["atm_c6_step3", "atm_c8_safe", "atm_student"])
+def test_loading_skips_init_and_acts_bit_for_bit_like_a_fully_built_actor(name):
+    """load_policy builds the network without its (orthogonal) initialisers; the loaded policy must
+    act exactly like the network built and initialised the ordinary way, then given the same weights."""
+    from cefc_mj.nn.policy_io import resolve_policy_path, safe_torch_load
+
+    rng_before = torch.get_rng_state()
+    policy = load_policy(name)
+    assert torch.equal(torch.get_rng_state(), rng_before)  # no initialiser drew a random number
+    assert not any(t.is_meta for t in [*policy.actor.parameters(), *policy.actor.buffers()])
+    payload = safe_torch_load(resolve_policy_path(name))
+    reference = ATMActor(ATMConfig.from_dict(payload["net"]))  # ordinary construction, init included
+    reference.load_state_dict(payload["state_dict"])
+    reference.eval()
+    for key, value in reference.state_dict().items():
+        assert torch.equal(policy.actor.state_dict()[key], value), key
+    obs = random_obs(b=8, n=6, seed=5)
+    obs[..., LAYOUT["lidar"]] = torch.where(obs[..., LAYOUT["lidar"]] > 2.0, 3.0, obs[..., LAYOUT["lidar"]])
+    for batch in (obs, obs[0]):  # [B, N, D] and one env's [N, D]
+        with torch.no_grad():
+            expected = reference.to_acceleration(reference(batch), batch).numpy().astype(np.float64)
+        actions = policy.act(batch.numpy())
+        assert actions.dtype == np.float64 and torch.equal(torch.from_numpy(actions), torch.from_numpy(expected))

@@ -16,7 +16,17 @@ from rerun.chunk import RrdReader
 
 from cefc_mj.errors import ConfigError
 from cefc_mj.eval.record import airframe_parts_from_mjcf, synthetic_record
-from cefc_mj.viz.rerun_log import close_recording, group_colors, log_episode, log_static, log_steps, open_recording
+from cefc_mj.provenance import code_version, library_versions
+from cefc_mj.viz import rerun_log
+from cefc_mj.viz.rerun_log import (
+    check_spawn_possible,
+    close_recording,
+    group_colors,
+    log_episode,
+    log_static,
+    log_steps,
+    open_recording,
+)
 
 MINI_QUAD = Path(__file__).parent / "data" / "mini_quad.xml"
 T, N, M = 300, 5, 12  # 300 steps: the anchor jumps once, at step 250
@@ -49,6 +59,7 @@ def read_rrd(path: Path) -> dict[str, dict[str, dict]]:
 @pytest.fixture(scope="module")
 def episode(tmp_path_factory):
     record = synthetic_record(n_steps=T, n_agents=N, n_beams=M, airframe_parts=airframe_parts_from_mjcf(MINI_QUAD))
+    record.policy, record.policy_sha256, record.deviation = "atm_c5_step3", "5e" * 32, 0.5
     path = tmp_path_factory.mktemp("rrd") / "episode.rrd"
     recording = open_recording(rrd_path=path)
     log_episode(record, recording)
@@ -60,12 +71,55 @@ def test_entity_paths_name_what_they_hold(episode):
     record, _, data = episode
     expected = {
         "/world", "/world/obstacles", "/world/anchor", "/world/anchor/zone", "/world/targets", "/world/adversary",
-        "/world/trails", "/world/template", "/world/collisions", "/events/collisions", "/episode",
+        "/world/trails", "/world/template", "/world/collisions", "/world/wind", "/events/collisions", "/episode",
+        "/__properties/provenance",
         *(f"/metrics/{name}" for name in record.scalars),
         *(f"/world/uav_{i}{sub}" for i in range(N) for sub in ("", "/body", "/lidar", "/lidar/hits")),
     }
     assert expected <= set(data)
     assert {f"/world/uav_0/body/{kind}" for kind in ("boxes", "cylinders", "capsules", "ellipsoids")} <= set(data)
+
+
+def test_recording_carries_its_provenance(episode):
+    """Policy, its file's digest, condition, size, final F/N/C and the code that flew it, as
+    recording properties (the viewer's recording panel)."""
+    record, _, data = episode
+    prov = {name: values[None][0] for name, values in data["/__properties/provenance"].items()}
+    assert prov["policy"] == "atm_c5_step3" and prov["policy_sha256"] == "5e" * 32
+    assert (prov["backend"], prov["condition"], prov["formation"], prov["seed"]) == ("particle", "Synthetic", N, 0)
+    assert (prov["wind"], prov["deviation"], prov["steps"], prov["dt"]) == (8.0, 0.5, T, 0.1)
+    for m in "FNC":
+        assert prov[m] == pytest.approx(record.scalars[f"{m}_so_far"][-1])
+    assert prov["F"] > 0
+    assert prov["code_version"] == code_version() and len(prov["git_commit"]) in (3, 40)  # "n/a" off a checkout
+    for name in ("numpy", "numba", "mujoco", "torch", "python"):
+        assert prov[name] == library_versions()[name]
+    text = data["/episode"]["TextDocument:text"][None][0]
+    assert "atm_c5_step3" in text and "5e" * 32 in text and code_version() in text
+
+
+def test_wind_arrow_above_the_swarm(episode):
+    record, _, data = episode
+    wind = data["/world/wind"]
+    assert sorted(wind["Arrows3D:vectors"]) == list(range(T))
+    for t in (0, 151, T - 1):
+        vector = np.array(wind["Arrows3D:vectors"][t][0])
+        np.testing.assert_allclose(vector, [*record.wind_vector[t], 0.0], atol=1e-5)
+        assert np.linalg.norm(vector) == pytest.approx(record.scalars["wind_speed"][t], abs=1e-5)  # 1 m per m/s
+        centre = record.agent_pos[t].mean(axis=0)
+        np.testing.assert_allclose(wind["Arrows3D:origins"][t][0], centre + [0, 0, 0.6], atol=1e-5)
+        assert wind["Arrows3D:labels"][t] == [f"wind {record.scalars['wind_speed'][t]:.1f} m/s"]
+
+
+def test_calm_episode_draws_no_wind_arrow(tmp_path):
+    record = synthetic_record(n_steps=10, n_agents=3)
+    record.wind_vector[:] = 0.0
+    path = tmp_path / "calm.rrd"
+    recording = open_recording(rrd_path=path)
+    log_episode(record, recording)
+    close_recording(recording)
+    data = read_rrd(path)
+    assert "/world/wind" not in data and "/world/uav_2" in data
 
 
 def test_drone_pose_and_group_colour_at_a_step(episode):
@@ -259,3 +313,61 @@ def test_spawn_streams_the_episode_to_a_listening_viewer(tmp_path):
     data = read_rrd(live)
     assert len(data["/world/uav_4"]["Transform3D:translation"]) == 20
     assert {"/world/obstacles", "/world/anchor", "/metrics/hd_error"} <= set(data)
+    assert data["/__properties/provenance"]["backend"][None] == ["particle"]  # the properties reach the viewer
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture
+def no_display(monkeypatch):
+    """A headless Linux session with no viewer listening where `--spawn` would look."""
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    monkeypatch.setattr(rerun_log.sys, "platform", "linux")
+    port = _free_port()
+    monkeypatch.setattr(rerun_log, "VIEWER_PORT", port)
+    return port
+
+
+def test_spawn_without_display_or_viewer_is_a_config_error(no_display, monkeypatch, tmp_path):
+    with pytest.raises(ConfigError, match=r"--spawn: no display .* --rrd PATH .* `rerun PATH`"):
+        check_spawn_possible()
+    monkeypatch.setattr(rr, "spawn", lambda *a, **k: pytest.fail("a viewer was spawned"))
+    with pytest.raises(ConfigError, match="no display"):
+        open_recording(rrd_path=tmp_path / "x.rrd", spawn=True)
+    assert not (tmp_path / "x.rrd").exists()
+
+
+def test_spawn_is_possible_with_a_display_or_a_listening_viewer(no_display, monkeypatch):
+    import socket
+
+    with socket.socket() as server:  # anything accepting connections on the viewer port counts
+        server.bind(("127.0.0.1", no_display))
+        server.listen()
+        check_spawn_possible()
+    monkeypatch.setenv("WAYLAND_DISPLAY", "wayland-0")
+    check_spawn_possible()
+    monkeypatch.delenv("WAYLAND_DISPLAY")
+    monkeypatch.setenv("DISPLAY", ":0")
+    check_spawn_possible()
+
+
+def test_cli_spawn_without_display_fails_before_flying(no_display, monkeypatch, capsys):
+    """One line, exit code 2, and no episode flown (the CLI checks before its first episode)."""
+    from cefc_mj.cli.eval import main
+    from cefc_mj.eval import runner
+
+    monkeypatch.setattr(runner, "make_world", lambda *a, **k: pytest.fail("an episode was started"))
+    try:
+        code = main(["--backend", "particle", "--formation", "5", "--steps", "5", "--spawn"])
+    except SystemExit as exit_:
+        code = exit_.code
+    assert code == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("cefc-eval: error: --spawn: no display") and "\n" not in err

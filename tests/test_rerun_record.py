@@ -11,6 +11,7 @@ import pytest
 from cefc_mj.errors import ConfigError
 from cefc_mj.eval.record import EpisodeRecord, airframe_parts_from_mjcf, synthetic_record
 from cefc_mj.paths import MJCF_DIR
+from cefc_mj.provenance import code_version, library_versions
 
 MINI_QUAD = Path(__file__).parent / "data" / "mini_quad.xml"
 
@@ -31,26 +32,57 @@ def test_save_load_round_trip(tmp_path):
     np.testing.assert_array_equal(loaded.airframe_parts[2].quat, record.airframe_parts[2].quat)
 
 
-def test_round_trip_without_adversary_targets_or_parts(tmp_path):
-    record = synthetic_record(n_steps=10, n_agents=3)
-    record.adversary_pos = None
-    record.targets = np.zeros((0, 2))
+def test_provenance_and_wind_round_trip(tmp_path):
+    record = synthetic_record(n_steps=20, n_agents=3)
+    record.policy, record.policy_sha256, record.deviation = "atm_c3_step3", "ab" * 32, 0.3
+    record.provenance["mkl_cbwr"] = ""
     loaded = EpisodeRecord.load(record.save(tmp_path / "ep.npz"))
-    assert loaded.adversary_pos is None and loaded.targets.shape == (0, 2) and loaded.airframe_parts == []
+    assert (loaded.policy, loaded.policy_sha256, loaded.wind, loaded.deviation) == ("atm_c3_step3", "ab" * 32, 8.0, 0.3)
+    assert loaded.provenance == record.provenance  # the code that flew it, not the code that loads it
+    np.testing.assert_array_equal(loaded.wind_vector, record.wind_vector)
+    np.testing.assert_allclose(np.linalg.norm(record.wind_vector, axis=1), record.scalars["wind_speed"])
 
 
-def test_failed_save_keeps_the_old_file(tmp_path, monkeypatch):
-    path = tmp_path / "ep.npz"
-    path.write_bytes(b"old")
+def test_provenance_is_gathered_when_the_record_is_built():
+    prov = synthetic_record(n_steps=5, n_agents=3).provenance
+    assert prov["code_version"] == code_version()
+    assert {k: prov[k] for k in ("numpy", "numba", "mujoco", "torch")} == {
+        k: library_versions()[k] for k in ("numpy", "numba", "mujoco", "torch")}
+    assert "git_commit" in prov
 
-    def boom(*args, **kwargs):
-        raise OSError("disk full")
 
-    monkeypatch.setattr(np, "savez_compressed", boom)
-    with pytest.raises(OSError, match="disk full"):
-        synthetic_record(n_steps=5, n_agents=3).save(path)
-    assert path.read_bytes() == b"old"
-    assert [p.name for p in tmp_path.iterdir()] == ["ep.npz"]
+def test_runner_fills_policy_condition_and_wind():
+    """What `run_episode(record=True)` puts in the record: the policy file and its digest, the
+    condition, and the wind at every step (Wind-8 on quadrotors, 3 steps)."""
+    import hashlib
+
+    from cefc_mj.eval.runner import EpisodeSpec, policy_name_for, run_episode
+    from cefc_mj.nn.policy_io import resolve_policy_path
+
+    record = run_episode(EpisodeSpec(formation=5, seed=0, steps=3, wind=8.0, deviation=0.3), record=True).record
+    path = resolve_policy_path(policy_name_for("atm", 5))
+    assert (record.policy, record.policy_sha256) == (path.stem, hashlib.sha256(path.read_bytes()).hexdigest())
+    assert (record.wind, record.deviation) == (8.0, 0.3)
+    assert record.wind_vector.shape == (3, 2) and np.all(np.linalg.norm(record.wind_vector, axis=1) > 1.0)
+    np.testing.assert_allclose(np.linalg.norm(record.wind_vector, axis=1), record.scalars["wind_speed"])
+
+
+def test_file_saved_before_provenance_loads_with_defaults(tmp_path):
+    path = synthetic_record(n_steps=10, n_agents=3).save(tmp_path / "new.npz")
+    with np.load(path) as npz:
+        old = {k: npz[k] for k in npz.files if not k.startswith("provenance/") and k not in (
+            "wind_vector", "policy", "policy_sha256", "wind", "deviation")}
+    np.savez_compressed(tmp_path / "old.npz", **old)
+    loaded = EpisodeRecord.load(tmp_path / "old.npz")
+    assert loaded.provenance == {} and loaded.policy == "" and loaded.wind == 0.0
+    np.testing.assert_array_equal(loaded.wind_vector, np.zeros((10, 2)))
+
+
+def test_final_metrics_are_the_last_step_of_the_series():
+    record = synthetic_record(n_steps=40, n_agents=3)
+    assert record.final_metrics == {m: record.scalars[f"{m}_so_far"][-1] for m in "FNC"}
+    record.scalars = {}
+    assert record.final_metrics == {}
 
 
 def test_shape_mismatch_names_the_field():
@@ -61,6 +93,8 @@ def test_shape_mismatch_names_the_field():
         EpisodeRecord(**{**vars(good), "scalars": {"hd_error": np.zeros(9)}})
     with pytest.raises(ConfigError, match="backend"):
         EpisodeRecord(**{**vars(good), "backend": "gazebo"})
+    with pytest.raises(ConfigError, match="wind_vector"):
+        EpisodeRecord(**{**vars(good), "wind_vector": np.zeros((10, 3))})
 
 
 def test_airframe_parts_in_the_root_body_frame():

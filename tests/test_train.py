@@ -168,13 +168,16 @@ def test_cli_bad_input_is_one_line_and_exit_2(tmp_path, capsys):
     common = ["--out", str(tmp_path / "runs"), "--policies-dir", str(tmp_path / "pol")]
     for argv, pattern in (
         (["lowlevel", "--formation", "6", "--step", "1", "--budget", "soon"], "--budget"),
-        (["lowlevel", "--formation", "6", "--step", "1", "--safe"], "safe"),
+        (["lowlevel", "--formation", "6", "--step", "1", "--safe"], "--safe"),
         (["lowlevel", "--formation", "6", "--step", "3"], "train that stage first"),
-        (["distill", "--formations", "3"], "no policy"),
+        (["distill", "--formations", "3", "--teachers-dir", str(tmp_path)], "no policy"),
     ):
-        assert main(argv + common) == 2
+        with pytest.raises(SystemExit) as e:
+            main(argv + common)
+        assert e.value.code == 2
         err = capsys.readouterr().err.strip()
         assert err.startswith("cefc-train: error:") and pattern in err and "\n" not in err, err
+    assert list(tmp_path.iterdir()) == []  # checked before anything was written
 
 
 def test_cli_lowlevel_runs_and_reports(tmp_path, capsys):
@@ -184,7 +187,8 @@ def test_cli_lowlevel_runs_and_reports(tmp_path, capsys):
     out = capsys.readouterr().out
     assert "atm_c3_step1: 1 iterations" in out and "Table III protocol" in out
     card = json.loads((tmp_path / "pol" / "atm_c3_step1.json").read_text())
-    assert {"config", "seed", "git_commit", "train_wall_clock_s", "agent_steps", "table3"} <= set(card)
+    assert {"config", "seed", "git_commit", "versions", "command", "train_wall_clock_s", "agent_steps",
+            "table3"} <= set(card)
     assert set(card["table3"]["ours"]) == {"R_L", "F", "N", "C"}
 
 

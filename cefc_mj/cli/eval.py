@@ -2,236 +2,542 @@
 
 Examples:
   cefc-eval --wind 8 --deviation 0.5            # Table VIII episode, c = 5..8, vs calm
-  cefc-eval --protocol table8 --workers 2       # the full grid, resumable, eval/reports/table8.md
+  cefc-eval --protocol table8 --workers 2       # the full grid, resumable; reports in ./cefc-eval-reports/
   cefc-eval --backend particle --protocol table3 --json t3.json
   cefc-eval --formation 6 --rrd run.rrd         # record for Rerun (`rerun run.rrd`)
+
+Bad input ends in one line on stderr and exit code 2, before anything is flown or written.
+Protocols, outputs, the table8 cell cache and the JSON schema: docs/evaluation.md.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
+import re
 import shlex
 import sys
+import tempfile
+import time
 from pathlib import Path
 
 from cefc_mj.errors import CefcError
+from cefc_mj.sim.wind import MAX_WIND_SPEED
 
 EXIT_USAGE = 2
+EXIT_OUTPUT = 1
+EXIT_INTERRUPTED = 130
+PROG = "cefc-eval"
+
+MAX_EPISODES = 10_000
+"""Seeds per cell at most (checked before any list of episodes is built)."""
+MAX_STEPS = 100_000
+"""Decision steps per episode at most (10 000 s of flight)."""
+MAX_WORKERS = 64
+MAX_DEVIATION = 10.0
+"""Sensing deviation at most (m): beyond it every perceived position is noise (observation range is 3 m)."""
+MAX_SEED = 2**32 - 1
+"""Seeds are 32-bit unsigned: --seed + --episodes - 1 must not pass it."""
+PAPER_STEPS = 1000
+"""Length of a Table VIII episode in the paper (decision steps)."""
+
+SYSTEM_FOLDERS = frozenset({
+    "/", "/bin", "/boot", "/dev", "/etc", "/lib", "/lib32", "/lib64", "/libx32", "/opt", "/proc", "/run", "/sbin",
+    "/snap", "/srv", "/sys", "/usr", "/usr/bin", "/usr/lib", "/usr/local", "/usr/sbin", "/usr/share", "/var",
+    "/var/lib",
+})
+"""Folders in which cefc-eval never creates a missing output folder (even when run as root)."""
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with its errors on one line (no usage block), exit code 2."""
+
+    def error(self, message: str):  # noqa: D102 (argparse API)
+        usage_error(f"{message} (see {PROG} --help)")
+
+
+class _VersionAction(argparse.Action):
+    """--version, computed only when asked (it imports torch, numba and mujoco)."""
+
+    def __init__(self, option_strings, dest, **kwargs):
+        super().__init__(option_strings, dest, nargs=0, default=argparse.SUPPRESS, **kwargs)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        from cefc_mj.provenance import version_line
+
+        print(version_line(PROG))
+        parser.exit(0)
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog="cefc-eval", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
+    p = _Parser(prog=PROG, description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--version", action=_VersionAction, help="print the version, code digest and libraries, then exit")
     p.add_argument("--backend", choices=["mujoco", "particle"], default="mujoco",
                    help="physics: MuJoCo quadrotors with the PX4-like controller (default) or the particle world")
     p.add_argument("--protocol", choices=["single", "table8", "table3"], default="single",
-                   help="single: one condition (from --wind/--deviation) vs calm; table8: all 7 conditions; "
-                        "table3: the paper's MPE Table III (particle backend)")
-    p.add_argument("--wind", type=float, default=0.0, metavar="MPS", help="mean wind speed in m/s (default 0)")
-    p.add_argument("--deviation", type=float, default=0.0, metavar="M", help="sensing deviation in m (default 0)")
+                   help="single: one condition (from --wind/--deviation) vs calm; table8: the paper's 7 conditions "
+                        "(MuJoCo); table3: the paper's MPE Table III (particle backend)")
+    p.add_argument("--wind", type=float, default=None, metavar="MPS",
+                   help=f"mean wind speed in m/s, 0..{MAX_WIND_SPEED:g} (single protocol, MuJoCo; default 0)")
+    p.add_argument("--deviation", type=float, default=None, metavar="M",
+                   help=f"sensing deviation in m, 0..{MAX_DEVIATION:g} (single protocol; default 0)")
     p.add_argument("--formation", type=int, nargs="+", metavar="C",
-                   help="formation sizes c (default 5 6 7 8; table3: 6 7 8)")
-    p.add_argument("--episodes", type=int, metavar="K", help="seeds per cell (default 1; table8 5; table3 50)")
-    p.add_argument("--steps", type=int, metavar="T", help="decision steps per episode (default 1000; table3 100)")
-    p.add_argument("--seed", type=int, default=0, metavar="S", help="first seed; episode k uses S+k (default 0)")
-    p.add_argument("--policy", default="atm", metavar="NAME|PATH",
+                   help="formation sizes c in 3..8 (default 5 6 7 8; table3: 6 7 8)")
+    p.add_argument("--episodes", type=int, metavar="K",
+                   help=f"seeds per cell, 1..{MAX_EPISODES} (default 1; table8 5; table3 50)")
+    p.add_argument("--steps", type=int, metavar="T",
+                   help=f"decision steps per episode, 1..{MAX_STEPS} (default 1000; table3 100); F and N are "
+                        "comparable to the paper only at the default")
+    p.add_argument("--seed", type=int, default=0, metavar="S", help="first seed (>= 0); episode k uses S+k (default 0)")
+    p.add_argument("--policy", default=None, metavar="NAME|PATH",
                    help="atm (AT-M Step 3 of each c, default), safe, robust (AT-M-Robust, c = 5..8), quad "
-                        "(AT-M-Quad, c = 5..8), student, a name in policies/, or a .pt path")
-    p.add_argument("--sitl-m", action="store_true", help="run every UAV's policy in its own process (SITL-M)")
-    p.add_argument("--rrd", type=Path, metavar="PATH", help="record the episodes to a Rerun .rrd file")
-    p.add_argument("--spawn", action="store_true", help="stream the episodes to a live Rerun viewer")
-    p.add_argument("--png", type=Path, metavar="DIR", help="write a top-down PNG of each episode into DIR")
-    p.add_argument("--json", type=Path, metavar="PATH", help="write the results as JSON (schema in README)")
-    p.add_argument("--workers", type=int, default=1, metavar="W", help="processes for table8 (default 1)")
+                        "(AT-M-Quad, c = 5..8), student, a name in policies/, or a .pt path; "
+                        "table3 without it evaluates every method")
+    p.add_argument("--sitl-m", action="store_true",
+                   help="SITL-M, every UAV's policy in its own process: not yet available (refused)")
+    p.add_argument("--rrd", type=Path, metavar="PATH", help="record the episodes to a Rerun .rrd file (single)")
+    p.add_argument("--spawn", action="store_true", help="stream the episodes to a live Rerun viewer (single)")
+    p.add_argument("--png", type=Path, metavar="DIR", help="write a top-down PNG of each episode into DIR (single)")
+    p.add_argument("--json", type=Path, metavar="PATH", help="also write the results as JSON (docs/evaluation.md)")
+    p.add_argument("--workers", type=int, default=1, metavar="W",
+                   help=f"processes flying episodes, 1..{MAX_WORKERS} (single without recording, table8; default 1)")
     p.add_argument("--report-dir", type=Path, default=None, metavar="DIR",
-                   help="where table8 writes table8.md/.csv/.png and its resumable cell file (default eval/reports)")
+                   help="table8 only: where table8.md/.csv/.json/.png and the resumable cell file go (default a new "
+                        "folder ./cefc-eval-reports/table8-<policy>-<backend>-<time>/); give the folder of an "
+                        "interrupted run to resume it")
+    p.add_argument("--fresh", action="store_true",
+                   help="table8 only: fly every episode anew; an existing cell file is moved aside, not reused")
     return p
 
 
-def usage_error(message: str) -> None:
-    print(f"cefc-eval: error: {message}", file=sys.stderr)
+def usage_error(message: str):
+    print(f"{PROG}: error: {message}", file=sys.stderr)
     raise SystemExit(EXIT_USAGE)
 
 
-def _check_writable(flag: str, path: Path | None, is_dir: bool = False) -> None:
-    if path is None:
-        return
-    target = path if is_dir else path.parent
-    probe = target
-    while not probe.exists():
-        probe = probe.parent
-    if not probe.is_dir() or not os.access(probe, os.W_OK):
-        usage_error(f"{flag} {path}: {probe} is not a writable directory")
+# ---------------------------------------------------------------------------- output paths
+def _can_write_in(folder: Path) -> bool:
+    """Whether a file can be created in `folder`: permissions, then a real probe (root passes every
+    permission check, yet cannot write into /proc or a read-only mount)."""
+    if not os.access(folder, os.W_OK | os.X_OK):
+        return False
+    try:
+        fd, probe = tempfile.mkstemp(dir=folder, prefix=".cefc-eval-probe-")
+    except OSError:
+        return False
+    os.close(fd)
+    os.unlink(probe)
+    return True
+
+
+def check_output(flag: str, path: Path, is_dir: bool = False) -> None:
+    """Refuse (one line, exit 2) an output path that cannot be written, before any work.
+
+    Missing folders are created later, right before writing, and only below an existing folder that
+    is writable and is not `/` or another system folder (SYSTEM_FOLDERS)."""
+    path = Path(path)
     if not is_dir and path.is_dir():
-        usage_error(f"{flag} {path}: is a directory")
+        usage_error(f"{flag} {path}: is a folder; give a file name")
+    if not is_dir and path.exists() and not os.access(path, os.W_OK):
+        usage_error(f"{flag} {path}: the file exists and is not writable")
+    if is_dir and path.exists() and not path.is_dir():
+        usage_error(f"{flag} {path}: is a file, not a folder")
+    folder = (path if is_dir else path.parent).absolute()
+    ancestor, missing = folder, []
+    while not ancestor.exists():
+        missing.append(ancestor)
+        ancestor = ancestor.parent
+    if not ancestor.is_dir():
+        usage_error(f"{flag} {path}: {ancestor} is a file, not a folder")
+    if missing and (str(ancestor) in SYSTEM_FOLDERS or ancestor == Path(ancestor.anchor)):
+        usage_error(f"{flag} {path}: will not create {missing[-1]} inside the system folder {ancestor}")
+    if not _can_write_in(ancestor):
+        usage_error(f"{flag} {path}: {ancestor} is not writable")
 
 
+def _policy_label(choice: str) -> str:
+    """A file-name-safe label of a --policy value (a path becomes its stem)."""
+    label = Path(choice).stem if choice.endswith(".pt") or os.sep in choice else choice
+    return re.sub(r"[^A-Za-z0-9_.-]+", "_", label) or "policy"
+
+
+def default_report_dir(policy: str, backend: str) -> Path:
+    """A fresh folder ./cefc-eval-reports/table8-<policy>-<backend>-<YYYYmmdd-HHMMSS>[-n]/."""
+    stamp = time.strftime("%Y%m%d-%H%M%S")
+    base = Path.cwd() / "cefc-eval-reports" / f"table8-{_policy_label(policy)}-{backend}-{stamp}"
+    path, n = base, 1
+    while path.exists():
+        n += 1
+        path = base.with_name(f"{base.name}-{n}")
+    return path
+
+
+def is_shipped_reports(path: Path) -> bool:
+    """Whether `path` is the shipped eval/reports folder or inside it."""
+    from cefc_mj import paths
+
+    shipped = (paths.EVAL_DIR / "reports").resolve()
+    resolved = Path(path).resolve()
+    return resolved == shipped or shipped in resolved.parents
+
+
+# ---------------------------------------------------------------------------- validation
 def validate(args: argparse.Namespace) -> None:
-    """Every flag checked before any work starts; one clear line each."""
-    for flag, value in (("--wind", args.wind), ("--deviation", args.deviation)):
-        if not math.isfinite(value) or value < 0:
-            usage_error(f"{flag} {value}: must be a finite number >= 0")
+    """Every flag checked before any work starts; one clear line each. Fills in the defaults."""
+    proto = args.protocol
+    if args.sitl_m:
+        usage_error("--sitl-m: SITL-M (one process per UAV) is not implemented yet")
+    for flag, value, top in (("--wind", args.wind, MAX_WIND_SPEED), ("--deviation", args.deviation, MAX_DEVIATION)):
+        if value is not None and not (math.isfinite(value) and 0 <= value <= top):
+            unit = "m/s" if flag == "--wind" else "m"
+            why = " (the wind model's maximum speed)" if flag == "--wind" else ""
+            usage_error(f"{flag} {value:g}: must be a number in 0..{top:g} {unit}{why}")
     if args.formation is not None:
         for c in args.formation:
             if not 3 <= c <= 8:
                 usage_error(f"--formation {c}: formations exist for c = 3..8")
-    if args.episodes is not None and args.episodes < 1:
-        usage_error(f"--episodes {args.episodes}: must be >= 1")
-    if args.steps is not None and args.steps < 1:
-        usage_error(f"--steps {args.steps}: must be >= 1")
-    if args.workers < 1:
-        usage_error(f"--workers {args.workers}: must be >= 1")
-    if args.sitl_m:
-        usage_error("--sitl-m: SITL-M (one process per UAV) is not implemented yet in this testbed")
+        if len(set(args.formation)) != len(args.formation):
+            usage_error(f"--formation {' '.join(map(str, args.formation))}: a formation is listed twice")
+    if args.episodes is not None and not 1 <= args.episodes <= MAX_EPISODES:
+        usage_error(f"--episodes {args.episodes}: must be in 1..{MAX_EPISODES}")
+    if args.steps is not None and not 1 <= args.steps <= MAX_STEPS:
+        usage_error(f"--steps {args.steps}: must be in 1..{MAX_STEPS}")
+    if args.seed < 0:
+        usage_error(f"--seed {args.seed}: must be >= 0")
+    if not 1 <= args.workers <= MAX_WORKERS:
+        usage_error(f"--workers {args.workers}: must be in 1..{MAX_WORKERS}")
+    episodes = args.episodes or {"single": 1, "table8": 5, "table3": 50}[proto]
+    if args.seed + episodes - 1 > MAX_SEED:
+        usage_error(f"--seed {args.seed}: seeds up to {args.seed + episodes - 1} pass the largest seed {MAX_SEED}")
+
     if args.backend == "particle" and args.wind:
         usage_error("--wind: the particle backend has no wind model; use --backend mujoco")
-    if args.protocol == "table3" and args.backend != "particle":
-        usage_error("--protocol table3 is the paper's MPE protocol: add --backend particle")
-    _check_writable("--json", args.json)
-    _check_writable("--rrd", args.rrd)
-    _check_writable("--png", args.png, is_dir=True)
-    _check_writable("--report-dir", args.report_dir, is_dir=True)
+    recording = [flag for flag, on in (("--rrd", args.rrd), ("--png", args.png), ("--spawn", args.spawn)) if on]
+    if proto != "table8" and args.report_dir is not None:
+        usage_error(f"--report-dir: only --protocol table8 writes a report folder ({proto} writes --json only)")
+    if proto != "table8" and args.fresh:
+        usage_error("--fresh: only --protocol table8 keeps a cell cache")
+    if proto == "table8":
+        if args.wind is not None or args.deviation is not None:
+            flag = "--wind" if args.wind is not None else "--deviation"
+            usage_error(f"{flag}: --protocol table8 flies its own 7 conditions; "
+                        "use --protocol single for one condition")
+        if args.backend != "mujoco":
+            usage_error("--protocol table8 needs --backend mujoco (its Wind conditions need the wind model)")
+    if proto == "table3":
+        if args.backend != "particle":
+            usage_error("--protocol table3 is the paper's MPE protocol: add --backend particle")
+        if args.deviation is not None:
+            usage_error("--deviation: Table III is flown with exact sensing; use --protocol single --backend particle")
+        if args.workers > 1:
+            usage_error("--workers: table3 flies all its episodes as one batch in one process")
+    if proto != "single" and recording:
+        usage_error(f"{recording[0]}: recording works with --protocol single only")
+    if proto == "single" and args.workers > 1 and recording:
+        usage_error(f"--workers {args.workers}: {recording[0]} records in this process; use --workers 1")
+    if args.spawn:
+        from cefc_mj.viz.rerun_log import check_spawn_possible
+
+        try:
+            check_spawn_possible()
+        except CefcError as e:
+            usage_error(str(e))
+
+    # defaults, now that the flags are known to be consistent
+    args.episodes = episodes
+    args.steps = args.steps or {"table3": 100}.get(proto, PAPER_STEPS)
+    args.wind = args.wind or 0.0
+    args.deviation = args.deviation or 0.0
+    args.formation = args.formation or ([6, 7, 8] if proto == "table3" else [5, 6, 7, 8])
+    if proto == "table8" and args.report_dir is None:
+        args.report_dir = default_report_dir(args.policy or "atm", args.backend)
+
+    if args.json is not None:
+        check_output("--json", args.json)
+    if args.rrd is not None:
+        check_output("--rrd", args.rrd)
+    if args.png is not None:
+        check_output("--png", args.png, is_dir=True)
+    if args.report_dir is not None:
+        check_output("--report-dir", args.report_dir, is_dir=True)
+
+
+def load_policies(args: argparse.Namespace) -> dict:
+    """Resolve, hash and load the policy of every c (a missing or misfit checkpoint fails here, before
+    anything flies); returns the provenance dict."""
+    from cefc_mj.eval.runner import provenance
+    from cefc_mj.eval.table8 import cached_policy
+
+    if args.protocol == "table3":
+        from cefc_mj.eval.table3 import POLICY_CHOICES, policy_file_for
+
+        if args.policy is None:  # every method: missing files are listed, not fatal (run_table3)
+            return provenance("atm", [])
+        for c in args.formation:
+            name = policy_file_for(POLICY_CHOICES[args.policy], c) if args.policy in POLICY_CHOICES else args.policy
+            cached_policy(name, c)
+        return provenance("atm", [])  # table3 records each row's file and sha256 itself
+    args.policy = args.policy or "atm"
+    prov = provenance(args.policy, args.formation)
+    for c in args.formation:
+        cached_policy(args.policy, c)
+    return prov
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     validate(args)
     os.environ.setdefault("MUJOCO_GL", "egl")
+    args.command = f"{PROG} " + " ".join(shlex.quote(a) for a in (argv if argv is not None else sys.argv[1:]))
+    try:
+        args.provenance = load_policies(args)
+    except CefcError as e:
+        usage_error(str(e))
     try:
         if args.protocol == "table3":
             return _table3(args)
         if args.protocol == "table8":
-            return _table8(args, argv)
+            return _table8(args)
         return _single(args)
     except CefcError as e:
-        usage_error(str(e))
+        print(f"{PROG}: error: {e}", file=sys.stderr)
+        return EXIT_USAGE
     except KeyboardInterrupt:
-        print("\ncefc-eval: interrupted; finished episodes were kept", file=sys.stderr)
-        return 130
-    return 0
+        print(f"\n{PROG}: interrupted; finished episodes were kept", file=sys.stderr)
+        return EXIT_INTERRUPTED
 
 
-# ---------------------------------------------------------------------------- protocols
-def _single(args: argparse.Namespace) -> int:
-    from tqdm import tqdm
-
-    from cefc_mj.eval.runner import EpisodeSpec, condition_name, load_policy_for, run_episode, summarize
-    from cefc_mj.eval.table8 import paper_table8
+def _write_outputs(writes: list[tuple[Path, object]]) -> list[Path]:
+    """Write (path, bytes|str|callable(path)) pairs, creating their folders now; a failure (disk
+    full, a folder removed meanwhile) is one line and exit code 1, after everything else was tried."""
     from cefc_mj.fileio import write_atomic
 
-    formations = args.formation or [5, 6, 7, 8]
-    episodes = args.episodes or 1
-    steps = args.steps or 1000
+    written, failed = [], []
+    for path, data in writes:
+        try:
+            if callable(data):
+                Path(path).parent.mkdir(parents=True, exist_ok=True)
+                data(path)
+            else:
+                write_atomic(path, data)
+            written.append(Path(path))
+        except OSError as e:
+            failed.append(f"{path}: {e.strerror or e}")
+    for path in written:
+        print(f"wrote {path}")
+    if failed:
+        print(f"{PROG}: error: could not write " + "; ".join(failed), file=sys.stderr)
+        raise SystemExit(EXIT_OUTPUT)
+    return written
+
+
+# ---------------------------------------------------------------------------- single
+def _single(args: argparse.Namespace) -> int:
+    import json
+
+    from tqdm import tqdm
+
+    from cefc_mj.eval.runner import EpisodeSpec, condition_name, retention, summarize
+    from cefc_mj.eval.table8 import fly_episodes, paper_cell
+
+    formations, episodes, steps = args.formation, args.episodes, args.steps
     condition = condition_name(args.wind, args.deviation)
     conditions = [(args.wind, args.deviation)] + ([(0.0, 0.0)] if condition != "SITL-S" else [])
-    policies = {c: load_policy_for(args.policy, c) for c in formations}  # fail before flying
     seeds = list(range(args.seed, args.seed + episodes))
-    print(f"cefc-eval: {args.backend}, condition {condition}, policy {args.policy}, c = {formations}, "
-          f"seeds {seeds}, {steps} steps per episode")
+    specs = [EpisodeSpec(formation=c, seed=seed, backend=args.backend, wind=wind, deviation=dev, steps=steps,
+                         policy=args.policy)
+             for c in formations for wind, dev in conditions for seed in seeds]
+    recording = bool(args.rrd or args.spawn or args.png)
+    vs = " vs calm air (SITL-S)" if condition != "SITL-S" else ""
+    print(f"{PROG}: {condition}{vs}; policy {args.policy}; {args.backend}; c = {', '.join(map(str, formations))}; "
+          f"seeds {_seed_range(seeds)} ({episodes} per cell); {steps} steps per episode; {len(specs)} episodes"
+          + (f" on {args.workers} workers" if args.workers > 1 else ""))
+    finished: dict[int, dict] = {}
     recorded: list[Path] = []
-    results: dict[tuple[int, str], list] = {}
-    total = len(formations) * len(conditions) * episodes
+    interrupted = False
     try:
-        with tqdm(total=total, desc="episodes", unit="ep", file=sys.stderr) as bar:
-            for c in formations:
-                for wind, dev in conditions:
-                    for seed in seeds:
-                        spec = EpisodeSpec(formation=c, seed=seed, backend=args.backend, wind=wind, deviation=dev,
-                                           steps=steps, policy=args.policy)
-                        want_record = (args.rrd or args.spawn or args.png) and (wind, dev) == conditions[0]
-                        result = run_episode(spec, policies[c], record=bool(want_record))
-                        if result.diverged:
-                            tqdm.write(f"c={c} seed={seed} {spec.condition}: simulation diverged at step "
-                                       f"{result.steps} ({result.diverged}); episode stopped", file=sys.stderr)
-                        if result.record is not None:
-                            recorded += _emit_record(result.record, args, many=len(formations) * episodes > 1)
-                        results.setdefault((c, spec.condition), []).append(result.to_dict())
-                        bar.update(1)
-    finally:
-        summary = {
-            "protocol": "single", "backend": args.backend, "policy": args.policy, "condition": condition,
-            "wind": args.wind, "deviation": args.deviation, "steps": steps, "seeds": seeds,
-            "rows": {
-                str(c): {
-                    cond: {**summarize(rows), "episodes_detail": rows}
-                    for (cc, cond), rows in results.items() if cc == c
-                }
-                for c in formations
-            },
-        }
-        if args.json is not None:
-            write_atomic(args.json, json.dumps(summary, indent=2))
-    print(_single_table(summary, paper_table8()))
-    for path in ([args.json] if args.json is not None else []) + recorded:
+        with tqdm(total=len(specs), desc="episodes", unit="ep", file=sys.stderr) as bar:
+            for i, result in fly_episodes(specs, workers=args.workers,
+                                                  record=(lambda s: s.condition == condition) if recording else None):
+                spec = specs[i]
+                if result.diverged:
+                    tqdm.write(f"c={spec.formation} seed={spec.seed} {spec.condition}: simulation diverged at step "
+                               f"{result.steps} ({result.diverged}); episode stopped", file=sys.stderr)
+                if result.record is not None and spec.condition == condition:
+                    recorded += _emit_record(result.record, args, many=len(formations) * episodes > 1)
+                finished[i] = result.to_dict()
+                bar.update(1)
+    except KeyboardInterrupt:
+        interrupted = True
+        print(f"\n{PROG}: interrupted after {len(finished)} of {len(specs)} episodes; the table below holds "
+              "the finished ones", file=sys.stderr)
+    rows_by_cell: dict[str, dict[str, list]] = {str(c): {} for c in formations}
+    for i in sorted(finished):
+        row = finished[i]
+        rows_by_cell[str(row["formation"])].setdefault(row["condition"], []).append(row)
+    table: dict[str, dict] = {}
+    for c, conds in rows_by_cell.items():
+        table[c] = {cond: {**summarize(rows), "episodes_detail": rows} for cond, rows in conds.items()}
+        for cond, cell in table[c].items():
+            cell["retention"], cell["retention_note"] = retention(cell, table[c].get("SITL-S"))
+            cell["paper"] = paper_cell(c, cond)
+    summary = {
+        "schema": "cefc-eval/single", "schema_version": 2, "protocol": "single", "command": args.command,
+        "complete": not interrupted, "backend": args.backend, "policy": args.policy, "condition": condition,
+        "wind": args.wind, "deviation": args.deviation, "steps": steps, "seeds": seeds,
+        "comparable_to_paper": steps == PAPER_STEPS, "provenance": args.provenance, "rows": table,
+    }
+    print(single_table(summary))
+    writes = [(args.json, json.dumps(summary, indent=2) + "\n")] if args.json is not None else []
+    _write_outputs(writes)
+    for path in recorded:
         print(f"wrote {path}" + (f"  (open with: rerun {path})" if path.suffix == ".rrd" else ""))
-    return 0
+    return EXIT_INTERRUPTED if interrupted else 0
 
 
-def _single_table(summary: dict, paper: dict) -> str:
-    cond = summary["condition"]
-    names = ["SITL-S"] + [n for n in cond.split("+") if n != "SITL-S"]
-    head = f"{'c':>2} {'F':>7} {'N':>7} {'C%':>6} {'retention':>9}  " + "  ".join(f"paper {n:<14}" for n in names)
-    lines = [f"\nTable VIII metrics, condition {cond} (F, N in steps of {summary['steps']}; C in % of agent-steps)", head]
-    for c, rows in summary["rows"].items():
-        cell, calm = rows.get(cond), rows.get("SITL-S")
-        if not cell:
+def _seed_range(seeds: list[int]) -> str:
+    return str(seeds[0]) if len(seeds) == 1 else f"{seeds[0]}..{seeds[-1]}"
+
+
+def _render(rows: list[list[str]], right: set[int]) -> list[str]:
+    """Rows of cells as aligned text columns (columns in `right` right-aligned)."""
+    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
+    return ["  ".join(cell.rjust(w) if i in right else cell.ljust(w)
+                      for i, (cell, w) in enumerate(zip(row, widths))).rstrip()
+            for row in rows]
+
+
+def single_table(summary: dict) -> str:
+    """The single protocol's table: per c, our condition and calm rows, then the paper's rows, every
+    column labelled; mean ± std over seeds; '-' with its reason where a value is undefined."""
+    from cefc_mj.eval.runner import format_mean_std
+    from cefc_mj.eval.table8 import paper_cell
+
+    cond, steps = summary["condition"], summary["steps"]
+    k = len(summary["seeds"])
+    components = [n for n in cond.split("+") if n != "SITL-S"]
+    lines = [
+        "",
+        f"Table VIII metrics, condition {cond}" + (" vs calm air (SITL-S)" if components else ""),
+        f"  F = decision steps in formation, N = decision steps with the swarm centre within 1 m of the anchor "
+        f"(each out of {steps}),",
+        "  C = % of agent-steps in collision, retention = (F+N) / (F+N of the calm row above it: same c, same seeds).",
+        f"  ours: {summary['backend']}, policy {summary['policy']}, "
+        + (f"mean ± sample std over {k} seeds" if k > 1 else "1 seed (no spread; --episodes K gives mean ± std)")
+        + "; paper: its Table VIII (Gazebo + PX4 SITL, 1000 steps).",
+    ]
+    if steps != PAPER_STEPS:
+        lines.append(f"  NOTE: F, N over {steps} steps; the paper's are over {PAPER_STEPS}: not comparable.")
+    header = ["c", "source", "condition", "F", "N", "F+N", "C (%)", "retention"]
+    rows = [header]
+    notes: list[str] = []
+
+    def add(c, source, name, cell, ret, note):
+        if ret is None and note:
+            notes.append(f"c = {c} {source} {name}: retention - ({note})")
+        rows.append([c, source, name, format_mean_std(cell.get("F"), cell.get("F_std")),
+                     format_mean_std(cell.get("N"), cell.get("N_std")),
+                     format_mean_std(cell.get("FN", _fn(cell)), cell.get("FN_std")),
+                     format_mean_std(cell.get("C"), cell.get("C_std"), ".2f"),
+                     "-" if ret is None else f"{ret:.1%}"])
+
+    for c, cells in summary["rows"].items():
+        if not cells:
+            rows.append([c, "ours", cond, "-", "-", "-", "-", "-"])
+            notes.append(f"c = {c}: no finished episode")
             continue
-        ret = (cell["F"] + cell["N"]) / (calm["F"] + calm["N"]) if calm and calm["F"] + calm["N"] > 0 else float("nan")
-        ref = []
-        for n in names:
-            p = paper.get(c, {}).get(n)
-            ref.append(f"{p['F']:>5.0f} {p['N']:>5.0f} {p['C']:>4.2f}" if p else f"{'-':>16}")
-        lines.append(f"{c:>2} {cell['F']:>7.1f} {cell['N']:>7.1f} {cell['C']:>6.2f} {ret:>9.1%}  " + "  ".join(
-            f"{r:<20}" for r in ref))
+        calm = cells.get("SITL-S")
+        if components and cond in cells:
+            cell = cells[cond]
+            diverged = f" ({cell['diverged']} diverged)" if cell["diverged"] else ""
+            add(c, "ours", cond + diverged, cell, cell["retention"], cell["retention_note"])
+        if calm:
+            ret, note = cells["SITL-S"]["retention"], cells["SITL-S"]["retention_note"]
+            add(c, "ours", "SITL-S" + (" (calm reference)" if components else ""), calm, ret, note)
+        names = ["SITL-S"] + components
+        found = False
+        for name in names:
+            p = paper_cell(c, name)
+            if p is not None:
+                found = True
+                add(c, "paper", name, p, p["retention"], None)
+        if not found:
+            notes.append(f"c = {c}: the paper has no Table VIII row for this c")
+    if len(components) > 1:
+        notes.append(f"the paper has no combined {cond} condition: its {' and '.join(components)} rows are shown")
+    lines += _render(rows, right={0, 3, 4, 5, 6, 7})
+    lines += [f"  {n}" for n in dict.fromkeys(notes)]
     return "\n".join(lines)
 
 
-def _table8(args: argparse.Namespace, argv: list[str] | None) -> int:
+def _fn(cell: dict) -> float | None:
+    return None if cell.get("F") is None else cell["F"] + cell["N"]
+
+
+# ---------------------------------------------------------------------------- table8
+def _table8(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from cefc_mj import paths
-    from cefc_mj.eval.runner import load_policy_for
-    from cefc_mj.eval.table8 import aggregate, report_csv, report_markdown, report_plot, run_grid, table8_specs
-    from cefc_mj.fileio import write_atomic
+    from cefc_mj.eval.table8 import (
+        aggregate, load_cells, plan_cells, report_csv, report_json, report_markdown, report_plot, run_grid,
+        table8_specs,
+    )
 
-    formations = args.formation or [5, 6, 7, 8]
-    episodes = args.episodes or 5
-    steps = args.steps or 1000
-    for c in formations:
-        load_policy_for(args.policy, c)  # a missing or misfit checkpoint fails before the pool starts
-    out = args.report_dir or (paths.EVAL_DIR / "reports")
-    specs = table8_specs(formations, episodes, args.seed, steps, args.backend, args.policy)
+    prov = args.provenance
+    out: Path = args.report_dir
+    specs = table8_specs(args.formation, args.episodes, args.seed, args.steps, args.backend, args.policy)
+    cells = plan_cells(specs, {c: prov["policies"][str(c)]["sha256"] for c in args.formation}, prov["code_version"])
     cell_file = out / f"table8_cells_{args.backend}.jsonl"
-    print(f"cefc-eval table8: {len(specs)} episodes ({len(formations)} c x 7 conditions x {episodes} seeds), "
-          f"{args.workers} worker(s); finished episodes are kept in {cell_file}")
-    with tqdm(total=len(specs), desc="episodes", unit="ep", file=sys.stderr) as bar:
-        rows = run_grid(specs, cell_file, workers=args.workers, progress=bar)
+    known = {} if args.fresh else load_cells(cell_file)
+    reused = sum(cell.key in known for cell in cells)
+    print(f"{PROG} table8: {len(specs)} episodes ({len(args.formation)} c x 7 conditions x {args.episodes} seeds, "
+          f"{args.steps} steps), policy {args.policy}, {args.workers} worker(s)")
+    print(f"reports go to {out}" + ("  (the shipped reports folder, as --report-dir asks)"
+                                    if is_shipped_reports(out) else ""))
+    if args.fresh and cell_file.exists():
+        print(f"--fresh: {cell_file} is moved aside; every episode is flown anew")
+    else:
+        stale = len(known) - reused
+        print(f"{reused} of {len(cells)} cells reused from {cell_file}"
+              + (f" ({stale} rows there are for other code, policy files or conditions and are not used)"
+                 if stale > 0 else ""))
+    resume = args.command if "--report-dir" in args.command else f"{args.command} --report-dir {shlex.quote(str(out))}"
+    try:
+        with tqdm(total=len(cells), desc="episodes", unit="ep", file=sys.stderr) as bar:
+            rows = run_grid(cells, cell_file, workers=args.workers, progress=bar, fresh=args.fresh)
+    except KeyboardInterrupt:
+        print(f"\n{PROG}: interrupted; finished episodes are kept in {cell_file}; resume with:\n  {resume}",
+              file=sys.stderr)
+        return EXIT_INTERRUPTED
     table = aggregate(rows)
-    command = "cefc-eval " + " ".join(shlex.quote(a) for a in (argv if argv is not None else sys.argv[1:]))
-    meta = {"command": command, "backend": args.backend, "policy": args.policy, "episodes": episodes,
-            "seed": args.seed, "steps": steps}
-    write_atomic(out / "table8.md", report_markdown(table, meta))
-    write_atomic(out / "table8.csv", report_csv(table))
-    report_plot(table, out / "table8.png")
+    meta = {"command": args.command, "backend": args.backend, "policy": args.policy, "episodes": args.episodes,
+            "seed": args.seed, "steps": args.steps, "report_dir": str(out), "cell_file": str(cell_file),
+            "cells_reused": reused, "cells_total": len(cells), "provenance": prov}
+    markdown = report_markdown(table, meta)
+    data = report_json(table, meta)
+    print(markdown)
+    writes = [(out / "table8.md", markdown), (out / "table8.csv", report_csv(table)), (out / "table8.json", data),
+              (out / "table8.png", lambda path: report_plot(table, path, meta))]
     if args.json is not None:
-        write_atomic(args.json, json.dumps({"protocol": "table8", **meta, "rows": table}, indent=2))
-    print(report_markdown(table, meta))
-    print(f"wrote {out / 'table8.md'}, {out / 'table8.csv'}, {out / 'table8.png'}")
+        writes.append((args.json, data))
+    _write_outputs(writes)
     return 0
 
 
+# ---------------------------------------------------------------------------- table3
 def _table3(args: argparse.Namespace) -> int:
+    import json
+
     from cefc_mj.eval.table3 import format_table3, run_table3
 
-    result = run_table3(
-        formations=tuple(args.formation or (6, 7, 8)), episodes=args.episodes or 50, seed=args.seed,
-        json_path=args.json,
-    )
+    print(f"{PROG} table3: particle, c = {', '.join(map(str, args.formation))}, {args.episodes} episodes x "
+          f"{args.steps} steps, seed {args.seed}, policy {args.policy or 'every Table III method'}")
+    result = run_table3(formations=tuple(args.formation), episodes=args.episodes, seed=args.seed, steps=args.steps,
+                        policy=args.policy, provenance={k: v for k, v in args.provenance.items() if k != "policies"})
+    result["protocol"]["command"] = args.command
     print(format_table3(result))
+    if args.json is not None:
+        _write_outputs([(args.json, json.dumps(result, indent=2) + "\n")])
     return 0
 
 
@@ -245,8 +551,10 @@ def _emit_record(record, args: argparse.Namespace, many: bool) -> list[Path]:
         from cefc_mj.viz.rerun_log import close_recording, log_episode, open_recording
 
         rrd = args.rrd
-        if rrd is not None and many:
-            rrd = rrd.with_name(f"{rrd.stem}_{tag}{rrd.suffix or '.rrd'}")
+        if rrd is not None:
+            if many:
+                rrd = rrd.with_name(f"{rrd.stem}_{tag}{rrd.suffix or '.rrd'}")
+            rrd.parent.mkdir(parents=True, exist_ok=True)  # checked before the run; created when first written
         recording = open_recording(rrd_path=rrd, spawn=args.spawn, recording_id=f"{record.condition}_{tag}")
         try:
             log_episode(record, recording)

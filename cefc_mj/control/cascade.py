@@ -42,7 +42,6 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-import numba
 import numpy as np
 from llvmlite import ir
 from numba.core import types
@@ -50,6 +49,7 @@ from numba.extending import intrinsic
 
 from cefc_mj.control.airframe import Airframe, px4_mixer
 from cefc_mj.control.params import PARAM_NAMES
+from cefc_mj.jit import njit
 
 # ----------------------------------------------------------------------------- layouts
 # parameter positions (numba folds module-level ints into constants)
@@ -103,7 +103,7 @@ SP_AX, SP_AY, SP_Z, SP_VMAX = range(4)
 
 
 # ----------------------------------------------------------------------------- math helpers
-@numba.njit(cache=True, inline="always")
+@njit(inline="always")
 def _qmul(a0, a1, a2, a3, b0, b1, b2, b3):
     return (a0 * b0 - a1 * b1 - a2 * b2 - a3 * b3,
             a0 * b1 + a1 * b0 + a2 * b3 - a3 * b2,
@@ -111,12 +111,12 @@ def _qmul(a0, a1, a2, a3, b0, b1, b2, b3):
             a0 * b3 + a1 * b2 - a2 * b1 + a3 * b0)
 
 
-@numba.njit(cache=True, inline="always")
+@njit(inline="always")
 def _dcm_z(w, x, y, z):
     return 2.0 * (x * z + w * y), 2.0 * (y * z - w * x), w * w - x * x - y * y + z * z
 
 
-@numba.njit(cache=True, inline="always")
+@njit(inline="always")
 def _quat_between(ux, uy, uz, vx, vy, vz):
     """Shortest rotation taking unit vector u to unit vector v (PX4 matrix::Quaternion(src, dst))."""
     cx = uy * vz - uz * vy
@@ -138,7 +138,7 @@ def _quat_between(ux, uy, uz, vx, vy, vz):
     return w / n, cx / n, cy / n, cz / n
 
 
-@numba.njit(cache=True, inline="always")
+@njit(inline="always")
 def _dcm_to_quat(r00, r01, r02, r10, r11, r12, r20, r21, r22):
     """Rotation matrix -> unit quaternion [w, x, y, z] with w >= 0 (Shepperd's method)."""
     tr = r00 + r11 + r22
@@ -159,7 +159,7 @@ def _dcm_to_quat(r00, r01, r02, r10, r11, r12, r20, r21, r22):
     return w, x, y, z
 
 
-@numba.njit(cache=True, inline="always")
+@njit(inline="always")
 def _lowpass_alpha(cutoff_hz, dt):
     """PX4 AlphaFilter gain for a cutoff frequency; 1 (no filtering) when the cutoff is 0."""
     if cutoff_hz <= 0.0:
@@ -168,7 +168,7 @@ def _lowpass_alpha(cutoff_hz, dt):
 
 
 # ----------------------------------------------------------------------------- loops
-@numba.njit(cache=True, inline="always")
+@njit(inline="always")
 def _position_loop(d, qpos, qvel, s, sp, prm, k):
     """Offboard interface + PositionControl for drone d: writes the attitude and thrust setpoints."""
     dt = k[K_DT] * k[K_POS_DIV]
@@ -291,7 +291,7 @@ def _position_loop(d, qpos, qvel, s, sp, prm, k):
     s[d, S_THRUST] = thrust
 
 
-@numba.njit(cache=True, inline="always")
+@njit(inline="always")
 def _attitude_control(q0, q1, q2, q3, d0, d1, d2, d3, prm):
     """PX4 AttitudeControl::update: reduced attitude first, yaw weighted; returns the rate setpoint."""
     ezx, ezy, ezz = _dcm_z(q0, q1, q2, q3)
@@ -318,7 +318,7 @@ def _attitude_control(q0, q1, q2, q3, d0, d1, d2, d3, prm):
     return rx, ry, rz
 
 
-@numba.njit(cache=True, inline="always")
+@njit(inline="always")
 def _desaturation_gain(vec, u, umin, umax):
     kmin = 0.0
     kmax = 0.0
@@ -336,7 +336,7 @@ def _desaturation_gain(vec, u, umin, umax):
     return kmin + kmax
 
 
-@numba.njit(cache=True, inline="always")
+@njit(inline="always")
 def _desaturate(u, vec, umin, umax, reduce_only):
     """ControlAllocationSequentialDesaturation::desaturateActuators (thrust vector: reduce only)."""
     gain = _desaturation_gain(vec, u, umin, umax)
@@ -349,7 +349,7 @@ def _desaturate(u, vec, umin, umax, reduce_only):
         u[i] += gain * vec[i]
 
 
-@numba.njit(cache=True, inline="always")
+@njit(inline="always")
 def _allocate(c0, c1, c2, c3, mix, u):
     """Airmode-disabled mixing of control (roll, pitch, yaw, thrust) into motor commands u in [0, 1]."""
     for i in range(4):
@@ -365,7 +365,7 @@ def _allocate(c0, c1, c2, c3, mix, u):
         u[i] = min(max(u[i], 0.0), 1.0)
 
 
-@numba.njit(cache=True, inline="always")
+@njit(inline="always")
 def _rate_pid(d, ax, rate_sp, qvel, s, prm, dt, a_acc):
     """RateControl::update for one axis (P, I, D on the filtered angular acceleration, FF): (torque, error)."""
     base = MC_ROLLRATE_P + 6 * ax  # P, I, D, FF, K, INT_LIM per axis
@@ -379,7 +379,7 @@ def _rate_pid(d, ax, rate_sp, qvel, s, prm, dt, a_acc):
     return torque, err
 
 
-@numba.njit(cache=True, inline="always")
+@njit(inline="always")
 def _rate_integral(d, ax, err, requested, u, s, prm, eff, dt):
     """Saturation flags from the achieved control, then RateControl::updateIntegral for one axis."""
     achieved = eff[ax, 0] * u[0] + eff[ax, 1] * u[1] + eff[ax, 2] * u[2] + eff[ax, 3] * u[3]
@@ -399,7 +399,7 @@ def _rate_integral(d, ax, err, requested, u, s, prm, eff, dt):
     s[d, S_RATE_INT + ax] = min(max(val, -lim), lim)
 
 
-@numba.njit(cache=True, inline="always")
+@njit(inline="always")
 def _rate_loop(d, qpos, qvel, s, prm, k, mix, eff):
     """AttitudeControl + RateControl + allocation for drone d: writes the motor commands."""
     dt = k[K_DT] * k[K_RATE_DIV]
@@ -418,7 +418,7 @@ def _rate_loop(d, qpos, qvel, s, prm, k, mix, eff):
     _rate_integral(d, 2, e2, c2, u, s, prm, eff, dt)
 
 
-@numba.njit(cache=True, inline="always")
+@njit(inline="always")
 def _motors_and_drag(d, qpos, qvel, xfrc, s, k, rotors, wind):
     """Motor lag; rotor thrusts, yaw reaction torques, rotor drag and rolling moments summed into
     xfrc_applied (world frame, about the centre of mass) for drone d."""
@@ -478,7 +478,7 @@ def _motors_and_drag(d, qpos, qvel, xfrc, s, k, rotors, wind):
     xfrc[d, 5] = mz + r20 * tbx + r21 * tby + r22 * tbz
 
 
-@numba.njit(cache=True)
+@njit
 def cascade_step(tick, qpos, qvel, xfrc, s, sp, wind, prm, k, mix, eff, rotors):
     """One physics step of the cascade for all drones of one env.
 
@@ -524,7 +524,7 @@ def _call_step(typingctx, fn, model, data):
     return sig, codegen
 
 
-@numba.njit(cache=True)
+@njit
 def run_physics(tick, n_steps, step_fn, model, data, qpos, qvel, xfrc, contacts, collided, s, sp, wind, prm, k, mix,
                 eff, rotors):
     """n_steps physics steps of one env from `tick`: the cascade, then MuJoCo's `mj_step` (called

@@ -107,6 +107,14 @@ def airframe_parts_from_mjcf(path: str | os.PathLike) -> list[AirframePart]:
     return parts
 
 
+def code_provenance() -> dict[str, str]:
+    """The code that runs now: "git_commit" ("" outside a checkout) and `library_versions()` (package
+    version, code digest, python, numpy, numba, mujoco, torch, CPU, MKL_CBWR)."""
+    from cefc_mj.provenance import git_commit, library_versions
+
+    return {"git_commit": git_commit() or "", **library_versions()}
+
+
 @dataclass
 class EpisodeRecord:
     """One episode, one row per decision step. Validated on construction (`ConfigError`)."""
@@ -153,12 +161,34 @@ class EpisodeRecord:
     """[T, 3] or None when the episode has no adversary."""
     airframe_parts: list[AirframePart] = field(default_factory=list)
     """The drone body for the 3D view (`airframe_parts_from_mjcf`); empty draws a marker only."""
+    wind_vector: np.ndarray | None = None
+    """[T, 2] horizontal wind velocity at the swarm (m/s); None (the default) means zeros, no wind."""
+    policy: str = ""
+    """Name of the policy that flew (its file's stem, e.g. "atm_c5_step3"); "" when none did."""
+    policy_sha256: str = ""
+    """SHA-256 of the policy file's bytes (`cefc_mj.eval.runner.policy_files`); "" when none did."""
+    wind: float = 0.0
+    """Mean wind speed of the condition (m/s)."""
+    deviation: float = 0.0
+    """Sensing deviation of the condition (m)."""
+    provenance: dict[str, str] | None = None
+    """The code that flew the episode: git commit, code version and library versions
+    (`code_provenance`). None (the default) gathers them when the record is built, in the process
+    that flew it; `load` gives back the saved ones ({} for files saved before records had them)."""
 
     def __post_init__(self) -> None:
         f64 = lambda a: np.asarray(a, dtype=np.float64)  # noqa: E731
         for name in ("agent_pos", "agent_quat", "agent_vel", "obstacles", "anchor", "targets",
                      "lidar_origins", "lidar_ranges", "template_world"):
             setattr(self, name, f64(getattr(self, name)))
+        if self.wind_vector is None:
+            self.wind_vector = np.zeros((self.agent_pos.shape[0], 2))
+        self.wind_vector = f64(self.wind_vector)
+        self.policy, self.policy_sha256 = str(self.policy), str(self.policy_sha256)
+        self.wind, self.deviation = float(self.wind), float(self.deviation)
+        if self.provenance is None:
+            self.provenance = code_provenance()
+        self.provenance = {str(k): str(v) for k, v in self.provenance.items()}
         self.group_id = np.asarray(self.group_id, dtype=np.int64)
         self.collision = np.asarray(self.collision, dtype=bool)
         self.scalars = {str(k): f64(v) for k, v in self.scalars.items()}
@@ -180,6 +210,12 @@ class EpisodeRecord:
     def n_beams(self) -> int:
         return self.lidar_ranges.shape[2]
 
+    @property
+    def final_metrics(self) -> dict[str, float]:
+        """F, N, C at the last step (from the "F_so_far", ... series; those missing are left out)."""
+        return {m: float(self.scalars[f"{m}_so_far"][-1]) for m in "FNC"
+                if f"{m}_so_far" in self.scalars and self.n_steps > 0}
+
     def _validate(self) -> None:
         if self.agent_pos.ndim != 3 or self.agent_pos.shape[2] != 3:
             raise ConfigError(f"EpisodeRecord.agent_pos: shape {self.agent_pos.shape}, expected [T, N, 3]")
@@ -194,6 +230,7 @@ class EpisodeRecord:
             "group_id": (t, n),
             "template_world": (t, n, 2),
             "collision": (t, n),
+            "wind_vector": (t, 2),
         }
         if self.adversary_pos is not None:
             expected["adversary_pos"] = (t, 3)
@@ -221,6 +258,8 @@ class EpisodeRecord:
             value = getattr(self, f.name)
             if f.name == "scalars":
                 arrays.update({f"scalar/{k}": v for k, v in value.items()})
+            elif f.name == "provenance":
+                arrays.update({f"provenance/{k}": np.asarray(v) for k, v in value.items()})
             elif f.name == "airframe_parts":
                 arrays["part/name"] = np.array([p.name for p in value], dtype=str)
                 arrays["part/kind"] = np.array([p.kind for p in value], dtype=str)
@@ -242,6 +281,8 @@ class EpisodeRecord:
                 value = arrays.pop(f.name)
                 kwargs[f.name] = value.item() if value.ndim == 0 else value
         kwargs["scalars"] = {k.removeprefix("scalar/"): v for k, v in arrays.items() if k.startswith("scalar/")}
+        kwargs["provenance"] = {k.removeprefix("provenance/"): str(v) for k, v in arrays.items()
+                                if k.startswith("provenance/")}
         kwargs["airframe_parts"] = [
             AirframePart(name=str(name), kind=str(kind), size=size, pos=pos, quat=quat, rgba=rgba)
             for name, kind, size, pos, quat, rgba in zip(
@@ -249,8 +290,9 @@ class EpisodeRecord:
                 arrays["part/pos"], arrays["part/quat"], arrays["part/rgba"],
             )
         ]
-        for name in ("backend", "condition"):
-            kwargs[name] = str(kwargs[name])
+        for name in ("backend", "condition", "policy", "policy_sha256"):
+            if name in kwargs:
+                kwargs[name] = str(kwargs[name])
         for name in ("formation", "seed"):
             kwargs[name] = int(kwargs[name])
         return cls(**kwargs)
@@ -271,8 +313,8 @@ def synthetic_record(
 
     The swarm circles the origin in a loose ring; agents 0-2 drift apart every other 100 steps
     (so groups change), the anchor jumps every 250 steps, LiDAR ranges are exact ray-circle
-    distances to the obstacles, agent 0 is "in collision" at steps 30-34. F/N/C so far are
-    cumulative counts like the real metrics.
+    distances to the obstacles, agent 0 is "in collision" at steps 30-34, the wind blows at about
+    8 m/s and veers slowly. F/N/C so far are cumulative counts like the real metrics.
     """
     rng = np.random.default_rng(seed)
     dt, altitude, lidar_range, radius = 0.1, 2.0, 3.0, 0.4
@@ -308,6 +350,9 @@ def synthetic_record(
     template_world = np.where(apart[..., None], np.nan, template_world)
     collision = np.zeros((n_steps, n_agents), dtype=bool)
     collision[30:35, 0] = True
+    wind_speed = np.abs(rng.normal(8.0, 1.6, n_steps))
+    wind_heading = 0.3 + 0.002 * steps  # veers slowly
+    wind_vector = wind_speed[:, None] * np.stack([np.cos(wind_heading), np.sin(wind_heading)], axis=-1)
     hd = np.abs(ring - 0.8).max(axis=1)
     anchor_distance = np.linalg.norm(centre[:, 0] - anchor, axis=-1)
     return EpisodeRecord(
@@ -319,11 +364,11 @@ def synthetic_record(
         scalars={
             "hd_error": hd,
             "anchor_distance": anchor_distance,
-            "wind_speed": np.abs(rng.normal(8.0, 1.6, n_steps)),
+            "wind_speed": wind_speed,
             "F_so_far": np.cumsum(hd < 1.0).astype(float),
             "N_so_far": np.cumsum(anchor_distance < 1.0).astype(float),
             "C_so_far": 100.0 * np.cumsum(collision.sum(axis=1)) / (n_agents * (steps + 1)),
         },
         adversary_pos=np.concatenate([xy.mean(axis=1) + 4.0, np.full((n_steps, 1), altitude)], axis=-1),
-        airframe_parts=list(airframe_parts or []),
+        airframe_parts=list(airframe_parts or []), wind_vector=wind_vector, wind=8.0,
     )

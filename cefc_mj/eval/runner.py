@@ -1,6 +1,6 @@
 """Run evaluation episodes: a low-level policy flies the Table VIII game in either backend.
 
-The Table VIII episode (DESIGN §6): one group of c UAVs, no adversary or targets, obstacles at
+The Table VIII episode (docs/design.md §6): one group of c UAVs, no adversary or targets, obstacles at
 0.03 per m^2, 1000 decision steps, the anchor redrawn every 250 steps, under a wind and/or sensing
 deviation condition. `run_episode` returns the episode's metrics and, on request, an
 `EpisodeRecord` for Rerun and the top-down plot.
@@ -170,7 +170,7 @@ class _Recorder:
         self.spec = spec
         self.rows: dict[str, list] = {k: [] for k in (
             "agent_pos", "agent_quat", "agent_vel", "anchor", "lidar_origins", "lidar_ranges", "group_id",
-            "template_world", "collision", "hd_error", "anchor_distance", "wind_speed", "F", "N", "C")}
+            "template_world", "collision", "hd_error", "anchor_distance", "wind_speed", "wind_vector", "F", "N", "C")}
         self.template = formation_template(env.n_agents, env.config.formation_spacing)
 
     def capture(self) -> None:
@@ -194,6 +194,7 @@ class _Recorder:
         rows["anchor_distance"].append(float(np.linalg.norm(centre - env.anchor[0])))
         wind = world.wind_vector[0, :2] if hasattr(world, "wind_vector") else np.zeros(2)
         rows["wind_speed"].append(float(np.linalg.norm(wind)))
+        rows["wind_vector"].append(np.array(wind, dtype=np.float64))
         metrics = env.episode_metrics()
         for key in ("F", "N", "C"):
             rows[key].append(float(metrics[key][0]))
@@ -202,7 +203,10 @@ class _Recorder:
         env, rows = self.env, self.rows
         arr = {k: np.asarray(v) for k, v in rows.items()}
         airframe = MJCF_DIR / "iris.xml"
+        policy = policy_files(self.spec.policy, [self.spec.formation])[str(self.spec.formation)]
         return EpisodeRecord(
+            wind_vector=arr["wind_vector"], policy=policy["name"], policy_sha256=policy["sha256"], wind=self.spec.wind,
+            deviation=self.spec.deviation,
             backend=self.spec.backend, condition=self.spec.condition, formation=self.spec.formation,
             seed=self.spec.seed, dt=env.config.dt, flight_altitude=FLIGHT_ALTITUDE,
             agent_pos=arr["agent_pos"], agent_quat=arr["agent_quat"], agent_vel=arr["agent_vel"],
@@ -218,9 +222,76 @@ class _Recorder:
         )
 
 
-def summarize(episodes: list[dict]) -> dict[str, float]:
-    """Mean F, N, C over episodes (`EpisodeResult.to_dict()` rows), and how many there were."""
-    if not episodes:
-        return {"F": math.nan, "N": math.nan, "C": math.nan, "episodes": 0}
-    means = {m: float(np.mean([e[m] for e in episodes])) for m in "FNC"}
-    return {**means, "episodes": len(episodes)}
+METRICS = ("F", "N", "C")
+"""The Table VIII metrics: F, N in decision steps, C in % of agent-steps in collision."""
+
+
+def _mean_std(values: list[float]) -> tuple[float | None, float | None]:
+    """Mean and sample standard deviation (ddof 1); std is None for a single value, both None for none."""
+    if not values:
+        return None, None
+    arr = np.asarray(values, dtype=np.float64)
+    return float(arr.mean()), (float(arr.std(ddof=1)) if arr.size > 1 else None)
+
+
+def summarize(episodes: list[dict]) -> dict:
+    """Mean and sample std over episodes (`EpisodeResult.to_dict()` rows) of F, N, C and F+N.
+
+    Returns {"F", "F_std", "N", "N_std", "C", "C_std", "FN", "FN_std", "episodes", "diverged",
+    "steps"}: the means under the metric's own name, `*_std` None with fewer than 2 episodes, every
+    value None with none (never NaN, so JSON stays valid); "steps" is the longest episode's length.
+    """
+    out: dict = {}
+    for metric in METRICS:
+        out[metric], out[f"{metric}_std"] = _mean_std([e[metric] for e in episodes])
+    out["FN"], out["FN_std"] = _mean_std([e["F"] + e["N"] for e in episodes])
+    out["episodes"] = len(episodes)
+    out["diverged"] = sum(1 for e in episodes if e.get("diverged"))
+    out["steps"] = max((int(e["steps"]) for e in episodes), default=None)
+    return out
+
+
+def retention(cell: dict | None, calm: dict | None) -> tuple[float | None, str | None]:
+    """(F+N) of a cell over (F+N) of the calm (SITL-S) cell of the same c and seeds.
+
+    Returns (value, None), or (None, why) when it is undefined, so a report prints "-" and the reason
+    instead of NaN."""
+    if not cell or cell.get("F") is None:
+        return None, "no episodes"
+    if not calm or calm.get("F") is None:
+        return None, "no calm (SITL-S) reference"
+    reference = calm["F"] + calm["N"]
+    if reference <= 0:
+        return None, "calm F+N is 0"
+    return (cell["F"] + cell["N"]) / reference, None
+
+
+def format_mean_std(mean: float | None, std: float | None, fmt: str = ".1f") -> str:
+    """"812.3 ± 12.1", or "812.3" without a spread, or "-" without a value; never "nan"."""
+    if mean is None or not math.isfinite(mean):
+        return "-"
+    if std is None or not math.isfinite(std):
+        return format(mean, fmt)
+    return f"{format(mean, fmt)} ± {format(std, fmt)}"
+
+
+def policy_files(choice: str, formations) -> dict[str, dict[str, str]]:
+    """{"5": {"name", "file", "sha256"}} of the policy file `choice` resolves to for each c (provenance,
+    cache keys). Raises CheckpointError (one line) if a file is missing."""
+    from cefc_mj.nn.policy_io import resolve_policy_path
+    from cefc_mj.provenance import file_sha256
+
+    out = {}
+    for c in formations:
+        path = resolve_policy_path(policy_name_for(choice, c)).resolve()
+        out[str(c)] = {"name": path.stem, "file": str(path), "sha256": file_sha256(path)}
+    return out
+
+
+def provenance(choice: str, formations) -> dict:
+    """What made a result: library versions (with the code digest), git commit, policy files + sha256."""
+    from cefc_mj.provenance import git_commit, library_versions
+
+    versions = library_versions()
+    return {"library_versions": versions, "code_version": versions["code_version"], "git_commit": git_commit(),
+            "policies": policy_files(choice, formations)}

@@ -22,9 +22,10 @@ import torch
 
 from cefc_mj import paths
 from cefc_mj.env import BatchedCEFCEnv
-from cefc_mj.errors import ConfigError
+from cefc_mj.errors import CheckpointError, ConfigError
 from cefc_mj.fileio import write_atomic
 from cefc_mj.nn.policy_io import Policy, load_policy
+from cefc_mj.provenance import file_sha256
 from cefc_mj.task.config import TaskConfig
 
 TABLE3_DENSITY = 0.05
@@ -59,9 +60,10 @@ def policy_file_for(method: str, formation: int) -> str:
 
 
 @torch.no_grad()
-def evaluate_lowlevel(policy: Policy, formation: int, density: float = TABLE3_DENSITY, episodes: int = TABLE3_EPISODES,
-                      seed: int = 0, steps: int = TABLE3_STEPS) -> dict[str, float]:
-    """R_L, F, N, C of `policy` over `episodes` episodes of one group of `formation` agents."""
+def evaluate_lowlevel_episodes(policy: Policy, formation: int, density: float = TABLE3_DENSITY,
+                               episodes: int = TABLE3_EPISODES, seed: int = 0,
+                               steps: int = TABLE3_STEPS) -> dict[str, np.ndarray]:
+    """Per-episode R_L (per step), F, N, C [episodes] of `policy` for one group of `formation` agents."""
     task = TaskConfig(n_agents=formation, mode="formation", obstacle_density=density, episode_steps=steps)
     env = BatchedCEFCEnv(task, n_envs=episodes, seed=seed)
     if policy.obs_dim != env.layout.size:
@@ -78,22 +80,36 @@ def evaluate_lowlevel(policy: Policy, formation: int, density: float = TABLE3_DE
         metrics = info["metrics"]
     finally:
         torch.set_num_threads(threads)
-    return {
-        "R_L": float(total.mean() / steps),
-        "F": float(metrics["F"].mean()),
-        "N": float(metrics["N"].mean()),
-        "C": float(metrics["C"].mean()),
-    }
+    return {"R_L": total / steps, **{m: np.asarray(metrics[m], dtype=np.float64) for m in ("F", "N", "C")}}
+
+
+def evaluate_lowlevel(policy: Policy, formation: int, density: float = TABLE3_DENSITY, episodes: int = TABLE3_EPISODES,
+                      seed: int = 0, steps: int = TABLE3_STEPS) -> dict[str, float]:
+    """R_L, F, N, C of `policy` averaged over `episodes` episodes of one group of `formation` agents."""
+    per_episode = evaluate_lowlevel_episodes(policy, formation, density, episodes, seed, steps)
+    return {m: float(v.mean()) for m, v in per_episode.items()}
+
+
+POLICY_CHOICES = {"atm": "AT-M-Step3", "safe": "AT-M-Safe", "robust": "AT-M-Robust", "quad": "AT-M-Quad",
+                  "student": "Student"}
+"""cefc-eval's --policy aliases and the Table III row each one is."""
 
 
 def run_table3(formations=TABLE3_FORMATIONS, episodes: int = TABLE3_EPISODES, seed: int = 0,
-               policies_dir: Path | None = None, json_path: Path | None = None) -> dict:
-    """Evaluate every available Table III method for each formation c.
+               policies_dir: Path | None = None, json_path: Path | None = None, steps: int = TABLE3_STEPS,
+               policy: str | None = None, provenance: dict | None = None) -> dict:
+    """Evaluate every available Table III method for each formation c (or only `policy`).
 
-    Returns {"protocol": {...}, "6": {"AT-M-Step3": {"R_L", "F", "N", "C", "paper": {...} or None,
-    "policy": file name}, ...}, ...}. A method whose policy file is missing is left out (listed in
-    protocol["missing"]). Writes the same dict as JSON to json_path if given.
+    `policy`: None = every method in METHODS; an alias of POLICY_CHOICES = that method's row; any
+    other name or .pt path = one row under the policy file's name (no paper row). Returns
+    {"schema", "schema_version", "protocol": {...}, "6": {"AT-M-Step3": {"R_L", "F", "N", "C"
+    (means), "R_L_std", ... (sample std over episodes), "per_episode": {metric: [...]}, "paper":
+    {...} or None, "policy": file name, "sha256"}, ...}, ...}. A method whose policy file is missing
+    is left out (listed in protocol["missing"]). `provenance` (library versions, commit) rides
+    along. Writes the same dict as JSON to json_path if given.
     """
+    from cefc_mj.nn.policy_io import resolve_policy_path
+
     policies_dir = Path(policies_dir) if policies_dir is not None else paths.POLICIES_DIR
     formations = [int(c) for c in formations]
     for c in formations:
@@ -101,51 +117,75 @@ def run_table3(formations=TABLE3_FORMATIONS, episodes: int = TABLE3_EPISODES, se
             raise ConfigError(f"formation={c}: Table III policies exist for c = 3..8")
     if not isinstance(episodes, int) or episodes < 1:
         raise ConfigError(f"episodes={episodes!r}: must be an integer >= 1")
+    if not isinstance(steps, int) or steps < 1:
+        raise ConfigError(f"steps={steps!r}: must be an integer >= 1")
     result: dict = {
-        "protocol": {"backend": "particle", "density": TABLE3_DENSITY, "episodes": episodes, "steps": TABLE3_STEPS,
-                     "seed": seed, "policies_dir": str(policies_dir), "missing": []},
+        "schema": "cefc-eval/table3", "schema_version": 2,
+        "protocol": {"backend": "particle", "density": TABLE3_DENSITY, "episodes": episodes, "steps": steps,
+                     "seed": seed, "policies_dir": str(policies_dir), "policy": policy,
+                     "comparable_to_paper": steps == TABLE3_STEPS, "missing": []},
     }
+    if provenance is not None:
+        result["provenance"] = provenance
     for c in formations:
+        if policy is None:
+            wanted = [(method, policy_file_for(method, c)) for method in METHODS]
+        elif policy in POLICY_CHOICES:
+            wanted = [(POLICY_CHOICES[policy], policy_file_for(POLICY_CHOICES[policy], c))]
+        else:
+            path = resolve_policy_path(policy, policies_dir)
+            wanted = [(path.stem, str(path))]
         rows = {}
-        for method in METHODS:
-            name = policy_file_for(method, c)
-            if not (policies_dir / f"{name}.pt").is_file():
+        for method, name in wanted:
+            try:
+                path = resolve_policy_path(name, policies_dir)
+            except CheckpointError:
+                if policy is not None:
+                    raise
                 result["protocol"]["missing"].append(f"{c}/{method} ({name}.pt)")
                 continue
-            policy = load_policy(name, policies_dir)
-            row = evaluate_lowlevel(policy, c, episodes=episodes, seed=seed)
+            per_episode = evaluate_lowlevel_episodes(load_policy(path), c, episodes=episodes, seed=seed, steps=steps)
+            row: dict = {}
+            for m, values in per_episode.items():
+                row[m] = float(values.mean())
+                row[f"{m}_std"] = float(values.std(ddof=1)) if values.size > 1 else None
+            row["per_episode"] = {m: [float(v) for v in values] for m, values in per_episode.items()}
             row["paper"] = PAPER_TABLE3.get(str(c), {}).get(method)
-            row["policy"] = f"{name}.pt"
+            row["policy"] = path.name
+            row["sha256"] = file_sha256(path)
             rows[method] = row
         result[str(c)] = rows
     if json_path is not None:
-        Path(json_path).parent.mkdir(parents=True, exist_ok=True)
         write_atomic(Path(json_path), json.dumps(result, indent=2) + "\n")
     return result
 
 
 def format_table3(result: dict) -> str:
-    """A plain-text table: ours beside the paper's numbers (paper in parentheses, '-' if none)."""
+    """A plain-text table: ours (mean ± std over episodes) beside the paper's numbers ('-' if none)."""
+    from cefc_mj.eval.runner import format_mean_std
+
     proto = result["protocol"]
     lines = [
         f"Table III protocol ({proto['backend']}, density {proto['density']}/m^2, {proto['episodes']} episodes x "
-        f"{proto['steps']} steps, seed {proto['seed']}); ours (paper)",
-        f"{'c':>2}  {'method':<11} {'R_L/step':>18} {'F (steps)':>16} {'N (steps)':>16} {'C (%)':>14}",
+        f"{proto['steps']} steps, seed {proto['seed']}). R_L: team reward per step; F, N: steps in formation / "
+        "with the swarm centre within 1 m of the anchor; C: % of agent-steps in collision.",
+        "ours: mean ± sample std over episodes; paper: the paper's Table III AT-M row ('-': the paper has none).",
     ]
-
-    def cell(ours: float, paper_value: float | None, width: int, fmt: str) -> str:
-        ref = "-" if paper_value is None else format(paper_value, fmt)
-        return f"{format(ours, fmt)} ({ref})".rjust(width)
-
+    if proto["steps"] != TABLE3_STEPS:
+        lines.append(f"F, N over {proto['steps']} steps; the paper's are over {TABLE3_STEPS}: not comparable.")
+    table = [["c", "method", "", "R_L/step", "F (steps)", "N (steps)", "C (%)"]]
     for c, rows in result.items():
-        if c == "protocol":
+        if not c.isdigit():
             continue
         for method, row in rows.items():
             paper = row.get("paper") or {}
-            lines.append(
-                f"{c:>2}  {method:<11} {cell(row['R_L'], paper.get('R_L'), 18, '.2f')} {cell(row['F'], paper.get('F'), 16, '.2f')}"
-                f" {cell(row['N'], paper.get('N'), 16, '.2f')} {cell(row['C'], paper.get('C'), 14, '.2f')}"
-            )
+            table.append([c, method, "ours"] + [format_mean_std(row[m], row.get(f"{m}_std"), ".2f") for m in COLUMNS])
+            table.append(["", "", "paper"]
+                         + ["-" if paper.get(m) is None else format(paper[m], ".2f") for m in COLUMNS])
+    widths = [max(len(r[i]) for r in table) for i in range(len(table[0]))]
+    for r in table:
+        lines.append("  ".join(cell.ljust(w) if i in (1, 2) else cell.rjust(w)
+                               for i, (cell, w) in enumerate(zip(r, widths))).rstrip())
     if proto.get("missing"):
         lines.append("missing policies: " + ", ".join(proto["missing"]))
     return "\n".join(lines)

@@ -1,31 +1,47 @@
 """The Table VIII protocol: every condition x c = 5..8 x K seeds, on a local process pool.
 
 Finished episodes are appended to a JSON-lines cell file as they complete, so an interrupted run
-keeps them and a re-run skips them. The report (`table8.md`), a CSV and a PNG of ours beside the
-paper's numbers are written atomically at the end.
+keeps them and a re-run skips them. A cell is reused only under the same key: the SHA-256 of the
+policy file of its c, the code digest (`cefc_mj.provenance.code_version`) and every field of its
+`EpisodeSpec` (condition, steps, seed, formation, backend, ...), so a cache never serves a number
+that other code, another policy or another condition produced. The report (`table8.md`), a CSV, a
+JSON and a PNG of ours beside the paper's numbers are written atomically at the end.
 """
 
 from __future__ import annotations
 
 import csv
+import functools
+import hashlib
 import io
 import json
 import os
+from collections.abc import Callable, Iterator
 from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 
 from cefc_mj import paths
+from cefc_mj.eval.runner import (
+    CONDITIONS, TABLE8_STEPS, EpisodeSpec, format_mean_std, load_policy_for, retention, run_episode, summarize,
+)
 from cefc_mj.fileio import write_atomic
-from cefc_mj.eval.runner import CONDITIONS, EpisodeSpec, run_episode, summarize
 
 PAPER_TABLES = paths.EVAL_DIR / "paper_tables.json"
+CELL_SCHEMA = 2
+"""Version of the cell key; rows written under another schema (or none) are never reused."""
+
+
+@functools.lru_cache(maxsize=1)
+def _paper_table8_rows() -> dict:
+    return json.loads(PAPER_TABLES.read_text())["table8_sitl"]
 
 
 def paper_table8() -> dict[str, dict[str, dict[str, float]]]:
     """{"5": {"SITL-S": {"F":..,"N":..,"C":..}, ...}} from the shipped transcription of the paper."""
-    raw = json.loads(PAPER_TABLES.read_text())["table8_sitl"]
+    raw = _paper_table8_rows()
     return {c: {cond: dict(zip("FNC", v)) for cond, v in rows.items()} for c, rows in raw.items() if c.isdigit()}
 
 
@@ -39,12 +55,36 @@ def table8_specs(formations, episodes: int, seed: int, steps: int, backend: str,
     ]
 
 
-def spec_key(spec: EpisodeSpec) -> str:
-    return json.dumps({k: getattr(spec, k) for k in ("formation", "seed", "backend", "wind", "deviation", "steps", "policy")}, sort_keys=True)
+# ---------------------------------------------------------------------------- the cell cache
+@dataclass(frozen=True)
+class Cell:
+    """One episode of the grid with its cache key."""
+
+    spec: EpisodeSpec
+    """What to fly."""
+    key: str
+    """SHA-256 (hex) of `key_fields` as canonical JSON."""
+    key_fields: dict
+    """Everything the result depends on: schema, every EpisodeSpec field, policy sha256, code digest."""
+
+
+def cell_key_fields(spec: EpisodeSpec, policy_sha256: str, code_version: str) -> dict:
+    """The inputs that determine an episode's result (the cell key is their digest)."""
+    return {"schema": CELL_SCHEMA, "spec": asdict(spec), "policy_sha256": policy_sha256, "code_version": code_version}
+
+
+def plan_cells(specs: list[EpisodeSpec], policy_sha256: dict[int, str], code_version: str) -> list[Cell]:
+    """Key every spec; `policy_sha256` maps each c to the SHA-256 of the policy file flown for it."""
+    cells = []
+    for spec in specs:
+        fields = cell_key_fields(spec, policy_sha256[spec.formation], code_version)
+        key = hashlib.sha256(json.dumps(fields, sort_keys=True).encode()).hexdigest()
+        cells.append(Cell(spec=spec, key=key, key_fields=fields))
+    return cells
 
 
 def load_cells(path: Path) -> dict[str, dict]:
-    """Finished episodes from the cell file (a torn last line from a kill is ignored)."""
+    """Finished episodes from the cell file by key (a torn last line from a kill is ignored)."""
     done: dict[str, dict] = {}
     if not path.is_file():
         return done
@@ -53,107 +93,205 @@ def load_cells(path: Path) -> dict[str, dict]:
             row = json.loads(line)
         except json.JSONDecodeError:
             continue
-        done[row["key"]] = row
+        if isinstance(row, dict) and "key" in row:
+            done[row["key"]] = row
     return done
 
 
-def _run_spec(spec: EpisodeSpec) -> dict:
-    result = run_episode(spec)
-    return {"key": spec_key(spec), **result.to_dict()}
+# ---------------------------------------------------------------------------- flying
+@functools.lru_cache(maxsize=32)
+def cached_policy(choice: str, formation: int):
+    """The policy for (choice, c), loaded once per process (pool workers fly many episodes each)."""
+    return load_policy_for(choice, formation)
 
 
-def run_grid(specs: list[EpisodeSpec], cell_file: Path, workers: int = 1, progress=None) -> list[dict]:
-    """Run the specs not yet in `cell_file`, appending each finished episode; returns all rows."""
+def _fly(spec: EpisodeSpec, record: bool = False):
+    import torch
+
+    torch.set_num_threads(1)
+    return run_episode(spec, cached_policy(spec.policy, spec.formation), record=record)
+
+
+def _fly_row(spec: EpisodeSpec) -> dict:
+    return _fly(spec).to_dict()
+
+
+def fly_episodes(specs: list[EpisodeSpec], workers: int = 1,
+                 record: Callable[[EpisodeSpec], bool] | None = None) -> Iterator[tuple[int, object]]:
+    """Fly `specs`, yielding (index into specs, EpisodeResult) as each finishes.
+
+    `record(spec)` says which episodes keep an EpisodeRecord (workers = 1 only). workers > 1 uses a
+    local process pool and yields results in completion order. Ctrl-C cancels the episodes not yet
+    started.
+    """
+    if workers <= 1 or len(specs) <= 1:
+        for i, spec in enumerate(specs):
+            yield i, _fly(spec, record=bool(record and record(spec)))
+        return
+    if record is not None:
+        raise ValueError("fly_episodes: recording needs workers = 1")
+    from cefc_mj.eval.runner import EpisodeResult
+
+    pool = ProcessPoolExecutor(max_workers=min(workers, len(specs)))
+    try:
+        futures = {pool.submit(_fly_row, spec): i for i, spec in enumerate(specs)}
+        for future in as_completed(futures):
+            i = futures[future]
+            row = future.result()
+            yield i, EpisodeResult(spec=specs[i], **{k: row[k] for k in ("F", "N", "C", "steps", "wall_s", "diverged")})
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
+
+
+def run_grid(cells: list[Cell], cell_file: Path, workers: int = 1, progress=None, fresh: bool = False) -> list[dict]:
+    """Fly the cells not yet in `cell_file` (all of them with `fresh`), appending each finished
+    episode as one JSON line; returns the rows of all `cells` in order.
+
+    `fresh` moves an existing cell file aside (to `<name>.replaced-<n>`) rather than deleting it.
+    The folder is created here, right before the first write.
+    """
     cell_file.parent.mkdir(parents=True, exist_ok=True)
+    if fresh and cell_file.exists():
+        n = 1
+        while (aside := cell_file.with_name(f"{cell_file.name}.replaced-{n}")).exists():
+            n += 1
+        cell_file.rename(aside)
     done = load_cells(cell_file)
-    todo = [s for s in specs if spec_key(s) not in done]
+    todo = [cell for cell in cells if cell.key not in done]
     if progress is not None:
-        progress.update(len(specs) - len(todo))
+        progress.update(len(cells) - len(todo))
     with open(cell_file, "a") as sink:
-        def keep(row: dict) -> None:
-            done[row["key"]] = row
+        for i, result in fly_episodes([cell.spec for cell in todo], workers=workers):
+            cell = todo[i]
+            row = {"key": cell.key, "key_fields": cell.key_fields, **result.to_dict()}
+            done[cell.key] = row
             sink.write(json.dumps(row) + "\n")
             sink.flush()
             os.fsync(sink.fileno())
             if progress is not None:
                 progress.update(1)
-
-        if workers <= 1:
-            for spec in todo:
-                keep(_run_spec(spec))
-        else:
-            with ProcessPoolExecutor(max_workers=workers) as pool:
-                futures = [pool.submit(_run_spec, s) for s in todo]
-                try:
-                    for future in as_completed(futures):
-                        keep(future.result())
-                except KeyboardInterrupt:
-                    for f in futures:
-                        f.cancel()
-                    raise
-    return [done[spec_key(s)] for s in specs if spec_key(s) in done]
+    return [done[cell.key] for cell in cells]
 
 
-def aggregate(rows: list[dict]) -> dict[str, dict[str, dict[str, float]]]:
-    """{c: {condition: {F, N, C, episodes}}} averaged over seeds."""
-    table: dict[str, dict[str, dict[str, float]]] = {}
+# ---------------------------------------------------------------------------- the table
+def aggregate(rows: list[dict]) -> dict[str, dict[str, dict]]:
+    """{c: {condition: summarize(...) + retention (vs SITL-S of the same c) + the episodes}}."""
+    table: dict[str, dict[str, dict]] = {}
     for c in sorted({r["formation"] for r in rows}):
         table[str(c)] = {}
         for cond in CONDITIONS:
             cell = [r for r in rows if r["formation"] == c and r["condition"] == cond]
             if cell:
-                table[str(c)][cond] = summarize(cell)
+                table[str(c)][cond] = {**summarize(cell), "episodes_detail": cell}
+        calm = table[str(c)].get("SITL-S")
+        for cell in table[str(c)].values():
+            cell["retention"], cell["retention_note"] = retention(cell, calm)
     return table
 
 
-def retention(table: dict, c: str, cond: str) -> float:
-    """(F + N) of a condition relative to the calm condition of the same c."""
-    calm, cell = table[c].get("SITL-S"), table[c].get(cond)
-    if not calm or not cell or calm["F"] + calm["N"] == 0:
-        return float("nan")
-    return (cell["F"] + cell["N"]) / (calm["F"] + calm["N"])
+def paper_cell(c: str, cond: str) -> dict | None:
+    """The paper's F, N, C and retention for (c, condition), or None where it has no such cell."""
+    paper = paper_table8()
+    p, calm = paper.get(c, {}).get(cond), paper.get(c, {}).get("SITL-S")
+    if p is None:
+        return None
+    return {**p, "retention": retention(p, calm)[0]}
+
+
+def _steps_note(steps: int) -> str | None:
+    if steps == TABLE8_STEPS:
+        return None
+    return (f"F, N over {steps} steps; the paper's are over {TABLE8_STEPS}: not comparable "
+            "(C and retention are ratios and roughly comparable)")
+
+
+def _pct(value: float | None) -> str:
+    return "-" if value is None else f"{value:.1%}"
 
 
 def report_markdown(table: dict, meta: dict) -> str:
-    paper = paper_table8()
+    """The Markdown report: ours (mean ± std over seeds) beside the paper, then provenance."""
+    k = meta["episodes"]
     lines = [
-        "# Table VIII on MuJoCo quadrotors",
+        f"# Table VIII: policy `{meta['policy']}` on the {meta['backend']} backend",
         "",
         f"Command: `{meta['command']}`  ",
-        f"Backend {meta['backend']}, policy `{meta['policy']}`, {meta['episodes']} seeds per cell "
-        f"({meta['seed']}..{meta['seed'] + meta['episodes'] - 1}), {meta['steps']} decision steps per episode. "
-        "F, N in decision steps; C in % of agent-steps in collision; retention = (F+N) / (F+N at SITL-S).",
+        f"{k} seed(s) per cell ({meta['seed']}..{meta['seed'] + k - 1}, the same layouts under every condition), "
+        f"{meta['steps']} decision steps per episode. F, N: decision steps in formation / with the swarm centre "
+        "within 1 m of the anchor; C: % of agent-steps in collision; retention = (F+N) / (F+N at SITL-S, same c). "
+        + ("Ours: mean ± sample std over seeds." if k > 1 else "Ours: one seed per cell, no spread."),
+        "",
+    ]
+    note = _steps_note(meta["steps"])
+    if note:
+        lines += [f"**{note}.**", ""]
+    lines += [
+        f"{meta['cells_reused']} of {meta['cells_total']} episodes were reused from the cell file "
+        f"`{meta['cell_file']}` (same policy file, code and conditions); the rest were flown by this command.",
         "",
         "SITL-M (agents as separate processes) is not part of this testbed yet: its row is left out.",
         "",
         "| c | condition | F | N | C (%) | retention | paper F | paper N | paper C (%) | paper retention |",
         "|---|---|---|---|---|---|---|---|---|---|",
     ]
+    notes: set[str] = set()
     for c, rows in table.items():
         for cond, cell in rows.items():
-            p = paper.get(c, {}).get(cond)
-            p_calm = paper.get(c, {}).get("SITL-S")
-            p_ret = (p["F"] + p["N"]) / (p_calm["F"] + p_calm["N"]) if p and p_calm else float("nan")
+            p = paper_cell(c, cond)
+            ret = _pct(cell["retention"])
+            if cell["retention"] is None:
+                notes.add(f"retention -: {cell['retention_note']}")
+            diverged = f" ({cell['diverged']} diverged)" if cell["diverged"] else ""
             lines.append(
-                f"| {c} | {cond} | {cell['F']:.1f} | {cell['N']:.1f} | {cell['C']:.2f} | {retention(table, c, cond):.1%} | "
-                + (f"{p['F']:.1f} | {p['N']:.1f} | {p['C']:.2f} | {p_ret:.1%} |" if p else "- | - | - | - |")
+                f"| {c} | {cond}{diverged} | {format_mean_std(cell['F'], cell['F_std'])} | "
+                f"{format_mean_std(cell['N'], cell['N_std'])} | {format_mean_std(cell['C'], cell['C_std'], '.2f')} | "
+                f"{ret} | "
+                + (f"{p['F']:.1f} | {p['N']:.1f} | {p['C']:.2f} | {_pct(p['retention'])} |" if p
+                   else "- | - | - | - |")
             )
+            if p is None:
+                notes.add(f"paper -: the paper has no Table VIII row for c = {c}")
+    if notes:
+        lines += [""] + [f"- {n}" for n in sorted(notes)]
+    prov = meta["provenance"]
+    lines += ["", "## Provenance", "", f"- git commit: `{prov['git_commit'] or 'none (not a git checkout)'}`",
+              f"- code digest: `{prov['code_version']}`"]
+    lines += [f"- {name}: {version or '(unset)'}" for name, version in prov["library_versions"].items()
+              if name != "code_version"]
+    lines += [f"- policy c = {c}: `{p['name']}` sha256 `{p['sha256']}`" for c, p in prov["policies"].items()]
     return "\n".join(lines) + "\n"
 
 
 def report_csv(table: dict) -> str:
+    """One row per (c, condition): ours (mean, std) and the paper's numbers; empty where undefined."""
+    def num(value, fmt):
+        return "" if value is None else format(value, fmt)
+
     out = io.StringIO()
     writer = csv.writer(out)
-    writer.writerow(["c", "condition", "F", "N", "C", "retention", "episodes"])
+    writer.writerow(["c", "condition", "episodes", "diverged", "F_mean", "F_std", "N_mean", "N_std", "C_mean", "C_std",
+                     "retention", "paper_F", "paper_N", "paper_C", "paper_retention"])
     for c, rows in table.items():
         for cond, cell in rows.items():
-            writer.writerow([c, cond, f"{cell['F']:.3f}", f"{cell['N']:.3f}", f"{cell['C']:.4f}",
-                             f"{retention(table, c, cond):.4f}", cell["episodes"]])
+            p = paper_cell(c, cond) or {}
+            writer.writerow([c, cond, cell["episodes"], cell["diverged"],
+                             num(cell["F"], ".3f"), num(cell["F_std"], ".3f"), num(cell["N"], ".3f"),
+                             num(cell["N_std"], ".3f"), num(cell["C"], ".4f"), num(cell["C_std"], ".4f"),
+                             num(cell["retention"], ".4f"), num(p.get("F"), "g"), num(p.get("N"), "g"),
+                             num(p.get("C"), "g"), num(p.get("retention"), ".4f")])
     return out.getvalue()
 
 
-def report_plot(table: dict, path: Path) -> None:
-    """Bars of F+N per condition and c, ours beside the paper's."""
+def report_json(table: dict, meta: dict) -> str:
+    """The full result: meta, provenance, per cell mean/std, the paper's cell and every episode."""
+    rows = {c: {cond: {**cell, "paper": paper_cell(c, cond)} for cond, cell in conds.items()}
+            for c, conds in table.items()}
+    return json.dumps({"schema": "cefc-eval/table8", "schema_version": 2, "protocol": "table8", **meta,
+                       "comparable_to_paper": meta["steps"] == TABLE8_STEPS, "rows": rows}, indent=2) + "\n"
+
+
+def report_plot(table: dict, path: Path, meta: dict) -> None:
+    """F+N (top) and C (bottom) per condition and c, ours (mean, error bar = std over seeds) beside the paper's."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -161,18 +299,38 @@ def report_plot(table: dict, path: Path) -> None:
 
     paper = paper_table8()
     conds = list(CONDITIONS)
-    fig, axes = plt.subplots(1, len(table), figsize=(4.2 * len(table), 3.8), squeeze=False, sharey=True)
     x = np.arange(len(conds))
-    for ax, (c, rows) in zip(axes[0], table.items()):
-        ours = [rows[k]["F"] + rows[k]["N"] if k in rows else np.nan for k in conds]
-        theirs = [paper[c][k]["F"] + paper[c][k]["N"] if c in paper and k in paper[c] else np.nan for k in conds]
-        ax.bar(x - 0.2, ours, 0.4, label="ours (MuJoCo)")
-        ax.bar(x + 0.2, theirs, 0.4, label="paper (Gazebo+PX4)")
-        ax.set_xticks(x, conds, rotation=60, ha="right", fontsize=8)
-        ax.set_title(f"c = {c}")
-        ax.set_ylabel("F + N (steps)")
-    axes[0][0].legend(fontsize=8)
-    fig.tight_layout()
+    comparable = meta["steps"] == TABLE8_STEPS
+    fig, axes = plt.subplots(2, len(table), figsize=(max(7.0, 4.2 * len(table)), 7.4), squeeze=False, sharey="row")
+
+    def val(v):
+        return np.nan if v is None else v
+
+    for col, (c, rows) in enumerate(table.items()):
+        for row, (metric, label) in enumerate((("FN", "F + N (steps)"), ("C", "C (% agent-steps in collision)"))):
+            ax = axes[row][col]
+            ours = [val(rows[k][metric]) if k in rows else np.nan for k in conds]
+            err = [val(rows[k][f"{metric}_std"]) if k in rows else np.nan for k in conds]
+            ref = paper.get(c, {})
+            theirs = [(ref[k]["F"] + ref[k]["N"] if metric == "FN" else ref[k]["C"]) if k in ref else np.nan
+                      for k in conds]
+            ax.bar(x - 0.2, ours, 0.4, yerr=np.nan_to_num(err), capsize=2, label=f"ours ({meta['backend']})")
+            if metric == "C" or comparable:  # F+N of a shorter run beside the paper's 1000 steps would mislead
+                ax.bar(x + 0.2, theirs, 0.4, label="paper (Gazebo+PX4)", color="tab:orange")
+            ax.set_xticks(x, conds if row == 1 else [""] * len(conds), rotation=60, ha="right", fontsize=8)
+            if row == 0:
+                ax.set_title(f"c = {c}")
+            if col == 0:
+                ax.set_ylabel(label)
+    handles, labels = axes[1][0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="lower center", ncol=2, fontsize=8)
+    k = meta["episodes"]
+    title = (f"Table VIII, policy {meta['policy']} ({meta['backend']})\n{k} seed(s) per cell, {meta['steps']} steps"
+             + ("; error bars: std over seeds" if k > 1 else ""))
+    if not comparable:
+        title += f"\nF+N over {meta['steps']} steps, not comparable to the paper's {TABLE8_STEPS}: paper F+N not drawn"
+    fig.suptitle(title, fontsize=10)
+    fig.tight_layout(rect=(0, 0.04, 1, 1))
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=110)
     plt.close(fig)

@@ -9,20 +9,27 @@ The digest makes an edited weight fail loudly; a file made for another observati
 truncated file or a foreign pickle all raise `CheckpointError` with one line. A model card
 (`*.json`, same stem) sits beside each shipped file (see `cefc_mj.train.model_card`).
 
-Example (the name is resolved in POLICIES_DIR; obs [B, N, 63] -> actions [B, N, 2]):
+Loading builds the network without running its initialisers (the file's weights replace them
+anyway; orthogonal init's QR factorisations used to be most of a load's time), so a loaded policy
+acts exactly as one built the slow way.
+
+Example (the name is resolved in POLICIES_DIR):
 
 >>> policy = load_policy("atm_c6_step3")   # doctest: +SKIP
->>> actions = policy.act(obs)              # doctest: +SKIP
+>>> actions = policy.act(obs)              # doctest: +SKIP   [B, N, 63] -> [B, N, 2], or [N, 63] -> [N, 2]
+>>> actions = policy.act(observations)     # doctest: +SKIP   PettingZoo {agent: obs} -> {agent: action}
 """
 
 from __future__ import annotations
 
 import pickle
 import zipfile
+from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
 import torch
+from torch.overrides import TorchFunctionMode
 
 from cefc_mj import paths
 from cefc_mj.errors import CheckpointError, ConfigError
@@ -88,13 +95,31 @@ def load_actor(path: Path, obs_dim: int | None = None) -> tuple[ATMActor, dict]:
     cfg = ATMConfig.from_dict(payload.get("net"))
     if obs_dim is not None and cfg.obs_dim != obs_dim:
         raise CheckpointError(f"{path}: made for observations of size {cfg.obs_dim}, this env gives {obs_dim}")
-    actor = ATMActor(cfg)
+    with _ParametersOnMeta():
+        actor = ATMActor(cfg)
+    expected = actor.state_dict()
+    # assign=True puts the file's tensors in place of the meta ones; cast as copying into them would
+    state = {k: v.to(expected[k].dtype).contiguous() if k in expected else v for k, v in state.items()}
     try:
-        actor.load_state_dict(state)
+        actor.load_state_dict(state, assign=True)
     except RuntimeError as e:
         raise CheckpointError(f"{path}: weights do not fit the described network ({str(e).splitlines()[0][:160]})") from None
     actor.eval()
     return actor, dict(payload.get("meta") or {})
+
+
+class _ParametersOnMeta(TorchFunctionMode):
+    """Inside it, `torch.empty` allocates on the meta device: nn.Linear allocates its weight and bias
+    with it, so the layers' initialisers (orthogonal_, zeros_) have nothing to compute, and
+    `load_state_dict(assign=True)` then puts the file's tensors in their place. What a constructor
+    computes with other factories (the actor's index and free-space buffers, its log-std) stays real.
+    If a torch release allocated Linear weights another way, loading would only get slower again."""
+
+    def __torch_function__(self, func, types, args=(), kwargs=None):
+        kwargs = dict(kwargs or {})
+        if func is torch.empty:
+            kwargs["device"] = "meta"
+        return func(*args, **kwargs)
 
 
 def resolve_policy_path(path_or_name: str | Path, policies_dir: Path | None = None) -> Path:
@@ -111,11 +136,14 @@ def resolve_policy_path(path_or_name: str | Path, policies_dir: Path | None = No
 
 
 class Policy:
-    """A loaded low-level policy for evaluators: `act(obs [B, N, D]) -> actions [B, N, 2]`.
+    """A loaded low-level policy for evaluators: `act(obs) -> actions`, for a batch of envs
+    `[B, N, D] -> [B, N, 2]`, one env `[N, D] -> [N, 2]` (float64, m/s^2), or a PettingZoo
+    observation dict `{agent: [D]} -> {agent: [2]}` (float32, inside the env's action space).
 
     `act` is deterministic (the Gaussian mean, turned into an acceleration setpoint by the actor's
-    action head and clipped per axis to accel_max as the env clips it) and runs without gradients. Call `torch.set_num_threads(1)` in rollout loops: these networks
-    are far too small for intra-op threading.
+    action head and clipped per axis to accel_max as the env clips it) and runs without gradients.
+    Each agent's action depends on its own observation only. Call `torch.set_num_threads(1)` in
+    rollout loops: these networks are far too small for intra-op threading.
     """
 
     def __init__(self, actor: ATMActor, meta: dict, name: str):
@@ -131,13 +159,43 @@ class Policy:
     def safe(self) -> bool:
         return self.actor.cfg.safe
 
+    def act(self, obs: np.ndarray | Mapping[str, np.ndarray]) -> np.ndarray | dict[str, np.ndarray]:
+        """Actions for `[B, N, D]` or `[N, D]` observations (same leading shape, last axis 2), or
+        for a `{agent: [D]}` dict (a dict of float32 `[2]` actions, same keys). ConfigError for any
+        other shape."""
+        if isinstance(obs, Mapping):
+            agents = list(obs)
+            if not agents:
+                return {}
+            rows = [self._as_array(obs[a], f"obs[{a!r}]") for a in agents]
+            bad = [(a, list(r.shape)) for a, r in zip(agents, rows) if r.shape != (self.obs_dim,)]
+            if bad:
+                raise ConfigError(f"obs[{bad[0][0]!r}]: expected shape [{self.obs_dim}], got {bad[0][1]}")
+            actions = self._act(np.stack(rows))
+            return {a: actions[i].copy() for i, a in enumerate(agents)}
+        obs = self._as_array(obs, "obs")
+        if obs.ndim not in (2, 3) or obs.shape[-1] != self.obs_dim:
+            raise ConfigError(
+                f"obs: expected shape [N, {self.obs_dim}] (one env), [B, N, {self.obs_dim}] or a dict "
+                f"{{agent: [{self.obs_dim}]}}, got {list(obs.shape)}"
+            )
+        return self._act(obs).astype(np.float64)
+
     @torch.no_grad()
-    def act(self, obs: np.ndarray) -> np.ndarray:
-        obs = np.asarray(obs)
-        if obs.ndim != 3 or obs.shape[-1] != self.obs_dim:
-            raise ConfigError(f"obs: expected shape [B, N, {self.obs_dim}], got {list(obs.shape)}")
+    def _act(self, obs: np.ndarray) -> np.ndarray:
+        """float32 accelerations [..., 2] for observations [..., D]."""
         obs_t = torch.as_tensor(obs, dtype=torch.float32)
-        return self.actor.to_acceleration(self.actor(obs_t), obs_t).numpy().astype(np.float64)
+        return self.actor.to_acceleration(self.actor(obs_t), obs_t).numpy()
+
+    @staticmethod
+    def _as_array(obs, name: str) -> np.ndarray:
+        try:
+            obs = np.asarray(obs)
+        except ValueError:  # ragged nesting
+            obs = None
+        if obs is None or not (np.issubdtype(obs.dtype, np.floating) or np.issubdtype(obs.dtype, np.integer)):
+            raise ConfigError(f"{name}: not an array of numbers")
+        return obs
 
 
 def load_policy(path_or_name: str | Path, policies_dir: Path | None = None, obs_dim: int | None = None) -> Policy:

@@ -85,7 +85,7 @@ class MujocoWorldConfig:
     params: str = "iris"
     """Controller gains: a name in controllers/ (without .params) or a path to a .params file."""
     physics_dt: float = 0.002
-    """Physics step (s); 0.002 = 500 Hz (DESIGN §3: 500 Hz or finer)."""
+    """Physics step (s); 0.002 = 500 Hz (docs/design.md §3: 500 Hz or finer)."""
     decision_dt: float = 0.1
     """Decision step (s); a multiple of physics_dt."""
     rate_loop_hz: float = 250.0
@@ -98,7 +98,7 @@ class MujocoWorldConfig:
     """What the offboard interface makes of the policy's acceleration setpoint (docs/mujoco_world.md):
     "velocity" integrates it into a velocity setpoint as the particle world integrates velocity and
     flies that with PX4's velocity PID (acceleration feed-forward; the integral rejects wind);
-    "acceleration" passes it open loop to PX4's acceleration -> thrust path (DESIGN §8 literally;
+    "acceleration" passes it open loop to PX4's acceleration -> thrust path (docs/design.md §8 literally;
     wind then degrades tracking, and Wind-8 outpushes the 2 m/s^2 action bound)."""
     speed_limit_tau: float = 0.35
     """offboard = "acceleration": time constant (s) with which the interface pulls a speed that would

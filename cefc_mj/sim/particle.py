@@ -9,7 +9,7 @@ from `rng`) before the position update, the residual tracking error of a real ve
 carries it over into the next steps. A UAV whose disc overlaps an obstacle is in collision this
 step; it is pushed back onto the obstacle's surface and loses its inward velocity (an inelastic
 contact, so it cannot fly through obstacles). UAV-UAV overlaps are counted as collisions but not
-resolved. There is no damping: the quadrotor has none either (DESIGN §3).
+resolved. There is no damping: the quadrotor has none either (docs/design.md §3).
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Wind with the semantics of PX4's Gazebo-Classic wind plugin (DESIGN §7).
+"""Wind with the semantics of PX4's Gazebo-Classic wind plugin (docs/design.md §7).
 
 Every `update_period` (0.5 s) each env's wind speed is redrawn as |Normal(mean, sigma)| clipped to
 `max_speed`, and its direction as Normal(mean direction, direction_sigma) (an angle in the
@@ -24,6 +24,9 @@ import numpy as np
 
 from cefc_mj.errors import ConfigError
 
+MAX_WIND_SPEED = 20.0
+"""Default upper clip of a wind speed draw (m/s): a mean above it would be clipped, not flown."""
+
 
 @dataclass(frozen=True)
 class WindConfig:
@@ -33,7 +36,7 @@ class WindConfig:
     """Mean wind speed [windVelocityMean]; Table VIII's Wind-3/5/8 are 3, 5, 8."""
     speed_sigma: float | None = None
     """Standard deviation of the speed draw [sqrt(windVelocityVariance)]; None = 0.2 x mean_speed."""
-    max_speed: float = 20.0
+    max_speed: float = MAX_WIND_SPEED
     """Upper clip of a speed draw [windVelocityMax]."""
     direction: float | None = None
     """Mean direction the wind blows towards (rad, ENU, 0 = +x); None = uniform random per episode."""

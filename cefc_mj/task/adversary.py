@@ -1,4 +1,4 @@
-"""Rule-based adversaries (DESIGN §4): pick a point to chase, fly at it at top speed.
+"""Rule-based adversaries (docs/design.md §4): pick a point to chase, fly at it at top speed.
 
 - "nearest_group": the centre of the nearest group with at least 3 members (the paper's default
   behaviour of its PPO adversary); the nearest agent when there is no such group.

@@ -1,4 +1,4 @@
-"""Sensing deviation (DESIGN §7): agent i perceives from p_i + delta_i.
+"""Sensing deviation (docs/design.md §7): agent i perceives from p_i + delta_i.
 
 |delta_i| ~ |Normal(d, d/4)| in a uniformly random direction, redrawn every decision step. The
 physics and the metrics keep using the true states.

@@ -1,4 +1,4 @@
-"""Formation templates, groups and the Hausdorff formation error (DESIGN §4).
+"""Formation templates, groups and the Hausdorff formation error (docs/design.md §4).
 
 Templates Delta_c are world-aligned and centred at the origin with nearest-neighbour spacing s:
 c = 3..6 a regular c-gon of side s; c >= 7 a regular (c-1)-gon of side s plus its centre.

@@ -6,11 +6,12 @@ The numpy formulations these replace are kept as slow, obvious references in
 
 from __future__ import annotations
 
-import numba
 import numpy as np
 
+from cefc_mj.jit import njit
 
-@numba.njit(cache=True)
+
+@njit
 def neighbours_kernel(pos, vel, slots, radius, feats, mask):
     """Neighbours of each agent sorted by distance (ties by index), padded: feats [B,N,slots,4]
     = (p_j - p_i, v_j - v_i), mask [B,N,slots] (1 for a neighbour closer than radius)."""
@@ -50,7 +51,7 @@ def neighbours_kernel(pos, vel, slots, radius, feats, mask):
                     mask[b, i, s] = 0.0
 
 
-@numba.njit(cache=True)
+@njit
 def groups_kernel(pos, radius, labels):
     """Connected components of "distance < radius"; each labelled by its smallest member."""
     n_envs, n, _ = pos.shape
@@ -72,7 +73,7 @@ def groups_kernel(pos, radius, labels):
                         changed = True
 
 
-@numba.njit(cache=True)
+@njit
 def formation_error_kernel(pos, labels, templates, min_size, error, size, centre):
     """Per-group directed Hausdorff error HD(Delta_c, centred members), indexed by group label.
 
@@ -115,7 +116,7 @@ def formation_error_kernel(pos, labels, templates, min_size, error, size, centre
             error[b, g] = worst
 
 
-@numba.njit(cache=True)
+@njit
 def particle_step_kernel(pos, vel, vel_cmd, accel, kick, obstacles, dt, speed_max, response, contact_dist,
                          uav_diameter, collided):
     """Semi-implicit Euler with a speed clip, UAV-UAV overlap flags, and inelastic obstacle

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import functools
 
-import numba
+from cefc_mj.jit import njit
 import numpy as np
 
 
@@ -25,7 +25,7 @@ def beam_directions(n_rays: int) -> np.ndarray:
     return directions
 
 
-@numba.njit(cache=True, fastmath=False)
+@njit(fastmath=False)
 def _lidar_kernel(origins, directions, obstacles, obstacle_radius, agents, agent_radius, use_agents, max_range, out):
     n_envs, n_agents, _ = origins.shape
     n_rays = directions.shape[0]

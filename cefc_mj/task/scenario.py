@@ -1,4 +1,4 @@
-"""Seeded scenario sampling: starts, targets, anchors, obstacles (DESIGN §4).
+"""Seeded scenario sampling: starts, targets, anchors, obstacles (docs/design.md §4).
 
 Everything is drawn from one `numpy.random.Generator`, batched over envs; rejection sampling loops
 over slots (agents, obstacles) and vectorizes over envs. A placement that keeps failing raises

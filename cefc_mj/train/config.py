@@ -20,9 +20,39 @@ FORMATIONS = (3, 4, 5, 6, 7, 8)
 STEP_DENSITY = {1: 0.0, 2: 0.03, 3: 0.03}
 """Training obstacle density (per m^2) of each AT-M step (paper Sec. V-A: 0 and 0.03)."""
 
+# Upper bounds of user-facing values. They are far beyond anything useful and exist so that a typo
+# ('1e99it', --envs 100000000, --tuples 10**12) ends in one clear line instead of an overflow, an
+# out-of-memory kill or a run that never ends.
+MAX_ITERATIONS = 10_000_000
+"""Largest iteration budget (PPO iterations or distillation gradient steps)."""
+MAX_SECONDS = 30 * 24 * 3600.0
+"""Largest wall-clock budget: 30 days."""
+MAX_SEED = 2**32 - 1
+"""Seeds are in [0, 2^32 - 1] (numpy's SeedSequence takes no negative entropy)."""
+MAX_ENVS = 1024
+"""Most parallel envs of one PPO rollout (over 1 GB of rollout tensors at c = 8)."""
+MAX_EPOCHS = 100
+"""Most PPO epochs per iteration."""
+MAX_THREADS = 256
+"""Most torch threads."""
+MAX_LR = 1.0
+"""Largest Adam learning rate."""
+MAX_TUPLES = 1_000_000
+"""Most replay tuples per teacher (about 260 MB each, held in memory)."""
+LOWLEVEL_EPISODE_STEPS = 100
+"""Decision steps of a low-level (formation-mode) episode, TaskConfig's default."""
+
 
 def _fail(name: str, value: object, why: str) -> None:
     raise ConfigError(f"{name}={value!r}: {why}")
+
+
+def _check_int(name: str, value: object, least: int, most: int | None = None) -> None:
+    """An int (not a bool) in [least, most]."""
+    if not isinstance(value, int) or isinstance(value, bool) or value < least:
+        _fail(name, value, f"must be an integer >= {least}")
+    if most is not None and value > most:
+        _fail(name, value, f"must be at most {most}")
 
 
 @dataclass(frozen=True)
@@ -46,15 +76,24 @@ class Budget:
     @classmethod
     def parse(cls, text: str) -> "Budget":
         """'40' or '40it' -> 40 iterations; '90s', '15m', '1.5h' -> seconds."""
-        m = re.fullmatch(r"\s*(\d+(?:\.\d+)?)\s*(it|s|m|h)?\s*", str(text))
+        text = str(text)
+        shown = text if len(text) <= 40 else text[:37] + "..."
+        m = re.fullmatch(r"\s*(\d+(?:\.\d+)?)\s*(it|s|m|h)?\s*", text)
         if not m:
-            raise ConfigError(f"--budget {text!r}: expected iterations ('40', '40it') or time ('90s', '15m', '1.5h')")
+            raise ConfigError(f"--budget {shown!r}: expected iterations ('40', '40it') or time ('90s', '15m', '1.5h')")
         value, unit = float(m.group(1)), m.group(2) or "it"
+        if value <= 0:
+            raise ConfigError(f"--budget {shown!r}: must be more than zero")
         if unit == "it":
+            if not value <= MAX_ITERATIONS:
+                raise ConfigError(f"--budget {shown!r}: at most {MAX_ITERATIONS} iterations")
             if value != int(value):
-                raise ConfigError(f"--budget {text!r}: iterations must be a whole number")
+                raise ConfigError(f"--budget {shown!r}: iterations must be a whole number")
             return cls(iterations=int(value))
-        return cls(seconds=value * {"s": 1, "m": 60, "h": 3600}[unit])
+        seconds = value * {"s": 1, "m": 60, "h": 3600}[unit]
+        if not seconds <= MAX_SECONDS:
+            raise ConfigError(f"--budget {shown!r}: at most {MAX_SECONDS / 86400:.0f} days")
+        return cls(seconds=seconds)
 
     def scaled(self, share: float) -> "Budget":
         """This budget times `share` (at least one iteration / one second)."""
@@ -78,7 +117,7 @@ class Budget:
 @dataclass(frozen=True)
 class PPOConfig:
     """MAPPO hyperparameters. gamma, lambda, clip and the 20 envs are the paper's (Sec. V-A, Table
-    II). Three defaults differ from it, chosen by measurement on this project's 2-core budget (the
+    II). Three defaults differ from it, chosen by measurement within a 2-hour budget on 2 CPU cores (the
     paper's 500 iterations x 15 epochs do not fit in it): 5 epochs instead of 15 (3x cheaper
     updates, more fresh data per second), Adam 3e-4 instead of 1e-4 (the KL per iteration stayed
     ~0.003 at 1e-4), no entropy bonus (with it the action std grew past 1.3 and formation learning
@@ -117,14 +156,20 @@ class PPOConfig:
     """torch intra-op threads during the PPO update."""
 
     def validate(self) -> None:
-        for name in ("n_envs", "episodes_per_iteration", "epochs", "minibatches", "rollout_threads", "update_threads"):
-            v = getattr(self, name)
-            if not isinstance(v, int) or isinstance(v, bool) or v < 1:
-                _fail(name, v, "must be an integer >= 1")
+        for name, most in (("n_envs", MAX_ENVS), ("episodes_per_iteration", 100), ("epochs", MAX_EPOCHS),
+                           ("minibatches", None), ("rollout_threads", MAX_THREADS), ("update_threads", MAX_THREADS)):
+            _check_int(name, getattr(self, name), 1, most)
+        # A minibatch is a set of env-steps; more minibatches than env-steps would leave some empty.
+        env_steps = self.n_envs * self.episodes_per_iteration * LOWLEVEL_EPISODE_STEPS
+        if self.minibatches > env_steps:
+            _fail("minibatches", self.minibatches, f"must be at most the {env_steps} env-steps of an iteration "
+                  f"(n_envs x episodes x {LOWLEVEL_EPISODE_STEPS} steps)")
         for name in ("lr", "clip_eps", "max_grad_norm"):
             v = getattr(self, name)
             if not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
                 _fail(name, v, "must be a positive number")
+        if self.lr > MAX_LR:
+            _fail("lr", self.lr, f"must be at most {MAX_LR}")
         for name in ("gamma", "gae_lambda"):
             v = getattr(self, name)
             if not isinstance(v, (int, float)) or not 0 <= v <= 1:
@@ -155,7 +200,7 @@ class LowLevelConfig:
     """Training obstacle density (per m^2); None: the step's default (0 / 0.03 / 0.03)."""
     deviation: float = 0.0
     """Sensing deviation d (m) during training. With step 3 and d > 0 this is AT-M-Robust: the Step 3
-    policy fine-tuned while every agent perceives from a noisy position (DESIGN §7), so that it
+    policy fine-tuned while every agent perceives from a noisy position (docs/design.md §7), so that it
     keeps its distance from neighbours it sees up to ~1 m off (this project's addition)."""
     deviation_sampling: str = "fixed"
     """"fixed": every training episode uses `deviation`; "uniform": each env draws its episode's d
@@ -227,6 +272,7 @@ class LowLevelConfig:
             _fail("safe", self.safe, "AT-M-Safe fine-tunes the Step 3 policy: use it with step 3")
         if not isinstance(self.budget, Budget):
             _fail("budget", self.budget, "must be a Budget")
+        _check_int("seed", self.seed, 0, MAX_SEED)
         if not isinstance(self.deviation, (int, float)) or not 0 <= self.deviation <= 2.0:
             _fail("deviation", self.deviation, "must be in [0, 2] m")
         if self.deviation > 0 and (self.step != 3 or self.safe):
@@ -241,7 +287,8 @@ class LowLevelConfig:
         if (self.response_time > 0 or self.velocity_noise > 0) and (self.step != 3 or self.safe):
             _fail("response_time/velocity_noise", (self.response_time, self.velocity_noise),
                   "quadrotor-like dynamics fine-tune the Step 3 policy: use them with step 3 and without --safe")
-        if self.obstacle_density is not None and not 0 <= self.obstacle_density <= 0.2:
+        if self.obstacle_density is not None and (not isinstance(self.obstacle_density, (int, float))
+                                                  or not 0 <= self.obstacle_density <= 0.2):
             _fail("obstacle_density", self.obstacle_density, "must be in [0, 0.2] per m^2")
         for name in ("hidden", "critic_hidden", "checkpoint_every"):
             v = getattr(self, name)
@@ -293,10 +340,13 @@ class DistillConfig:
     def validate(self) -> None:
         if not self.formations or any(c not in FORMATIONS for c in self.formations):
             _fail("formations", self.formations, f"must be a non-empty subset of {FORMATIONS}")
-        for name in ("tuples_per_formation", "batch_size", "hidden", "checkpoint_every", "threads"):
-            v = getattr(self, name)
-            if not isinstance(v, int) or v < 1:
-                _fail(name, v, "must be an integer >= 1")
+        if not isinstance(self.budget, Budget):
+            _fail("budget", self.budget, "must be a Budget")
+        _check_int("seed", self.seed, 0, MAX_SEED)
+        _check_int("tuples_per_formation", self.tuples_per_formation, 1, MAX_TUPLES)
+        for name in ("batch_size", "hidden", "checkpoint_every"):
+            _check_int(name, getattr(self, name), 1)
+        _check_int("threads", self.threads, 1, MAX_THREADS)
         if not 0 < self.held_out < 0.5:
             _fail("held_out", self.held_out, "must be in (0, 0.5)")
         if not 0 <= self.collect_density <= 0.2:

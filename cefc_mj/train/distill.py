@@ -25,12 +25,15 @@ import torch
 from cefc_mj.env import BatchedCEFCEnv
 from cefc_mj.errors import CheckpointError, ConfigError
 from cefc_mj.nn.atm import ATMActor, ATMConfig
-from cefc_mj.nn.policy_io import Policy, atomic_torch_save, load_policy, safe_torch_load, save_policy
+from cefc_mj.fileio import write_atomic
+from cefc_mj.nn.policy_io import (Policy, atomic_torch_save, load_policy, resolve_policy_path, safe_torch_load,
+                                  save_policy)
+from cefc_mj.provenance import file_sha256
 from cefc_mj.task.config import TaskConfig
 from cefc_mj.train.config import DistillConfig
 from cefc_mj.train.logger import RunLogger
 from cefc_mj.train.mappo import iteration_seed
-from cefc_mj.train.model_card import table3_figures, write_model_card
+from cefc_mj.train.model_card import display_path, table3_figures, write_model_card
 
 STUDENT_NAME = "atm_student"
 STATE_FORMAT = "cefc-mj/distill-state"
@@ -97,22 +100,29 @@ def held_out_error(student: ATMActor, replay: dict[int, dict[str, torch.Tensor]]
 
 
 def train_student(cfg: DistillConfig, policies_dir: Path, out: Path, resume: bool = False,
-                  show_progress: bool = True, evaluate: bool = True, teachers_dir: Path | None = None) -> dict:
+                  show_progress: bool = True, evaluate: bool = True, teachers_dir: Path | None = None,
+                  command: str | None = None) -> dict:
     """Collect (or reload) the replay, train the student under cfg.budget, export it with a card.
 
-    Teachers are `<teachers_dir>/atm_c{c}_step3.pt` (teachers_dir defaults to policies_dir)."""
+    Teachers are `<teachers_dir>/atm_c{c}_step3.pt` (teachers_dir defaults to policies_dir).
+    resume: continue the run in <out>/atm_student/ (ConfigError if there is none). command: the
+    command line, recorded in config.json and the card. The inputs (run folder, teachers) are
+    checked before the run folder is made."""
     policies_dir, out = Path(policies_dir), Path(out)
     teachers_dir = Path(teachers_dir) if teachers_dir is not None else policies_dir
     run_dir = out / STUDENT_NAME
     state_path, replay_path = run_dir / "state.pt", run_dir / "replay.pt"
     if state_path.exists() and not resume:
         raise ConfigError(f"{run_dir} already holds a run; pass --resume to continue it, or choose another --out")
-    run_dir.mkdir(parents=True, exist_ok=True)
-    teachers = {c: load_policy(teacher_name(c), teachers_dir) for c in cfg.formations}
+    if resume and not state_path.exists():
+        raise ConfigError(f"--resume: no run to continue in {run_dir} (no state.pt); drop --resume to start one")
+    teacher_paths = {c: resolve_policy_path(teacher_name(c), teachers_dir) for c in cfg.formations}
+    teachers = {c: load_policy(path) for c, path in teacher_paths.items()}
     heads = {(t.actor.cfg.layout, t.actor.cfg.action, t.actor.cfg.velocity_gain) for t in teachers.values()}
     if len(heads) != 1:
         raise CheckpointError("distillation: the teachers differ in observation layout or action head")
     teacher_cfg = next(iter(teachers.values())).actor.cfg
+    run_dir.mkdir(parents=True, exist_ok=True)
 
     if replay_path.exists():
         saved = safe_torch_load(replay_path)
@@ -125,8 +135,10 @@ def train_student(cfg: DistillConfig, policies_dir: Path, out: Path, resume: boo
             replay[c] = collect_replay(teacher, c, cfg.tuples_per_formation, cfg.collect_density,
                                        iteration_seed(cfg.seed, 1000 + c), cfg.held_out)
         atomic_torch_save({"config": cfg.to_dict(), "replay": {str(c): r for c, r in replay.items()}}, replay_path)
-    (run_dir / "config.json").write_text(json.dumps({"distill": cfg.to_dict(), "teachers": {
-        str(c): t.name for c, t in teachers.items()}}, indent=2) + "\n")
+    teacher_files = {str(c): {"path": display_path(path), "sha256": file_sha256(path.resolve())}
+                     for c, path in teacher_paths.items()}
+    write_atomic(run_dir / "config.json", json.dumps({"distill": cfg.to_dict(), "teachers": teacher_files,
+                                                      "command": command}, indent=2) + "\n")
 
     torch.set_num_threads(cfg.threads)
     torch.manual_seed(cfg.seed)
@@ -150,6 +162,8 @@ def train_student(cfg: DistillConfig, policies_dir: Path, out: Path, resume: boo
                            "student": student.state_dict(), "optimizer": optimizer.state_dict(),
                            "generator": generator.get_state(), "step": step, "elapsed": elapsed}, state_path)
 
+    if step == 0:
+        checkpoint()  # step 0: a run killed before its first periodic checkpoint can still --resume
     per_teacher = max(1, cfg.batch_size // len(replay))
     total_logs = None if cfg.budget.iterations is None else cfg.budget.iterations
     logger = RunLogger(run_dir, step, total_logs, desc=STUDENT_NAME, show_progress=show_progress)
@@ -191,7 +205,7 @@ def train_student(cfg: DistillConfig, policies_dir: Path, out: Path, resume: boo
         "seed": cfg.seed,
         "config": cfg.to_dict(),
         "network": student.cfg.to_dict(),
-        "teachers": {str(c): f"{t.name}.pt" for c, t in teachers.items()},
+        "teachers": teacher_files,
         "replay_tuples": {str(c): int(r["obs"].shape[0]) for c, r in replay.items()},
         "held_out_tuples": {str(c): int(r["held_obs"].shape[0]) for c, r in replay.items()},
         "gradient_steps": step,
@@ -199,6 +213,7 @@ def train_student(cfg: DistillConfig, policies_dir: Path, out: Path, resume: boo
         "train_wall_clock_s": round(elapsed, 1),
         "held_out_error": errors,
         "run_dir": str(run_dir),
+        "command": command,  # with config and teachers: the run's config.json
     }
     if evaluate:
         card["table3"] = {str(c): table3_figures(policy_path, c, None, seed=0) for c in cfg.formations}

@@ -37,7 +37,8 @@ class RunLogger:
                 self._write_rows(rows)
         elif self.csv_path.exists():
             self.csv_path.unlink()
-        self.writer = SummaryWriter(str(Path(run_dir) / "tb"), purge_step=resume_iteration + 1 if resume_iteration else None)
+        # purge_step hides TensorBoard points past the resumed iteration (also when resuming from 0).
+        self.writer = SummaryWriter(str(Path(run_dir) / "tb"), purge_step=resume_iteration + 1)
         self.bar = tqdm(total=total, initial=resume_iteration, desc=desc, unit="it", disable=not show_progress,
                         dynamic_ncols=True, mininterval=2.0)
 

@@ -3,14 +3,18 @@
     run folder   <out>/<name>/   config.json, progress.csv, tb/, state.pt (resumable)
     policy file  <policies_dir>/<name>.pt   + <name>.json model card
 
-with name = atm_c{c}_step{1,2,3} or atm_c{c}_safe. Initialisation per step:
+with name = atm_c{c}_step{1,2,3}, atm_c{c}_safe, atm_c{c}_robust or atm_c{c}_quad. Initialisation:
 
 - Step 1: random init, obstacle density 0.
 - Step 2: random init, density 0.03.
 - Step 3: formation & output modules (and log-std) from Step 1's final actor, obstacle module from
   Step 2's, critic and value-norm statistics from Step 2 (phi_{L,2}); density 0.03. Reads
   <out>/atm_c{c}_step1/state.pt and <out>/atm_c{c}_step2/state.pt.
-- Safe: Step 3's final actor, critic and value norm, trained further with the Safe LiDAR transform.
+- Safe, Robust, Quad: Step 3's final actor, critic and value norm (<out>/atm_c{c}_step3/state.pt),
+  trained further with the Safe LiDAR transform, sensing deviation or quadrotor-like dynamics.
+- Any Step 3 stage with `init_from` (a policy file, e.g. the shipped policies/atm_c6_step3.pt):
+  the actor from that file, the critic and value normalisation fresh, because a policy file holds
+  only the actor. This needs no earlier run folders.
 
 `state.pt` holds networks, optimizers, value-norm statistics, the torch RNG, counters and the
 config; `train_lowlevel(..., resume=True)` continues it exactly (see MAPPO).
@@ -26,13 +30,15 @@ import torch
 
 from cefc_mj.env import BatchedCEFCEnv
 from cefc_mj.errors import CheckpointError, ConfigError
+from cefc_mj.fileio import write_atomic
 from cefc_mj.nn.atm import ATMActor, ATMConfig, Critic, merge_step3
-from cefc_mj.nn.policy_io import atomic_torch_save, safe_torch_load, save_policy
+from cefc_mj.nn.policy_io import atomic_torch_save, load_actor, resolve_policy_path, safe_torch_load, save_policy
+from cefc_mj.provenance import file_sha256
 from cefc_mj.task.config import TaskConfig
 from cefc_mj.train.config import LowLevelConfig
 from cefc_mj.train.logger import RunLogger
 from cefc_mj.train.mappo import MAPPO
-from cefc_mj.train.model_card import table3_figures, write_model_card
+from cefc_mj.train.model_card import display_path, table3_figures, write_model_card
 from cefc_mj.train.ppo import ValueNorm
 
 STATE_FORMAT = "cefc-mj/train-state"
@@ -67,10 +73,11 @@ def _fresh_networks(cfg: LowLevelConfig, task: TaskConfig) -> tuple[ATMActor, Cr
     return actor, critic
 
 
-def _source_state(out: Path, name: str, for_stage: str) -> tuple[dict, ATMActor]:
+def _source_state(out: Path, name: str, cfg: LowLevelConfig) -> tuple[dict, ATMActor]:
     path = out / name / STATE_FILE
     if not path.is_file():
-        raise ConfigError(f"{for_stage} starts from {name}: no training state at {path}; train that stage first")
+        raise ConfigError(f"{cfg.name} starts from {name}: no training state at {path}; train that stage first, "
+                          f"or start from a trained policy with --init-from {stage_name(cfg.formation, 3)}")
     payload = read_state(path)
     src_cfg = LowLevelConfig.from_dict(payload["config"])
     src_task = task_config_for(src_cfg)
@@ -82,19 +89,59 @@ def _source_state(out: Path, name: str, for_stage: str) -> tuple[dict, ATMActor]
     return payload, actor
 
 
-def initial_networks(cfg: LowLevelConfig, task: TaskConfig, out: Path) -> tuple[ATMActor, Critic, ValueNorm, dict]:
-    """Actor, critic and value norm a stage starts from, and where they came from (for the model card)."""
+# The actor-shape fields a policy file must share with the stage it initialises (safe and
+# log_std_init may differ: the Safe transform is an input transform, the log-std is a loaded weight).
+_INIT_SHAPE_FIELDS = ("layout", "lidar_range", "accel_max", "hidden", "act_dim", "action", "velocity_gain")
+
+
+def load_init_policy(path_or_name: str | Path, cfg: LowLevelConfig) -> tuple[ATMActor, dict]:
+    """The actor of a trained policy file that `cfg` (a Step 3 stage) starts from, and the origin
+    record for its model card. `path_or_name` is a file or a name in the shipped policies folder.
+    The file holds only the actor: the critic and value normalisation start fresh."""
+    if cfg.step != 3:
+        raise ConfigError(f"--init-from: {cfg.name} (AT-M Step {cfg.step}) starts from random weights; --init-from "
+                          "is for Step 3 stages (Step 3 itself, --safe, --deviation, --response-time/--velocity-noise)")
+    expected = ATMConfig.from_task(task_config_for(cfg), hidden=cfg.hidden, safe=cfg.safe,
+                                   log_std_init=cfg.log_std_init)
+    try:
+        path = resolve_policy_path(path_or_name)
+        actor, meta = load_actor(path, obs_dim=expected.obs_dim)
+    except CheckpointError as e:
+        raise CheckpointError(f"--init-from: {e}") from None
+    differ = [f for f in _INIT_SHAPE_FIELDS if getattr(actor.cfg, f) != getattr(expected, f)]
+    if differ:
+        shown = ", ".join(
+            f if f == "layout" else f"{f} {getattr(actor.cfg, f)!r} (this stage: {getattr(expected, f)!r})"
+            for f in differ)
+        raise CheckpointError(f"--init-from {path}: made for another network: {shown}")
+    origin = {
+        "actor": f"policy file {display_path(path)}",
+        "critic": "fresh (random), value normalisation fresh: a policy file holds only the actor",
+        "init_from": {"path": display_path(path), "sha256": file_sha256(path.resolve()),
+                      "name": meta.get("name"), "iterations": meta.get("iterations")},
+    }
+    return actor, origin
+
+
+def initial_networks(cfg: LowLevelConfig, task: TaskConfig, out: Path,
+                     init_from: tuple[ATMActor, dict] | None = None) -> tuple[ATMActor, Critic, ValueNorm, dict]:
+    """Actor, critic and value norm a stage starts from, and where they came from (for the model card).
+    `init_from`: the (actor, origin) of `load_init_policy`, used instead of earlier stages' states."""
     actor, critic = _fresh_networks(cfg, task)
     value_norm = ValueNorm()
+    if init_from is not None:
+        src_actor, origin = init_from
+        actor.load_state_dict(src_actor.state_dict())
+        return actor, critic, value_norm, dict(origin)
     if cfg.step != 3:
         return actor, critic, value_norm, {"actor": "random", "critic": "random"}
     if cfg.fine_tune:
-        src, src_actor = _source_state(out, stage_name(cfg.formation, 3), cfg.name)
+        src, src_actor = _source_state(out, stage_name(cfg.formation, 3), cfg)
         actor.load_state_dict(src_actor.state_dict())
         origin = {"actor": stage_name(cfg.formation, 3), "critic": stage_name(cfg.formation, 3)}
     else:
-        _, step1 = _source_state(out, stage_name(cfg.formation, 1), cfg.name)
-        src, step2 = _source_state(out, stage_name(cfg.formation, 2), cfg.name)
+        _, step1 = _source_state(out, stage_name(cfg.formation, 1), cfg)
+        src, step2 = _source_state(out, stage_name(cfg.formation, 2), cfg)
         actor.load_state_dict(merge_step3(step1, step2).state_dict())
         origin = {"actor": "formation & output modules, log-std: atm_c{c}_step1; obstacle module: atm_c{c}_step2"
                   .format(c=cfg.formation), "critic": stage_name(cfg.formation, 2)}
@@ -127,12 +174,19 @@ def _check_same_run(saved: dict, cfg: LowLevelConfig, path: Path) -> None:
 
 
 def train_lowlevel(cfg: LowLevelConfig, out: Path, policies_dir: Path, resume: bool = False,
-                   show_progress: bool = True, evaluate: bool = True) -> dict:
-    """Train one stage under its budget; export the policy and its model card. Returns the card."""
+                   show_progress: bool = True, evaluate: bool = True, init_from: str | Path | None = None,
+                   command: str | None = None) -> dict:
+    """Train one stage under its budget; export the policy and its model card. Returns the card.
+
+    resume: continue the run in <out>/<name>/ (ConfigError if there is none). init_from: a policy
+    file or shipped policy name the actor of a Step 3 stage starts from (see load_init_policy).
+    command: the command line, recorded in config.json and the card. Every check on the inputs
+    runs before the run folder is made."""
     out, policies_dir = Path(out), Path(policies_dir)
     run_dir = out / cfg.name
     state_path = run_dir / STATE_FILE
     task = task_config_for(cfg)
+    init = load_init_policy(init_from, cfg) if init_from is not None else None
 
     saved = None
     if state_path.exists():
@@ -140,22 +194,28 @@ def train_lowlevel(cfg: LowLevelConfig, out: Path, policies_dir: Path, resume: b
             raise ConfigError(f"{run_dir} already holds a run; pass --resume to continue it, or choose another --out")
         saved = read_state(state_path)
         _check_same_run(saved["config"], cfg, state_path)
+        if init is not None and saved["origin"].get("init_from", {}).get("sha256") != init[1]["init_from"]["sha256"]:
+            raise ConfigError(f"--init-from {init_from}: the run in {run_dir} started from {saved['origin']['actor']}; "
+                              "resume it without --init-from, or choose another --out")
         actor, critic = _fresh_networks(cfg, task)
         value_norm, origin = ValueNorm(), saved["origin"]
+    elif resume:
+        raise ConfigError(f"--resume: no run to continue in {run_dir} (no {STATE_FILE}); drop --resume to start one")
     else:
-        actor, critic, value_norm, origin = initial_networks(cfg, task, out)
+        actor, critic, value_norm, origin = initial_networks(cfg, task, out, init)
     trainer = MAPPO(task, cfg.ppo, actor, critic, seed=cfg.seed, value_norm=value_norm)
     if saved is not None:
         trainer.load_state_dict(saved["trainer"])
 
-    run_dir.mkdir(parents=True, exist_ok=True)
-    (run_dir / "config.json").write_text(json.dumps({"stage": cfg.to_dict(), "task": task.to_dict(), "init": origin},
-                                                    indent=2) + "\n")
+    run_config = {"stage": cfg.to_dict(), "task": task.to_dict(), "init": origin, "command": command}
+    write_atomic(run_dir / "config.json", json.dumps(run_config, indent=2) + "\n")
 
     def checkpoint() -> None:
         atomic_torch_save({"format": STATE_FORMAT, "config": cfg.to_dict(), "origin": origin,
                            "trainer": trainer.state_dict()}, state_path)
 
+    if saved is None:
+        checkpoint()  # iteration 0: a run killed before its first periodic checkpoint can still --resume
     logger = RunLogger(run_dir, trainer.iteration, cfg.budget.iterations, desc=cfg.name, show_progress=show_progress)
     last_row: dict = {}
     try:
@@ -183,12 +243,14 @@ def train_lowlevel(cfg: LowLevelConfig, out: Path, policies_dir: Path, resume: b
         "task": task.to_dict(),
         "network": actor.cfg.to_dict(),
         "init": origin,
+        "init_from": origin.get("init_from"),
         "iterations": trainer.iteration,
         "agent_steps": trainer.agent_steps,
         "env_steps": trainer.agent_steps // cfg.formation,
         "train_wall_clock_s": round(trainer.elapsed, 1),
         "last_iteration": {k: v for k, v in last_row.items() if isinstance(v, (int, float))},
         "run_dir": str(run_dir),
+        "command": command,  # with config, task and init: the run's config.json
     }
     if evaluate:
         card["table3"] = table3_figures(policy_path, cfg.formation, cfg.method, seed=0)

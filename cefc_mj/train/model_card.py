@@ -1,31 +1,19 @@
 """Model cards: a JSON file beside each exported policy (`atm_c6_step3.pt` -> `atm_c6_step3.json`)
-saying how it was made and how it scores: config, seed, git commit, wall-clock, samples, and its
-Table III-protocol figures (particle world, density 0.05, 50 episodes x 100 steps)."""
+saying how it was made and how it scores: config, seed, where its weights started, git commit, code
+digest and library versions, wall-clock, samples, and its Table III-protocol figures (particle
+world, density 0.05, 50 episodes x 100 steps)."""
 
 from __future__ import annotations
 
 import datetime as _dt
 import json
-import os
-import platform
-import subprocess
 from pathlib import Path
-
-import torch
 
 from cefc_mj import paths
 from cefc_mj.eval.table3 import PAPER_TABLE3, TABLE3_DENSITY, TABLE3_EPISODES, TABLE3_STEPS, evaluate_lowlevel
+from cefc_mj.fileio import write_atomic
 from cefc_mj.nn.policy_io import load_policy
-
-
-def git_commit() -> str | None:
-    """The project's HEAD commit (read-only query), or None outside a repository / before the first commit."""
-    try:
-        out = subprocess.run(["git", "rev-parse", "HEAD"], cwd=paths.PROJECT_ROOT, capture_output=True, text=True,
-                             timeout=10)
-    except (OSError, subprocess.SubprocessError):
-        return None
-    return out.stdout.strip() if out.returncode == 0 else None
+from cefc_mj.provenance import git_commit, library_versions
 
 
 def table3_figures(policy_path: Path, formation: int, method: str | None, seed: int = 0) -> dict:
@@ -39,18 +27,46 @@ def table3_figures(policy_path: Path, formation: int, method: str | None, seed: 
     }
 
 
+def display_path(path: Path) -> str:
+    """A file's path as cards record it: relative to the project root when inside it
+    ('policies/atm_c6_step3.pt'), else absolute."""
+    path = Path(path).resolve()
+    try:
+        return path.relative_to(paths.PROJECT_ROOT.resolve()).as_posix()
+    except ValueError:
+        return str(path)
+
+
+def card_path(policy_path: Path) -> Path:
+    """The model card of a policy file: same folder, same stem, `.json`."""
+    return Path(policy_path).with_suffix(".json")
+
+
 def write_model_card(policy_path: Path, card: dict) -> Path:
-    """Write `card` (plus provenance: commit, time, versions) as JSON beside the policy file."""
+    """Write `card` plus provenance (git commit, UTC time, code digest, library versions and CPU
+    from cefc_mj.provenance) as JSON beside the policy file, atomically."""
     policy_path = Path(policy_path)
     full = {
         "policy_file": policy_path.name,
         **card,
         "git_commit": git_commit(),
         "created_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
-        "torch": torch.__version__,
-        "python": platform.python_version(),
-        "machine": f"{platform.machine()}, {os.cpu_count()} CPUs",
+        "versions": library_versions(),
     }
-    path = policy_path.with_suffix(".json")
-    path.write_text(json.dumps(full, indent=2) + "\n")
+    path = card_path(policy_path)
+    write_atomic(path, json.dumps(full, indent=2) + "\n")
     return path
+
+
+def install_policy(policy_path: Path, dest_dir: Path) -> Path:
+    """Copy a policy file and its model card into `dest_dir` (atomically, file by file; the policy
+    is loaded first, so a broken export is never installed). Returns the installed policy path."""
+    policy_path, dest_dir = Path(policy_path), Path(dest_dir)
+    load_policy(policy_path)  # raises CheckpointError on a broken file
+    target = dest_dir / policy_path.name
+    if target.resolve() == policy_path.resolve():
+        return target  # exported there already
+    card = card_path(policy_path)
+    write_atomic(target, policy_path.read_bytes())
+    write_atomic(card_path(target), card.read_bytes())
+    return target

@@ -18,9 +18,10 @@ from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, replace
 from pathlib import Path
 
+from cefc_mj.errors import ConfigError
 from cefc_mj.train.config import Budget, DistillConfig, LowLevelConfig, PPOConfig
 from cefc_mj.train.distill import train_student
-from cefc_mj.train.lowlevel import train_lowlevel
+from cefc_mj.train.lowlevel import STATE_FILE, train_lowlevel
 
 PIPELINE_ORDER = (6, 7, 8, 5, 4, 3)
 """Formation order: the evaluated sizes first, so a cut-short pipeline still has them."""
@@ -76,43 +77,64 @@ def _distill_budget(budget: Budget) -> Budget:
 
 def run_pipeline(budget: Budget, out: Path, policies_dir: Path, seed: int = 0, resume: bool = False,
                  formations=PIPELINE_ORDER, ppo: PPOConfig | None = None, show_progress: bool = True,
-                 tuples_per_formation: int = 60_000, workers: int = 1) -> list[dict]:
-    """Run every stage of `plan(...)`; returns the model cards (AT-M stages, then the student)."""
+                 tuples_per_formation: int = 60_000, workers: int = 1, command: str | None = None) -> list[dict]:
+    """Run every stage of `plan(...)`; returns the model cards (AT-M stages, then the student).
+
+    resume: continue the pipeline whose stage runs are under `out` (stages not started yet start
+    fresh); ConfigError if `out` holds none. Without it, `out` must hold no stage run. Both are
+    checked, like every stage config, before any stage starts."""
+    out = Path(out)
     ppo = ppo or PPOConfig()
     if workers > 1:
         ppo = replace(ppo, rollout_threads=1, update_threads=1)
     stages = plan(budget, formations, seed, ppo, tuples_per_formation, workers)
+    started = [s.name for s in stages if _started(out, s.name)]
+    if resume and not started:
+        raise ConfigError(f"--resume: no run to continue in {out} (no stage folder with {STATE_FILE}); "
+                          "drop --resume to start one")
+    if not resume and started:
+        shown = ", ".join(started[:3]) + (", ..." if len(started) > 3 else "")
+        raise ConfigError(f"{out} already holds runs of a pipeline ({shown}); pass --resume to continue it, "
+                          "or choose another --out")
     lowlevel, distill = stages[:-1], stages[-1]
     start = time.perf_counter()
     order = [c for c in PIPELINE_ORDER if c in set(formations)]
     groups = [[s for s in lowlevel if order.index(s.lowlevel.formation) % workers == w] for w in range(workers)]
     groups = [g for g in groups if g]
     if len(groups) == 1:
-        cards = _run_stages(groups[0], out, policies_dir, resume, show_progress, "")
+        cards = _run_stages(groups[0], out, policies_dir, resume, show_progress, "", command)
     else:
         _log(f"[lowlevel-all] {len(groups)} workers: " + "; ".join(
             "w{}: c = {}".format(i, ", ".join(str(c) for c in dict.fromkeys(s.lowlevel.formation for s in g)))
             for i, g in enumerate(groups)))
         with ProcessPoolExecutor(len(groups), mp_context=multiprocessing.get_context("spawn")) as pool:
-            futures = [pool.submit(_run_stages, g, out, policies_dir, resume, False, f"w{i} ") for i, g in enumerate(groups)]
+            futures = [pool.submit(_run_stages, g, out, policies_dir, resume, False, f"w{i} ", command)
+                       for i, g in enumerate(groups)]
             cards = [card for f in futures for card in f.result()]
     _log(f"[lowlevel-all] stage {distill.name}: budget {distill.budget} "
         f"(pipeline wall-clock so far {time.perf_counter() - start:.0f} s)")
-    card = train_student(distill.distill, policies_dir, out, resume=resume, show_progress=show_progress)
+    card = train_student(distill.distill, policies_dir, out, resume=resume and _started(out, distill.name),
+                         show_progress=show_progress, command=command)
     _log(f"[lowlevel-all] {distill.name} done: {_summary(card)}")
     _log(f"[lowlevel-all] finished in {time.perf_counter() - start:.0f} s")
     return cards + [card]
 
 
+def _started(out: Path, stage_name: str) -> bool:
+    """The stage has a run folder with resumable state (a resumed pipeline continues it)."""
+    return (Path(out) / stage_name / STATE_FILE).exists()
+
+
 def _run_stages(stages: list[Stage], out: Path, policies_dir: Path, resume: bool, show_progress: bool,
-                prefix: str) -> list[dict]:
+                prefix: str, command: str | None = None) -> list[dict]:
     """Train AT-M stages in order (one worker's share of the pipeline)."""
     cards = []
     start = time.perf_counter()
     for stage in stages:
         _log(f"[lowlevel-all] {prefix}{stage.name}: budget {stage.budget} (worker wall-clock "
             f"{time.perf_counter() - start:.0f} s)")
-        card = train_lowlevel(stage.lowlevel, out, policies_dir, resume=resume, show_progress=show_progress)
+        card = train_lowlevel(stage.lowlevel, out, policies_dir, resume=resume and _started(out, stage.name),
+                              show_progress=show_progress, command=command)
         cards.append(card)
         _log(f"[lowlevel-all] {prefix}{stage.name} done after {card['iterations']} it: {_summary(card)}")
     return cards

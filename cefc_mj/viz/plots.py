@@ -24,7 +24,7 @@ from matplotlib.patches import Circle
 from cefc_mj.eval.record import EpisodeRecord
 from cefc_mj.fileio import atomic_write
 
-_ZONE_RADIUS = 1.0  # N counts steps with the swarm centre within 1 m of the anchor (DESIGN §5)
+_ZONE_RADIUS = 1.0  # N counts steps with the swarm centre within 1 m of the anchor (docs/design.md §5)
 
 
 def episode_title(record: EpisodeRecord) -> str:

@@ -1,10 +1,11 @@
 """Rerun logging of an `EpisodeRecord`: one code path for the live viewer and for `.rrd` recordings.
 
 `open_recording(rrd_path, spawn)` picks the sinks (a spawned viewer, a file, or both) and attaches
-the blueprint; `log_episode(record, recording)` sends the episode. Everything that changes over time
-goes out column-wise with `rr.send_columns` (one call per entity and episode, or per slice of steps
-with `log_steps`), never one `rr.log` per step: DESIGN §9 measured 0.4-0.8 ms a frame for per-step
-logging against about 0.06 ms a frame for columns.
+the blueprint (`check_spawn_possible()` tells up front whether a viewer can be shown);
+`log_episode(record, recording)` sends the episode, its provenance as recording properties.
+Everything that changes over time goes out column-wise with `rr.send_columns` (one call per entity
+and episode, or per slice of steps with `log_steps`), never one `rr.log` per step: DESIGN §9
+measured 0.4-0.8 ms a frame for per-step logging against about 0.06 ms a frame for columns.
 
 Entity paths and timelines are listed in docs/rerun.md. Two timelines: `step` (sequence, the
 decision step index t) and `sim_time` (duration, t * dt seconds).
@@ -18,6 +19,8 @@ decision step index t) and `sim_time` (duration, t * dt seconds).
 from __future__ import annotations
 
 import os
+import socket
+import sys
 import uuid
 import warnings
 from pathlib import Path
@@ -31,6 +34,7 @@ from cefc_mj.errors import ConfigError
 from cefc_mj.eval.record import EpisodeRecord
 
 APPLICATION_ID = "cefc-mj"
+VIEWER_PORT = 9876  # Rerun's default: `rr.spawn` starts (or finds) the viewer here and the gRPC sink sends here
 
 # Group colours: a group is labelled by its smallest member index, so label g takes palette[g % 10].
 _PALETTE = np.array(
@@ -41,6 +45,7 @@ _PALETTE = np.array(
 _ISOLATED = np.array([90, 90, 90], dtype=np.uint8)
 _MARKER_HEIGHT = 0.15  # the group-coloured dot sits this far above each drone's centre (m)
 _ZONE_RADIUS = 1.0  # N counts steps with the swarm centre within 1 m of the anchor (DESIGN §5)
+_WIND_ARROW_LIFT = 0.6  # the wind arrow starts this far above the swarm centre, clear of the drones (m)
 
 # Time series grouped by unit; any other scalar lands in the last view.
 _SERIES_VIEWS = (
@@ -90,6 +95,36 @@ def episode_blueprint() -> rrb.Blueprint:
     )
 
 
+def check_spawn_possible(port: int | None = None) -> None:
+    """Raise `ConfigError` unless a live viewer can be shown: one already listens on `port`
+    (default `VIEWER_PORT`), or there is a display to start one on (Linux: DISPLAY or
+    WAYLAND_DISPLAY set; macOS and Windows always have one).
+
+    Without either, Rerun would start a viewer that dies at once, and every flush would wait for it.
+    The CLI calls this before flying any episode; `open_recording(spawn=True)` calls it too.
+    """
+    port = VIEWER_PORT if port is None else port
+    if _listening(port):
+        return
+    if sys.platform in ("darwin", "win32") or os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"):
+        return
+    raise ConfigError(
+        f"--spawn: no display to open a Rerun viewer on (DISPLAY and WAYLAND_DISPLAY are unset) and no viewer "
+        f"listens on port {port}; record with --rrd PATH and open it with `rerun PATH`, or start `rerun` yourself "
+        f"and run again (on your desktop, reaching this machine with `ssh -R {port}:localhost:{port}`; "
+        f"or headless here: `rerun --port {port} --save live.rrd`)"
+    )
+
+
+def _listening(port: int, host: str = "127.0.0.1", timeout_s: float = 0.5) -> bool:
+    """Whether something accepts TCP connections at host:port (a running viewer or `rerun --save`)."""
+    try:
+        with socket.create_connection((host, port), timeout=timeout_s):
+            return True
+    except OSError:
+        return False
+
+
 def open_recording(
     rrd_path: str | os.PathLike | None = None,
     spawn: bool = False,
@@ -100,10 +135,13 @@ def open_recording(
 
     Each call is a distinct recording (a fresh `recording_id` unless given), so one viewer can hold
     several episodes side by side. The blueprint from `episode_blueprint` goes with it. Raises
-    `ConfigError` when neither sink is asked for or the file cannot be written.
+    `ConfigError` when neither sink is asked for, the file cannot be written, or `spawn` has no
+    viewer to show (`check_spawn_possible`).
     """
     if rrd_path is None and not spawn:
         raise ConfigError("open_recording: give rrd_path, spawn=True, or both")
+    if spawn:
+        check_spawn_possible()
     sinks: list = []
     if rrd_path is not None:
         path = Path(rrd_path)
@@ -139,9 +177,10 @@ def log_episode(record: EpisodeRecord, recording: rr.RecordingStream) -> None:
 
 
 def log_static(record: EpisodeRecord, recording: rr.RecordingStream) -> None:
-    """What does not change during an episode: frame, obstacles, targets, drone bodies, styles."""
+    """What does not change during an episode: provenance, frame, obstacles, targets, drone bodies, styles."""
     rec = recording
     rec.send_recording_name(f"{record.condition} c={record.formation} seed={record.seed} ({record.backend})")
+    rec.send_property("provenance", rr.AnyValues(**provenance_fields(record)))
     rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
     rec.log("episode", rr.TextDocument(_episode_markdown(record), media_type="text/markdown"), static=True)
     k = len(record.obstacles)
@@ -169,6 +208,8 @@ def log_static(record: EpisodeRecord, recording: rr.RecordingStream) -> None:
         rec.log("world/adversary", rr.Points3D.from_fields(radii=0.25, colors=[200, 0, 0], labels="adversary"),
                 static=True)
     rec.log("world/trails", rr.LineStrips3D.from_fields(radii=0.02), static=True)
+    if _has_wind(record):
+        rec.log("world/wind", rr.Arrows3D.from_fields(radii=0.04, colors=[60, 160, 255]), static=True)
     rec.log("world/template", rr.Points3D.from_fields(radii=0.08), static=True)
     rec.log("world/collisions", rr.Points3D.from_fields(radii=0.35, colors=[255, 0, 0, 140]), static=True)
     body = _body_archetypes(record)
@@ -202,6 +243,14 @@ def log_steps(record: EpisodeRecord, recording: rr.RecordingStream, start: int, 
 
     for name, series in record.scalars.items():
         rr.send_columns(f"metrics/{name}", index, rr.Scalars.columns(scalars=series[start:stop]), recording=rec)
+
+    if _has_wind(record):  # an arrow above the swarm centre, 1 m long per m/s of wind
+        wind = record.wind_vector[start:stop]
+        rr.send_columns("world/wind", index, rr.Arrows3D.columns(
+            origins=pos.mean(axis=1) + [0.0, 0.0, _WIND_ARROW_LIFT],
+            vectors=np.column_stack([wind, np.zeros(rows)]),
+            labels=[f"wind {speed:.1f} m/s" for speed in np.linalg.norm(wind, axis=1)],
+        ), recording=rec)
 
     anchor = np.column_stack([record.anchor[start:stop], np.full(rows, alt)])
     rr.send_columns("world/anchor", index, rr.Transform3D.columns(translation=anchor), recording=rec)
@@ -247,6 +296,23 @@ def log_steps(record: EpisodeRecord, recording: rr.RecordingStream, start: int, 
             strips=_segments_arrow(beams.reshape(rows * m, 2, 3))).partition(np.full(rows, m)), recording=rec)
         rr.send_columns(f"{uav}/lidar/hits", index, rr.Points3D.columns(
             positions=ends[:, i][hit[:, i]]).partition(hit[:, i].sum(axis=1)), recording=rec)
+
+
+def provenance_fields(record: EpisodeRecord) -> dict[str, str | int | float]:
+    """What the `provenance` recording property holds: the policy and its file's SHA-256, the
+    episode's condition and size, its final F, N, C, and the code that flew it (git commit, code
+    version, library versions). Rerun drops empty values, so unknown ones read "n/a"."""
+    fields: dict[str, str | int | float] = {
+        "policy": record.policy, "policy_sha256": record.policy_sha256,
+        "backend": record.backend, "condition": record.condition, "formation": record.formation,
+        "seed": record.seed, "wind": record.wind, "deviation": record.deviation, "steps": record.n_steps,
+        "dt": record.dt, **record.final_metrics, **record.provenance,
+    }
+    return {k: "n/a" if v == "" else v for k, v in fields.items()}
+
+
+def _has_wind(record: EpisodeRecord) -> bool:
+    return bool(np.any(record.wind_vector != 0.0))
 
 
 def _segments_arrow(segments: np.ndarray) -> pa.Array:
@@ -314,6 +380,10 @@ def _rotate(quat_wxyz: np.ndarray, v: np.ndarray) -> np.ndarray:
 
 def _episode_markdown(record: EpisodeRecord) -> str:
     adversary = "yes" if record.adversary_pos is not None else "no"
+    result = ", ".join(f"{m} = {v:g}" for m, v in record.final_metrics.items()) or "n/a"
+    code = record.provenance
+    libraries = ", ".join(f"{name} {code[name]}" for name in ("python", "numpy", "numba", "mujoco", "torch")
+                          if name in code)
     return "\n".join([
         f"# {record.condition}, c = {record.formation}",
         "",
@@ -325,4 +395,16 @@ def _episode_markdown(record: EpisodeRecord) -> str:
         f"| obstacles | {len(record.obstacles)} (r = {record.obstacle_radius} m) |",
         f"| LiDAR | {record.n_beams} beams, {record.lidar_range} m |",
         f"| adversary | {adversary} |",
+        f"| wind, deviation | {record.wind:g} m/s, {record.deviation:g} m |",
+        f"| result | {result} |",
+        "",
+        "## Provenance",
+        "",
+        "| | |", "|---|---|",
+        f"| policy | {record.policy or 'n/a'} |",
+        f"| policy SHA-256 | `{record.policy_sha256 or 'n/a'}` |",
+        f"| git commit | `{code.get('git_commit') or 'n/a'}` |",
+        f"| cefc-mj | {code.get('cefc_mj', 'n/a')} (code `{code.get('code_version', 'n/a')}`) |",
+        f"| libraries | {libraries or 'n/a'} |",
+        f"| CPU | {code.get('cpu', 'n/a')} |",
     ])
