@@ -37,6 +37,8 @@ MAX_STEPS = 100_000
 MAX_WORKERS = 64
 MAX_DEVIATION = 10.0
 """Sensing deviation at most (m): beyond it every perceived position is noise (observation range is 3 m)."""
+MAX_LINK_MS = 10_000.0
+"""SITL-M link delay and jitter at most (ms)."""
 MAX_SEED = 2**32 - 1
 """Seeds are 32-bit unsigned: --seed + --episodes - 1 must not pass it."""
 PAPER_STEPS = 1000
@@ -94,7 +96,17 @@ def build_parser() -> argparse.ArgumentParser:
                         "(AT-M-Quad, c = 5..8), student, a name in policies/, or a .pt path; "
                         "table3 without it evaluates every method")
     p.add_argument("--sitl-m", action="store_true",
-                   help="SITL-M, every UAV's policy in its own process: not yet available (refused)")
+                   help="SITL-M: every UAV's policy in its own OS process over ZeroMQ, asynchronous (single: the "
+                        "asked condition flown that way, vs the one-process calm reference; table8: adds the SITL-M "
+                        "row); docs/sitl_m.md")
+    p.add_argument("--link-delay", type=float, default=None, metavar="MS",
+                   help="SITL-M: one-way network delay in simulated ms, each way (default 0)")
+    p.add_argument("--jitter", type=float, default=None, metavar="MS",
+                   help="SITL-M: each direction adds a uniform draw from [0, MS] ms (default 0)")
+    p.add_argument("--drop", default=None, metavar="K@STEP",
+                   help="agent dropout (single): K UAVs leave the swarm before decision step STEP, the rest re-form "
+                        "with c - K (fly --policy student for the paper's experiment); lock-step, or SITL-M with "
+                        "--sitl-m (their processes are killed); prints F/N/C before and after")
     p.add_argument("--rrd", type=Path, metavar="PATH", help="record the episodes to a Rerun .rrd file (single)")
     p.add_argument("--spawn", action="store_true", help="stream the episodes to a live Rerun viewer (single)")
     p.add_argument("--png", type=Path, metavar="DIR", help="write a top-down PNG of each episode into DIR (single)")
@@ -185,8 +197,18 @@ def is_shipped_reports(path: Path) -> bool:
 def validate(args: argparse.Namespace) -> None:
     """Every flag checked before any work starts; one clear line each. Fills in the defaults."""
     proto = args.protocol
-    if args.sitl_m:
-        usage_error("--sitl-m: SITL-M (one process per UAV) is not implemented yet")
+    for flag, value in (("--link-delay", args.link_delay), ("--jitter", args.jitter)):
+        if value is not None:
+            if not args.sitl_m:
+                usage_error(f"{flag}: applies to SITL-M only; add --sitl-m")
+            if not (math.isfinite(value) and 0 <= value <= MAX_LINK_MS):
+                usage_error(f"{flag} {value:g}: must be a number in 0..{MAX_LINK_MS:g} ms")
+    if args.sitl_m and proto == "table3":
+        usage_error("--sitl-m: Table III is the particle world's one-process protocol; use single or table8")
+    if args.sitl_m and proto == "single" and args.workers > 1:
+        usage_error(f"--workers {args.workers}: SITL-M episodes fly one at a time (each runs c + 1 processes)")
+    if args.drop is not None and proto != "single":
+        usage_error(f"--drop: agent dropout is a --protocol single experiment ({proto} flies the paper's table)")
     for flag, value, top in (("--wind", args.wind, MAX_WIND_SPEED), ("--deviation", args.deviation, MAX_DEVIATION)):
         if value is not None and not (math.isfinite(value) and 0 <= value <= top):
             unit = "m/s" if flag == "--wind" else "m"
@@ -249,6 +271,25 @@ def validate(args: argparse.Namespace) -> None:
     args.wind = args.wind or 0.0
     args.deviation = args.deviation or 0.0
     args.formation = args.formation or ([6, 7, 8] if proto == "table3" else [5, 6, 7, 8])
+    if args.drop is not None:
+        from cefc_mj.deploy.dropout import check_drop, parse_drop
+
+        try:
+            args.drop = parse_drop(args.drop)
+            for c in args.formation:
+                check_drop(args.drop, c, args.steps)
+        except CefcError as e:
+            usage_error(str(e))
+    args.sitl = None
+    if args.sitl_m:
+        from cefc_mj.deploy.episode import SitlConfig
+
+        args.sitl = SitlConfig(link_delay_ms=args.link_delay or 0.0, jitter_ms=args.jitter or 0.0,
+                               drop=args.drop if proto == "single" else None)
+        try:
+            args.sitl.validate()
+        except CefcError as e:
+            usage_error(str(e))
     if proto == "table8" and args.report_dir is None:
         args.report_dir = default_report_dir(args.policy or "atm", args.backend)
 
@@ -341,12 +382,18 @@ def _single(args: argparse.Namespace) -> int:
     from cefc_mj.eval.table8 import fly_episodes, paper_cell
 
     formations, episodes, steps = args.formation, args.episodes, args.steps
-    condition = condition_name(args.wind, args.deviation)
+    base = condition_name(args.wind, args.deviation)
+    # SITL-M flies the asked condition with one process per UAV; the calm reference stays one process.
+    condition = base if args.sitl is None else ("SITL-M" if base == "SITL-S" else f"SITL-M+{base}")
     conditions = [(args.wind, args.deviation)] + ([(0.0, 0.0)] if condition != "SITL-S" else [])
     seeds = list(range(args.seed, args.seed + episodes))
     specs = [EpisodeSpec(formation=c, seed=seed, backend=args.backend, wind=wind, deviation=dev, steps=steps,
                          policy=args.policy)
-             for c in formations for wind, dev in conditions for seed in seeds]
+             for wind, dev in conditions for c in formations for seed in seeds]
+    asked = list(range(len(formations) * len(seeds)))  # the first condition's episodes
+    calm = list(range(len(asked), len(specs)))
+    # (indices into specs, how they fly): the asked condition carries the deployment and the dropout
+    batches = [(asked, {"sitl": args.sitl, "drop": None if args.sitl is not None else args.drop}), (calm, {})]
     recording = bool(args.rrd or args.spawn or args.png)
     vs = " vs calm air (SITL-S)" if condition != "SITL-S" else ""
     print(f"{PROG}: {condition}{vs}; policy {args.policy}; {args.backend}; c = {', '.join(map(str, formations))}; "
@@ -357,16 +404,19 @@ def _single(args: argparse.Namespace) -> int:
     interrupted = False
     try:
         with tqdm(total=len(specs), desc="episodes", unit="ep", file=sys.stderr) as bar:
-            for i, result in fly_episodes(specs, workers=args.workers,
-                                                  record=(lambda s: s.condition == condition) if recording else None):
-                spec = specs[i]
-                if result.diverged:
-                    tqdm.write(f"c={spec.formation} seed={spec.seed} {spec.condition}: simulation diverged at step "
-                               f"{result.steps} ({result.diverged}); episode stopped", file=sys.stderr)
-                if result.record is not None and spec.condition == condition:
-                    recorded += _emit_record(result.record, args, many=len(formations) * episodes > 1)
-                finished[i] = result.to_dict()
-                bar.update(1)
+            for indices, how in batches:
+                record = (lambda s: True) if recording and indices is asked else None
+                for j, result in fly_episodes([specs[i] for i in indices], workers=args.workers, record=record,
+                                              **how):
+                    i = indices[j]
+                    spec = specs[i]
+                    if result.diverged:
+                        tqdm.write(f"c={spec.formation} seed={spec.seed} {spec.condition}: simulation diverged at "
+                                   f"step {result.steps} ({result.diverged}); episode stopped", file=sys.stderr)
+                    if result.record is not None:
+                        recorded += _emit_record(result.record, args, many=len(formations) * episodes > 1)
+                    finished[i] = result.to_dict()
+                    bar.update(1)
     except KeyboardInterrupt:
         interrupted = True
         print(f"\n{PROG}: interrupted after {len(finished)} of {len(specs)} episodes; the table below holds "
@@ -388,11 +438,45 @@ def _single(args: argparse.Namespace) -> int:
         "comparable_to_paper": steps == PAPER_STEPS, "provenance": args.provenance, "rows": table,
     }
     print(single_table(summary))
+    for line in _sitl_and_dropout_lines(table, condition):
+        print(line)
     writes = [(args.json, json.dumps(summary, indent=2) + "\n")] if args.json is not None else []
     _write_outputs(writes)
     for path in recorded:
         print(f"wrote {path}" + (f"  (open with: rerun {path})" if path.suffix == ".rrd" else ""))
     return EXIT_INTERRUPTED if interrupted else 0
+
+
+def _sitl_and_dropout_lines(table: dict, condition: str) -> list[str]:
+    """Below the single table: SITL-M timing (p50/p99 over every agent's decisions) and, with --drop,
+    F/N/C before and after the agents left (mean over seeds)."""
+    import numpy as np
+
+    lines = []
+    for c, cells in table.items():
+        rows = cells.get(condition, {}).get("episodes_detail", [])
+        sitl = [r["sitl"] for r in rows if r.get("sitl")]
+        if sitl:
+            def pct(name, q):
+                return max((s[name]["all"][q] or 0.0) for s in sitl)
+
+            rtf = np.mean([s["real_time_factor"] for s in sitl])
+            events = sum(len(s["events"]) for s in sitl)
+            lines.append(f"  c = {c} SITL-M: decision latency p50 {pct('decision_latency_ms', 'p50'):.2f} ms, round trip "
+                         f"p50 {pct('round_trip_ms', 'p50'):.2f} / p99 {pct('round_trip_ms', 'p99'):.2f} ms, command "
+                         f"age p99 {pct('command_age_ms', 'p99'):.1f} ms (worst seed); {rtf:.1f}x real time; "
+                         f"{events} fault event(s)")
+        drops = [r["dropout"] for r in rows if r.get("dropout")]
+        if drops:
+            phase = {ph: {m: np.mean([d["phases"][ph][m] for d in drops]) for m in ("F", "N", "C", "steps",
+                                                                                  "group_size")}
+                     for ph in ("before", "after")}
+            b, a = phase["before"], phase["after"]
+            lines.append(f"  c = {c} dropout at step {drops[0]['step']}: before ({b['group_size']:.0f} UAVs, "
+                         f"{b['steps']:.0f} steps) F {b['F']:.1f} N {b['N']:.1f} C {b['C']:.2f} %; after "
+                         f"({a['group_size']:.0f} UAVs, {a['steps']:.0f} steps) F {a['F']:.1f} N {a['N']:.1f} "
+                         f"C {a['C']:.2f} %")
+    return lines
 
 
 def _seed_range(seeds: list[int]) -> str:
@@ -486,12 +570,18 @@ def _table8(args: argparse.Namespace) -> int:
     prov = args.provenance
     out: Path = args.report_dir
     specs = table8_specs(args.formation, args.episodes, args.seed, args.steps, args.backend, args.policy)
-    cells = plan_cells(specs, {c: prov["policies"][str(c)]["sha256"] for c in args.formation}, prov["code_version"])
+    policy_sha256 = {c: prov["policies"][str(c)]["sha256"] for c in args.formation}
+    cells = plan_cells(specs, policy_sha256, prov["code_version"])
+    if args.sitl is not None:  # the SITL-M row: the calm specs again, one process per UAV
+        cells += plan_cells([s for s in specs if s.condition == "SITL-S"], policy_sha256, prov["code_version"],
+                            sitl=args.sitl)
     cell_file = out / f"table8_cells_{args.backend}.jsonl"
     known = {} if args.fresh else load_cells(cell_file)
     reused = sum(cell.key in known for cell in cells)
-    print(f"{PROG} table8: {len(specs)} episodes ({len(args.formation)} c x 7 conditions x {args.episodes} seeds, "
-          f"{args.steps} steps), policy {args.policy}, {args.workers} worker(s)")
+    rows_desc = "7 conditions" + (" + SITL-M" if args.sitl is not None else "")
+    print(f"{PROG} table8: {len(cells)} episodes ({len(args.formation)} c x {rows_desc} x {args.episodes} seeds, "
+          f"{args.steps} steps), policy {args.policy}, {args.workers} worker(s)"
+          + ("; SITL-M episodes fly one at a time" if args.sitl is not None else ""))
     print(f"reports go to {out}" + ("  (the shipped reports folder, as --report-dir asks)"
                                     if is_shipped_reports(out) else ""))
     if args.fresh and cell_file.exists():

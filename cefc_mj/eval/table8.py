@@ -18,18 +18,20 @@ import json
 import os
 from collections.abc import Callable, Iterator
 from concurrent.futures import ProcessPoolExecutor, as_completed
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from cefc_mj import paths
 from cefc_mj.eval.runner import (
-    CONDITIONS, TABLE8_STEPS, EpisodeSpec, format_mean_std, load_policy_for, retention, run_episode, summarize,
+    CONDITIONS, TABLE8_STEPS, EpisodeResult, EpisodeSpec, format_mean_std, load_policy_for, retention, run_episode, summarize,
 )
 from cefc_mj.fileio import write_atomic
 
 PAPER_TABLES = paths.EVAL_DIR / "paper_tables.json"
+TABLE8_ROWS = (*CONDITIONS, "SITL-M")
+"""The rows of Table VIII: the 7 conditions of the one-process runner, and SITL-M (`--sitl-m`)."""
 CELL_SCHEMA = 2
 """Version of the cell key; rows written under another schema (or none) are never reused."""
 
@@ -65,21 +67,28 @@ class Cell:
     key: str
     """SHA-256 (hex) of `key_fields` as canonical JSON."""
     key_fields: dict
-    """Everything the result depends on: schema, every EpisodeSpec field, policy sha256, code digest."""
+    """Everything the result depends on: schema, every EpisodeSpec field, policy sha256, code digest
+    (and the SITL-M deployment settings for the SITL-M row)."""
+    sitl: object = None
+    """A `cefc_mj.deploy.SitlConfig` for the SITL-M row (every UAV's policy in its own process), else None."""
 
 
-def cell_key_fields(spec: EpisodeSpec, policy_sha256: str, code_version: str) -> dict:
+def cell_key_fields(spec: EpisodeSpec, policy_sha256: str, code_version: str, sitl=None) -> dict:
     """The inputs that determine an episode's result (the cell key is their digest)."""
-    return {"schema": CELL_SCHEMA, "spec": asdict(spec), "policy_sha256": policy_sha256, "code_version": code_version}
+    fields = {"schema": CELL_SCHEMA, "spec": asdict(spec), "policy_sha256": policy_sha256, "code_version": code_version}
+    if sitl is not None:
+        fields["sitl"] = asdict(sitl)
+    return fields
 
 
-def plan_cells(specs: list[EpisodeSpec], policy_sha256: dict[int, str], code_version: str) -> list[Cell]:
-    """Key every spec; `policy_sha256` maps each c to the SHA-256 of the policy file flown for it."""
+def plan_cells(specs: list[EpisodeSpec], policy_sha256: dict[int, str], code_version: str, sitl=None) -> list[Cell]:
+    """Key every spec; `policy_sha256` maps each c to the SHA-256 of the policy file flown for it;
+    `sitl` (a SitlConfig) makes them SITL-M cells."""
     cells = []
     for spec in specs:
-        fields = cell_key_fields(spec, policy_sha256[spec.formation], code_version)
+        fields = cell_key_fields(spec, policy_sha256[spec.formation], code_version, sitl)
         key = hashlib.sha256(json.dumps(fields, sort_keys=True).encode()).hexdigest()
-        cells.append(Cell(spec=spec, key=key, key_fields=fields))
+        cells.append(Cell(spec=spec, key=key, key_fields=fields, sitl=sitl))
     return cells
 
 
@@ -105,40 +114,60 @@ def cached_policy(choice: str, formation: int):
     return load_policy_for(choice, formation)
 
 
-def _fly(spec: EpisodeSpec, record: bool = False):
+def _fly(spec: EpisodeSpec, record: bool = False, sitl=None, drop: tuple[int, int] | None = None):
     import torch
 
     torch.set_num_threads(1)
+    if sitl is not None:  # SITL-M: every UAV's policy in its own process (cefc_mj/deploy)
+        from cefc_mj.deploy.episode import run_sitl_episode
+
+        return run_sitl_episode(spec, sitl, record=record)
+    if drop is not None:  # lock-step with agents leaving mid-episode
+        from cefc_mj.deploy.dropout import run_dropout_episode
+
+        return run_dropout_episode(spec, drop, policy=cached_policy(spec.policy, spec.formation))
     return run_episode(spec, cached_policy(spec.policy, spec.formation), record=record)
 
 
-def _fly_row(spec: EpisodeSpec) -> dict:
-    return _fly(spec).to_dict()
+def _fly_row(spec: EpisodeSpec, drop=None) -> dict:
+    return _fly(spec, drop=drop).to_dict()
+
+
+@dataclass
+class _PooledResult(EpisodeResult):
+    """A result flown in a pool worker; `to_dict()` gives the worker's row as it was (a dropout's
+    before/after report included)."""
+
+    row: dict = field(default_factory=dict, repr=False)
+
+    def to_dict(self) -> dict:
+        return dict(self.row)
 
 
 def fly_episodes(specs: list[EpisodeSpec], workers: int = 1,
-                 record: Callable[[EpisodeSpec], bool] | None = None) -> Iterator[tuple[int, object]]:
+                 record: Callable[[EpisodeSpec], bool] | None = None, sitl=None,
+                 drop: tuple[int, int] | None = None) -> Iterator[tuple[int, object]]:
     """Fly `specs`, yielding (index into specs, EpisodeResult) as each finishes.
 
     `record(spec)` says which episodes keep an EpisodeRecord (workers = 1 only). workers > 1 uses a
     local process pool and yields results in completion order. Ctrl-C cancels the episodes not yet
-    started.
+    started. `sitl` (a SitlConfig) flies them as SITL-M, one after the other (each episode already runs
+    c + 1 processes); `drop` = (k, step) removes k agents before that step (lock-step).
     """
-    if workers <= 1 or len(specs) <= 1:
+    if sitl is not None or workers <= 1 or len(specs) <= 1:
         for i, spec in enumerate(specs):
-            yield i, _fly(spec, record=bool(record and record(spec)))
+            yield i, _fly(spec, record=bool(record and record(spec)), sitl=sitl, drop=drop)
         return
     if record is not None:
         raise ValueError("fly_episodes: recording needs workers = 1")
-    from cefc_mj.eval.runner import EpisodeResult
-
     pool = ProcessPoolExecutor(max_workers=min(workers, len(specs)))
     try:
-        futures = {pool.submit(_fly_row, spec): i for i, spec in enumerate(specs)}
+        futures = {pool.submit(_fly_row, spec, drop): i for i, spec in enumerate(specs)}
         for future in as_completed(futures):
             i = futures[future]
             row = future.result()
-            yield i, EpisodeResult(spec=specs[i], **{k: row[k] for k in ("F", "N", "C", "steps", "wall_s", "diverged")})
+            yield i, _PooledResult(spec=specs[i], row=row, **{k: row[k] for k in ("F", "N", "C", "steps", "wall_s",
+                                                                                    "diverged")})
     finally:
         pool.shutdown(wait=True, cancel_futures=True)
 
@@ -161,15 +190,18 @@ def run_grid(cells: list[Cell], cell_file: Path, workers: int = 1, progress=None
     if progress is not None:
         progress.update(len(cells) - len(todo))
     with open(cell_file, "a") as sink:
-        for i, result in fly_episodes([cell.spec for cell in todo], workers=workers):
-            cell = todo[i]
-            row = {"key": cell.key, "key_fields": cell.key_fields, **result.to_dict()}
-            done[cell.key] = row
-            sink.write(json.dumps(row) + "\n")
-            sink.flush()
-            os.fsync(sink.fileno())
-            if progress is not None:
-                progress.update(1)
+        for group in ([c for c in todo if c.sitl is None], [c for c in todo if c.sitl is not None]):
+            if not group:
+                continue
+            for i, result in fly_episodes([cell.spec for cell in group], workers=workers, sitl=group[0].sitl):
+                cell = group[i]
+                row = {"key": cell.key, "key_fields": cell.key_fields, **result.to_dict()}
+                done[cell.key] = row
+                sink.write(json.dumps(row) + "\n")
+                sink.flush()
+                os.fsync(sink.fileno())
+                if progress is not None:
+                    progress.update(1)
     return [done[cell.key] for cell in cells]
 
 
@@ -179,7 +211,7 @@ def aggregate(rows: list[dict]) -> dict[str, dict[str, dict]]:
     table: dict[str, dict[str, dict]] = {}
     for c in sorted({r["formation"] for r in rows}):
         table[str(c)] = {}
-        for cond in CONDITIONS:
+        for cond in TABLE8_ROWS:
             cell = [r for r in rows if r["formation"] == c and r["condition"] == cond]
             if cell:
                 table[str(c)][cond] = {**summarize(cell), "episodes_detail": cell}
@@ -229,7 +261,9 @@ def report_markdown(table: dict, meta: dict) -> str:
         f"{meta['cells_reused']} of {meta['cells_total']} episodes were reused from the cell file "
         f"`{meta['cell_file']}` (same policy file, code and conditions); the rest were flown by this command.",
         "",
-        "SITL-M (agents as separate processes) is not part of this testbed yet: its row is left out.",
+        ("SITL-M: every UAV's policy in its own process over ZeroMQ, asynchronous (docs/sitl_m.md); its "
+         "retention divides by SITL-S of the same seeds." if any("SITL-M" in rows for rows in table.values())
+         else "SITL-M (every UAV's policy in its own process) is left out: add --sitl-m to fly its row."),
         "",
         "| c | condition | F | N | C (%) | retention | paper F | paper N | paper C (%) | paper retention |",
         "|---|---|---|---|---|---|---|---|---|---|",
@@ -298,7 +332,7 @@ def report_plot(table: dict, path: Path, meta: dict) -> None:
     import matplotlib.pyplot as plt
 
     paper = paper_table8()
-    conds = list(CONDITIONS)
+    conds = [k for k in TABLE8_ROWS if any(k in rows for rows in table.values())]
     x = np.arange(len(conds))
     comparable = meta["steps"] == TABLE8_STEPS
     fig, axes = plt.subplots(2, len(table), figsize=(max(7.0, 4.2 * len(table)), 7.4), squeeze=False, sharey="row")

@@ -1,0 +1,313 @@
+"""`run_sitl_episode`: one evaluation episode with every UAV's policy in its own OS process (SITL-M).
+
+The MuJoCo world and the task core (`BatchedCEFCEnv`, here `DropoutCEFCEnv`) run in the calling
+process; each agent (`cefc_mj.deploy.agent`) runs in its own process with its own copy of the
+policy, local or on another machine, and talks to the simulator over ZeroMQ (`SitlServer`). Per
+decision step (0.1 s) the simulator sends every flying agent its sensor packet, then flies the step
+in control ticks (0.01 s on MuJoCo), applying at each tick the newest setpoint that has taken effect
+(zero-order hold; timing model in `cefc_mj.deploy.sim_server` and docs/sitl_m.md).
+
+>>> from cefc_mj.eval.runner import EpisodeSpec
+>>> result = run_sitl_episode(EpisodeSpec(formation=5, seed=0, steps=50), SitlConfig())  # doctest: +SKIP
+>>> result.F, result.N, result.C, result.sitl.summary()["round_trip_ms"]["all"]["p50"]  # doctest: +SKIP
+"""
+
+from __future__ import annotations
+
+import math
+import signal
+import sys
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from cefc_mj.deploy.dropout import DropoutCEFCEnv, check_drop, choose_dropouts, dropout_report
+from cefc_mj.deploy.results import SitlEpisodeResult, SitlStats
+from cefc_mj.deploy.sim_server import AgentError, AgentFleet, SitlServer, block_sigint, restore_sigint  # noqa: F401
+from cefc_mj.deploy.tick_world import make_ticked_world
+from cefc_mj.errors import ConfigError, SimulationDiverged
+from cefc_mj.eval.runner import EpisodeSpec
+
+FAULT_ACTIONS = ("kill", "stop")
+
+
+@dataclass(frozen=True)
+class AgentFault:
+    """A fault injected into one local agent process; its vehicle stays in the world."""
+
+    uav: int
+    """The UAV whose agent is hit."""
+    step: int
+    """Before which decision step."""
+    action: str = "kill"
+    """"kill" (SIGKILL: the process dies) or "stop" (SIGSTOP: the process hangs)."""
+
+
+@dataclass(frozen=True)
+class SitlConfig:
+    """How a SITL-M episode is deployed. Defaults: every agent a local process on 127.0.0.1, no
+    extra link delay, as fast as the agents allow."""
+
+    bind: str = "tcp://127.0.0.1:*"
+    """ZeroMQ endpoint the simulator binds; "*" as the port picks a free one. Bind
+    "tcp://0.0.0.0:5555" to let agents on other machines connect to tcp://<this host>:5555."""
+    remote_agents: tuple[int, ...] = ()
+    """UAV indices whose agents are started elsewhere (`cefc-agent --connect ... --uav I`); the
+    simulator waits `startup_timeout_s` for them. All others are spawned locally."""
+    agent_command: tuple[str, ...] | None = None
+    """Command that starts a local agent (the flags --connect/--uav/--policy/--parent-pid are
+    appended); None: this Python with `-m cefc_mj.deploy.agent`."""
+    control_tick_s: float | None = None
+    """Control tick (s) at which setpoints take effect; None: 0.01 on MuJoCo (one PX4 position-loop
+    period), the decision step on the particle world (it has no finer step)."""
+    link_delay_ms: float = 0.0
+    """One-way network delay added in simulated time to each packet and each reply (ms)."""
+    jitter_ms: float = 0.0
+    """Each direction adds a further uniform draw from [0, jitter_ms] (seeded by the episode seed)."""
+    offboard_loss_timeout_s: float = 1.0
+    """PX4's COM_OF_LOSS_T: simulated seconds without a new setpoint before a vehicle holds."""
+    realtime: bool = False
+    """Pace the simulation to the wall clock (1 simulated second per second)."""
+    lockstep: bool = False
+    """Verification mode: wait for every flying agent's reply to packet k and fly it for the whole
+    of step k (the lock-step runner's semantics over the wire)."""
+    drop: tuple[int, int] | None = None
+    """(k, step): k UAVs (seeded choice) leave the swarm before decision step `step`: their agents
+    are killed (see drop_action), their vehicles parked out of the arena, and the task's group and
+    metrics become c - k (docs/sitl_m.md). Fly policy "student" for the paper's Fig. 4b."""
+    drop_action: str = "kill"
+    """How the dropped local agents go: "kill" (SIGKILL) or "stop" (SIGSTOP); remote ones are told to stop."""
+    faults: tuple[AgentFault, ...] = ()
+    """Faults injected into local agent processes (their vehicles stay and fail safe)."""
+    startup_timeout_s: float = 120.0
+    """Wall seconds for every agent to connect, load its policy and report ready."""
+    heartbeat_timeout_s: float = 5.0
+    """Agents exit after this many wall seconds without a message from the simulator."""
+    lockstep_timeout_s: float = 10.0
+    """Lock-step mode: wall seconds to wait for a reply before the vehicle holds."""
+    verbose_agents: bool = False
+    """Let the agents log to their (captured) stderr."""
+
+    def validate(self) -> None:
+        """ConfigError naming the first bad field."""
+        for name in ("link_delay_ms", "jitter_ms"):
+            value = getattr(self, name)
+            if not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0:
+                raise ConfigError(f"{name}={value!r}: must be a finite number >= 0")
+        for name in ("offboard_loss_timeout_s", "startup_timeout_s", "heartbeat_timeout_s", "lockstep_timeout_s"):
+            value = getattr(self, name)
+            if not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
+                raise ConfigError(f"{name}={value!r}: must be a finite number > 0")
+        if self.control_tick_s is not None and not (isinstance(self.control_tick_s, (int, float))
+                                                    and math.isfinite(self.control_tick_s) and self.control_tick_s > 0):
+            raise ConfigError(f"control_tick_s={self.control_tick_s!r}: must be a finite number > 0 or None")
+        if "://" not in str(self.bind):
+            raise ConfigError(f"bind={self.bind!r}: not a ZeroMQ endpoint (e.g. tcp://127.0.0.1:5555)")
+        if self.drop_action not in FAULT_ACTIONS:
+            raise ConfigError(f"drop_action={self.drop_action!r}: must be one of {', '.join(FAULT_ACTIONS)}")
+        for fault in self.faults:
+            if not isinstance(fault, AgentFault) or fault.action not in FAULT_ACTIONS:
+                raise ConfigError(f"faults: {fault!r} is not an AgentFault with action kill or stop")
+
+
+def _check(spec: EpisodeSpec, sitl: SitlConfig) -> tuple[float, tuple[int, int] | None]:
+    """Everything checked before a process starts; returns (control tick, drop)."""
+    from cefc_mj.eval.runner import load_policy_for
+
+    sitl.validate()
+    config = spec.task_config()  # validates the game
+    if spec.backend not in ("mujoco", "particle"):
+        raise ConfigError(f"backend={spec.backend!r}: must be mujoco or particle")
+    tick = sitl.control_tick_s if sitl.control_tick_s is not None else (0.01 if spec.backend == "mujoco" else config.dt)
+    if sitl.lockstep:
+        tick = config.dt
+    drop = check_drop(sitl.drop, spec.formation, spec.steps)
+    for uav in sitl.remote_agents:
+        if not isinstance(uav, int) or not 0 <= uav < spec.formation:
+            raise ConfigError(f"remote_agents: {uav!r} is not a UAV index 0..{spec.formation - 1}")
+    for fault in sitl.faults:
+        if not 0 <= fault.uav < spec.formation or not 0 <= fault.step < spec.steps:
+            raise ConfigError(f"faults: {fault} is outside the episode (uav 0..{spec.formation - 1}, "
+                              f"step 0..{spec.steps - 1})")
+        if fault.uav in sitl.remote_agents:
+            raise ConfigError(f"faults: uav {fault.uav}'s agent is remote; only local processes can be signalled")
+    load_policy_for(spec.policy, spec.formation)  # an unknown policy fails here, not in N processes
+    return tick, drop
+
+
+def run_sitl_episode(spec: EpisodeSpec, sitl: SitlConfig = SitlConfig(), record: bool = False) -> SitlEpisodeResult:
+    """Fly one episode with every UAV's policy in its own process (module docstring; docs/sitl_m.md).
+
+    Returns the lock-step runner's result type (F, N, C over the episode, steps, wall_s, diverged,
+    record) with `sitl` (SitlStats: per-agent latency, round trip and command age samples, events)
+    and, with `sitl.drop`, `dropout` (F/N/C before and after). Raises ConfigError for a bad spec or
+    config and AgentError when the agents cannot start; every agent process is gone when it returns
+    or raises (Ctrl-C included).
+    """
+    tick, drop = _check(spec, sitl)
+    config = spec.task_config()
+    world = make_ticked_world(spec.backend, config, tick, wind=spec.wind, seed=spec.seed)
+    env = DropoutCEFCEnv(config, n_envs=1, seed=spec.seed, world=world)
+    welcome = {"formation": spec.formation, "task": config.to_dict(), "heartbeat_timeout_s": sitl.heartbeat_timeout_s}
+    server = SitlServer(sitl.bind, spec.formation, welcome, world.tick_s, sitl.link_delay_ms, sitl.jitter_ms,
+                        sitl.offboard_loss_timeout_s, sitl.realtime, sitl.lockstep, sitl.lockstep_timeout_s, spec.seed)
+    fleet = None
+    try:
+        local = [i for i in range(spec.formation) if i not in sitl.remote_agents]
+        command = list(sitl.agent_command) if sitl.agent_command else [sys.executable, "-m", "cefc_mj.deploy.agent"]
+        if local:
+            fleet = AgentFleet(command, server.local_endpoint, spec.policy, local, sitl.verbose_agents)
+            fleet.spawn()
+        if sitl.remote_agents:
+            print(f"SITL-M: waiting for agents {list(sitl.remote_agents)} at {server.endpoint}", file=sys.stderr, flush=True)
+        startup_s = server.wait_until_ready(sitl.startup_timeout_s, fleet)
+        if fleet is not None:
+            for uav in local:
+                if not fleet.adopt(uav, server.vehicles[uav].info.get("pid", -1)):
+                    server.event(uav, "not_adopted", "the agent's pid is not a local agent process: faults cannot reach it")
+        return _fly(spec, sitl, env, world, server, fleet, drop, startup_s, record)
+    finally:  # Ctrl-C waits until every agent process is gone
+        previous = block_sigint()
+        try:
+            server.stop_all("episode over")
+            if fleet is not None:
+                fleet.shutdown()
+            server.close()
+        finally:
+            restore_sigint(previous)
+
+
+def _fly(spec, sitl, env, world, server: SitlServer, fleet: AgentFleet | None, drop, startup_s, record):
+    from cefc_mj.eval.runner import _Recorder
+
+    config = env.config
+    n_ticks = world.n_ticks
+    recorder = _Recorder(env, spec) if record else None
+    dropped = choose_dropouts(spec.formation, drop[0], spec.seed) if drop else []
+    faults = {}
+    for fault in sitl.faults:
+        faults.setdefault(fault.step, []).append(fault)
+    step_index = 0
+
+    def controller(j: int) -> np.ndarray:
+        accel, hold = server.control(step_index * n_ticks + j)
+        if hold.any():
+            accel[hold] = world.brake_accel(config.accel_max)[0, hold]
+        return accel[None]
+
+    world.controller = controller
+    env.reset()
+    start = time.perf_counter()
+    diverged = None
+    for k in range(spec.steps):
+        step_index = k
+        t = k * config.dt
+        server.step, server.t_now = k, t
+        if fleet is not None:
+            for uav in fleet.poll_exits():
+                server.agent_exited(uav)
+        for fault in faults.get(k, []):
+            sig = signal.SIGKILL if fault.action == "kill" else signal.SIGSTOP
+            delivered = fleet is not None and fleet.signal(fault.uav, sig)
+            server.event(fault.uav, f"fault_{fault.action}", "injected" if delivered else "no local process to signal")
+        if drop and k == drop[1]:
+            for uav in dropped:
+                if fleet is not None:
+                    fleet.signal(uav, signal.SIGKILL if sitl.drop_action == "kill" else signal.SIGSTOP)
+                server.remove(uav, f"dropout ({sitl.drop_action})")
+            env.remove_agents(0, dropped)
+        server.send_sensors(k, t, env.perceived_pos[0], world.agent_vel[0], env.lidar[0], env.anchor[0],
+                            world.agent_pos[0], config.observation_distance)
+        try:
+            _, _, done, _ = env.step(np.zeros((1, spec.formation, 2)))  # the controller supplies the setpoints
+        except SimulationDiverged as e:
+            diverged = str(e)
+            break
+        if recorder is not None:
+            recorder.capture()
+        if done[0]:
+            break
+    loop_wall = time.perf_counter() - start
+    metrics = env.episode_metrics()
+    vehicles = server.vehicles
+    local = set(fleet.uavs) if fleet is not None else set()
+    stats = SitlStats(
+        decision_latency_ms=[np.asarray(v.latency_ms) for v in vehicles],
+        round_trip_ms=[np.asarray(v.round_trip_ms) for v in vehicles],
+        command_age_ms=[np.asarray(v.age_ms) for v in vehicles],
+        late_commands=np.array([v.late for v in vehicles]),
+        skipped_packets=np.array([v.skipped + len(v.outstanding) for v in vehicles]),
+        ignored_replies=np.array([v.ignored for v in vehicles]),
+        malformed=server.malformed,
+        malformed_reasons=dict(server.malformed_reasons),
+        events=list(server.events),
+        control_tick_s=world.tick_s,
+        startup_s=startup_s,
+        loop_wall_s=loop_wall,
+        sim_s=int(env.t[0]) * config.dt,
+        agents=[{**v.info, "local": v.index in local} for v in vehicles],
+    )
+    return SitlEpisodeResult(
+        spec=spec, F=float(metrics["F"][0]), N=float(metrics["N"][0]), C=float(metrics["C"][0]),
+        steps=int(env.t[0]), wall_s=loop_wall, diverged=diverged,
+        record=recorder.finish() if recorder is not None and int(env.t[0]) > 0 else None,
+        sitl=stats, dropout=dropout_report(env, dropped, drop[1]) if drop else None, mode="SITL-M",
+    )
+
+
+def run_latency_model_episode(spec: EpisodeSpec, latency_ticks: int = 1, control_tick_s: float | None = None,
+                              policy=None) -> SitlEpisodeResult:
+    """The deterministic, one-process model of a SITL-M episode: the lock-step episode on the
+    ticked world where each decision takes effect `latency_ticks` control ticks after its packet
+    (held until the next one does), and each agent's policy runs on its own observation (batch of 1,
+    as in its process). A SITL-M episode whose commands all took effect at their modelled tick
+    (no late commands, every command age latency_ticks x tick) is this episode bit for bit; so the
+    model separates what the modelled latency costs from what a loaded machine's late replies add.
+    Returns mode "lock-step" and no SITL stats."""
+    import torch
+
+    from cefc_mj.eval.runner import load_policy_for
+
+    torch.set_num_threads(1)
+    config = spec.task_config()
+    tick = control_tick_s if control_tick_s is not None else (0.01 if spec.backend == "mujoco" else config.dt)
+    if not isinstance(latency_ticks, int) or latency_ticks < 0:
+        raise ConfigError(f"latency_ticks={latency_ticks!r}: must be an integer >= 0")
+    policy = policy if policy is not None else load_policy_for(spec.policy, spec.formation)
+    world = make_ticked_world(spec.backend, config, tick, wind=spec.wind, seed=spec.seed)
+    env = DropoutCEFCEnv(config, n_envs=1, seed=spec.seed, world=world)
+    n_ticks = world.n_ticks
+    commands: dict[int, np.ndarray] = {}  # decision step -> its setpoints [1, N, 2]
+    held = [np.zeros((1, spec.formation, 2))]
+    step_index = 0
+
+    def controller(j: int) -> np.ndarray:
+        tick_index = step_index * n_ticks + j
+        due = [k for k in commands if k * n_ticks + latency_ticks <= tick_index]
+        if due:
+            newest = max(due)
+            held[0] = commands[newest]
+            for k in due:
+                del commands[k]
+        return held[0]
+
+    world.controller = controller
+    start = time.perf_counter()
+    obs = env.reset()
+    diverged = None
+    for k in range(spec.steps):
+        step_index = k
+        commands[k] = np.concatenate([policy.act(obs[:, i:i + 1]) for i in range(spec.formation)], axis=1)
+        try:
+            obs, _, done, _ = env.step(commands[k])
+        except SimulationDiverged as e:
+            diverged = str(e)
+            break
+        if done[0]:
+            break
+    metrics = env.episode_metrics()
+    return SitlEpisodeResult(
+        spec=spec, F=float(metrics["F"][0]), N=float(metrics["N"][0]), C=float(metrics["C"][0]),
+        steps=int(env.t[0]), wall_s=time.perf_counter() - start, diverged=diverged, mode="lock-step",
+    )
