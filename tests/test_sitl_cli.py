@@ -63,6 +63,34 @@ def test_table8_sitl_m_row_is_cached_under_its_own_key(tmp_path, monkeypatch, ca
     assert main(argv) == 0
     report = json.loads((tmp_path / "r" / "table8.json").read_text())
     assert "SITL-M" in report["rows"]["5"] and "SITL-S" in report["rows"]["5"]
+    assert "## SITL-M timing" in (tmp_path / "r" / "table8.md").read_text()
+    assert (tmp_path / "r" / "table8_sitl.png").stat().st_size > 1000
+    sitl = report["rows"]["5"]["SITL-M"]["episodes_detail"][0]["sitl"]
+    assert sum(sitl["round_trip_ms"]["histogram"]) == sitl["round_trip_ms"]["all"]["count"] > 0
     capsys.readouterr()
     assert main(argv) == 0
     assert "8 of 8 cells reused" in capsys.readouterr().out
+
+
+def test_sitl_m_recording_carries_the_timings(tmp_path):
+    """Rerun gets per-step SITL-M timings beside F, N, C (the recording is read back)."""
+    from cefc_mj.deploy.episode import SitlConfig, run_sitl_episode
+    from cefc_mj.eval.runner import EpisodeSpec
+    from cefc_mj.viz.rerun_log import close_recording, log_episode, open_recording
+
+    result = run_sitl_episode(EpisodeSpec(formation=5, seed=0, steps=15), SitlConfig(), record=True)
+    scalars = result.record.scalars
+    for name in ("sitl_decision_latency_ms", "sitl_round_trip_ms", "sitl_command_age_ms"):
+        assert scalars[name].shape == (15,) and scalars[name][-1] > 0
+    rrd = tmp_path / "sitl.rrd"
+    recording = open_recording(rrd_path=rrd, spawn=False, recording_id="sitl")
+    log_episode(result.record, recording)
+    close_recording(recording)
+    paths = _entity_paths(rrd)
+    assert {"/metrics/sitl_round_trip_ms", "/metrics/sitl_command_age_ms"} <= paths, sorted(paths)
+
+
+def _entity_paths(rrd) -> set[str]:
+    from rerun.chunk import RrdReader
+
+    return {chunk.entity_path for chunk in RrdReader(rrd).stream().to_chunks()}

@@ -563,8 +563,8 @@ def _table8(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from cefc_mj.eval.table8 import (
-        aggregate, load_cells, plan_cells, report_csv, report_json, report_markdown, report_plot, run_grid,
-        table8_specs,
+        aggregate, load_cells, plan_cells, report_csv, report_json, report_markdown, report_plot,
+        report_sitl_histograms, run_grid, table8_specs,
     )
 
     prov = args.provenance
@@ -608,6 +608,8 @@ def _table8(args: argparse.Namespace) -> int:
     print(markdown)
     writes = [(out / "table8.md", markdown), (out / "table8.csv", report_csv(table)), (out / "table8.json", data),
               (out / "table8.png", lambda path: report_plot(table, path, meta))]
+    if args.sitl is not None:
+        writes.append((out / "table8_sitl.png", lambda path: report_sitl_histograms(table, path)))
     if args.json is not None:
         writes.append((args.json, data))
     _write_outputs(writes)

@@ -178,6 +178,11 @@ def run_sitl_episode(spec: EpisodeSpec, sitl: SitlConfig = SitlConfig(), record:
             restore_sigint(previous)
 
 
+TIMING_SCALARS = {"sitl_decision_latency_ms": "latency_ms", "sitl_round_trip_ms": "round_trip_ms",
+                  "sitl_command_age_ms": "age_ms"}
+"""Per-step SITL-M timing recorded for Rerun (name -> the per-vehicle sample list it reads)."""
+
+
 def _fly(spec, sitl, env, world, server: SitlServer, fleet: AgentFleet | None, drop, startup_s, record):
     from cefc_mj.eval.runner import _Recorder
 
@@ -189,6 +194,7 @@ def _fly(spec, sitl, env, world, server: SitlServer, fleet: AgentFleet | None, d
     for fault in sitl.faults:
         faults.setdefault(fault.step, []).append(fault)
     step_index = 0
+    timing: dict[str, list[float]] = {name: [] for name in TIMING_SCALARS}
 
     def controller(j: int) -> np.ndarray:
         accel, hold = server.control(step_index * n_ticks + j)
@@ -226,6 +232,9 @@ def _fly(spec, sitl, env, world, server: SitlServer, fleet: AgentFleet | None, d
             break
         if recorder is not None:
             recorder.capture()
+            for name, attr in TIMING_SCALARS.items():  # the newest sample of each vehicle, worst over vehicles
+                latest = [getattr(v, attr)[-1] for v in server.vehicles if len(getattr(v, attr))]
+                timing[name].append(max(latest) if latest else 0.0)
         if done[0]:
             break
     loop_wall = time.perf_counter() - start
@@ -248,10 +257,13 @@ def _fly(spec, sitl, env, world, server: SitlServer, fleet: AgentFleet | None, d
         sim_s=int(env.t[0]) * config.dt,
         agents=[{**v.info, "local": v.index in local} for v in vehicles],
     )
+    record = recorder.finish() if recorder is not None and int(env.t[0]) > 0 else None
+    if record is not None:  # Rerun draws these under metrics/ beside F, N, C
+        record.scalars.update({name: np.asarray(series, dtype=np.float64) for name, series in timing.items()})
     return SitlEpisodeResult(
         spec=spec, F=float(metrics["F"][0]), N=float(metrics["N"][0]), C=float(metrics["C"][0]),
         steps=int(env.t[0]), wall_s=loop_wall, diverged=diverged,
-        record=recorder.finish() if recorder is not None and int(env.t[0]) > 0 else None,
+        record=record,
         sitl=stats, dropout=dropout_report(env, dropped, drop[1]) if drop else None, mode="SITL-M",
     )
 
@@ -281,6 +293,7 @@ def run_latency_model_episode(spec: EpisodeSpec, latency_ticks: int = 1, control
     commands: dict[int, np.ndarray] = {}  # decision step -> its setpoints [1, N, 2]
     held = [np.zeros((1, spec.formation, 2))]
     step_index = 0
+    timing: dict[str, list[float]] = {name: [] for name in TIMING_SCALARS}
 
     def controller(j: int) -> np.ndarray:
         tick_index = step_index * n_ticks + j

@@ -10,6 +10,15 @@ import numpy as np
 from cefc_mj.eval.runner import EpisodeResult
 
 
+HISTOGRAM_EDGES_MS = np.concatenate([[0.0], np.logspace(-2, 4, 61)])
+"""Bin edges (ms) of the timing histograms: 0, then 10 bins per decade from 0.01 ms to 10 s."""
+
+
+def _histogram(values: np.ndarray) -> list[int]:
+    counts, _ = np.histogram(np.clip(values, 0.0, HISTOGRAM_EDGES_MS[-1]), bins=HISTOGRAM_EDGES_MS)
+    return counts.tolist()
+
+
 def _percentiles(values: np.ndarray) -> dict[str, float | None]:
     values = np.asarray(values, dtype=np.float64)
     if values.size == 0:
@@ -66,7 +75,8 @@ class SitlStats:
         for name in ("decision_latency_ms", "round_trip_ms", "command_age_ms"):
             per_agent = getattr(self, name)
             pooled = np.concatenate(per_agent) if per_agent else np.zeros(0)
-            timings[name] = {"all": _percentiles(pooled), "per_uav": [_percentiles(v) for v in per_agent]}
+            timings[name] = {"all": _percentiles(pooled), "per_uav": [_percentiles(v) for v in per_agent],
+                             "histogram": _histogram(pooled)}
         return {
             **timings,
             "late_commands": self.late_commands.tolist(),

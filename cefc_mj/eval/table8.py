@@ -287,6 +287,7 @@ def report_markdown(table: dict, meta: dict) -> str:
                 notes.add(f"paper -: the paper has no Table VIII row for c = {c}")
     if notes:
         lines += [""] + [f"- {n}" for n in sorted(notes)]
+    lines += sitl_timing_lines(table)
     prov = meta["provenance"]
     lines += ["", "## Provenance", "", f"- git commit: `{prov['git_commit'] or 'none (not a git checkout)'}`",
               f"- code digest: `{prov['code_version']}`"]
@@ -369,3 +370,67 @@ def report_plot(table: dict, path: Path, meta: dict) -> None:
     fig.savefig(buf, format="png", dpi=110)
     plt.close(fig)
     write_atomic(path, buf.getvalue())
+
+
+# ---------------------------------------------------------------------------- SITL-M timing
+SITL_TIMINGS = {"decision_latency_ms": "decision latency (agent's own, wall ms)",
+                "round_trip_ms": "round trip (simulator, wall ms)",
+                "command_age_ms": "command age when applied (simulated ms)"}
+
+
+def _sitl_episodes(table: dict) -> dict[str, list[dict]]:
+    return {c: [e["sitl"] for e in rows["SITL-M"]["episodes_detail"] if e.get("sitl")]
+            for c, rows in table.items() if "SITL-M" in rows}
+
+
+def sitl_timing_lines(table: dict) -> list[str]:
+    """Markdown lines: per c, the SITL-M timings (median over episodes of each episode's p50, worst p99)."""
+    episodes = {c: e for c, e in _sitl_episodes(table).items() if e}
+    if not episodes:
+        return []
+    lines = ["", "## SITL-M timing", "",
+             "Per c over its SITL-M episodes: median of the episodes' p50, and the worst p99 "
+             "(histograms: `table8_sitl.png`).", "",
+             "| c | " + " | ".join(f"{label} p50 / p99" for label in SITL_TIMINGS.values()) + " | real time | faults |",
+             "|---|" + "---|" * (len(SITL_TIMINGS) + 2)]
+    for c, eps in episodes.items():
+        cells = []
+        for name in SITL_TIMINGS:
+            p50 = [e[name]["all"]["p50"] for e in eps if e[name]["all"]["p50"] is not None]
+            p99 = [e[name]["all"]["p99"] for e in eps if e[name]["all"]["p99"] is not None]
+            cells.append(f"{np.median(p50):.2f} / {max(p99):.2f}" if p50 else "-")
+        rtf = np.mean([e["real_time_factor"] for e in eps])
+        cells += [f"{rtf:.1f}x", str(sum(len(e["events"]) for e in eps))]
+        lines.append(f"| {c} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def report_sitl_histograms(table: dict, path: Path) -> bool:
+    """Histograms of the SITL-M timings per c (counts summed over episodes); False if there is no SITL-M row."""
+    from cefc_mj.deploy.results import HISTOGRAM_EDGES_MS
+
+    episodes = {c: e for c, e in _sitl_episodes(table).items() if e}
+    if not episodes:
+        return False
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(SITL_TIMINGS), figsize=(5.0 * len(SITL_TIMINGS), 3.6), squeeze=False)
+    edges = HISTOGRAM_EDGES_MS
+    for ax, (name, label) in zip(axes[0], SITL_TIMINGS.items()):
+        for c, eps in episodes.items():
+            counts = np.sum([e[name]["histogram"] for e in eps], axis=0)
+            ax.stairs(counts, np.maximum(edges, edges[1] / 2), label=f"c = {c}")
+        ax.set_xscale("log")
+        ax.set_xlabel(label)
+        ax.set_ylabel("count")
+    axes[0][0].legend(fontsize=8)
+    fig.suptitle("SITL-M timings, all agents and episodes", fontsize=10)
+    fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110)
+    plt.close(fig)
+    write_atomic(path, buf.getvalue())
+    return True
