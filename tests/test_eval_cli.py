@@ -71,7 +71,7 @@ BAD_INPUTS = [
     (["--png", "{file}"], "is a file, not a folder"),
     (["--png", "/nonexistent/png"], "will not create /nonexistent"),
     (["--backend", "particle", "--wind", "3"], "no wind model"),
-    (["--sitl-m"], "not implemented"),
+    (["--sitl-m", "--protocol", "table3", "--backend", "particle"], "--sitl-m: Table III"),
     (["--report-dir", "reports"], "only --protocol table8"),
     (["--fresh"], "only --protocol table8"),
     (["--protocol", "table8", "--wind", "3"], "its own 7 conditions"),
@@ -126,13 +126,13 @@ def test_bad_input_via_subprocess(argv, needle, tmp_path):
     assert list(tmp_path.iterdir()) == []
 
 
-def test_version_and_help_say_sitl_m_is_not_available(capsys):
+def test_version_and_help(capsys):
     with pytest.raises(SystemExit) as exc:
         main(["--version"])
     assert exc.value.code == 0 and capsys.readouterr().out.startswith("cefc-eval 0.")
     with pytest.raises(SystemExit):
         main(["--help"])
-    assert "not yet available" in " ".join(capsys.readouterr().out.split())
+    assert "SITL-M: every UAV's policy in its own OS process" in " ".join(capsys.readouterr().out.split())
 
 
 def test_particle_single_run_writes_json_and_png_into_new_folders(random_policy, tmp_path, capsys):

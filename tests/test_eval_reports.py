@@ -41,7 +41,7 @@ def flown(monkeypatch):
     calls = []
     real = table8._fly
 
-    def counting(spec, record=False):
+    def counting(spec, record=False, sitl=None, drop=None):
         calls.append(spec)
         return real(spec, record=record)
 

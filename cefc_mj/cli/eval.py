@@ -93,7 +93,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, metavar="S", help="first seed (>= 0); episode k uses S+k (default 0)")
     p.add_argument("--policy", default=None, metavar="NAME|PATH",
                    help="atm (AT-M Step 3 of each c, default), safe, robust (AT-M-Robust, c = 5..8), quad "
-                        "(AT-M-Quad, c = 5..8), student, a name in policies/, or a .pt path; "
+                        "(AT-M-Quad, c = 5..8), student, orca (the ORCA-F baseline, table3 only), a name in policies/, or a .pt path; "
                         "table3 without it evaluates every method")
     p.add_argument("--sitl-m", action="store_true",
                    help="SITL-M: every UAV's policy in its own OS process over ZeroMQ, asynchronous (single: the "
@@ -207,6 +207,8 @@ def validate(args: argparse.Namespace) -> None:
         usage_error("--sitl-m: Table III is the particle world's one-process protocol; use single or table8")
     if args.sitl_m and proto == "single" and args.workers > 1:
         usage_error(f"--workers {args.workers}: SITL-M episodes fly one at a time (each runs c + 1 processes)")
+    if args.policy == "orca" and proto != "table3":
+        usage_error("--policy orca: the ORCA-F baseline is a Table III row (--backend particle --protocol table3)")
     if args.drop is not None and proto != "single":
         usage_error(f"--drop: agent dropout is a --protocol single experiment ({proto} flies the paper's table)")
     for flag, value, top in (("--wind", args.wind, MAX_WIND_SPEED), ("--deviation", args.deviation, MAX_DEVIATION)):
@@ -316,7 +318,8 @@ def load_policies(args: argparse.Namespace) -> dict:
             return provenance("atm", [])
         for c in args.formation:
             name = policy_file_for(POLICY_CHOICES[args.policy], c) if args.policy in POLICY_CHOICES else args.policy
-            cached_policy(name, c)
+            if name is not None:  # ORCA-F has no policy file
+                cached_policy(name, c)
         return provenance("atm", [])  # table3 records each row's file and sha256 itself
     args.policy = args.policy or "atm"
     prov = provenance(args.policy, args.formation)

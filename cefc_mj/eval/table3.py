@@ -32,22 +32,26 @@ TABLE3_DENSITY = 0.05
 TABLE3_EPISODES = 50
 TABLE3_STEPS = 100
 TABLE3_FORMATIONS = (6, 7, 8)
-METHODS = ("AT-M-Step1", "AT-M-Step2", "AT-M-Step3", "AT-M-Safe", "AT-M-Robust", "AT-M-Quad", "Student")
-"""Row names as the paper writes them (AT-M-Robust, AT-M-Quad and the student are this project's additions)."""
+METHODS = ("ORCA-F", "AT-M-Step1", "AT-M-Step2", "AT-M-Step3", "AT-M-Safe", "AT-M-Robust", "AT-M-Quad", "Student")
+"""Row names as the paper writes them (AT-M-Robust, AT-M-Quad and the student are this project's additions;
+ORCA-F is the baseline of cefc_mj/baselines/orca.py, docs/baselines.md)."""
 COLUMNS = ("R_L", "F", "N", "C")
 
 
 def _paper_table3() -> dict[str, dict[str, dict[str, float]]]:
     """The paper's Table III AT-M rows from the shipped transcription (eval/paper_tables.json)."""
     raw = json.loads((paths.EVAL_DIR / "paper_tables.json").read_text())["table3_atm_mpe"]
-    return {c: {m: dict(zip(COLUMNS, v)) for m, v in rows.items() if m.startswith("AT-M")} for c, rows in raw.items() if c.isdigit()}
+    return {c: {m: dict(zip(COLUMNS, v)) for m, v in rows.items() if m.startswith("AT-M") or m == "ORCA-F"}
+            for c, rows in raw.items() if c.isdigit()}
 
 
 PAPER_TABLE3 = _paper_table3()
 
 
-def policy_file_for(method: str, formation: int) -> str:
-    """The shipped policy name of a Table III method for formation c."""
+def policy_file_for(method: str, formation: int) -> str | None:
+    """The shipped policy name of a Table III method for formation c (None for ORCA-F, which has no file)."""
+    if method == "ORCA-F":
+        return None
     if method == "Student":
         return "atm_student"
     if method == "AT-M-Safe":
@@ -91,8 +95,31 @@ def evaluate_lowlevel(policy: Policy, formation: int, density: float = TABLE3_DE
 
 
 POLICY_CHOICES = {"atm": "AT-M-Step3", "safe": "AT-M-Safe", "robust": "AT-M-Robust", "quad": "AT-M-Quad",
-                  "student": "Student"}
+                  "student": "Student", "orca": "ORCA-F"}
 """cefc-eval's --policy aliases and the Table III row each one is."""
+
+
+def _row(per_episode: dict[str, np.ndarray], c: int, method: str) -> dict:
+    """Means, sample std and per-episode values of each metric, with the paper's row."""
+    row: dict = {}
+    for m, values in per_episode.items():
+        row[m] = float(values.mean())
+        row[f"{m}_std"] = float(values.std(ddof=1)) if values.size > 1 else None
+    row["per_episode"] = {m: [float(v) for v in values] for m, values in per_episode.items()}
+    row["paper"] = PAPER_TABLE3.get(str(c), {}).get(method)
+    return row
+
+
+def _orca_row(c: int, episodes: int, seed: int, steps: int, required: bool) -> dict | None:
+    """ORCA-F's row (same episodes as the policies'), or None when pyrvo is missing and not required."""
+    try:
+        from cefc_mj.baselines.orca import evaluate_orca_episodes
+    except ImportError:
+        if required:
+            raise ConfigError("--policy orca: the ORCA-F baseline needs pyrvo (pip install 'cefc-mj[baselines]')")
+        return None
+    per_episode = evaluate_orca_episodes(c, episodes=episodes, seed=seed, steps=steps)
+    return {**_row(per_episode, c, "ORCA-F"), "policy": "ORCA-F (pyrvo, RVO2)", "sha256": None}
 
 
 def run_table3(formations=TABLE3_FORMATIONS, episodes: int = TABLE3_EPISODES, seed: int = 0,
@@ -137,6 +164,13 @@ def run_table3(formations=TABLE3_FORMATIONS, episodes: int = TABLE3_EPISODES, se
             wanted = [(path.stem, str(path))]
         rows = {}
         for method, name in wanted:
+            if method == "ORCA-F":
+                row = _orca_row(c, episodes, seed, steps, required=policy is not None)
+                if row is None:
+                    result["protocol"]["missing"].append(f"{c}/ORCA-F (pyrvo not installed: pip install 'cefc-mj[baselines]')")
+                else:
+                    rows[method] = row
+                continue
             try:
                 path = resolve_policy_path(name, policies_dir)
             except CheckpointError:
@@ -145,15 +179,7 @@ def run_table3(formations=TABLE3_FORMATIONS, episodes: int = TABLE3_EPISODES, se
                 result["protocol"]["missing"].append(f"{c}/{method} ({name}.pt)")
                 continue
             per_episode = evaluate_lowlevel_episodes(load_policy(path), c, episodes=episodes, seed=seed, steps=steps)
-            row: dict = {}
-            for m, values in per_episode.items():
-                row[m] = float(values.mean())
-                row[f"{m}_std"] = float(values.std(ddof=1)) if values.size > 1 else None
-            row["per_episode"] = {m: [float(v) for v in values] for m, values in per_episode.items()}
-            row["paper"] = PAPER_TABLE3.get(str(c), {}).get(method)
-            row["policy"] = path.name
-            row["sha256"] = file_sha256(path)
-            rows[method] = row
+            rows[method] = {**_row(per_episode, c, method), "policy": path.name, "sha256": file_sha256(path)}
         result[str(c)] = rows
     if json_path is not None:
         write_atomic(Path(json_path), json.dumps(result, indent=2) + "\n")

@@ -16,8 +16,10 @@ from cefc_mj.errors import ConfigError
 
 Mode = Literal["formation", "cefc"]
 AdversaryRule = Literal["nearest_group", "r_nearest", "r_largest", "none"]
+ObstacleLayout = Literal["clear-start", "paper"]
 
 ADVERSARY_RULES = ("nearest_group", "r_nearest", "r_largest", "none")
+OBSTACLE_LAYOUTS = ("clear-start", "paper")
 
 
 @dataclass(frozen=True)
@@ -76,6 +78,12 @@ class TaskConfig:
     """Radius of the cylinder obstacles (m)."""
     obstacle_min_gap: float = 0.5
     """Minimum free gap between two obstacle surfaces (m): twice the UAV radius, so a UAV fits."""
+    obstacle_layout: ObstacleLayout = "clear-start"
+    """How obstacle centres are drawn (docs/layouts.md). "clear-start": outside the whole start
+    square grown by the obstacle and UAV radii, and anchor_clearance from the anchor and the targets
+    (every shipped policy and report was made on it). "paper": uniform over the arena, a centre
+    rejected only when the obstacle would overlap another (obstacle_min_gap) or a UAV's start disc
+    (with 0.1 m to spare), or lie within anchor_clearance of the anchor or a target centre."""
     anchor_half_size: float = 5.0
     """Anchors are drawn uniformly in [-h, h]^2 m."""
     anchor_clearance: float = 2.0
@@ -202,6 +210,8 @@ class TaskConfig:
             fail("n_targets", self.n_targets, "must be an integer in 0..4")
         if self.deviation_sampling not in ("fixed", "uniform"):
             fail("deviation_sampling", self.deviation_sampling, "must be 'fixed' or 'uniform'")
+        if self.obstacle_layout not in OBSTACLE_LAYOUTS:
+            fail("obstacle_layout", self.obstacle_layout, f"must be one of {', '.join(OBSTACLE_LAYOUTS)}")
         if self.adversary not in ADVERSARY_RULES:
             fail("adversary", self.adversary, f"must be one of {', '.join(ADVERSARY_RULES)}")
         if self.start_half_size >= self.arena_half_size:

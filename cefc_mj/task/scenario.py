@@ -1,4 +1,4 @@
-"""Seeded scenario sampling: starts, targets, anchors, obstacles (docs/design.md §4).
+"""Seeded scenario sampling: starts, targets, anchors, obstacles (docs/design.md §4, docs/layouts.md).
 
 Everything is drawn from one `numpy.random.Generator`, batched over envs; rejection sampling loops
 over slots (agents, obstacles) and vectorizes over envs. A placement that keeps failing raises
@@ -66,20 +66,37 @@ def sample_starts(cfg: TaskConfig, rng: np.random.Generator, n_envs: int) -> np.
     return pos
 
 
-def sample_obstacles(cfg: TaskConfig, rng: np.random.Generator, anchor: np.ndarray, targets: np.ndarray) -> np.ndarray:
-    """Obstacle centres [B, K, 2], clear of the start square, the anchor, the targets' centres
-    and each other."""
+START_DISC_MARGIN = 0.1
+"""Extra room (m) between an obstacle surface and a UAV's start disc in the "paper" layout."""
+
+
+def sample_obstacles(cfg: TaskConfig, rng: np.random.Generator, anchor: np.ndarray, targets: np.ndarray,
+                     starts: np.ndarray | None = None) -> np.ndarray:
+    """Obstacle centres [B, K, 2], each wholly inside the arena, clear of each other (obstacle_min_gap
+    between surfaces), and at least anchor_clearance from the anchor and the targets' centres.
+
+    cfg.obstacle_layout picks what else is kept free: "clear-start" the whole start square grown by
+    the obstacle and UAV radii; "paper" only each UAV's start disc (`starts` [B, N, 2], required) plus
+    START_DISC_MARGIN, so obstacles may stand between the swarm and its anchor (docs/layouts.md).
+    """
     n_envs = anchor.shape[0]
     k = cfg.n_obstacles
+    paper = cfg.obstacle_layout == "paper"
+    if paper and starts is None:
+        raise ConfigError("obstacle_layout='paper': sample_obstacles needs the start positions")
     obstacles = np.empty((n_envs, k, 2))
     keep_out = cfg.start_half_size + cfg.obstacle_radius + cfg.uav_radius
+    start_clearance = cfg.uav_radius + cfg.obstacle_radius + START_DISC_MARGIN
     min_centre_dist = 2 * cfg.obstacle_radius + cfg.obstacle_min_gap
     edge = cfg.arena_half_size - cfg.obstacle_radius
     for j in range(k):
         placed = obstacles[:, :j]
 
         def ok(candidate, idx, placed=placed):
-            good = np.abs(candidate).max(axis=-1) > keep_out
+            if paper:
+                good = (np.linalg.norm(candidate[:, None] - starts[idx], axis=-1) >= start_clearance).all(-1)
+            else:
+                good = np.abs(candidate).max(axis=-1) > keep_out
             good &= np.linalg.norm(candidate - anchor[idx], axis=-1) >= cfg.anchor_clearance
             if targets.shape[1]:
                 good &= (np.linalg.norm(candidate[:, None] - targets[idx], axis=-1) >= cfg.anchor_clearance).all(-1)
@@ -113,8 +130,32 @@ def sample_scenario(cfg: TaskConfig, rng: np.random.Generator, n_envs: int) -> S
     else:
         targets = np.zeros((n_envs, 0, 2))
     # The anchor is drawn first (obstacles keep clear of it); later redraws avoid the obstacles.
+    # Both layouts draw in this order, so "clear-start" keeps the random stream it always had.
     anchor = sample_anchor(cfg, rng, None, n_envs)
-    obstacles = sample_obstacles(cfg, rng, anchor, targets)
+    obstacles = sample_obstacles(cfg, rng, anchor, targets, agent_pos)
     adversary_pos = np.broadcast_to(np.asarray(cfg.adversary_start, dtype=float), (n_envs, 2)).copy()
     adversary_pos[:, 0] += rng.uniform(-cfg.start_half_size, cfg.start_half_size, size=n_envs)
     return Scenario(agent_pos=agent_pos, adversary_pos=adversary_pos, obstacles=obstacles, targets=targets, anchor=anchor)
+
+
+def obstacle_near_path(scenario: Scenario, obstacle_radius: float, margin: float = 1.0) -> np.ndarray:
+    """[B] bool: some obstacle's surface lies within `margin` m of the straight segment from the
+    start centre (mean start position) to the anchor, i.e. its centre is within
+    obstacle_radius + margin of that segment."""
+    start = scenario.agent_pos.mean(axis=1)                            # [B, 2]
+    seg = scenario.anchor - start                                      # [B, 2]
+    rel = scenario.obstacles - start[:, None]                          # [B, K, 2]
+    length_sq = np.maximum((seg * seg).sum(-1), 1e-12)[:, None]
+    along = np.clip((rel * seg[:, None]).sum(-1) / length_sq, 0.0, 1.0)  # [B, K] projection onto the segment
+    dist = np.linalg.norm(rel - along[..., None] * seg[:, None], axis=-1)
+    return (dist <= obstacle_radius + margin).any(axis=-1)
+
+
+def near_path_fraction(cfg: TaskConfig, n_layouts: int = 1000, seed: int = 0, margin: float = 1.0) -> float:
+    """Fraction of `n_layouts` layouts of `cfg` with an obstacle surface within `margin` m of the
+    start-centre -> anchor segment (obstacle_near_path); how often the way to the anchor is obstructed.
+    The layouts are drawn as one batch from default_rng(seed), as BatchedCEFCEnv.reset does."""
+    if not isinstance(n_layouts, int) or n_layouts < 1:
+        raise ConfigError(f"n_layouts={n_layouts!r}: must be an integer >= 1")
+    scenario = sample_scenario(cfg, np.random.default_rng(seed), n_layouts)
+    return float(obstacle_near_path(scenario, cfg.obstacle_radius, margin).mean())

@@ -1,0 +1,1 @@
+"""Non-learning baselines of the paper's tables (docs/baselines.md): ORCA-F (`orca`)."""
