@@ -1,23 +1,30 @@
-"""Real-time factor of the MuJoCo world: full loop vs physics only, measured in the same run.
+"""Real-time factor of the MuJoCo world as users run it: Table VIII episodes vs raw mj_step, measured in one run.
 
-Full loop per decision step (0.1 s): observation assembly + one 3x128 MLP forward for all agents
-(batch N, torch.set_num_threads(1)) -> MujocoWorld.step (50 physics steps at 500 Hz, each running
-the compiled PX4-like cascade for every drone) -> LiDAR (mj_multiRay, 10 Hz). Physics only: the
-same compiled scene stepped with `mj_step` alone (one Python call per step), each drone held up by
-its weight in xfrc_applied (the world applies the rotor thrusts there).
+Full loop: `cefc_mj.eval.runner.run_episode` flies the shipped AT-M policy (atm_c<c>_step3) through the
+Table VIII scene (c UAVs, obstacles at 0.03 per m^2, 1000 decision steps, anchor redraws), exactly the
+code `cefc-eval` runs: task core, observations, the policy, MujocoWorld.step (the compiled PX4-like
+cascade + mj_step, 50 physics steps per decision step), LiDAR, metrics. Its wall time is the episode's
+own (`EpisodeResult.wall_s`: reset to the last step; world construction and policy loading excluded).
 
-    .venv/bin/python benchmarks/bench_mujoco.py            # 8, 16, 32, 64 drones, 30 obstacles
-    .venv/bin/python benchmarks/bench_mujoco.py --drones 8 --seconds 20
-    .venv/bin/python benchmarks/bench_mujoco.py --episode  # + wall time of Table VIII episodes
+Physics only: `mujoco.mj_step(model, data, nstep)` on the very MjModel that episode flew (obstacles in
+place; fresh MjData, drones level where the episode left them), drones held up by their rotor
+actuators (ctrl = m g / 4) or, for the external path, by their weight in xfrc_applied: the floor the
+full loop can approach.
 
---episode also times whole Table VIII episodes (BatchedCEFCEnv: task core, observations, metrics,
-LiDAR, the MLP policy; 1000 decision steps, density 0.05, anchor redraws) for 5 and 8 drones in
-Wind-8, the conditions of the evaluation grid's slowest cells.
+Both are measured for MujocoWorldConfig.rotor_actuation = "actuators" (the default: the airframe's
+site-mounted thrust motors live in the scene) and "external" (no actuators, the rotor wrench in
+xfrc_applied), alternating, best of `--rounds`. The external episodes go through the same
+run_episode, with the world factory swapped for one that sets rotor_actuation="external" (nothing
+else differs); their F, N, C are printed beside the default's (equal up to the last bits of the
+physics, so usually identical). `--scaling` adds physics-only RTFs of both paths for 8..64 drones
+(the site transmissions cost O(actuators x dofs) per mj_step).
 
-RTF = simulated seconds / wall seconds, best of `--rounds` alternating rounds of each.
-Target: full loop >= 0.5 x physics-only, i.e. about 100x real time for 8 drones on one quiet
-core. Since the rotor thrusts moved to xfrc_applied, physics-only runs twice as fast as before and the
-ratio understates the full loop's gain; compare full-loop RTFs (docs/mujoco_world.md, Performance).
+    .venv/bin/python benchmarks/bench_mujoco.py                     # c = 8, calm air, 3 rounds
+    .venv/bin/python benchmarks/bench_mujoco.py --formation 5 --wind 8 --rounds 5
+    .venv/bin/python benchmarks/bench_mujoco.py --steps 300 --scaling
+
+RTF = simulated seconds / wall seconds. Absolute figures move with the load of a shared machine; the
+ratios measured in one run are what to compare.
 """
 
 from __future__ import annotations
@@ -29,135 +36,141 @@ import mujoco
 import numpy as np
 import torch
 
-from cefc_mj.sim.mujoco_world import MujocoWorld, MujocoWorldConfig
+import cefc_mj.eval.runner as runner
+from cefc_mj.eval.runner import EpisodeSpec, load_policy_for, run_episode
+from cefc_mj.sim.mujoco_world import MujocoWorld, MujocoWorldConfig, build_scene, make_mujoco_world
 
-OBS_DIM = 63  # the low-level observation for K = 7 neighbours, M = 24 beams (docs/architecture.md)
-
-
-def layout(n_agents: int, n_obstacles: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """Agents on a 1.2 m grid around the origin, obstacles uniform in the 20 m arena clear of them."""
-    side = int(np.ceil(np.sqrt(n_agents)))
-    grid = np.stack(np.meshgrid(np.arange(side), np.arange(side)), -1).reshape(-1, 2)[:n_agents] * 1.2
-    agents = grid - grid.mean(0)
-    obstacles = []
-    while len(obstacles) < n_obstacles:
-        c = rng.uniform(-10, 10, 2)
-        if np.min(np.abs(c[None] - agents).max(-1)) > 2.0 and all(np.linalg.norm(c - o) > 1.3 for o in obstacles):
-            obstacles.append(c)
-    return agents, np.array(obstacles).reshape(n_obstacles, 2)
+MODES = ("actuators", "external")
 
 
-def physics_only_rtf(world: MujocoWorld, seconds: float) -> float:
-    """mj_step alone on the world's compiled model, drones hovering open loop."""
-    model = world.models[0]
+class _Capture:
+    """The world factory run_episode calls, with rotor_actuation set; keeps the world and times its parts."""
+
+    def __init__(self, mode: str):
+        self.mode = mode
+        self.world: MujocoWorld | None = None
+        self.seconds = {"world.step": 0.0, "world.lidar": 0.0}
+
+    def __call__(self, backend, config, n_envs=1, wind=0.0, seed=None):
+        assert backend == "mujoco"
+        world = make_mujoco_world(config, n_envs=n_envs, wind=wind, seed=seed,
+                                  config=MujocoWorldConfig(rotor_actuation=self.mode))
+        for name in ("step", "lidar"):
+            method, key = getattr(world, name), f"world.{name}"
+
+            def timed(*args, _method=method, _key=key):
+                start = time.perf_counter()
+                out = _method(*args)
+                self.seconds[_key] += time.perf_counter() - start
+                return out
+
+            setattr(world, name, timed)  # the instance attribute shadows the method for the env's calls
+        self.world = world
+        return world
+
+
+def episode(spec: EpisodeSpec, policy, mode: str) -> tuple[float, dict, MujocoWorld, dict]:
+    """(full-loop RTF, metrics, the world, ms per decision step of world.step / world.lidar / the rest)."""
+    capture = _Capture(mode)
+    original = runner.make_world
+    runner.make_world = capture
+    try:
+        result = run_episode(spec, policy=policy)
+    finally:
+        runner.make_world = original
+    if result.diverged:
+        raise SystemExit(f"episode diverged: {result.diverged}")
+    ms = {k: v / result.steps * 1e3 for k, v in capture.seconds.items()}
+    ms["rest"] = result.wall_s / result.steps * 1e3 - ms["world.step"] - ms["world.lidar"]
+    return result.steps * spec.task_config().dt / result.wall_s, {k: getattr(result, k) for k in "FNC"}, capture.world, ms
+
+
+def physics_only_rtf(model: mujoco.MjModel, qpos: np.ndarray, weight: float, n_drones: int, live: bool,
+                     seconds: float) -> float:
+    """Raw mj_step (nstep in C, no Python per step) on `model`, the drones level at their positions in
+    `qpos` and hovering open loop (a tilted drone would fly off under constant rotor thrusts)."""
     data = mujoco.MjData(model)
-    data.qpos[:] = world.datas[0].qpos
-    data.xfrc_applied[world.drone_body_ids, 2] = world.airframe.mass * world.config.gravity
+    data.qpos[:] = qpos
+    drones = data.qpos[:7 * n_drones].reshape(n_drones, 7)
+    drones[:, 3:] = (1.0, 0.0, 0.0, 0.0)
+    if live:
+        data.ctrl[:] = weight / 4.0
+    else:
+        data.xfrc_applied[1:n_drones + 1, 2] = weight
     mujoco.mj_forward(model, data)
     n = int(round(seconds / model.opt.timestep))
     start = time.perf_counter()
-    for _ in range(n):
-        mujoco.mj_step(model, data)
+    mujoco.mj_step(model, data, nstep=n)
     return seconds / (time.perf_counter() - start)
 
 
-def full_loop_rtf(world: MujocoWorld, policy: torch.nn.Module, seconds: float) -> tuple[float, dict[str, float]]:
-    """Policy + world.step + LiDAR at 10 Hz; returns (RTF, wall seconds per component)."""
-    n = world.n_agents
-    ranges = world.lidar(world.agent_pos)
-    parts = {"policy": 0.0, "step": 0.0, "lidar": 0.0}
-    steps = int(round(seconds / world.dt))
-    start = time.perf_counter()
-    for _ in range(steps):
-        t0 = time.perf_counter()
-        pos, vel = world.agent_pos[0], world.agent_vel[0]
-        obs = np.zeros((n, OBS_DIM), dtype=np.float32)
-        obs[:, 0:2] = -pos  # anchor at the origin
-        obs[:, 2:4] = vel
-        obs[:, OBS_DIM - ranges.shape[-1]:] = ranges[0]
-        with torch.no_grad():
-            action = 2.0 * policy(torch.from_numpy(obs)).numpy().astype(np.float64)  # tanh -> +-2 m/s^2
-        t1 = time.perf_counter()
-        world.step(action[None], np.zeros((1, 2)))
-        t2 = time.perf_counter()
-        ranges = world.lidar(world.agent_pos)
-        t3 = time.perf_counter()
-        parts["policy"] += t1 - t0
-        parts["step"] += t2 - t1
-        parts["lidar"] += t3 - t2
-    return seconds / (time.perf_counter() - start), {k: v / steps * 1e3 for k, v in parts.items()}
-
-
-def episode_wall_time(formation: int, wind: float, steps: int, seed: int = 0) -> tuple[float, float]:
-    """(wall seconds, C) of one Table VIII episode flown by an untrained 3x128 MLP (tanh, 2 m/s^2)."""
-    from cefc_mj import make_world
-    from cefc_mj.env import BatchedCEFCEnv
-    from cefc_mj.eval.runner import EpisodeSpec
-
-    spec = EpisodeSpec(formation=formation, seed=seed, backend="mujoco", wind=wind, steps=steps)
-    config = spec.task_config()
-    env = BatchedCEFCEnv(config, n_envs=1, seed=seed, world=make_world("mujoco", config, n_envs=1, wind=wind, seed=seed))
-    torch.manual_seed(seed)
-    obs = env.reset()
-    policy = torch.nn.Sequential(
-        torch.nn.Linear(obs.shape[-1], 128), torch.nn.Tanh(), torch.nn.Linear(128, 128), torch.nn.Tanh(),
-        torch.nn.Linear(128, 128), torch.nn.Tanh(), torch.nn.Linear(128, 2), torch.nn.Tanh(),
-    )
-    with torch.no_grad():
-        policy[-2].weight.mul_(0.5)
-    start = time.perf_counter()
-    info: dict = {}
-    for _ in range(steps):
-        with torch.no_grad():
-            action = 2.0 * policy(torch.as_tensor(obs, dtype=torch.float32)).numpy().astype(np.float64)
-        obs, _, done, info = env.step(action)
-        if done[0]:
-            break
-    return time.perf_counter() - start, float(env.episode_metrics()["C"][0])
+def scaling(drones: list[int], obstacles: int, seconds: float, rounds: int) -> None:
+    """Physics-only RTF of both rotor paths for larger swarms (hovering on a grid, `obstacles` parked)."""
+    print(f"\nphysics only (raw mj_step, {obstacles} obstacles), RTF best of {rounds}:")
+    print(f"{'drones':>6} {'actuators':>10} {'external':>9} {'actuators/external':>19}")
+    for n in drones:
+        best = {}
+        for _ in range(rounds):
+            for mode in MODES:
+                config = MujocoWorldConfig(rotor_actuation=mode)
+                model = build_scene(config, n, obstacles, False, 0.25)
+                data = mujoco.MjData(model)
+                side = int(np.ceil(np.sqrt(n)))
+                qpos = data.qpos.reshape(n, 7)
+                qpos[:, 0] = 1.2 * (np.arange(n) % side)
+                qpos[:, 1] = 1.2 * (np.arange(n) // side)
+                qpos[:, 2] = config.flight_altitude
+                qpos[:, 3] = 1.0
+                weight = model.body_mass[1] * config.gravity
+                rtf = physics_only_rtf(model, data.qpos.copy(), weight, n, mode == "actuators", seconds)
+                best[mode] = max(best.get(mode, 0.0), rtf)
+        print(f"{n:>6} {best['actuators']:>10.1f} {best['external']:>9.1f} {best['actuators'] / best['external']:>19.3f}")
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--drones", type=int, nargs="+", default=[8, 16, 32, 64], help="UAV counts to measure")
-    parser.add_argument("--obstacles", type=int, default=30, help="cylinder obstacles in the arena")
-    parser.add_argument("--seconds", type=float, default=10.0, help="simulated seconds per measurement")
-    parser.add_argument("--rounds", type=int, default=3, help="alternating rounds per measurement (best kept)")
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--episode", action="store_true", help="also time Table VIII episodes (5 and 8 drones, Wind-8)")
-    parser.add_argument("--episode-steps", type=int, default=1000, help="decision steps per timed episode")
+    parser.add_argument("--formation", type=int, default=8, help="c: UAVs in the group (5..8, shipped policies)")
+    parser.add_argument("--wind", type=float, default=0.0, help="mean wind speed (m/s)")
+    parser.add_argument("--steps", type=int, default=1000, help="decision steps per episode (Table VIII: 1000)")
+    parser.add_argument("--rounds", type=int, default=3, help="alternating rounds (best kept)")
+    parser.add_argument("--seed", type=int, default=0, help="episode seed (the same layout every round)")
+    parser.add_argument("--scaling", action="store_true", help="also physics-only RTFs for 8, 16, 32, 64 drones")
     args = parser.parse_args()
     torch.set_num_threads(1)
-    torch.manual_seed(args.seed)
-    policy = torch.nn.Sequential(
-        torch.nn.Linear(OBS_DIM, 128), torch.nn.Tanh(), torch.nn.Linear(128, 128), torch.nn.Tanh(),
-        torch.nn.Linear(128, 128), torch.nn.Tanh(), torch.nn.Linear(128, 2), torch.nn.Tanh(),
-    )
-    # gentle output weights: the swarm wanders without piling up
-    with torch.no_grad():
-        policy[-2].weight.mul_(0.5)
-    print(f"{'drones':>6} {'physics-only RTF':>17} {'full-loop RTF':>14} {'ratio':>6}   ms per decision step: step / lidar / policy")
-    rng = np.random.default_rng(args.seed)
-    for n in args.drones:
-        agents, obstacles = layout(n, args.obstacles, rng)
-        world = MujocoWorld(MujocoWorldConfig(), n_envs=1, n_agents=n, n_obstacles=args.obstacles, seed=args.seed)
-        world.reset(np.ones(1, bool), agents[None], np.array([[0.0, -9.5]]), obstacles[None])
-        world.step(np.zeros((1, n, 2)), np.zeros((1, 2)))  # compile / warm up
-        # alternate the two measurements and keep each one's best round: the machine is shared,
-        # and load that hits one measurement but not the other would bias the ratio
-        physics, full, parts = 0.0, 0.0, {}
-        for _ in range(args.rounds):
-            physics = max(physics, physics_only_rtf(world, args.seconds / args.rounds))
-            rtf, round_parts = full_loop_rtf(world, policy, args.seconds / args.rounds)
-            if rtf > full:
-                full, parts = rtf, round_parts
-        print(f"{n:>6} {physics:>17.1f} {full:>14.1f} {full / physics:>6.2f}   "
-              f"{parts['step']:.2f} / {parts['lidar']:.2f} / {parts['policy']:.2f}")
-    if args.episode:
-        print(f"\nTable VIII episode, {args.episode_steps} decision steps, Wind-8 (wall seconds, best of {args.rounds}):")
-        for formation in (5, 8):
-            episode_wall_time(formation, 8.0, 5, seed=args.seed)  # warm up
-            wall = min(episode_wall_time(formation, 8.0, args.episode_steps, seed=args.seed + r)[0] for r in range(args.rounds))
-            print(f"  {formation} drones: {wall:.2f} s ({args.episode_steps * 0.1 / wall:.0f}x real time)")
+    spec = EpisodeSpec(formation=args.formation, seed=args.seed, wind=args.wind, steps=args.steps)
+    policy = load_policy_for(spec.policy, spec.formation)
+    warm = EpisodeSpec(formation=args.formation, seed=args.seed, wind=args.wind, steps=5)
+    for mode in MODES:  # compile / load the kernels, warm caches
+        episode(warm, policy, mode)
+
+    sim_seconds = spec.steps * spec.task_config().dt
+    full = {m: 0.0 for m in MODES}
+    physics = {m: 0.0 for m in MODES}
+    parts: dict[str, dict] = {}
+    metrics: dict[str, dict] = {}
+    for _ in range(args.rounds):
+        # alternate everything: load that hits one measurement but not the other would bias the ratios
+        for mode in MODES:
+            rtf, metrics[mode], world, ms = episode(spec, policy, mode)
+            if rtf > full[mode]:
+                full[mode], parts[mode] = rtf, ms
+            weight = world.airframe.mass * world.config.gravity
+            physics[mode] = max(physics[mode], physics_only_rtf(
+                world.models[0], world.datas[0].qpos.copy(), weight, world.n_drones, mode == "actuators", sim_seconds))
+
+    print(f"Table VIII episode: c = {spec.formation}, {spec.condition}, {spec.steps} decision steps, seed {spec.seed}, "
+          f"policy {policy.name}; RTF best of {args.rounds}")
+    print(f"{'rotors':>10} {'full-loop RTF':>14} {'physics-only RTF':>17} {'full/physics':>13}   "
+          f"ms per decision step: world.step / lidar / rest (task, policy)   F / N / C")
+    for mode in MODES:
+        m, p = metrics[mode], parts[mode]
+        print(f"{mode:>10} {full[mode]:>14.1f} {physics[mode]:>17.1f} {full[mode] / physics[mode]:>13.2f}   "
+              f"{p['world.step']:.2f} / {p['world.lidar']:.2f} / {p['rest']:.2f}"
+              f"{'':>34}{m['F']:.0f} / {m['N']:.0f} / {m['C']:.2f}")
+    print(f"live-actuator cost (external RTF / actuators RTF): full loop x{full['external'] / full['actuators']:.3f}, "
+          f"raw mj_step x{physics['external'] / physics['actuators']:.3f}")
+    if args.scaling:
+        scaling([8, 16, 32, 64], 30, 10.0, args.rounds)
 
 
 if __name__ == "__main__":

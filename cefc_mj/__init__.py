@@ -29,8 +29,10 @@ def make_task_config(n_agents: int = 8, **task_options) -> TaskConfig:
     return TaskConfig(n_agents=n_agents, **task_options)
 
 
-def make_world(backend: str, config: TaskConfig, n_envs: int = 1, wind: float = 0.0, seed: int | None = None):
-    """The physics world for `backend` ("particle" or "mujoco"); wind (m/s mean speed) is MuJoCo's."""
+def make_world(backend: str, config: TaskConfig, n_envs: int = 1, wind: float = 0.0, seed: int | None = None,
+               airframe: str | None = None):
+    """The physics world for `backend` ("particle" or "mujoco"); wind (m/s mean speed) and airframe (a
+    shipped name such as "iris" or "crazyflie", or an MJCF path; docs/mujoco_world.md) are MuJoCo's."""
     if backend not in BACKENDS:
         raise ConfigError(f"backend={backend!r}: must be one of {', '.join(BACKENDS)}")
     if not isinstance(wind, (int, float)) or not wind == wind or wind < 0:
@@ -38,12 +40,14 @@ def make_world(backend: str, config: TaskConfig, n_envs: int = 1, wind: float = 
     if backend == "particle":
         if wind:
             raise ConfigError("wind: the particle backend has no wind model; use backend='mujoco'")
+        if airframe is not None:
+            raise ConfigError("airframe: the particle backend has no airframe; use backend='mujoco'")
         from cefc_mj.sim.particle import ParticleWorld
 
         return ParticleWorld(config, n_envs, seed=seed)
     from cefc_mj.sim.mujoco_world import make_mujoco_world
 
-    return make_mujoco_world(config, n_envs=n_envs, wind=wind, seed=seed)
+    return make_mujoco_world(config, n_envs=n_envs, wind=wind, seed=seed, airframe=airframe)
 
 
 def make_env(
@@ -54,6 +58,7 @@ def make_env(
     deviation: float = 0.0,
     seed: int | None = None,
     render_mode: str | None = None,
+    airframe: str | None = None,
     **task_options,
 ):
     """The CEFC game as a PettingZoo `ParallelEnv` (agents `uav_0 .. uav_{N-1}`; docs/pettingzoo.md).
@@ -68,6 +73,8 @@ def make_env(
         render_mode: None, "rgb_array" (`env.render()` returns an [H, W, 3] uint8 frame; MuJoCo
             renders offscreen with OpenGL, EGL when there is no display) or "human" (streams every
             step to a live Rerun viewer).
+        airframe: MuJoCo only: "iris" (default), "crazyflie", or your own MJCF quadrotor with four
+            site-mounted thrust motors and a PX4-style params file (docs/mujoco_world.md).
         **task_options: any `TaskConfig` field, e.g. mode="formation", obstacle_density=0.03.
 
     Raises:
@@ -82,7 +89,7 @@ def make_env(
     config = make_task_config(n_agents=n_agents, deviation=deviation, **task_options)
     if backend == "mujoco" and render_mode == "rgb_array":
         prefer_headless_gl()  # before the world imports mujoco, which reads MUJOCO_GL once
-    world = make_world(backend, config, n_envs=1, wind=wind, seed=seed)
+    world = make_world(backend, config, n_envs=1, wind=wind, seed=seed, airframe=airframe)
     return CEFCParallelEnv(BatchedCEFCEnv(config, n_envs=1, seed=seed, world=world), render_mode=render_mode)
 
 

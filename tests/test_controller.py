@@ -259,6 +259,31 @@ def test_compiled_cascade_matches_numpy_reference(cascade, tick):
             np.testing.assert_allclose(xfrc_fast[d], xfrc_ref, rtol=1e-7, atol=1e-9)
 
 
+def test_kernel_writes_rotor_thrusts_to_actuator_controls(cascade):
+    """With ctrl given (live actuators) the kernel writes each rotor's thrust there and only the drag to
+    xfrc; the state, and the thrusts, are those of the external-wrench kernel to the last bit."""
+    rng = np.random.default_rng(11)
+    args = (cascade.prm, cascade.k, cascade.mix, cascade.eff, cascade.rotors)
+    for tick in (0, 1, 5):
+        qpos, qvel, s, sp, wind = random_case(rng, cascade, 6)
+        s_ext, xfrc_ext = s.copy(), np.zeros((6, 6))
+        s_act, xfrc_act, ctrl = s.copy(), np.full((6, 6), np.nan), np.full((6, 4), np.nan)
+        assert C.cascade_step(tick, qpos, qvel, xfrc_ext, s_ext, sp, wind, *args) == -1
+        assert C.cascade_step(tick, qpos, qvel, xfrc_act, s_act, sp, wind, *args, ctrl) == -1
+        np.testing.assert_array_equal(s_act, s_ext)
+        np.testing.assert_array_equal(ctrl, s_act[:, C.S_THRUST_N:C.S_THRUST_N + 4])
+        np.testing.assert_array_equal(xfrc_act, s_act[:, C.S_DRAG:C.S_DRAG + 6])
+        # what the actuators must add: thrust along body z at each rotor (+ moment) and the yaw reaction
+        for d in range(6):
+            R = rot(qpos[d, 3:])
+            force, torque = np.zeros(3), np.zeros(3)
+            for i in range(4):
+                f = ctrl[d, i] * R[:, 2]
+                force += f
+                torque += np.cross(R @ cascade.rotors[i, :3], f) - cascade.rotors[i, 3] * cascade.k[C.K_KM] * f
+            np.testing.assert_allclose(xfrc_ext[d] - xfrc_act[d], np.concatenate([force, torque]), rtol=1e-9, atol=1e-12)
+
+
 def test_kernel_flags_nan_and_flipped_drones(cascade):
     rng = np.random.default_rng(7)
     qpos, qvel, s, sp, wind = random_case(rng, cascade, 6)

@@ -118,8 +118,9 @@ def test_wind_drag_matches_the_rotor_drag_formula():
 
 
 def test_rotor_wrench_equals_mujoco_thrust_actuators():
-    """The cascade applies the rotor thrusts through xfrc_applied; MuJoCo's site-mounted <motor>
-    actuators of the airframe file, fed the same thrusts at the same pose, give the same generalized forces."""
+    """cascade_step without ctrl (rotor_actuation = "external") sums the rotor wrench into xfrc_applied;
+    MuJoCo's site-mounted <motor> actuators of the airframe file, fed the same thrusts at the same pose,
+    give the same generalized forces."""
     import mujoco
 
     from cefc_mj.control import cascade as C
@@ -145,6 +146,84 @@ def test_rotor_wrench_equals_mujoco_thrust_actuators():
     mujoco.mj_forward(reference, ref_data)
     np.testing.assert_allclose(ours, ref_data.qfrc_actuator, rtol=1e-9, atol=1e-12)
     assert np.abs(ours[3:]).max() > 1e-3 and np.ptp(thrusts) > 1e-3  # unequal rotors, real torques
+
+
+def test_rotor_actuators_are_live_in_the_scene():
+    """The airframe's four site-mounted <motor> actuators per drone are what MuJoCo simulates: data.ctrl
+    holds the lagged rotor thrusts, xfrc_applied only the rotor drag."""
+    import mujoco
+
+    world = MujocoWorld(MujocoWorldConfig(), n_envs=1, n_agents=2, n_obstacles=0, wind=WindConfig(mean_speed=5.0), seed=0)
+    world.reset(ALL, np.array([[[0.0, 0.0], [2.0, 0.0]]]), np.array([[0.0, 4.0]]), np.zeros((1, 0, 2)))
+    model, data = world.models[0], world.datas[0]
+    assert model.nu == 12
+    for d, prefix in enumerate(["uav0_", "uav1_", "adv_"]):
+        for i in range(4):
+            a = 4 * d + i
+            assert model.actuator(a).name == f"{prefix}thrust{i + 1}"
+            assert model.actuator_trntype[a] == mujoco.mjtTrn.mjTRN_SITE
+            assert model.site(model.actuator_trnid[a, 0]).name == f"{prefix}rotor{i + 1}"
+            assert model.site_bodyid[model.actuator_trnid[a, 0]] == d + 1
+    world.step(np.full((1, 2, 2), [1.0, -0.5]), np.array([[0.5, 0.5]]))
+    np.testing.assert_array_equal(data.ctrl.reshape(3, 4), world.motor_thrusts[0])
+    np.testing.assert_array_equal(data.actuator_force, data.ctrl)  # motors: force = ctrl, within ctrlrange
+    np.testing.assert_array_equal(data.xfrc_applied[1:4], world.drag_forces[0])
+    assert np.abs(data.qfrc_actuator).max() > 1.0 and np.ptp(data.ctrl[:4]) > 1e-3
+
+
+def twin_worlds(n_agents=3, wind=5.0):
+    """The same scene with live actuators and with the rotor wrench in xfrc_applied."""
+    worlds = [MujocoWorld(MujocoWorldConfig(rotor_actuation=mode), n_envs=1, n_agents=n_agents, n_obstacles=0,
+                          wind=WindConfig(mean_speed=wind, direction=1.0), seed=4) for mode in ("actuators", "external")]
+    start = np.stack([np.arange(n_agents) * 2.0, np.zeros(n_agents)], 1)[None]
+    for world in worlds:
+        world.reset(ALL, start, np.array([[0.0, 4.0]]), np.zeros((1, 0, 2)))
+    return worlds
+
+
+def test_actuators_and_external_rotor_forces_are_the_same_forces():
+    """For the same motor thrusts at the same pose and rates, MuJoCo's actuators (+ drag in xfrc_applied)
+    and the summed external wrench give the same generalized forces on every drone (1e-9 relative)."""
+    import mujoco
+
+    from cefc_mj.control import cascade as C
+
+    live, external = twin_worlds()
+    rng = np.random.default_rng(2)
+    for _ in range(5):  # tilted, turning, rotors unequal
+        live.step(rng.uniform(-2, 2, (1, 3, 2)), rng.uniform(-2, 2, (1, 2)))
+    external.datas[0].qpos[:] = live.datas[0].qpos
+    external.datas[0].qvel[:] = live.datas[0].qvel
+    external.wind.vector[:] = live.wind.vector
+    external.cascade.state[:] = live.cascade.state
+    external.cascade.setpoint[:] = live.cascade.setpoint
+    applied = []
+    for world in (live, external):
+        c, (qpos, qvel, xfrc, ctrl, _) = world.cascade, world._views[0]
+        assert C.cascade_step(1, qpos, qvel, xfrc, c.state[0], c.setpoint[0], world.wind.vector[0], c.prm, c.k, c.mix, c.eff,
+                              c.rotors, ctrl) == -1
+        model, data = world.models[0], world.datas[0]
+        mujoco.mj_forward(model, data)
+        applied.append((data.qfrc_smooth + data.qfrc_bias - data.qfrc_passive).reshape(4, 6))  # actuators + xfrc_applied
+    np.testing.assert_array_equal(live.cascade.state, external.cascade.state)
+    np.testing.assert_array_equal(live.datas[0].ctrl.reshape(4, 4), external.motor_thrusts[0])
+    for a, b in zip(*applied):
+        assert np.linalg.norm(a - b) <= 1e-9 * np.linalg.norm(a)
+    assert np.abs(applied[0][:, 3:]).max() > 1e-3
+
+
+def test_actuators_and_external_fly_the_same_trajectory():
+    """2 s of hover then an acceleration step, 3 drones + adversary in Wind-5: live actuators and the
+    external wrench agree to 1e-6 (measured: ~1e-14; only the summation order differs)."""
+    live, external = twin_worlds()
+    actions = np.zeros((20, 1, 3, 2))
+    actions[5:] = [1.0, -0.5]
+    for a in actions:
+        for world in (live, external):
+            world.step(a, np.array([[0.5, 0.5]]))
+    np.testing.assert_allclose(live.datas[0].qpos, external.datas[0].qpos, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(live.datas[0].qvel, external.datas[0].qvel, rtol=0, atol=1e-6)
+    assert np.abs(live.agent_vel[0]).max() > 0.5  # it moved
 
 
 def test_strong_wind_is_rejected_by_the_velocity_loop():
@@ -346,6 +425,12 @@ def test_compiled_and_python_physics_loops_agree_bit_for_bit():
     assert collisions.any()
 
 
+def test_compiled_and_python_physics_loops_agree_with_external_rotor_forces():
+    qpos, collisions = run_episode(5, steps=15, rotor_actuation="external")
+    qpos_py, collisions_py = run_episode(5, steps=15, physics_loop="python", rotor_actuation="external")
+    assert np.array_equal(qpos, qpos_py) and np.array_equal(collisions, collisions_py)
+
+
 # ----------------------------------------------------------------------------- protocol, divergence, bad input
 def test_is_a_world():
     world = single_drone()
@@ -377,6 +462,7 @@ def test_nan_state_and_flipped_drone_raise_simulation_diverged():
     (lambda: MujocoWorld(MujocoWorldConfig(offboard="position"), 1, 1, 0), "mujoco.offboard must be one of velocity, acceleration"),
     (lambda: MujocoWorld(MujocoWorldConfig(decision_dt=0.002), 1, 1, 0), "mujoco.decision_dt = 0.002 must be a whole number of position-loop periods"),
     (lambda: MujocoWorld(MujocoWorldConfig(physics_loop="c"), 1, 1, 0), "mujoco.physics_loop must be one of compiled, python"),
+    (lambda: MujocoWorld(MujocoWorldConfig(rotor_actuation="motors"), 1, 1, 0), "mujoco.rotor_actuation must be one of actuators, external"),
 ])
 def test_bad_configuration_is_one_clear_line(make, message):
     with pytest.raises(ConfigError, match=message) as info:

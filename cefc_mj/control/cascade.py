@@ -1,8 +1,10 @@
 """PX4-like cascaded multicopter controller, vectorized over drones, compiled with numba.
 
 One call of `cascade_step` runs one physics step (default 500 Hz) for all D drones of one env,
-reading MuJoCo's qpos/qvel and writing xfrc_applied (rotor thrusts, yaw reaction torques, rotor
-drag); `run_physics` runs a whole stretch of physics steps (cascade + `mj_step`) in one compiled call:
+reading MuJoCo's qpos/qvel and writing the rotor thrusts to `data.ctrl` (the airframe's site-mounted
+`<motor>` actuators, which MuJoCo turns into the thrust along each rotor axis and the yaw reaction
+torque through their gear) and the rotor drag to `xfrc_applied`; `run_physics` runs a whole stretch
+of physics steps (cascade + `mj_step`) in one compiled call:
 
     offboard interface (position-loop rate, default 100 Hz), one of
         "velocity": the action integrated into a velocity setpoint (ramped over the decision step,
@@ -23,11 +25,14 @@ drag); `run_physics` runs a whole stretch of physics steps (cascade + `mj_step`)
     ControlAllocationSequentialDesaturation (airmode off): pseudo-inverse mix, thrust reduced only,
         roll/pitch desaturation, yaw mixed last with 15 % headroom
     motor model (every physics step): omega -> omega_ref with the asymmetric first-order lag
-        (exact discretisation), thrust = k omega^2 (reduced with axial airspeed as Gazebo); rotor
-        thrusts with their moments and yaw reaction torques, rotor drag and rolling moment on the
-        relative airspeed, summed into xfrc_applied (world frame, about the centre of mass). This is
-        the wrench MuJoCo's site-mounted `<motor>` actuators of the airframe file would apply, without
-        their per-step transmission Jacobians.
+        (exact discretisation), thrust = k omega^2 (reduced with axial airspeed as Gazebo) -> ctrl,
+        one rotor thrust (N) per actuator; rotor drag and rolling moment on the relative airspeed,
+        summed into xfrc_applied (world frame, about the centre of mass). The lag stays here, not in
+        MuJoCo's actuator dynamics: it is asymmetric and acts on the rotor speed (thrust ~ omega^2),
+        which dyntype="filter" (symmetric, linear in ctrl) cannot express, and the drag needs omega.
+        Without actuators in the scene (MujocoWorldConfig.rotor_actuation = "external") the same
+        thrust wrench (thrust along body z at each rotor, its moment, the yaw reaction torque) is
+        summed into xfrc_applied instead.
 
 Frames: world ENU, body FLU (MuJoCo's). PX4 works in NED/FRD; every formula here is PX4's with
 z (and the sign of vertical quantities) flipped, e.g. body_z = normalize(-a_x, -a_y, g) in NED is
@@ -419,9 +424,11 @@ def _rate_loop(d, qpos, qvel, s, prm, k, mix, eff):
 
 
 @njit(inline="always")
-def _motors_and_drag(d, qpos, qvel, xfrc, s, k, rotors, wind):
-    """Motor lag; rotor thrusts, yaw reaction torques, rotor drag and rolling moments summed into
-    xfrc_applied (world frame, about the centre of mass) for drone d."""
+def _motors_and_drag(d, qpos, qvel, xfrc, ctrl, s, k, rotors, wind):
+    """Motor lag, then for drone d: the rotor thrusts into ctrl [D, 4] (MuJoCo's site-mounted <motor>
+    actuators apply them with their yaw reaction torques) and rotor drag + rolling moments into
+    xfrc_applied (world frame, about the centre of mass). With an empty ctrl ([0, 4]: no actuators in
+    the scene) the thrust wrench the actuators would apply is summed into xfrc_applied as well."""
     w, x, y, z = qpos[d, 3], qpos[d, 4], qpos[d, 5], qpos[d, 6]
     # body -> world rotation
     r00, r01, r02 = 1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)
@@ -470,6 +477,12 @@ def _motors_and_drag(d, qpos, qvel, xfrc, s, k, rotors, wind):
         mz += rx * dfy - ry * dfx + roll * vz
     s[d, S_DRAG], s[d, S_DRAG + 1], s[d, S_DRAG + 2] = fx, fy, fz
     s[d, S_DRAG + 3], s[d, S_DRAG + 4], s[d, S_DRAG + 5] = mx, my, mz
+    if ctrl.shape[0] > 0:  # live actuators: MuJoCo applies the thrusts, xfrc_applied carries the drag
+        for i in range(4):
+            ctrl[d, i] = s[d, S_THRUST_N + i]
+        xfrc[d, 0], xfrc[d, 1], xfrc[d, 2] = fx, fy, fz
+        xfrc[d, 3], xfrc[d, 4], xfrc[d, 5] = mx, my, mz
+        return
     xfrc[d, 0] = fx + r02 * thrust
     xfrc[d, 1] = fy + r12 * thrust
     xfrc[d, 2] = fz + r22 * thrust
@@ -479,12 +492,24 @@ def _motors_and_drag(d, qpos, qvel, xfrc, s, k, rotors, wind):
 
 
 @njit
-def cascade_step(tick, qpos, qvel, xfrc, s, sp, wind, prm, k, mix, eff, rotors):
+def cascade_step(tick, qpos, qvel, xfrc, s, sp, wind, prm, k, mix, eff, rotors, ctrl=None):
     """One physics step of the cascade for all drones of one env.
+
+    ctrl: MuJoCo's `data.ctrl` as [D, 4] (the scene's rotor actuators, drone by drone, in the
+    airframe's motor order): the rotor thrusts go there and xfrc [D, 6] gets the rotor drag only.
+    Omitted (or [0, 4]): no actuators, the whole rotor wrench goes into xfrc.
 
     Returns -1, or the index of the first drone whose state is non-finite or tilted past the flip
     threshold (the caller raises SimulationDiverged).
     """
+    if ctrl is None:
+        return _cascade_tick(tick, qpos, qvel, xfrc, np.empty((0, 4)), s, sp, wind, prm, k, mix, eff, rotors)
+    return _cascade_tick(tick, qpos, qvel, xfrc, ctrl, s, sp, wind, prm, k, mix, eff, rotors)
+
+
+@njit
+def _cascade_tick(tick, qpos, qvel, xfrc, ctrl, s, sp, wind, prm, k, mix, eff, rotors):
+    """cascade_step with ctrl always given ([D, 4], or [0, 4] for no actuators)."""
     run_pos = tick % int(k[K_POS_DIV]) == 0
     run_rate = tick % int(k[K_RATE_DIV]) == 0
     bad = -1
@@ -505,7 +530,7 @@ def cascade_step(tick, qpos, qvel, xfrc, s, sp, wind, prm, k, mix, eff, rotors):
             _position_loop(d, qpos, qvel, s, sp, prm, k)
         if run_rate:
             _rate_loop(d, qpos, qvel, s, prm, k, mix, eff)
-        _motors_and_drag(d, qpos, qvel, xfrc, s, k, rotors, wind)
+        _motors_and_drag(d, qpos, qvel, xfrc, ctrl, s, k, rotors, wind)
     return bad
 
 
@@ -525,17 +550,20 @@ def _call_step(typingctx, fn, model, data):
 
 
 @njit
-def run_physics(tick, n_steps, step_fn, model, data, qpos, qvel, xfrc, contacts, collided, s, sp, wind, prm, k, mix,
-                eff, rotors):
+def run_physics(tick, n_steps, step_fn, model, data, qpos, qvel, xfrc, ctrl, contacts, collided, s, sp, wind, prm, k,
+                mix, eff, rotors):
     """n_steps physics steps of one env from `tick`: the cascade, then MuJoCo's `mj_step` (called
     through its C address `step_fn` on the mjModel/mjData addresses `model`, `data`), all compiled.
+
+    ctrl [D, 4]: the env's `data.ctrl` (rotor thrust actuators), or [0, 4] when the scene has none
+    (see cascade_step).
 
     contacts [N, 2]: per UAV the MuJoCo contact-sensor counts (all contacts of its footprint, those
     with the floor); collided [N] is set where the first exceeds the second after a step.
     Returns (steps run, bad drone or -1); a bad drone (see cascade_step) stops before its mj_step.
     """
     for j in range(n_steps):
-        bad = cascade_step(tick + j, qpos, qvel, xfrc, s, sp, wind, prm, k, mix, eff, rotors)
+        bad = _cascade_tick(tick + j, qpos, qvel, xfrc, ctrl, s, sp, wind, prm, k, mix, eff, rotors)
         if bad >= 0:
             return j, bad
         _call_step(step_fn, model, data)

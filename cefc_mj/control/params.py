@@ -81,6 +81,17 @@ def params_path(name_or_path: str | Path) -> Path:
     return path
 
 
+def params_for_airframe(mjcf_path: Path) -> Path:
+    """The gains that go with an airframe MJCF file: `<stem>.params` beside it, else
+    `controllers/<stem>.params`; ConfigError naming both when neither exists."""
+    candidates = [mjcf_path.with_suffix(".params"), CONTROLLERS_DIR / f"{mjcf_path.stem}.params"]
+    for path in candidates:
+        if path.is_file():
+            return path
+    raise ConfigError(f"params: no parameter file for airframe {mjcf_path.stem!r} (looked for {candidates[0]} and "
+                      f"{candidates[1]}); write one (docs/mujoco_world.md, Adding an airframe) or name it with params=")
+
+
 def parse_params(text: str, source: str = "<params>") -> dict[str, float]:
     """Parse and validate the text of a parameter file; `source` names it in errors."""
     values: dict[str, float] = {}

@@ -2,8 +2,12 @@
 
 B envs, each its own MjModel copy + MjData: N UAVs (`uav<i>_`) and, unless disabled, one
 adversary quadrotor (`adv_`) are attached from the airframe MJCF into `assets/mjcf/arena.xml` with
-`mujoco.MjSpec` (rigid body and footprint only: the airframe's thrust actuators and visual geoms are
-left out, the cascade applies the rotor wrenches through xfrc_applied); K obstacles are cylinders
+`mujoco.MjSpec` (rigid body, footprint, rotor sites and the four site-mounted thrust `<motor>`
+actuators; visual geoms only if asked for). The cascade writes each rotor's thrust (after the motor
+lag) to `data.ctrl`, drone by drone in the airframe's motor order, and MuJoCo applies it with the yaw
+reaction torque through the actuators' gear; rotor drag and wind act through `xfrc_applied`
+(`rotor_actuation = "external"`: no actuators, the whole rotor wrench through xfrc_applied, as before
+the actuators were live). K obstacles are cylinders
 (radius 0.4 m by default, geom group 1), each in its own world-welded body, compiled once and moved
 at reset by writing the env's `model.body_pos` (no recompile). Moving geoms inside one body instead
 (`model.geom_pos`) would leave the bounding-volume trees MuJoCo compiled for the body stale: its
@@ -38,6 +42,7 @@ from __future__ import annotations
 
 import copy
 import ctypes
+import dataclasses
 import math
 import warnings
 from dataclasses import asdict, dataclass
@@ -46,9 +51,9 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
-from cefc_mj.control.airframe import load_airframe
+from cefc_mj.control.airframe import Airframe, load_airframe
 from cefc_mj.control.cascade import OFFBOARD_MODES, SP_VMAX, SP_Z, CascadeTiming, Px4Cascade, cascade_step, run_physics
-from cefc_mj.control.params import load_params, params_path
+from cefc_mj.control.params import load_params, params_for_airframe, params_path
 from cefc_mj.errors import ConfigError, SimulationDiverged
 from cefc_mj.paths import MJCF_DIR
 from cefc_mj.sim.wind import WindConfig, WindField
@@ -60,7 +65,10 @@ ADVERSARY_GROUP = 4
 _PARKED = 1.0e3  # where obstacles wait before the first reset (far outside the arena)
 _BAD_STATE_WARNINGS = (mujoco.mjtWarning.mjWARN_BADQACC, mujoco.mjtWarning.mjWARN_BADQPOS, mujoco.mjtWarning.mjWARN_BADQVEL)
 _VISUAL_GROUP = 3  # the airframe file's visual-only geoms and rotor sites
+_FOOTPRINT_HALF_HEIGHT = 0.05  # of the footprint cylinder the world adds to an airframe without one (m)
+_HOVER_MISMATCH = 0.1  # largest |MPC_THR_HOVER - the airframe's hover thrust| accepted (normalised)
 PHYSICS_LOOPS = ("compiled", "python")
+ROTOR_ACTUATIONS = ("actuators", "external")
 
 
 def _mj_step_address() -> int | None:
@@ -81,9 +89,17 @@ class MujocoWorldConfig:
     """Physics, controller and scene settings of the MuJoCo backend (validated at construction)."""
 
     airframe: str = "iris"
-    """Airframe MJCF in assets/mjcf/ (without .xml)."""
-    params: str = "iris"
-    """Controller gains: a name in controllers/ (without .params) or a path to a .params file."""
+    """Airframe: a name in assets/mjcf/ (without .xml; "iris", "crazyflie") or the path of an MJCF
+    quadrotor file with four site-mounted thrust motors (cefc_mj.control.airframe; docs/mujoco_world.md)."""
+    params: str | None = None
+    """Controller gains: a name in controllers/ (without .params) or a path to a .params file; None:
+    the airframe's own, `<stem>.params` beside an airframe given as a file, else controllers/<stem>.params."""
+    rotor_actuation: str = "actuators"
+    """"actuators": the airframe's four `<motor>` actuators stay in the compiled scene and the cascade
+    writes the rotor thrusts to `data.ctrl` (MuJoCo applies thrust and yaw reaction torque);
+    "external": the actuators are left out and the same rotor wrench is summed into xfrc_applied (the
+    earlier path; same forces to ~1e-15 relative, a few percent cheaper per mj_step). Rotor drag and
+    wind go through xfrc_applied either way."""
     physics_dt: float = 0.002
     """Physics step (s); 0.002 = 500 Hz (docs/design.md §3: 500 Hz or finer)."""
     decision_dt: float = 0.1
@@ -120,10 +136,18 @@ class MujocoWorldConfig:
     """Keep the airframe's visual-only geoms and rotor sites (group 3) in the compiled scene, for a MuJoCo
     viewer. They cannot collide, but they cost about a quarter of mj_step (kinematics, collision)."""
 
+    def params_file(self) -> Path:
+        """The parameter file this config flies with (see `params`); ConfigError if there is none."""
+        if self.params is None:
+            return params_for_airframe(load_airframe(self.airframe).path)
+        return params_path(self.params)
+
     def validate(self) -> None:
         """Raise ConfigError naming the first bad field."""
-        load_airframe(self.airframe)
-        params_path(self.params)
+        if not isinstance(self.airframe, (str, Path)):
+            raise ConfigError(f"mujoco.airframe must be a name or a path, got {self.airframe!r}")
+        airframe = load_airframe(self.airframe)
+        params_file = self.params_file()
         for name in ("physics_dt", "decision_dt", "rate_loop_hz", "position_loop_hz", "flight_altitude",
                      "speed_limit_tau", "disturbance_tau", "obstacle_height", "gravity"):
             value = getattr(self, name)
@@ -151,6 +175,12 @@ class MujocoWorldConfig:
             raise ConfigError(f"mujoco.physics_loop must be one of {', '.join(PHYSICS_LOOPS)}, got {self.physics_loop!r}")
         if not isinstance(self.visual_geoms, bool):
             raise ConfigError(f"mujoco.visual_geoms must be a bool, got {self.visual_geoms!r}")
+        if self.rotor_actuation not in ROTOR_ACTUATIONS:
+            raise ConfigError(f"mujoco.rotor_actuation must be one of {', '.join(ROTOR_ACTUATIONS)}, got {self.rotor_actuation!r}")
+        hover, expected = load_params(params_file)["MPC_THR_HOVER"], airframe.hover_thrust(self.gravity)
+        if abs(hover - expected) > _HOVER_MISMATCH:
+            raise ConfigError(f"params: MPC_THR_HOVER = {hover:g} in {params_file.name} but airframe {airframe.name!r} "
+                              f"hovers at {expected:.3f} of full thrust: these gains are not this airframe's")
 
     def to_dict(self) -> dict:
         """Plain dict for run records."""
@@ -165,26 +195,60 @@ def _ratio(a: float, b: float) -> int | None:
 
 
 def build_scene(config: MujocoWorldConfig, n_agents: int, n_obstacles: int, with_adversary: bool, uav_radius: float,
-                obstacle_radius: float = 0.4) -> mujoco.MjModel:
+                obstacle_radius: float = 0.4, airframe: Airframe | None = None) -> mujoco.MjModel:
     """Compose arena + N UAVs (+ adversary) + K parked obstacle cylinders (+ 2 contact sensors per UAV,
-    sensordata[2i:2i+2] = contacts of UAV i's footprint: all, with the floor) into one MjModel."""
-    airframe_file = MJCF_DIR / f"{config.airframe}.xml"
+    sensordata[2i:2i+2] = contacts of UAV i's footprint: all, with the floor) into one MjModel.
+
+    Each drone is the airframe's body with its footprint and, with rotor_actuation = "actuators", its
+    four rotor sites and thrust motors (ctrlrange set to exactly 0 .. k omega_max^2): actuators 4 d ..
+    4 d + 3 are drone d's, in the airframe's motor order. Everything else of the file (other geoms,
+    sites, sensors, keyframes) is left out, visual geoms kept (without contacts) if config.visual_geoms.
+    The body keeps the mass and inertia the airframe file gives it, whatever geoms are left out."""
+    airframe = airframe or load_airframe(config.airframe)
+    live = config.rotor_actuation == "actuators"
     arena = mujoco.MjSpec.from_file(str(MJCF_DIR / "arena.xml"))
     arena.option.timestep = config.physics_dt
     arena.option.gravity = [0.0, 0.0, -config.gravity]
     names = [f"uav{i}_" for i in range(n_agents)] + (["adv_"] if with_adversary else [])
     for i, prefix in enumerate(names):
-        child = mujoco.MjSpec.from_file(str(airframe_file))
-        for actuator in list(child.actuators):  # the cascade applies the rotor wrenches (xfrc_applied)
-            child.delete(actuator)
-        if not config.visual_geoms:
-            for element in [g for g in child.geoms if g.group == _VISUAL_GROUP] + [x for x in child.sites if x.group == _VISUAL_GROUP]:
-                child.delete(element)
+        child = mujoco.MjSpec.from_file(str(airframe.path))
+        child.meshdir = str((airframe.path.parent / child.meshdir).resolve())  # assets resolve from the file's folder
+        child.texturedir = str((airframe.path.parent / child.texturedir).resolve())
+        body = child.worldbody.first_body()
+        if not body.explicitinertial:  # mass from geoms: pin it before any geom is left out
+            body.explicitinertial = True
+            body.mass, body.ipos, body.iquat = airframe.mass, airframe.centre_of_mass, airframe.inertia_quat
+            body.inertia = airframe.inertia
+        for element in list(child.keys) + list(child.sensors):
+            child.delete(element)
+        for actuator in list(child.actuators):
+            if live:  # the rotor's thrust (N) is ctrl; the exact range keeps MuJoCo's clamp a no-op
+                actuator.ctrllimited = mujoco.mjtLimited.mjLIMITED_TRUE
+                actuator.ctrlrange = [0.0, airframe.max_thrust]
+            else:  # the cascade applies the rotor wrenches (xfrc_applied)
+                child.delete(actuator)
+        footprint = None
+        for geom in list(child.geoms):
+            if geom.name == "footprint":
+                footprint = geom
+            elif config.visual_geoms:
+                geom.contype, geom.conaffinity, geom.group = 0, 0, _VISUAL_GROUP
+            else:
+                child.delete(geom)
+        keep_sites = set(airframe.rotor_sites) if live else set()
+        for site in list(child.sites):
+            if site.name not in keep_sites and not config.visual_geoms:
+                child.delete(site)
+        if footprint is None:
+            footprint = body.add_geom(name="footprint", type=mujoco.mjtGeom.mjGEOM_CYLINDER, pos=airframe.centre_of_mass,
+                                      size=[uav_radius, _FOOTPRINT_HALF_HEIGHT, 0.0], rgba=[0.3, 0.3, 0.35, 0.25])
+        elif footprint.type != mujoco.mjtGeom.mjGEOM_CYLINDER:
+            raise ConfigError(f"airframe: {airframe.path}: geom 'footprint' must be a cylinder (the collision disc), "
+                              "or leave it out and the world adds one")
+        footprint.contype, footprint.conaffinity, footprint.group = 1, 1, UAV_GROUP
         frame = arena.worldbody.add_frame(pos=[2.0 * i, 0.0, config.flight_altitude])
-        frame.attach_body(child.worldbody.first_body(), prefix, "")
+        frame.attach_body(body, prefix, "")
         footprint = arena.geom(f"{prefix}footprint")
-        if footprint is None or footprint.type != mujoco.mjtGeom.mjGEOM_CYLINDER:
-            raise ConfigError(f"airframe: {airframe_file} needs a cylinder geom named 'footprint' (the collision disc)")
         footprint.size = [uav_radius, footprint.size[1], 0.0]
         if prefix == "adv_":
             footprint.contype = 0
@@ -211,7 +275,8 @@ def build_scene(config: MujocoWorldConfig, n_agents: int, n_obstacles: int, with
 
 
 class MujocoWorld:
-    """B envs of N Iris-class quadrotors (+ adversary) and K cylinders, implementing `World`.
+    """B envs of N quadrotors (+ adversary; Iris-class unless config.airframe says otherwise) and K
+    cylinders, implementing `World`.
 
     Args:
         config: physics/controller/scene settings.
@@ -263,7 +328,8 @@ class MujocoWorld:
         self.airframe = load_airframe(config.airframe)
         timing = CascadeTiming(config.physics_dt, _ratio(1.0 / config.rate_loop_hz, config.physics_dt),
                                _ratio(1.0 / config.position_loop_hz, config.physics_dt))
-        self.cascade = Px4Cascade(self.airframe, load_params(config.params), timing, self.n_envs, self.n_drones,
+        self.params_file = config.params_file()
+        self.cascade = Px4Cascade(self.airframe, load_params(self.params_file), timing, self.n_envs, self.n_drones,
                                   speed_limit_tau=config.speed_limit_tau,
                                   disturbance_tau=config.disturbance_tau, flip_tilt_deg=config.flip_tilt_deg,
                                   gravity=config.gravity, offboard=config.offboard)
@@ -271,20 +337,35 @@ class MujocoWorld:
         self.cascade.setpoint[:, :self.n_agents, SP_VMAX] = speed_max
         self.cascade.setpoint[:, self.n_agents:, SP_VMAX] = adversary_speed_max
 
-        base = build_scene(config, self.n_agents, self.n_obstacles, self.with_adversary, self.uav_radius, self.obstacle_radius)
+        base = build_scene(config, self.n_agents, self.n_obstacles, self.with_adversary, self.uav_radius, self.obstacle_radius,
+                           airframe=self.airframe)
         self.models = [base] + [copy.deepcopy(base) for _ in range(self.n_envs - 1)]
         self.datas = [mujoco.MjData(m) for m in self.models]
         prefixes = [f"uav{i}_" for i in range(self.n_agents)] + (["adv_"] if self.with_adversary else [])
-        self.drone_body_ids = np.array([base.body(f"{p}{self.airframe.name}").id for p in prefixes])
+        self.drone_body_ids = np.array([base.body(f"{p}{self.airframe.body_name}").id for p in prefixes])
         if not np.array_equal(self.drone_body_ids, np.arange(1, self.n_drones + 1)) or base.nq != 7 * self.n_drones:
             raise ConfigError("mujoco: the scene must hold the drones as bodies 1..D with one free joint each")
-        if base.nu or base.nsensordata != 2 * self.n_agents:
-            raise ConfigError("mujoco: the scene must have no actuators and exactly the UAVs' contact sensors")
+        if not (np.allclose(base.body_mass[1:self.n_drones + 1], self.airframe.mass, rtol=1e-12)
+                and np.allclose(base.body_ipos[1:self.n_drones + 1], self.airframe.centre_of_mass, atol=1e-12)):
+            raise ConfigError(f"mujoco: the drones in the scene lost the mass or centre of mass of {self.airframe.path}")
+        self.rotor_actuators = config.rotor_actuation == "actuators"
+        if self.rotor_actuators:
+            # actuator 4 d + i: drone d's rotor i, on its rotor site (data.ctrl viewed as [D, 4])
+            sites = [base.site(f"{p}{s}").id for p in prefixes for s in self.airframe.rotor_sites]
+            if base.nu != 4 * self.n_drones or base.actuator_trnid[:, 0].tolist() != sites:
+                raise ConfigError("mujoco: the scene must hold four rotor actuators per drone, in motor order")
+        elif base.nu:
+            raise ConfigError("mujoco: with rotor_actuation = 'external' the scene must have no actuators")
+        if base.nsensordata != 2 * self.n_agents:
+            raise ConfigError("mujoco: the scene must have exactly the UAVs' contact sensors")
         self.obstacle_geom_ids = np.array([base.geom(f"obstacle{k}").id for k in range(self.n_obstacles)], dtype=int)
         self.obstacle_body_ids = np.array([base.body(f"obstacle{k}").id for k in range(self.n_obstacles)], dtype=int)
         d, n = self.n_drones, self.n_agents
-        # per env: qpos [D, 7], qvel [D, 6], xfrc_applied [D, 6], contact counts [N, 2] (views into MjData)
-        self._views = [(dat.qpos.reshape(d, 7), dat.qvel.reshape(d, 6), dat.xfrc_applied[1:d + 1], dat.sensordata.reshape(n, 2))
+        # per env: qpos [D, 7], qvel [D, 6], xfrc_applied [D, 6], ctrl [D, 4] (rotor thrusts; [0, 4] without
+        # actuators), contact counts [N, 2] (views into MjData)
+        no_ctrl = np.empty((0, 4))
+        self._views = [(dat.qpos.reshape(d, 7), dat.qvel.reshape(d, 6), dat.xfrc_applied[1:d + 1],
+                        dat.ctrl.reshape(d, 4) if self.rotor_actuators else no_ctrl, dat.sensordata.reshape(n, 2))
                        for dat in self.datas]
         self._compiled = config.physics_loop == "compiled" and _MJ_STEP is not None
         if config.physics_loop == "compiled" and not self._compiled:
@@ -348,7 +429,7 @@ class MujocoWorld:
         """n_steps physics steps of env e, redrawing its wind on the plugin's schedule."""
         c = self.cascade
         model, data = self.models[e], self.datas[e]
-        qpos, qvel, xfrc, contacts = self._views[e]
+        qpos, qvel, xfrc, ctrl, contacts = self._views[e]
         s_e, sp_e, wind_e, collided = c.state[e], c.setpoint[e], self.wind.vector[e], self._collided[e]
         period = self._wind_period
         tick = int(self._tick[e])
@@ -358,12 +439,12 @@ class MujocoWorld:
                 self.wind.update(e, tick * self.config.physics_dt)
             stop = min(end, (tick // period + 1) * period)  # the next wind redraw
             if self._compiled:
-                done, bad = run_physics(tick, stop - tick, _MJ_STEP, model._address, data._address, qpos, qvel, xfrc,
+                done, bad = run_physics(tick, stop - tick, _MJ_STEP, model._address, data._address, qpos, qvel, xfrc, ctrl,
                                         contacts, collided, s_e, sp_e, wind_e, c.prm, c.k, c.mix, c.eff, c.rotors)
             else:
                 done, bad = stop - tick, -1
                 for j in range(stop - tick):
-                    bad = cascade_step(tick + j, qpos, qvel, xfrc, s_e, sp_e, wind_e, c.prm, c.k, c.mix, c.eff, c.rotors)
+                    bad = cascade_step(tick + j, qpos, qvel, xfrc, s_e, sp_e, wind_e, c.prm, c.k, c.mix, c.eff, c.rotors, ctrl)
                     if bad >= 0:
                         done = j
                         break
@@ -512,14 +593,19 @@ def _inside_any(origins: np.ndarray, centres: np.ndarray, radius: float) -> np.n
 
 
 def make_mujoco_world(task: TaskConfig, n_envs: int = 1, wind: float = 0.0, seed: int | None = None,
-                      config: MujocoWorldConfig | None = None) -> MujocoWorld:
+                      config: MujocoWorldConfig | None = None, airframe: str | Path | None = None) -> MujocoWorld:
     """The MuJoCo world for a task: its counts, radii, speed limits and LiDAR, plus a wind of mean
-    speed `wind` (m/s, Gazebo wind-plugin semantics; 0 for calm air)."""
+    speed `wind` (m/s, Gazebo wind-plugin semantics; 0 for calm air). `airframe` (a shipped name or an
+    MJCF path) replaces config.airframe; its gains are found as for MujocoWorldConfig.params = None.
+    The footprint disc is the task's uav_radius whatever the airframe (docs/mujoco_world.md)."""
     for name in ("response_time", "velocity_noise"):  # the quadrotor has its own lag and tracking error
         if getattr(task, name):
             raise ConfigError(f"{name}={getattr(task, name)}: a particle-world setting; the MuJoCo world must keep it 0")
+    config = config or MujocoWorldConfig()
+    if airframe is not None:
+        config = dataclasses.replace(config, airframe=str(airframe))
     return MujocoWorld(
-        config or MujocoWorldConfig(), n_envs=n_envs, n_agents=task.n_agents, n_obstacles=task.n_obstacles,
+        config, n_envs=n_envs, n_agents=task.n_agents, n_obstacles=task.n_obstacles,
         n_lidar_rays=task.n_lidar_rays, lidar_range=task.lidar_range, lidar_sees_agents=task.lidar_sees_agents,
         uav_radius=task.uav_radius, obstacle_radius=task.obstacle_radius, speed_max=task.speed_max,
         adversary_speed_max=task.adversary_speed_max, accel_max=task.accel_max,
