@@ -4,7 +4,7 @@
 the blueprint (`check_spawn_possible()` tells up front whether a viewer can be shown);
 `log_episode(record, recording)` sends the episode, its provenance as recording properties.
 Everything that changes over time goes out column-wise with `rr.send_columns` (one call per entity
-and episode, or per slice of steps with `log_steps`), never one `rr.log` per step: DESIGN §9
+and episode, or per slice of steps with `log_steps`), never one `rr.log` per step: docs/design.md §9
 measured 0.4-0.8 ms a frame for per-step logging against about 0.06 ms a frame for columns.
 
 Entity paths and timelines are listed in docs/rerun.md. Two timelines: `step` (sequence, the
@@ -44,7 +44,7 @@ _PALETTE = np.array(
 )
 _ISOLATED = np.array([90, 90, 90], dtype=np.uint8)
 _MARKER_HEIGHT = 0.15  # the group-coloured dot sits this far above each drone's centre (m)
-_ZONE_RADIUS = 1.0  # N counts steps with the swarm centre within 1 m of the anchor (DESIGN §5)
+_ZONE_RADIUS = 1.0  # N counts steps with the swarm centre within 1 m of the anchor (docs/design.md §5)
 _WIND_ARROW_LIFT = 0.6  # the wind arrow starts this far above the swarm centre, clear of the drones (m)
 
 # Time series grouped by unit; any other scalar lands in the last view.
@@ -111,7 +111,7 @@ def check_spawn_possible(port: int | None = None) -> None:
     raise ConfigError(
         f"--spawn: no display to open a Rerun viewer on (DISPLAY and WAYLAND_DISPLAY are unset) and no viewer "
         f"listens on port {port}; record with --rrd PATH and open it with `rerun PATH`, or start `rerun` yourself "
-        f"and run again (on your desktop, reaching this machine with `ssh -R {port}:localhost:{port}`; "
+        f"and run again (on your desktop, reaching the machine that runs cefc-eval with `ssh -R {port}:localhost:{port}`; "
         f"or headless here: `rerun --port {port} --save live.rrd`)"
     )
 
