@@ -71,7 +71,7 @@ def test_cache_key_changes_with_policy_file_code_and_every_parameter(tmp_path, f
     assert len(flown) == 2 and [r["F"] for r in again] == [r["F"] for r in first]
 
     for field, value in (("steps", 11), ("seed", 1), ("deviation", 0.31), ("formation", 6), ("wind", 3.0),
-                         ("backend", "mujoco"), ("policy", "other")):
+                         ("backend", "mujoco"), ("policy", "other"), ("airframe", "crazyflie")):
         changed = dataclasses.replace(specs[0], **{field: value})
         sha = {5: "x", 6: "x"}
         assert plan_cells([changed], sha, "v")[0].key != plan_cells([specs[0]], sha, "v")[0].key, field
@@ -81,7 +81,7 @@ def test_cache_key_changes_with_policy_file_code_and_every_parameter(tmp_path, f
     run_grid(plan(specs, policy), cell_file)
     assert len(flown) == 4 and len(load_cells(cell_file)) == 4
     row = next(iter(load_cells(cell_file).values()))
-    assert set(row["key_fields"]) == {"schema", "spec", "policy_sha256", "code_version"}
+    assert set(row["key_fields"]) == {"schema", "spec", "policy_sha256", "code_version", "airframe"}
 
 
 def test_interrupted_grid_resumes(tmp_path, flown):

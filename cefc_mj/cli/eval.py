@@ -107,6 +107,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="agent dropout (single): K UAVs leave the swarm before decision step STEP, the rest re-form "
                         "with c - K (fly --policy student for the paper's experiment); lock-step, or SITL-M with "
                         "--sitl-m (their processes are killed); prints F/N/C before and after")
+    p.add_argument("--airframe", default=None, metavar="NAME|PATH",
+                   help="MuJoCo airframe: iris (default), crazyflie (a 27 g micro quad), or your own MJCF quadrotor with "
+                        "four site-mounted thrust motors and a PX4-style .params file (docs/mujoco_world.md)")
     p.add_argument("--rrd", type=Path, metavar="PATH", help="record the episodes to a Rerun .rrd file (single)")
     p.add_argument("--spawn", action="store_true", help="stream the episodes to a live Rerun viewer (single)")
     p.add_argument("--png", type=Path, metavar="DIR", help="write a top-down PNG of each episode into DIR (single)")
@@ -207,6 +210,16 @@ def validate(args: argparse.Namespace) -> None:
         usage_error("--sitl-m: Table III is the particle world's one-process protocol; use single or table8")
     if args.sitl_m and proto == "single" and args.workers > 1:
         usage_error(f"--workers {args.workers}: SITL-M episodes fly one at a time (each runs c + 1 processes)")
+    if args.airframe is not None:
+        if args.backend != "mujoco":
+            usage_error("--airframe: the particle backend has no airframe; use --backend mujoco")
+        from cefc_mj.sim.mujoco_world import MujocoWorldConfig
+
+        try:
+            MujocoWorldConfig(airframe=args.airframe).validate()
+        except CefcError as e:
+            usage_error(f"--airframe {args.airframe}: {e}")
+    args.airframe = args.airframe or "iris"
     if args.policy == "orca" and proto != "table3":
         usage_error("--policy orca: the ORCA-F baseline is a Table III row (--backend particle --protocol table3)")
     if args.drop is not None and proto != "single":
@@ -391,7 +404,7 @@ def _single(args: argparse.Namespace) -> int:
     conditions = [(args.wind, args.deviation)] + ([(0.0, 0.0)] if condition != "SITL-S" else [])
     seeds = list(range(args.seed, args.seed + episodes))
     specs = [EpisodeSpec(formation=c, seed=seed, backend=args.backend, wind=wind, deviation=dev, steps=steps,
-                         policy=args.policy)
+                         policy=args.policy, airframe=args.airframe)
              for wind, dev in conditions for c in formations for seed in seeds]
     asked = list(range(len(formations) * len(seeds)))  # the first condition's episodes
     calm = list(range(len(asked), len(specs)))
@@ -572,7 +585,8 @@ def _table8(args: argparse.Namespace) -> int:
 
     prov = args.provenance
     out: Path = args.report_dir
-    specs = table8_specs(args.formation, args.episodes, args.seed, args.steps, args.backend, args.policy)
+    specs = table8_specs(args.formation, args.episodes, args.seed, args.steps, args.backend, args.policy,
+                         args.airframe)
     policy_sha256 = {c: prov["policies"][str(c)]["sha256"] for c in args.formation}
     cells = plan_cells(specs, policy_sha256, prov["code_version"])
     if args.sitl is not None:  # the SITL-M row: the calm specs again, one process per UAV

@@ -180,7 +180,8 @@ def run_dropout_episode(spec, drop: tuple[int, int], policy=None):
     k, step = check_drop(drop, spec.formation, spec.steps)
     config = spec.task_config()
     policy = policy if policy is not None else load_policy_for(spec.policy, spec.formation)
-    world = TickedWorld(make_world(spec.backend, config, n_envs=1, wind=spec.wind, seed=spec.seed), 1, config.dt)
+    world = TickedWorld(make_world(spec.backend, config, n_envs=1, wind=spec.wind, seed=spec.seed,
+                                   airframe=spec.mujoco_airframe), 1, config.dt)
     env = DropoutCEFCEnv(config, n_envs=1, seed=spec.seed, world=world)
     dropped = choose_dropouts(spec.formation, k, spec.seed)
     start = time.perf_counter()

@@ -147,7 +147,8 @@ def run_sitl_episode(spec: EpisodeSpec, sitl: SitlConfig = SitlConfig(), record:
     """
     tick, drop = _check(spec, sitl)
     config = spec.task_config()
-    world = make_ticked_world(spec.backend, config, tick, wind=spec.wind, seed=spec.seed)
+    world = make_ticked_world(spec.backend, config, tick, wind=spec.wind, seed=spec.seed,
+                              airframe=spec.mujoco_airframe)
     env = DropoutCEFCEnv(config, n_envs=1, seed=spec.seed, world=world)
     welcome = {"formation": spec.formation, "task": config.to_dict(), "heartbeat_timeout_s": sitl.heartbeat_timeout_s}
     server = SitlServer(sitl.bind, spec.formation, welcome, world.tick_s, sitl.link_delay_ms, sitl.jitter_ms,
@@ -287,7 +288,8 @@ def run_latency_model_episode(spec: EpisodeSpec, latency_ticks: int = 1, control
     if not isinstance(latency_ticks, int) or latency_ticks < 0:
         raise ConfigError(f"latency_ticks={latency_ticks!r}: must be an integer >= 0")
     policy = policy if policy is not None else load_policy_for(spec.policy, spec.formation)
-    world = make_ticked_world(spec.backend, config, tick, wind=spec.wind, seed=spec.seed)
+    world = make_ticked_world(spec.backend, config, tick, wind=spec.wind, seed=spec.seed,
+                              airframe=spec.mujoco_airframe)
     env = DropoutCEFCEnv(config, n_envs=1, seed=spec.seed, world=world)
     n_ticks = world.n_ticks
     commands: dict[int, np.ndarray] = {}  # decision step -> its setpoints [1, N, 2]

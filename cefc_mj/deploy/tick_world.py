@@ -32,7 +32,7 @@ PARK_SPACING = 10.0
 
 
 def make_ticked_world(backend: str, config: TaskConfig, control_tick_s: float, wind: float = 0.0,
-                      seed: int | None = None) -> "TickedWorld":
+                      seed: int | None = None, airframe: str | None = None) -> "TickedWorld":
     """The world of `backend` for one env, stepped at `control_tick_s` inside each decision step."""
     from cefc_mj import make_world
 
@@ -48,7 +48,7 @@ def make_ticked_world(backend: str, config: TaskConfig, control_tick_s: float, w
         return TickedWorld(make_world(backend, config, n_envs=1, seed=seed), 1, config.dt)  # make_world names the error
     from cefc_mj.sim.mujoco_world import MujocoWorldConfig, make_mujoco_world
 
-    inner = make_mujoco_world(config, n_envs=1, wind=wind, seed=seed,
+    inner = make_mujoco_world(config, n_envs=1, wind=wind, seed=seed, airframe=airframe,
                               config=MujocoWorldConfig(decision_dt=config.dt / n_ticks))
     return TickedWorld(inner, n_ticks, config.dt)
 

@@ -94,6 +94,14 @@ class EpisodeSpec:
     """Decision steps (0.1 s each)."""
     policy: str = "atm"
     """Policy choice (see policy_name_for)."""
+    airframe: str = "iris"
+    """MuJoCo airframe: a shipped name ("iris", "crazyflie") or an MJCF path (docs/mujoco_world.md);
+    the particle backend has none and ignores it."""
+
+    @property
+    def mujoco_airframe(self) -> str | None:
+        """The airframe to build the world with: None on the particle backend."""
+        return self.airframe if self.backend == "mujoco" else None
 
     @property
     def condition(self) -> str:
@@ -132,7 +140,7 @@ def run_episode(spec: EpisodeSpec, policy: Policy | None = None, record: bool = 
     config = spec.task_config()
     if policy is None:
         policy = load_policy_for(spec.policy, spec.formation)
-    world = make_world(spec.backend, config, n_envs=1, wind=spec.wind, seed=spec.seed)
+    world = make_world(spec.backend, config, n_envs=1, wind=spec.wind, seed=spec.seed, airframe=spec.mujoco_airframe)
     env = BatchedCEFCEnv(config, n_envs=1, seed=spec.seed, world=world)
     recorder = _Recorder(env, spec) if record else None
     start = time.perf_counter()
@@ -202,7 +210,8 @@ class _Recorder:
     def finish(self) -> EpisodeRecord:
         env, rows = self.env, self.rows
         arr = {k: np.asarray(v) for k, v in rows.items()}
-        airframe = MJCF_DIR / "iris.xml"
+        flown = getattr(getattr(env.world, "inner", env.world), "airframe", None)  # MuJoCo (or SITL-M's ticked) world
+        airframe = flown.path if flown is not None else MJCF_DIR / "iris.xml"
         policy = policy_files(self.spec.policy, [self.spec.formation])[str(self.spec.formation)]
         return EpisodeRecord(
             wind_vector=arr["wind_vector"], policy=policy["name"], policy_sha256=policy["sha256"], wind=self.spec.wind,
@@ -295,3 +304,16 @@ def provenance(choice: str, formations) -> dict:
     versions = library_versions()
     return {"library_versions": versions, "code_version": versions["code_version"], "git_commit": git_commit(),
             "policies": policy_files(choice, formations)}
+
+
+def airframe_files(spec: EpisodeSpec) -> dict[str, str] | None:
+    """SHA-256 of the airframe MJCF and its params file that `spec` flies (None on particles): a cell
+    cache must not serve an episode flown on an edited airframe file of the same name."""
+    if spec.mujoco_airframe is None:
+        return None
+    from cefc_mj.control.airframe import load_airframe
+    from cefc_mj.control.params import params_for_airframe
+    from cefc_mj.provenance import file_sha256
+
+    path = load_airframe(spec.mujoco_airframe).path
+    return {"mjcf_sha256": file_sha256(path), "params_sha256": file_sha256(params_for_airframe(path))}

@@ -25,7 +25,7 @@ import numpy as np
 
 from cefc_mj import paths
 from cefc_mj.eval.runner import (
-    CONDITIONS, TABLE8_STEPS, EpisodeResult, EpisodeSpec, format_mean_std, load_policy_for, retention, run_episode, summarize,
+    CONDITIONS, TABLE8_STEPS, EpisodeResult, EpisodeSpec, airframe_files, format_mean_std, load_policy_for, retention, run_episode, summarize,
 )
 from cefc_mj.fileio import write_atomic
 
@@ -47,10 +47,12 @@ def paper_table8() -> dict[str, dict[str, dict[str, float]]]:
     return {c: {cond: dict(zip("FNC", v)) for cond, v in rows.items()} for c, rows in raw.items() if c.isdigit()}
 
 
-def table8_specs(formations, episodes: int, seed: int, steps: int, backend: str, policy: str) -> list[EpisodeSpec]:
+def table8_specs(formations, episodes: int, seed: int, steps: int, backend: str, policy: str,
+                 airframe: str = "iris") -> list[EpisodeSpec]:
     """The grid, seeds seed .. seed+K-1 for every cell (the same layouts under every condition)."""
     return [
-        EpisodeSpec(formation=c, seed=seed + k, backend=backend, wind=wind, deviation=dev, steps=steps, policy=policy)
+        EpisodeSpec(formation=c, seed=seed + k, backend=backend, wind=wind, deviation=dev, steps=steps, policy=policy,
+                    airframe=airframe)
         for c in formations
         for name, (wind, dev) in CONDITIONS.items()
         for k in range(episodes)
@@ -75,7 +77,8 @@ class Cell:
 
 def cell_key_fields(spec: EpisodeSpec, policy_sha256: str, code_version: str, sitl=None) -> dict:
     """The inputs that determine an episode's result (the cell key is their digest)."""
-    fields = {"schema": CELL_SCHEMA, "spec": asdict(spec), "policy_sha256": policy_sha256, "code_version": code_version}
+    fields = {"schema": CELL_SCHEMA, "spec": asdict(spec), "policy_sha256": policy_sha256, "code_version": code_version,
+              "airframe": airframe_files(spec)}
     if sitl is not None:
         fields["sitl"] = asdict(sitl)
     return fields
