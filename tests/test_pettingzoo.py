@@ -20,7 +20,7 @@ import gymnasium
 import numpy as np
 import pytest
 from pettingzoo.test.state_test import test_parallel_env as pettingzoo_state_check
-from rerun.chunk import RrdReader
+from rrd_reader import read_rrd
 
 import cefc_mj
 from cefc_mj.errors import ConfigError
@@ -29,19 +29,6 @@ from cefc_mj.pettingzoo_env import RERUN_VIEWER_PORT, CEFCParallelEnv, RerunReco
 
 REPO = Path(__file__).resolve().parents[1]
 EXAMPLE = REPO / "examples" / "fly_shipped_policy.py"
-
-
-def read_rrd(path: Path) -> dict[str, dict[str, dict]]:
-    """entity -> component -> {step: value} (key None for static data)."""
-    out: dict[str, dict[str, dict]] = {}
-    for chunk in RrdReader(path).stream().to_chunks():
-        batch = chunk.to_record_batch()
-        steps = batch.column("step").to_pylist() if "step" in batch.schema.names else [None] * batch.num_rows
-        entity = out.setdefault(chunk.entity_path, {})
-        for field, column in zip(batch.schema, batch.columns):
-            if (field.metadata or {}).get(b"rerun:kind") == b"data":
-                entity.setdefault(field.name, {}).update(zip(steps, column.to_pylist()))
-    return out
 
 
 def _port_open(port: int) -> bool:

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 import rerun as rr
 from rerun.chunk import RrdReader
+from rrd_reader import read_rrd
 
 from cefc_mj.errors import ConfigError
 from cefc_mj.eval.record import airframe_parts_from_mjcf, synthetic_record
@@ -39,21 +40,6 @@ def strict_rerun():
     rr.set_strict_mode(True)
     yield
     rr.set_strict_mode(before)
-
-
-def read_rrd(path: Path) -> dict[str, dict[str, dict]]:
-    """entity -> component -> {step: value} (key None for static data), via RrdReader."""
-    out: dict[str, dict[str, dict]] = {}
-    for chunk in RrdReader(path).stream().to_chunks():
-        batch = chunk.to_record_batch()
-        steps = batch.column("step").to_pylist() if "step" in batch.schema.names else [None] * batch.num_rows
-        entity = out.setdefault(chunk.entity_path, {})
-        for field, column in zip(batch.schema, batch.columns):
-            if (field.metadata or {}).get(b"rerun:kind") != b"data":
-                continue
-            values = entity.setdefault(field.name, {})
-            values.update(zip(steps, column.to_pylist()))
-    return out
 
 
 @pytest.fixture(scope="module")
