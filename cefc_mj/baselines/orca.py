@@ -20,13 +20,10 @@ from scipy.optimize import linear_sum_assignment
 
 from cefc_mj.env import BatchedCEFCEnv
 from cefc_mj.errors import ConfigError
+from cefc_mj.eval.table3 import TABLE3_DENSITY, TABLE3_EPISODES, TABLE3_STEPS, roll_out
 from cefc_mj.sim.particle import clip_speed
 from cefc_mj.task.config import TaskConfig
 from cefc_mj.task.formation import formation_template
-
-TABLE3_DENSITY = 0.05
-TABLE3_EPISODES = 50
-TABLE3_STEPS = 100
 
 
 def _pyrvo():
@@ -192,15 +189,9 @@ def evaluate_orca_episodes(formation: int, episodes: int = TABLE3_EPISODES, seed
                       obstacle_layout=obstacle_layout)
     env = BatchedCEFCEnv(task, n_envs=episodes, seed=seed)
     policy = OrcaFormationPolicy(task, orca)
-    env.reset(seed=seed)
+    obs = env.reset(seed=seed)
     policy.reset(env)
-    total = np.zeros(episodes)
-    done = np.zeros(episodes, dtype=bool)
-    while not done.all():
-        _, reward, done, info = env.step(policy.act(env))
-        total += reward
-    metrics = info["metrics"]
-    return {"R_L": total / steps, **{m: np.asarray(metrics[m], dtype=np.float64) for m in ("F", "N", "C")}}
+    return roll_out(env, obs, lambda _obs: policy.act(env), steps)  # ORCA reads the env's true state
 
 
 def evaluate_orca(formation: int, episodes: int = TABLE3_EPISODES, seed: int = 0, steps: int = TABLE3_STEPS,

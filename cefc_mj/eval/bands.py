@@ -73,26 +73,13 @@ def _key(spec: EpisodeSpec) -> str:
     return json.dumps(dataclasses.asdict(spec), sort_keys=True)
 
 
-def read_rows(cell_file: Path) -> dict[str, dict]:
-    """Finished episodes of a cell file by key (a torn last line from a kill is ignored)."""
-    rows = {}
-    if Path(cell_file).is_file():
-        for line in Path(cell_file).read_text().splitlines():
-            try:
-                row = json.loads(line)
-            except json.JSONDecodeError:
-                continue
-            rows[row["key"]] = row
-    return rows
-
-
 def fly(specs: list[EpisodeSpec], cell_file: Path, workers: int) -> list[dict]:
     """Episode rows for `specs` on a local process pool; finished episodes are appended to
     `cell_file`, so an interrupted `measure` resumes."""
-    from cefc_mj.eval.table8 import fly_episodes
+    from cefc_mj.eval.table8 import fly_episodes, load_cells
 
     Path(cell_file).parent.mkdir(parents=True, exist_ok=True)
-    done = read_rows(cell_file)
+    done = load_cells(cell_file)
     todo = [s for s in specs if _key(s) not in done]
     with open(cell_file, "a") as sink:
         for i, result in fly_episodes(todo, workers=workers):
@@ -276,10 +263,12 @@ def _fly(args) -> None:
 
 
 def _make(args) -> None:
+    from cefc_mj.eval.table8 import load_cells
+
     rows = []
     for label in FP_PATHS:
         cell_file = args.runs / f"cells_{label.replace('=', '-')}.jsonl"
-        rows += [{**r, "fp_path": label} for r in read_rows(cell_file).values()]
+        rows += [{**r, "fp_path": label} for r in load_cells(cell_file).values()]
     bands = make_bands(rows, seeds=args.seeds)
     write_atomic(args.out, json.dumps(bands, indent=2) + "\n")
     print(f"wrote {args.out}")

@@ -75,15 +75,20 @@ def evaluate_lowlevel_episodes(policy: Policy, formation: int, density: float = 
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
-        obs = env.reset(seed=seed)
-        total = np.zeros(episodes)
-        done = np.zeros(episodes, dtype=bool)
-        while not done.all():
-            obs, reward, done, info = env.step(policy.act(obs))
-            total += reward
-        metrics = info["metrics"]
+        return roll_out(env, env.reset(seed=seed), policy.act, steps)
     finally:
         torch.set_num_threads(threads)
+
+
+def roll_out(env: BatchedCEFCEnv, obs: np.ndarray, act, steps: int) -> dict[str, np.ndarray]:
+    """Fly every episode of a reset `env` to its end with `act(obs) -> actions`; per-episode R_L (team
+    reward per step), F, N, C [episodes]: the Table III numbers of any controller."""
+    total = np.zeros(env.n_envs)
+    done = np.zeros(env.n_envs, dtype=bool)
+    while not done.all():
+        obs, reward, done, info = env.step(act(obs))
+        total += reward
+    metrics = info["metrics"]
     return {"R_L": total / steps, **{m: np.asarray(metrics[m], dtype=np.float64) for m in ("F", "N", "C")}}
 
 
