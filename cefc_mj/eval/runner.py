@@ -311,9 +311,9 @@ def airframe_files(spec: EpisodeSpec) -> dict[str, str] | None:
     cache must not serve an episode flown on an edited airframe file of the same name."""
     if spec.mujoco_airframe is None:
         return None
-    from cefc_mj.control.airframe import load_airframe
+    from cefc_mj.control.airframe import airframe_path
     from cefc_mj.control.params import params_for_airframe
     from cefc_mj.provenance import file_sha256
 
-    path = load_airframe(spec.mujoco_airframe).path
+    path = airframe_path(spec.mujoco_airframe)  # the file only: the CLI validated the airframe up front
     return {"mjcf_sha256": file_sha256(path), "params_sha256": file_sha256(params_for_airframe(path))}
