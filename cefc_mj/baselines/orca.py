@@ -176,7 +176,7 @@ class OrcaFormationPolicy:
 
 def evaluate_orca_episodes(formation: int, episodes: int = TABLE3_EPISODES, seed: int = 0, steps: int = TABLE3_STEPS,
                            density: float = TABLE3_DENSITY, orca: OrcaConfig | None = None,
-                           obstacle_layout: str = "clear-start") -> dict[str, np.ndarray]:
+                           obstacle_layout: str = "paper") -> dict[str, np.ndarray]:
     """Per-episode R_L (per step), F, N, C [episodes] of ORCA-F for one group of `formation` agents,
     on the episodes cefc_mj.eval.table3.evaluate_lowlevel_episodes flies (same config, batch, seed)."""
     if not isinstance(formation, int) or formation < 3:
@@ -196,7 +196,7 @@ def evaluate_orca_episodes(formation: int, episodes: int = TABLE3_EPISODES, seed
 
 def evaluate_orca(formation: int, episodes: int = TABLE3_EPISODES, seed: int = 0, steps: int = TABLE3_STEPS,
                   density: float = TABLE3_DENSITY, orca: OrcaConfig | None = None,
-                  obstacle_layout: str = "clear-start") -> dict[str, float]:
+                  obstacle_layout: str = "paper") -> dict[str, float]:
     """R_L (per step), F, N (steps), C (% of agent-steps) of ORCA-F averaged over `episodes` episodes:
     the keys and protocol of cefc_mj.eval.table3.evaluate_lowlevel."""
     per_episode = evaluate_orca_episodes(formation, episodes, seed, steps, density, orca, obstacle_layout)

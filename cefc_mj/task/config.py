@@ -78,12 +78,12 @@ class TaskConfig:
     """Radius of the cylinder obstacles (m)."""
     obstacle_min_gap: float = 0.5
     """Minimum free gap between two obstacle surfaces (m): twice the UAV radius, so a UAV fits."""
-    obstacle_layout: ObstacleLayout = "clear-start"
-    """How obstacle centres are drawn (docs/layouts.md). "clear-start": outside the whole start
-    square grown by the obstacle and UAV radii, and anchor_clearance from the anchor and the targets
-    (every shipped policy and report was made on it). "paper": uniform over the arena, a centre
-    rejected only when the obstacle would overlap another (obstacle_min_gap) or a UAV's start disc
-    (with 0.1 m to spare), or lie within anchor_clearance of the anchor or a target centre."""
+    obstacle_layout: ObstacleLayout = "paper"
+    """How obstacle centres are drawn (docs/layouts.md). "paper" (the paper's description):
+    uniform over the arena, a centre rejected only when the obstacle would overlap another
+    (obstacle_min_gap) or a UAV's start disc (with 0.1 m to spare), or lie within anchor_clearance
+    of the anchor or a target centre. "clear-start" (the project's first, easier sampler): also
+    outside the whole start square grown by the obstacle and UAV radii."""
     anchor_half_size: float = 5.0
     """Anchors are drawn uniformly in [-h, h]^2 m."""
     anchor_clearance: float = 2.0
@@ -250,6 +250,8 @@ class TaskConfig:
         if unknown:
             raise ConfigError(f"unknown TaskConfig field(s): {', '.join(sorted(unknown))}")
         data = dict(data)
+        # configs saved before the field existed were drawn with the first sampler
+        data.setdefault("obstacle_layout", "clear-start")
         if isinstance(data.get("rewards"), dict):
             rewards = dict(data["rewards"])
             if "collision_constants" in rewards:
