@@ -1,27 +1,32 @@
-"""Real-time factor of the MuJoCo world as users run it: Table VIII episodes vs raw mj_step, measured in one run.
+"""Speed of the MuJoCo evaluation loop as users run it, against raw mj_step, measured in one run.
 
-Full loop: `cefc_mj.eval.runner.run_episode` flies the shipped AT-M policy (atm_c<c>_step3) through the
-Table VIII scene (c UAVs, obstacles at 0.03 per m^2, 1000 decision steps, anchor redraws), exactly the
-code `cefc-eval` runs: task core, observations, the policy, MujocoWorld.step (the compiled PX4-like
-cascade + mj_step, 50 physics steps per decision step), LiDAR, metrics. Its wall time is the episode's
-own (`EpisodeResult.wall_s`: reset to the last step; world construction and policy loading excluded).
+(i) Table VIII: `cefc_mj.eval.runner.run_episode` flies the shipped AT-M policy (atm_c<c>_step3) through
+the Table VIII scene (c UAVs, obstacles at 0.03 per m^2, anchor redraws), called exactly as `cefc-eval`
+calls it (the benchmark only keeps a reference to the world `runner.make_world` returns): task core,
+observations, the policy, MujocoWorld.step (the compiled PX4-like cascade + mj_step, 50 physics steps
+per decision step), LiDAR, metrics. Its wall time is the episode's own (`EpisodeResult.wall_s`: reset
+to the last step; world construction and policy loading excluded). Against it, raw
+`mujoco.mj_step(model, data, nstep)` (nstep in C, no Python per step) on the very MjModel that episode
+flew (obstacles in place, drones hovering open loop on their rotor actuators), for the same simulated
+time. Episodes and raw runs alternate, best of `--rounds` each; the ratio loop RTF / raw RTF is what to
+read (1.0 would be a loop that costs nothing beside the physics). A breakdown (world.step, LiDAR,
+policy, the rest: task core and observations) comes from one more, instrumented, episode.
+`--before` adds, in the same run, the loop as it was before the speed-ups: LiDAR by `mj_multiRay` drone
+by drone, the policy through `Policy.act` with nn.Module dispatch and the free-space pass recomputed
+(the same numbers bit for bit, so the episode's metrics are identical).
 
-Physics only: `mujoco.mj_step(model, data, nstep)` on the very MjModel that episode flew (obstacles in
-place; fresh MjData, drones level where the episode left them), drones held up by their rotor
-actuators (ctrl = m g / 4) or, for the external path, by their weight in xfrc_applied: the floor the
-full loop can approach.
+(ii) `--sweep 8,16,...,256`: one world of N drones (formation mode, obstacles at the Table VIII density
+in an arena grown with N), the same per-step loop as run_episode for `--sweep-steps` decision steps,
+the shipped c = 8 policy reading each drone's 7 nearest neighbour slots (the env's observation has
+N - 1, nearest first). Per N: RTF
+(x real time), cost per drone (wall us per drone per simulated second), that cost relative to the
+first N of the sweep (1.00 = flat), and raw mj_step RTF of the same model. `--sweep-rotors` picks
+MujocoWorldConfig.rotor_actuation ("external" by default: MuJoCo's site-actuator transmission costs
+O(actuators x dofs) per mj_step, i.e. quadratic in the drone count, so "actuators" cannot be flat).
 
-Both are measured for MujocoWorldConfig.rotor_actuation = "actuators" (the default: the airframe's
-site-mounted thrust motors live in the scene) and "external" (no actuators, the rotor wrench in
-xfrc_applied), alternating, best of `--rounds`. The external episodes go through the same
-run_episode, with the world factory swapped for one that sets rotor_actuation="external" (nothing
-else differs); their F, N, C are printed beside the default's (equal up to the last bits of the
-physics, so usually identical). `--scaling` adds physics-only RTFs of both paths for 8..64 drones
-(the site transmissions cost O(actuators x dofs) per mj_step).
-
-    .venv/bin/python benchmarks/bench_mujoco.py                     # c = 8, calm air, 3 rounds
-    .venv/bin/python benchmarks/bench_mujoco.py --formation 5 --wind 8 --rounds 5
-    .venv/bin/python benchmarks/bench_mujoco.py --steps 300 --scaling
+    .venv/bin/python benchmarks/bench_mujoco.py                          # (i): c = 8, calm, 1000 steps, 3 rounds
+    .venv/bin/python benchmarks/bench_mujoco.py --before --rounds 5
+    .venv/bin/python benchmarks/bench_mujoco.py --steps 0 --sweep 8,16,32,64,128,256
 
 RTF = simulated seconds / wall seconds. Absolute figures move with the load of a shared machine; the
 ratios measured in one run are what to compare.
@@ -30,70 +35,94 @@ ratios measured in one run are what to compare.
 from __future__ import annotations
 
 import argparse
+import math
 import time
+from types import SimpleNamespace
 
 import mujoco
 import numpy as np
 import torch
 
 import cefc_mj.eval.runner as runner
-from cefc_mj.eval.runner import EpisodeSpec, load_policy_for, run_episode
-from cefc_mj.sim.mujoco_world import MujocoWorld, MujocoWorldConfig, build_scene, make_mujoco_world
+from cefc_mj.env import BatchedCEFCEnv
+from cefc_mj.eval.runner import TABLE8_DENSITY, EpisodeSpec, load_policy_for, run_episode
+from cefc_mj.nn.policy_io import Policy
+from cefc_mj.sim.mujoco_world import MujocoWorld, MujocoWorldConfig, make_mujoco_world
+from cefc_mj.task.config import TaskConfig
+from cefc_mj.task.observation import low_level_layout
 
-MODES = ("actuators", "external")
 
+class _KeepWorld:
+    """Wraps `runner.make_world`: calls it unchanged and keeps the world it returns; `before` switches the
+    world to the per-drone mj_multiRay LiDAR; `timers` times world.step / world.lidar."""
 
-class _Capture:
-    """The world factory run_episode calls, with rotor_actuation set; keeps the world and times its parts."""
-
-    def __init__(self, mode: str):
-        self.mode = mode
+    def __init__(self, before: bool = False, timers: dict | None = None):
+        self.original = runner.make_world
+        self.before, self.timers = before, timers
         self.world: MujocoWorld | None = None
-        self.seconds = {"world.step": 0.0, "world.lidar": 0.0}
 
-    def __call__(self, backend, config, n_envs=1, wind=0.0, seed=None):
-        assert backend == "mujoco"
-        world = make_mujoco_world(config, n_envs=n_envs, wind=wind, seed=seed,
-                                  config=MujocoWorldConfig(rotor_actuation=self.mode))
-        for name in ("step", "lidar"):
-            method, key = getattr(world, name), f"world.{name}"
-
-            def timed(*args, _method=method, _key=key):
-                start = time.perf_counter()
-                out = _method(*args)
-                self.seconds[_key] += time.perf_counter() - start
-                return out
-
-            setattr(world, name, timed)  # the instance attribute shadows the method for the env's calls
+    def __call__(self, *args, **kwargs):
+        world = self.original(*args, **kwargs)
+        if self.before:
+            world._lidar_compiled = False
+        if self.timers is not None:
+            for name in ("step", "lidar"):
+                setattr(world, name, _timed(getattr(world, name), self.timers, f"world.{name}"))
         self.world = world
         return world
 
+    def __enter__(self):
+        runner.make_world = self
+        return self
 
-def episode(spec: EpisodeSpec, policy, mode: str) -> tuple[float, dict, MujocoWorld, dict]:
-    """(full-loop RTF, metrics, the world, ms per decision step of world.step / world.lidar / the rest)."""
-    capture = _Capture(mode)
-    original = runner.make_world
-    runner.make_world = capture
-    try:
-        result = run_episode(spec, policy=policy)
-    finally:
-        runner.make_world = original
-    if result.diverged:
-        raise SystemExit(f"episode diverged: {result.diverged}")
-    ms = {k: v / result.steps * 1e3 for k, v in capture.seconds.items()}
-    ms["rest"] = result.wall_s / result.steps * 1e3 - ms["world.step"] - ms["world.lidar"]
-    return result.steps * spec.task_config().dt / result.wall_s, {k: getattr(result, k) for k in "FNC"}, capture.world, ms
+    def __exit__(self, *exc):
+        runner.make_world = self.original
 
 
-def physics_only_rtf(model: mujoco.MjModel, qpos: np.ndarray, weight: float, n_drones: int, live: bool,
-                     seconds: float) -> float:
-    """Raw mj_step (nstep in C, no Python per step) on `model`, the drones level at their positions in
-    `qpos` and hovering open loop (a tilted drone would fly off under constant rotor thrusts)."""
+def _timed(fn, timers: dict, key: str):
+    timers.setdefault(key, 0.0)
+
+    def wrapper(*args):
+        start = time.perf_counter()
+        out = fn(*args)
+        timers[key] += time.perf_counter() - start
+        return out
+
+    return wrapper
+
+
+def before_actions(policy: Policy):
+    """The policy path before the speed-ups: nn.Module calls with F_a(d_free) recomputed every forward, as
+    `Policy.act` computed it (same arithmetic, same bits)."""
+    a = policy.actor
+
+    def act(obs: np.ndarray) -> np.ndarray:
+        with torch.no_grad():
+            obs_t = torch.as_tensor(obs, dtype=torch.float32)
+            f = a.formation(obs_t.index_select(-1, a.formation_index))
+            mean = a.output(f + (a.obstacle(a.lidar_input(obs_t)) - a.obstacle(a.free_lidar)))
+            return a.to_acceleration(mean, obs_t).numpy().astype(np.float64)
+
+    return act
+
+
+class _PolicyLike:
+    """What run_episode reads of a Policy, with another action path for its actor."""
+
+    def __init__(self, policy: Policy, actions):
+        self.actor = SimpleNamespace(deterministic_actions=actions)
+        self.act, self.name, self.obs_dim = actions, policy.name, policy.obs_dim
+
+
+def raw_rtf(model: mujoco.MjModel, qpos: np.ndarray, n_drones: int, seconds: float) -> float:
+    """Raw mj_step RTF on `model`: the drones level at their positions in `qpos`, hovering open loop (rotor
+    actuators at m g / 4 each, or their weight in xfrc_applied without actuators)."""
     data = mujoco.MjData(model)
     data.qpos[:] = qpos
     drones = data.qpos[:7 * n_drones].reshape(n_drones, 7)
     drones[:, 3:] = (1.0, 0.0, 0.0, 0.0)
-    if live:
+    weight = model.body_mass[1] * -model.opt.gravity[2]
+    if model.nu:
         data.ctrl[:] = weight / 4.0
     else:
         data.xfrc_applied[1:n_drones + 1, 2] = weight
@@ -104,73 +133,125 @@ def physics_only_rtf(model: mujoco.MjModel, qpos: np.ndarray, weight: float, n_d
     return seconds / (time.perf_counter() - start)
 
 
-def scaling(drones: list[int], obstacles: int, seconds: float, rounds: int) -> None:
-    """Physics-only RTF of both rotor paths for larger swarms (hovering on a grid, `obstacles` parked)."""
-    print(f"\nphysics only (raw mj_step, {obstacles} obstacles), RTF best of {rounds}:")
-    print(f"{'drones':>6} {'actuators':>10} {'external':>9} {'actuators/external':>19}")
-    for n in drones:
-        best = {}
-        for _ in range(rounds):
-            for mode in MODES:
-                config = MujocoWorldConfig(rotor_actuation=mode)
-                model = build_scene(config, n, obstacles, False, 0.25)
-                data = mujoco.MjData(model)
-                side = int(np.ceil(np.sqrt(n)))
-                qpos = data.qpos.reshape(n, 7)
-                qpos[:, 0] = 1.2 * (np.arange(n) % side)
-                qpos[:, 1] = 1.2 * (np.arange(n) // side)
-                qpos[:, 2] = config.flight_altitude
-                qpos[:, 3] = 1.0
-                weight = model.body_mass[1] * config.gravity
-                rtf = physics_only_rtf(model, data.qpos.copy(), weight, n, mode == "actuators", seconds)
-                best[mode] = max(best.get(mode, 0.0), rtf)
-        print(f"{n:>6} {best['actuators']:>10.1f} {best['external']:>9.1f} {best['actuators'] / best['external']:>19.3f}")
+def table8(args, policy: Policy) -> None:
+    spec = EpisodeSpec(formation=args.formation, seed=args.seed, wind=args.wind, steps=args.steps)
+    sim_seconds = spec.steps * spec.task_config().dt
+    variants = {"now": policy}
+    if args.before:
+        variants["before"] = _PolicyLike(policy, before_actions(policy))
+    for variant, pol in variants.items():  # compile / load the kernels, warm caches
+        with _KeepWorld(before=variant == "before"):
+            run_episode(EpisodeSpec(formation=args.formation, seed=args.seed, wind=args.wind, steps=5), policy=pol)
+    loop = {v: 0.0 for v in variants}
+    raw = 0.0
+    metrics: dict[str, tuple] = {}
+    for _ in range(args.rounds):  # alternate: load that hits one measurement but not the other would bias the ratios
+        for variant, pol in variants.items():
+            with _KeepWorld(before=variant == "before") as keep:
+                result = run_episode(spec, policy=pol)
+            if result.diverged:
+                raise SystemExit(f"episode diverged: {result.diverged}")
+            loop[variant] = max(loop[variant], result.steps * spec.task_config().dt / result.wall_s)
+            metrics[variant] = (result.F, result.N, result.C)
+            if variant == "now":
+                world = keep.world
+                raw = max(raw, raw_rtf(world.models[0], world.datas[0].qpos, world.n_drones, sim_seconds))
+    # breakdown: one instrumented episode (timers add a little overhead of their own)
+    timers: dict[str, float] = {}
+    timed_actor = _PolicyLike(policy, _timed(policy.actor.deterministic_actions, timers, "policy"))
+    with _KeepWorld(timers=timers):
+        result = run_episode(spec, policy=timed_actor)
+    ms = {k: v / result.steps * 1e3 for k, v in timers.items()}
+    rest = result.wall_s / result.steps * 1e3 - sum(ms.values())
+
+    print(f"Table VIII episode: c = {spec.formation}, {spec.condition}, {spec.steps} decision steps, seed {spec.seed}, "
+          f"policy {policy.name}, rotor actuators live; best of {args.rounds}")
+    print(f"  raw mj_step, same model:  RTF {raw:7.1f}")
+    for variant in variants:
+        f, n, c = metrics[variant]
+        print(f"  eval loop ({variant:>6}):     RTF {loop[variant]:7.1f}   loop / raw mj_step = {loop[variant] / raw:.3f}"
+              f"   F / N / C = {f:.0f} / {n:.0f} / {c:.2f}")
+    if args.before:
+        print(f"  speed-up now / before: x{loop['now'] / loop['before']:.2f}")
+    print(f"  ms per decision step (instrumented episode): world.step {ms['world.step']:.3f}, LiDAR {ms['world.lidar']:.3f}, "
+          f"policy {ms['policy']:.3f}, task core + observations {rest:.3f}")
+
+
+def sweep_config(n: int) -> TaskConfig:
+    """Formation task for n drones: start square and arena grown with n (the start density of c = 8 in the
+    4 m x 4 m square at most), Table VIII obstacle density."""
+    start = max(2.0, math.sqrt(n / 8.0) * 2.0)
+    return TaskConfig(n_agents=n, mode="formation", obstacle_density=TABLE8_DENSITY, start_half_size=start,
+                      arena_half_size=start + 8.0, anchor_half_size=start + 4.0, episode_steps=10_000)
+
+
+def nearest_slots(config: TaskConfig, slots: int = 7) -> np.ndarray:
+    """Observation columns that make the K = `slots` observation out of the env's K = N - 1 one (neighbours
+    come nearest first): what a c = 8 policy reads."""
+    layout, k = low_level_layout(config), config.neighbour_slots
+    cols = np.arange(layout.size)
+    return np.concatenate([cols[layout["anchor"]], cols[layout["own_velocity"]], cols[layout["neighbours"]][:4 * slots],
+                           cols[layout["neighbour_mask"]][:slots], cols[layout["lidar"]]])
+
+
+def sweep(args, policy: Policy) -> None:
+    drones = [int(x) for x in args.sweep.split(",")]
+    print(f"\nDrones sweep: one world, formation mode, policy {policy.name} on the 7 nearest neighbour slots, "
+          f"{args.sweep_steps} decision steps, best of {args.rounds}; cost = wall us per drone per simulated second, "
+          f"parts in us per drone per decision step")
+    for mode in args.sweep_rotors.split(","):
+        print(f"rotor_actuation = {mode!r}")
+        print(f"{'drones':>7} {'loop RTF':>9} {'raw RTF':>8} {'loop/raw':>9} {'cost/drone':>11} {f'vs {drones[0]}':>7}"
+              f"   {'world.step':>10} {'LiDAR':>6} {'policy':>7} {'task':>6}")
+        reference = None
+        for n in drones:
+            config = sweep_config(n)
+            cols = nearest_slots(config)
+            best, best_raw, parts = 0.0, 0.0, {}
+            for _ in range(args.rounds):
+                world = make_mujoco_world(config, seed=args.seed, config=MujocoWorldConfig(rotor_actuation=mode))
+                env = BatchedCEFCEnv(config, n_envs=1, seed=args.seed, world=world)
+                timers: dict[str, float] = {}
+                world.step = _timed(world.step, timers, "world.step")
+                world.lidar = _timed(world.lidar, timers, "lidar")
+                act = _timed(lambda obs: policy.actor.deterministic_actions(obs[..., cols]), timers, "policy")
+                obs = env.reset()
+                env.step(act(obs))  # warm
+                timers.update({k: 0.0 for k in timers})
+                start = time.perf_counter()
+                for _ in range(args.sweep_steps):
+                    obs, _, _, _ = env.step(act(obs))
+                wall = time.perf_counter() - start
+                if args.sweep_steps * config.dt / wall > best:
+                    best = args.sweep_steps * config.dt / wall
+                    parts = {k: v / args.sweep_steps / n * 1e6 for k, v in timers.items()}
+                    parts["task"] = wall / args.sweep_steps / n * 1e6 - sum(parts.values())
+                best_raw = max(best_raw, raw_rtf(world.models[0], world.datas[0].qpos, world.n_drones,
+                                                 args.sweep_steps * config.dt))
+            cost = 1e6 / (best * n)
+            reference = reference or cost
+            print(f"{n:>7} {best:>9.1f} {best_raw:>8.1f} {best / best_raw:>9.3f} {cost:>11.1f} {cost / reference:>7.2f}"
+                  f"   {parts['world.step']:>10.1f} {parts['lidar']:>6.1f} {parts['policy']:>7.1f} {parts['task']:>6.1f}")
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--formation", type=int, default=8, help="c: UAVs in the group (5..8, shipped policies)")
     parser.add_argument("--wind", type=float, default=0.0, help="mean wind speed (m/s)")
-    parser.add_argument("--steps", type=int, default=1000, help="decision steps per episode (Table VIII: 1000)")
+    parser.add_argument("--steps", type=int, default=1000, help="decision steps per episode (Table VIII: 1000; 0 skips (i))")
     parser.add_argument("--rounds", type=int, default=3, help="alternating rounds (best kept)")
     parser.add_argument("--seed", type=int, default=0, help="episode seed (the same layout every round)")
-    parser.add_argument("--scaling", action="store_true", help="also physics-only RTFs for 8, 16, 32, 64 drones")
+    parser.add_argument("--before", action="store_true", help="also the loop before the speed-ups (same numbers)")
+    parser.add_argument("--sweep", default="", help="comma-separated drone counts for the scaling sweep (ii)")
+    parser.add_argument("--sweep-steps", type=int, default=100, help="decision steps per sweep run")
+    parser.add_argument("--sweep-rotors", default="external", help="rotor_actuation modes for the sweep, comma-separated")
     args = parser.parse_args()
     torch.set_num_threads(1)
-    spec = EpisodeSpec(formation=args.formation, seed=args.seed, wind=args.wind, steps=args.steps)
-    policy = load_policy_for(spec.policy, spec.formation)
-    warm = EpisodeSpec(formation=args.formation, seed=args.seed, wind=args.wind, steps=5)
-    for mode in MODES:  # compile / load the kernels, warm caches
-        episode(warm, policy, mode)
-
-    sim_seconds = spec.steps * spec.task_config().dt
-    full = {m: 0.0 for m in MODES}
-    physics = {m: 0.0 for m in MODES}
-    parts: dict[str, dict] = {}
-    metrics: dict[str, dict] = {}
-    for _ in range(args.rounds):
-        # alternate everything: load that hits one measurement but not the other would bias the ratios
-        for mode in MODES:
-            rtf, metrics[mode], world, ms = episode(spec, policy, mode)
-            if rtf > full[mode]:
-                full[mode], parts[mode] = rtf, ms
-            weight = world.airframe.mass * world.config.gravity
-            physics[mode] = max(physics[mode], physics_only_rtf(
-                world.models[0], world.datas[0].qpos.copy(), weight, world.n_drones, mode == "actuators", sim_seconds))
-
-    print(f"Table VIII episode: c = {spec.formation}, {spec.condition}, {spec.steps} decision steps, seed {spec.seed}, "
-          f"policy {policy.name}; RTF best of {args.rounds}")
-    print(f"{'rotors':>10} {'full-loop RTF':>14} {'physics-only RTF':>17} {'full/physics':>13}   "
-          f"ms per decision step: world.step / lidar / rest (task, policy)   F / N / C")
-    for mode in MODES:
-        m, p = metrics[mode], parts[mode]
-        print(f"{mode:>10} {full[mode]:>14.1f} {physics[mode]:>17.1f} {full[mode] / physics[mode]:>13.2f}   "
-              f"{p['world.step']:.2f} / {p['world.lidar']:.2f} / {p['rest']:.2f}"
-              f"{'':>34}{m['F']:.0f} / {m['N']:.0f} / {m['C']:.2f}")
-    print(f"live-actuator cost (external RTF / actuators RTF): full loop x{full['external'] / full['actuators']:.3f}, "
-          f"raw mj_step x{physics['external'] / physics['actuators']:.3f}")
-    if args.scaling:
-        scaling([8, 16, 32, 64], 30, 10.0, args.rounds)
+    policy = load_policy_for("atm", args.formation)
+    if args.steps > 0:
+        table8(args, policy)
+    if args.sweep:
+        sweep(args, load_policy_for("atm", 8))
 
 
 if __name__ == "__main__":

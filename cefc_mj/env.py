@@ -26,6 +26,7 @@ from cefc_mj.task import rewards as R
 from cefc_mj.task.adversary import adversary_goal, pursuit_acceleration
 from cefc_mj.task.config import TaskConfig
 from cefc_mj.task.deviation import sample_deviation
+from cefc_mj.task.estimator import FusedPositionEstimate
 from cefc_mj.task.formation import agent_group_error, connected_groups, group_formation_error
 from cefc_mj.task.observation import build_cefc_observation, build_low_level_observation, layout_for
 from cefc_mj.task.scenario import sample_anchor, sample_scenario
@@ -61,6 +62,9 @@ class BatchedCEFCEnv:
         self.prev_formation_reward = np.zeros(b)
         self.metric_sums = {name: np.zeros(b) for name in METRIC_NAMES}
         self.perceived_pos = np.zeros((b, n, 2))
+        """The position each agent acts on: its fix, or its fused estimate (config.position_estimator)."""
+        self.estimate = FusedPositionEstimate(b, n) if config.position_estimator == "fused" else None
+        self._last_true_pos = np.zeros((b, n, 2))
         self.env_deviation = np.full(b, config.deviation)
         """Each env's sensing deviation d (m) this episode (drawn at reset with deviation_sampling='uniform')."""
         self.lidar = np.full((b, n, config.n_lidar_rays), config.lidar_range)
@@ -104,7 +108,7 @@ class BatchedCEFCEnv:
         for total in self.metric_sums.values():
             total[mask] = 0.0
         self._groups(self.world.agent_pos)
-        self._observe(mask)
+        self._observe(mask, first=True)
         return self._obs
 
     # ------------------------------------------------------------------ step
@@ -164,10 +168,23 @@ class BatchedCEFCEnv:
         self.group_size, self.group_centre = size, centre
         return error, size, centre
 
-    def _observe(self, mask: np.ndarray) -> None:
+    def _observe(self, mask: np.ndarray, first: bool = False) -> None:
+        """Observations of the masked envs; `first`: the masked envs have just been reset."""
         cfg, world = self.config, self.world
         true_pos = world.agent_pos
-        self.perceived_pos = true_pos + sample_deviation(self.rng, self.env_deviation, true_pos.shape[:2])
+        fix = true_pos + sample_deviation(self.rng, self.env_deviation, true_pos.shape[:2])
+        if self.estimate is None:
+            self.perceived_pos = fix
+        else:
+            if first:
+                self.estimate.reset(mask, fix)
+            else:
+                self.estimate.update(fix, true_pos - self._last_true_pos)
+            self._last_true_pos = true_pos.copy()
+            # Exact fixes leave the filter at the fix up to rounding: use the fix itself there, so a
+            # noise-free episode is bit-identical to the raw agent's.
+            exact = self.env_deviation == 0
+            self.perceived_pos = np.where(exact[:, None, None], fix, self.estimate.position)
         self.lidar = world.lidar(self.perceived_pos)
         # The collision reward scores true clearances (like the metrics), not what the noisy LiDAR shows.
         self.true_lidar = world.lidar(true_pos) if cfg.deviation > 0 else self.lidar

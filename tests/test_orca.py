@@ -100,7 +100,7 @@ def test_orca_agents_avoid_each_other():
 
 def test_orca_reaches_formation_and_anchor_in_free_space():
     per_episode = evaluate_orca_episodes(6, episodes=4, seed=1, steps=100, density=0.0)
-    assert sorted(per_episode) == ["C", "F", "N", "R_L"] and all(v.shape == (4,) for v in per_episode.values())
+    assert sorted(per_episode) == ["C", "F", "N", "R_L", "R_L_agents"] and all(v.shape == (4,) for v in per_episode.values())
     assert (per_episode["C"] == 0).all()
     assert (per_episode["F"] > 90).all() and (per_episode["N"] > 40).all()
     # and the final shape is the template
@@ -118,7 +118,7 @@ def test_orca_reaches_formation_and_anchor_in_free_space():
 
 def test_evaluate_orca_table3_keys_and_new_episodes_rebuild_the_simulators():
     result = evaluate_orca(6, episodes=3, seed=0, steps=10, density=0.05)
-    assert sorted(result) == ["C", "F", "N", "R_L"] and all(np.isfinite(v) for v in result.values())
+    assert sorted(result) == ["C", "F", "N", "R_L", "R_L_agents"] and all(np.isfinite(v) for v in result.values())
     cfg = TaskConfig(n_agents=6, mode="formation", obstacle_density=0.05, episode_steps=5)
     env = BatchedCEFCEnv(cfg, n_envs=2, seed=0)
     env.reset(seed=0)

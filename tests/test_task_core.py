@@ -195,7 +195,8 @@ def test_neighbours_sorted_masked_and_padded():
 
 # ---------------------------------------------------------------- scenario
 def test_scenario_constraints():
-    cfg = TaskConfig(n_agents=8, obstacle_density=0.05)
+    # the "clear-start" sampler; the paper layout's own rules: tests/test_scenario_layouts.py
+    cfg = TaskConfig(n_agents=8, obstacle_density=0.05, obstacle_layout="clear-start")
     sc = sample_scenario(cfg, np.random.default_rng(0), 16)
     assert sc.obstacles.shape == (16, 20, 2) and sc.targets.shape == (16, 2, 2)
     starts = sc.agent_pos

@@ -189,7 +189,7 @@ def test_cli_lowlevel_runs_and_reports(tmp_path, capsys):
     card = json.loads((tmp_path / "pol" / "atm_c3_step1.json").read_text())
     assert {"config", "seed", "git_commit", "versions", "command", "train_wall_clock_s", "agent_steps",
             "table3"} <= set(card)
-    assert set(card["table3"]["ours"]) == {"R_L", "F", "N", "C"}
+    assert set(card["table3"]["ours"]) == {"R_L", "R_L_agents", "F", "N", "C"}
 
 
 def test_table3_rows_keyed_like_the_paper(tmp_path):

@@ -3,6 +3,7 @@
 Examples:
   cefc-eval --wind 8 --deviation 0.5            # Table VIII episode, c = 5..8, vs calm
   cefc-eval --protocol table8 --workers 2       # the full grid, resumable; reports in ./cefc-eval-reports/
+  cefc-eval --protocol table8 --executor ray --address HEAD:6379   # the grid on a Ray cluster
   cefc-eval --backend particle --protocol table3 --json t3.json
   cefc-eval --formation 6 --rrd run.rrd         # record for Rerun (`rerun run.rrd`)
 
@@ -93,7 +94,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, metavar="S", help="first seed (>= 0); episode k uses S+k (default 0)")
     p.add_argument("--policy", default=None, metavar="NAME|PATH",
                    help="atm (AT-M Step 3 of each c, default), safe, robust (AT-M-Robust, c = 5..8), quad "
-                        "(AT-M-Quad, c = 5..8), student, orca (the ORCA-F baseline, table3 only), a name in policies/, or a .pt path; "
+                        "(AT-M-Quad, c = 5..8), clm (the CL-M baseline, where trained), student, orca (the ORCA-F baseline, table3 "
+                        "only), a name in policies/, or a .pt path; "
                         "table3 without it evaluates every method")
     p.add_argument("--sitl-m", action="store_true",
                    help="SITL-M: every UAV's policy in its own OS process over ZeroMQ, asynchronous (single: the "
@@ -110,12 +112,27 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--airframe", default=None, metavar="NAME|PATH",
                    help="MuJoCo airframe: iris (default), crazyflie (a 27 g micro quad), or your own MJCF quadrotor with "
                         "four site-mounted thrust motors and a PX4-style .params file (docs/mujoco_world.md)")
+    p.add_argument("--estimator", choices=("fused", "raw"), default=None,
+                   help="the agents' position estimate: fused (default; an onboard filter of the noisy fixes with the "
+                        "agent's own velocity) or raw (each fix as it is, the paper's memoryless agent); "
+                        "docs/design.md")
+    p.add_argument("--offboard", choices=("velocity", "acceleration"), default=None,
+                   help="MuJoCo: what the PX4-like offboard interface makes of the policy's acceleration setpoint: "
+                        "velocity (default; integrated into a velocity setpoint) or acceleration (sent as PX4 "
+                        "acceleration setpoints, as the paper does); single and table8, not with --sitl-m or --drop")
     p.add_argument("--rrd", type=Path, metavar="PATH", help="record the episodes to a Rerun .rrd file (single)")
     p.add_argument("--spawn", action="store_true", help="stream the episodes to a live Rerun viewer (single)")
     p.add_argument("--png", type=Path, metavar="DIR", help="write a top-down PNG of each episode into DIR (single)")
     p.add_argument("--json", type=Path, metavar="PATH", help="also write the results as JSON (docs/evaluation.md)")
     p.add_argument("--workers", type=int, default=1, metavar="W",
                    help=f"processes flying episodes, 1..{MAX_WORKERS} (single without recording, table8; default 1)")
+    p.add_argument("--executor", choices=["local", "ray"], default="local",
+                   help="table8 only: local flies the grid on --workers processes here (default); ray flies each "
+                        "episode as a Ray task, on the cluster at --address or on a Ray instance started here with "
+                        "--workers CPUs (needs the ray extra; docs/scaling.md)")
+    p.add_argument("--address", default=None, metavar="HOST:PORT",
+                   help="with --executor ray: the head of a running Ray cluster (`ray start --head`); its CPUs "
+                        "decide how many episodes fly at once")
     p.add_argument("--report-dir", type=Path, default=None, metavar="DIR",
                    help="table8 only: where table8.md/.csv/.json/.png and the resumable cell file go (default a new "
                         "folder ./cefc-eval-reports/table8-<policy>-<backend>-<time>/); give the folder of an "
@@ -220,6 +237,17 @@ def validate(args: argparse.Namespace) -> None:
         except CefcError as e:
             usage_error(f"--airframe {args.airframe}: {e}")
     args.airframe = args.airframe or "iris"
+    if args.offboard is not None:
+        if args.backend != "mujoco":
+            usage_error("--offboard: the particle backend has no offboard interface; use --backend mujoco")
+        for flag, given in (("--sitl-m", args.sitl_m), ("--drop", args.drop is not None), ("--protocol table3",
+                                                                                           proto == "table3")):
+            if given:
+                usage_error(f"--offboard: not available with {flag} (single and table8 in one process only)")
+    args.offboard = args.offboard or "velocity"
+    if args.estimator is not None and proto == "table3":
+        usage_error("--estimator: Table III is flown with exact sensing, where the estimate is the fix")
+    args.estimator = args.estimator or "fused"
     if args.policy == "orca" and proto != "table3":
         usage_error("--policy orca: the ORCA-F baseline is a Table III row (--backend particle --protocol table3)")
     if args.drop is not None and proto != "single":
@@ -254,6 +282,7 @@ def validate(args: argparse.Namespace) -> None:
         usage_error(f"--report-dir: only --protocol table8 writes a report folder ({proto} writes --json only)")
     if proto != "table8" and args.fresh:
         usage_error("--fresh: only --protocol table8 keeps a cell cache")
+    _validate_executor(args)
     if proto == "table8":
         if args.wind is not None or args.deviation is not None:
             flag = "--wind" if args.wind is not None else "--deviation"
@@ -316,6 +345,25 @@ def validate(args: argparse.Namespace) -> None:
         check_output("--png", args.png, is_dir=True)
     if args.report_dir is not None:
         check_output("--report-dir", args.report_dir, is_dir=True)
+
+
+def _validate_executor(args: argparse.Namespace) -> None:
+    """--executor/--address: table8 only, a well-formed address, --workers unused with a cluster, Ray
+    installed; sets args.executor to an ExecutorConfig."""
+    from cefc_mj.executors import ExecutorConfig
+
+    if args.executor != "local" and args.protocol != "table8":
+        usage_error(f"--executor {args.executor}: only --protocol table8 runs on an executor "
+                    f"({args.protocol} flies here; use --workers)")
+    if args.address is not None and args.executor == "ray" and args.workers > 1:
+        usage_error(f"--workers {args.workers}: with --address the cluster's CPUs decide how many episodes fly "
+                    "at once; drop --workers")
+    executor = ExecutorConfig(kind=args.executor, workers=args.workers, address=args.address)
+    try:
+        executor.validate()
+    except CefcError as e:
+        usage_error(str(e))
+    args.executor = executor
 
 
 def load_policies(args: argparse.Namespace) -> dict:
@@ -404,7 +452,7 @@ def _single(args: argparse.Namespace) -> int:
     conditions = [(args.wind, args.deviation)] + ([(0.0, 0.0)] if condition != "SITL-S" else [])
     seeds = list(range(args.seed, args.seed + episodes))
     specs = [EpisodeSpec(formation=c, seed=seed, backend=args.backend, wind=wind, deviation=dev, steps=steps,
-                         policy=args.policy, airframe=args.airframe)
+                         policy=args.policy, airframe=args.airframe, estimator=args.estimator, offboard=args.offboard)
              for wind, dev in conditions for c in formations for seed in seeds]
     asked = list(range(len(formations) * len(seeds)))  # the first condition's episodes
     calm = list(range(len(asked), len(specs)))
@@ -449,7 +497,9 @@ def _single(args: argparse.Namespace) -> int:
             cell["paper"] = paper_cell(c, cond)
     summary = {
         "schema": "cefc-eval/single", "schema_version": 2, "protocol": "single", "command": args.command,
-        "complete": not interrupted, "backend": args.backend, "policy": args.policy, "condition": condition,
+        "complete": not interrupted, "backend": args.backend, "policy": args.policy, "estimator": args.estimator,
+        "offboard": args.offboard,
+        "condition": condition,
         "wind": args.wind, "deviation": args.deviation, "steps": steps, "seeds": seeds,
         "comparable_to_paper": steps == PAPER_STEPS, "provenance": args.provenance, "rows": table,
     }
@@ -523,6 +573,8 @@ def single_table(summary: dict) -> str:
         f"(each out of {steps}),",
         "  C = % of agent-steps in collision, retention = (F+N) / (F+N of the calm row above it: same c, same seeds).",
         f"  ours: {summary['backend']}, policy {summary['policy']}, "
+        f"{summary.get('estimator', 'raw')} position estimate"
+        + (f", {summary.get('offboard', 'velocity')} offboard setpoints, " if summary['backend'] == "mujoco" else ", ")
         + (f"mean ± sample std over {k} seeds" if k > 1 else "1 seed (no spread; --episodes K gives mean ± std)")
         + "; paper: its Table VIII (Gazebo + PX4 SITL, 1000 steps).",
     ]
@@ -586,7 +638,7 @@ def _table8(args: argparse.Namespace) -> int:
     prov = args.provenance
     out: Path = args.report_dir
     specs = table8_specs(args.formation, args.episodes, args.seed, args.steps, args.backend, args.policy,
-                         args.airframe)
+                         args.airframe, args.estimator, args.offboard)
     policy_sha256 = {c: prov["policies"][str(c)]["sha256"] for c in args.formation}
     cells = plan_cells(specs, policy_sha256, prov["code_version"])
     if args.sitl is not None:  # the SITL-M row: the calm specs again, one process per UAV
@@ -597,7 +649,8 @@ def _table8(args: argparse.Namespace) -> int:
     reused = sum(cell.key in known for cell in cells)
     rows_desc = "7 conditions" + (" + SITL-M" if args.sitl is not None else "")
     print(f"{PROG} table8: {len(cells)} episodes ({len(args.formation)} c x {rows_desc} x {args.episodes} seeds, "
-          f"{args.steps} steps), policy {args.policy}, {args.workers} worker(s)"
+          f"{args.steps} steps), policy {args.policy}, {args.estimator} position estimate, "
+          f"{args.executor.describe()}"
           + ("; SITL-M episodes fly one at a time" if args.sitl is not None else ""))
     print(f"reports go to {out}" + ("  (the shipped reports folder, as --report-dir asks)"
                                     if is_shipped_reports(out) else ""))
@@ -611,13 +664,15 @@ def _table8(args: argparse.Namespace) -> int:
     resume = args.command if "--report-dir" in args.command else f"{args.command} --report-dir {shlex.quote(str(out))}"
     try:
         with tqdm(total=len(cells), desc="episodes", unit="ep", file=sys.stderr) as bar:
-            rows = run_grid(cells, cell_file, workers=args.workers, progress=bar, fresh=args.fresh)
+            rows = run_grid(cells, cell_file, progress=bar, fresh=args.fresh, executor=args.executor)
     except KeyboardInterrupt:
         print(f"\n{PROG}: interrupted; finished episodes are kept in {cell_file}; resume with:\n  {resume}",
               file=sys.stderr)
         return EXIT_INTERRUPTED
     table = aggregate(rows)
-    meta = {"command": args.command, "backend": args.backend, "policy": args.policy, "episodes": args.episodes,
+    meta = {"command": args.command, "backend": args.backend, "policy": args.policy, "estimator": args.estimator,
+            "offboard": args.offboard,
+            "episodes": args.episodes,
             "seed": args.seed, "steps": args.steps, "report_dir": str(out), "cell_file": str(cell_file),
             "cells_reused": reused, "cells_total": len(cells), "provenance": prov}
     markdown = report_markdown(table, meta)

@@ -1,9 +1,12 @@
-"""`cefc-train`: train the low-level policies (AT-M steps, AT-M-Safe/Robust/Quad, the distilled student).
+"""`cefc-train`: train the low-level policies (AT-M steps, AT-M-Safe/Robust/Quad, the distilled student,
+the CL-M baseline).
 
     cefc-train lowlevel --formation 6 --step 1 --budget 15m
     cefc-train lowlevel --formation 6 --step 3 --safe --init-from atm_c6_step3 --budget 100it
     cefc-train distill --budget 20000it
     cefc-train lowlevel-all --budget 80m            # the whole pipeline
+    cefc-train clm --formation 6 --budget 1404s     # the CL-M baseline (curriculum 0,0.01,0.02,0.03)
+    cefc-train highlevel --variant consmac-a --budget 75it   # the high level (Algorithm 2) over atm_student
 
 Everything a run writes goes under --out (default runs/<command>, relative to the current folder):
 run folders (config, CSV and TensorBoard logs, resumable state) and the exported policies with their
@@ -22,7 +25,7 @@ from pathlib import Path
 
 from cefc_mj import paths
 from cefc_mj.errors import CefcError, ConfigError
-from cefc_mj.train.config import FORMATIONS, Budget, DistillConfig, LowLevelConfig, PPOConfig
+from cefc_mj.train.config import CLM_CURRICULUM, FORMATIONS, Budget, DistillConfig, LowLevelConfig, PPOConfig
 
 EXIT_USAGE = 2
 
@@ -32,6 +35,7 @@ _FLAG_OF_FIELD = {
     "deviation_sampling": "--deviation-sampling", "response_time": "--response-time",
     "velocity_noise": "--velocity-noise", "safe": "--safe", "tuples_per_formation": "--tuples",
     "formations": "--formations", "response_time/velocity_noise": "--response-time/--velocity-noise",
+    "curriculum": "--curriculum",
 }
 """Config fields set from a flag: their validation errors name the flag the user typed."""
 
@@ -65,6 +69,15 @@ def _formations(text: str) -> tuple[int, ...]:
     if not values or any(v not in FORMATIONS for v in values):
         raise argparse.ArgumentTypeError(f"{text!r}: formation sizes must be among {FORMATIONS}")
     return values
+
+
+def _densities(text: str) -> tuple[float, ...]:
+    """'0,0.01,0.02,0.03' -> the CL-M curriculum, in the order given (LowLevelConfig checks it)."""
+    try:
+        return tuple(float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected comma-separated densities, e.g. 0,0.01,0.02,0.03") \
+            from None
 
 
 def _common(p: argparse.ArgumentParser, command: str, default_budget: str) -> None:
@@ -107,7 +120,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="cefc-train", description=__doc__.split("\n\n")[0],
                      formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__.split("\n\n", 1)[1])
     parser.add_argument("--version", action=_VersionAction, help="print the version, code digest and libraries")
-    sub = parser.add_subparsers(dest="command", required=True, metavar="{lowlevel,distill,lowlevel-all}")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="{lowlevel,distill,lowlevel-all,clm,highlevel}")
 
     p = sub.add_parser("lowlevel", help="one AT-M stage for one formation size",
                        description="Train one AT-M stage (Algorithm 1): step 1 without obstacles, step 2 with "
@@ -137,8 +150,17 @@ def build_parser() -> argparse.ArgumentParser:
                    help="std (m/s) of per-step velocity kicks in the particle world, a real vehicle's tracking "
                         "error; about 0.1 matches the MuJoCo quadrotor (default 0)")
     p.add_argument("--density", type=float, default=None, help="training obstacle density per m^2 (default: the step's)")
+    p.add_argument("--seeds", default=None, metavar="S1,S2,...",
+                   help="a sweep: train the stage once per seed, each in <out>/seed<k>/, its policy named "
+                        "<stage>_s<k> (e.g. atm_c6_step3_s1); instead of --seed, not with --install")
+    p.add_argument("--executor", choices=("local", "ray"), default=None,
+                   help="with --seeds: local trains the seeds one after another here (default); ray trains each as "
+                        "a Ray task, on the cluster at --address or on a Ray instance started here (docs/scaling.md)")
+    p.add_argument("--address", default=None, metavar="HOST:PORT",
+                   help="with --executor ray: the head of a running Ray cluster (`ray start --head`)")
     _common(p, "lowlevel", "100it")
     _ppo_args(p)
+    p.set_defaults(seed=None)  # to tell an explicit --seed from none next to --seeds (_seed_sweep makes it 0)
 
     p = sub.add_parser("distill", help="distill one student from the Step 3 teachers",
                        description="Collect (observation, action) replay from each atm_c{c}_step3 teacher in "
@@ -160,7 +182,64 @@ def build_parser() -> argparse.ArgumentParser:
                         "(default 1)")
     _common(p, "lowlevel-all", "80m")
     _ppo_args(p)
+
+    p = sub.add_parser("clm", help="the CL-M baseline of Table III for one formation size",
+                       description="CL-M, the paper's curriculum-learning baseline: one MAPPO run of the AT-M "
+                                   "network from random weights while the obstacle density rises through "
+                                   "--curriculum, each density for an equal share of --budget; written as "
+                                   "clm_c<C>. Not part of lowlevel-all.")
+    p.add_argument("--formation", type=int, required=True, choices=FORMATIONS, metavar="C",
+                   help=f"formation size c, one of {FORMATIONS}")
+    p.add_argument("--curriculum", type=_densities, default=CLM_CURRICULUM, metavar="D1,D2,...",
+                   help="obstacle densities per m^2, non-decreasing, trained in turn for equal shares of the "
+                        f"budget (default {','.join(f'{d:g}' for d in CLM_CURRICULUM)})")
+    _common(p, "clm", "100it")
+    _ppo_args(p)
+    _highlevel_parser(sub)
     return parser
+
+
+def _highlevel_parser(sub) -> None:
+    """`cefc-train highlevel`; flags left out keep HighLevelConfig's defaults (cefc_mj/train/highlevel.py)."""
+    p = sub.add_parser("highlevel", help="the high level (ConsMAC + anchor selector) over a trained low level",
+                       description="Algorithm 2: MAPPO anchor selection every 10 low-level steps, ConsMAC trained "
+                                   "alternately by supervised learning; pre-training with a navigation-only low "
+                                   "level, then fine-tuning with --low-level. Written as cihrl_<variant>.")
+    p.add_argument("--variant", choices=("consmac-a", "consmac-o", "mappo", "tarmac"), default=None,
+                   help="consmac-a (default), consmac-o, mappo (no communication), tarmac (communication "
+                        "trained by RL)")
+    p.add_argument("--low-level", default=None, metavar="NAME|PATH|per-group",
+                   help="fine-tuning low level: a policy name or file (default atm_student) or per-group "
+                        "(atm_c<C>_step3 by group size)")
+    p.add_argument("--pretrain-share", type=float, default=None, metavar="F",
+                   help="share of the budget with the navigation-only low level (default 2/3, the paper's 1000 of "
+                        "1500 episodes; 0: direct training)")
+    p.add_argument("--density", type=float, default=None, dest="obstacle_density", metavar="D",
+                   help="obstacle density per m^2 (default 0.03)")
+    p.add_argument("--adversary", choices=("nearest_group", "r_nearest", "r_largest", "none"), default=None,
+                   help="the rule adversary (default nearest_group)")
+    p.add_argument("--episode-steps", type=int, default=None, metavar="N",
+                   help="low-level steps per episode, a multiple of 10 (default 400)")
+    p.add_argument("--consmac-every", type=int, default=None, metavar="IT",
+                   help="train ConsMAC after every IT iterations (default 1)")
+    p.add_argument("--consmac-steps", type=int, default=None, metavar="N",
+                   help="Adam steps per ConsMAC round (default 200; the paper's 5000)")
+    p.add_argument("--consmac-batch", type=int, default=None, metavar="N", help="ConsMAC batch (default 2048)")
+    p.add_argument("--consmac-lr", type=float, default=None, metavar="LR", help="ConsMAC learning rate (default 1e-3)")
+    p.add_argument("--replay", type=int, default=None, metavar="N", dest="replay_capacity",
+                   help="ConsMAC replay capacity in agent-decisions (default 50000)")
+    p.add_argument("--eval-episodes", type=int, default=None, metavar="N",
+                   help="episodes evaluated for the model card (default 20; 0 skips)")
+    p.add_argument("--envs", type=int, default=None, dest="n_envs", metavar="N", help="parallel envs (default 20)")
+    p.add_argument("--epochs", type=int, default=None, metavar="N", help="PPO epochs per iteration (default 15)")
+    p.add_argument("--minibatches", type=int, default=None, metavar="N", help="minibatches per epoch (default 4)")
+    p.add_argument("--lr", type=float, default=None, metavar="LR",
+                   help="Adam learning rate of selector and critic (default 1e-4)")
+    p.add_argument("--entropy", type=float, default=None, dest="entropy_coef", metavar="C",
+                   help="entropy bonus (default 0.01)")
+    p.add_argument("--threads", type=int, default=None, dest="update_threads", metavar="N",
+                   help="torch threads of the updates and ConsMAC (default 2)")
+    _common(p, "highlevel", "75it")
 
 
 # ---------------------------------------------------------------------------- checks
@@ -203,6 +282,30 @@ def _check_workers(args) -> None:
         raise ConfigError(f"--workers {args.workers}: must be an integer in [1, {len(FORMATIONS)}]")
 
 
+def _seed_sweep(args):
+    """lowlevel's --seeds, --executor, --address: (seeds, ExecutorConfig) for a sweep, None for a
+    single run (then --executor/--address are errors). Sets args.seed (None when not given) to 0."""
+    from cefc_mj.executors import ExecutorConfig
+
+    seed_given, args.seed = args.seed is not None, 0 if args.seed is None else args.seed
+    if args.seeds is None:
+        for flag, value in (("--executor", args.executor), ("--address", args.address)):
+            if value is not None:
+                raise ConfigError(f"{flag} {value}: runs the seeds of a sweep; add --seeds, e.g. --seeds 0,1,2")
+        return None
+    if seed_given:
+        raise ConfigError(f"--seed {args.seed}: give either --seed (one run) or --seeds {args.seeds} (a sweep)")
+    if args.install:
+        raise ConfigError("--install: a --seeds sweep exports one policy per seed (<stage>_s<k>); install the one "
+                          "you choose with a single run, or copy it")
+    from cefc_mj.train.sweep import parse_seeds
+
+    seeds = parse_seeds(args.seeds)
+    executor = ExecutorConfig(kind=args.executor or "local", address=args.address)
+    executor.validate()
+    return seeds, executor
+
+
 def _as_flag_error(e: ConfigError) -> ConfigError:
     """'n_envs=0: must be ...' from a config -> '--envs 0: must be ...', the flag the user typed."""
     field, sep, rest = str(e).partition("=")
@@ -213,27 +316,72 @@ def _as_flag_error(e: ConfigError) -> ConfigError:
 
 
 # ---------------------------------------------------------------------------- commands
+def _print_lowlevel_card(card: dict, policies_dir: Path) -> None:
+    print(f"{card['name']}: {card['iterations']} iterations, {card['agent_steps']} agent-steps, "
+          f"{card['train_wall_clock_s']} s -> {policies_dir / (card['name'] + '.pt')} (run {card['run_dir']})")
+    o = card["table3"]["ours"]
+    print(f"Table III protocol (density 0.05): R_L {o['R_L']:.2f}/step  F {o['F']:.2f}  N {o['N']:.2f}  C {o['C']:.2f}%")
+
+
+def _train_sweep(args, cfg: LowLevelConfig, sweep, policies_dir: Path, command: str) -> list[dict]:
+    """`lowlevel --seeds`: the stage once per seed, each in <out>/seed<k>/; returns the cards in seed order."""
+    from cefc_mj.train.sweep import plan_seeds, sweep_executor, train_seeds
+
+    seeds, executor = sweep
+    runs = plan_seeds(cfg, seeds, args.out, policies_dir, resume=args.resume, init_from=args.init_from,
+                      command=command, show_progress=not args.no_progress)
+    executor, _ = sweep_executor(runs, executor)
+    where = "one after another in this process" if executor.kind == "local" else executor.describe()
+    print(f"{cfg.name}: seeds {','.join(map(str, seeds))} {where}; run folders {args.out}/seed<k>/{cfg.name}, "
+          f"policies {policies_dir}/{cfg.name}_s<k>.pt", flush=True)
+    return train_seeds(runs, executor, on_done=lambda card: _print_lowlevel_card(card, policies_dir))
+
+
 def run(args, command: str | None = None) -> list[dict]:
     """Validate the arguments, train, export (and install); returns the model cards."""
     budget = Budget.parse(args.budget)
     show = not args.no_progress
     # Configs and folders are checked before the training modules (torch, numba) are imported.
     if args.command == "lowlevel":
+        sweep = _seed_sweep(args)  # --seeds/--executor/--address checked; None: a single run
         cfg = LowLevelConfig(formation=args.formation, step=args.step, safe=args.safe, deviation=args.deviation,
                              deviation_sampling=args.deviation_sampling, response_time=args.response_time,
                              velocity_noise=args.velocity_noise,
                              budget=budget, seed=args.seed,
                              obstacle_density=args.density, ppo=_ppo_from(args))
         policies_dir = check_destinations(args)
+        if sweep is not None:  # one run per seed, on an executor (cefc_mj/train/sweep.py); --install was refused
+            return _train_sweep(args, cfg, sweep, policies_dir, command)
         from cefc_mj.train.lowlevel import train_lowlevel
 
         card = train_lowlevel(cfg, args.out, policies_dir, resume=args.resume, show_progress=show,
                               init_from=args.init_from, command=command)
-        print(f"{card['name']}: {card['iterations']} iterations, {card['agent_steps']} agent-steps, "
+        _print_lowlevel_card(card, policies_dir)
+        cards = [card]
+    elif args.command == "clm":
+        cfg = LowLevelConfig(formation=args.formation, step=1, curriculum=args.curriculum, budget=budget,
+                             seed=args.seed, ppo=_ppo_from(args))
+        policies_dir = check_destinations(args)
+        from cefc_mj.train.lowlevel import train_lowlevel
+
+        card = train_lowlevel(cfg, args.out, policies_dir, resume=args.resume, show_progress=show, command=command)
+        phases = ", ".join(f"{p['density']:g}: {p['iterations']} it" for p in card["curriculum"]["phases"])
+        print(f"{card['name']}: {card['iterations']} iterations ({phases}), {card['agent_steps']} agent-steps, "
               f"{card['train_wall_clock_s']} s -> {policies_dir / (card['name'] + '.pt')} (run {card['run_dir']})")
         o = card["table3"]["ours"]
         print(f"Table III protocol (density 0.05): R_L {o['R_L']:.2f}/step  F {o['F']:.2f}  N {o['N']:.2f}  C {o['C']:.2f}%")
         cards = [card]
+    elif args.command == "highlevel":  # its own policy format, so its own --install
+        from cefc_mj.train.highlevel import config_from_args, install_highlevel_policy, summary_lines, train_highlevel
+
+        cfg = config_from_args(args, budget)
+        policies_dir = check_destinations(args)
+        card = train_highlevel(cfg, args.out, policies_dir, resume=args.resume, show_progress=show, command=command)
+        print("\n".join(summary_lines(card, policies_dir)))
+        if args.install:
+            target = install_highlevel_policy(policies_dir / f"{card['name']}.pt", paths.POLICIES_DIR)
+            print(f"installed {card['name']} -> {target}")
+        return [card]
     elif args.command == "distill":
         cfg = DistillConfig(budget=budget, formations=args.formations, tuples_per_formation=args.tuples, seed=args.seed)
         policies_dir = check_destinations(args)

@@ -17,6 +17,8 @@ _EXPORTS = {
     "AgentFault": "cefc_mj.deploy.episode",
     "DropoutCEFCEnv": "cefc_mj.deploy.dropout",
     "DropoutReport": "cefc_mj.deploy.results",
+    "MavlinkLink": "cefc_mj.deploy.mavlink_link",
+    "MavlinkLinkConfig": "cefc_mj.deploy.mavlink_link",
     "SitlConfig": "cefc_mj.deploy.episode",
     "SitlEpisodeResult": "cefc_mj.deploy.results",
     "SitlStats": "cefc_mj.deploy.results",

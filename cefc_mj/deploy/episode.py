@@ -24,7 +24,8 @@ import numpy as np
 
 from cefc_mj.deploy.dropout import DropoutCEFCEnv, check_drop, choose_dropouts, dropout_report
 from cefc_mj.deploy.results import SitlEpisodeResult, SitlStats
-from cefc_mj.deploy.sim_server import AgentError, AgentFleet, SitlServer, block_sigint, restore_sigint  # noqa: F401
+from cefc_mj.deploy.sim_server import (  # noqa: F401
+    OFFBOARD_LOSS_TIMEOUT_S, AgentError, AgentFleet, SitlServer, block_sigint, restore_sigint)
 from cefc_mj.deploy.tick_world import make_ticked_world
 from cefc_mj.errors import ConfigError, SimulationDiverged
 from cefc_mj.eval.runner import EpisodeSpec
@@ -65,7 +66,7 @@ class SitlConfig:
     """One-way network delay added in simulated time to each packet and each reply (ms)."""
     jitter_ms: float = 0.0
     """Each direction adds a further uniform draw from [0, jitter_ms] (seeded by the episode seed)."""
-    offboard_loss_timeout_s: float = 1.0
+    offboard_loss_timeout_s: float = OFFBOARD_LOSS_TIMEOUT_S
     """PX4's COM_OF_LOSS_T: simulated seconds without a new setpoint before a vehicle holds."""
     realtime: bool = False
     """Pace the simulation to the wall clock (1 simulated second per second)."""

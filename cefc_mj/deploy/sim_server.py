@@ -42,6 +42,14 @@ from cefc_mj.errors import CefcError
 
 EPS = 1e-9
 PING_PERIOD_S = 0.5
+OFFBOARD_LOSS_TIMEOUT_S = 1.0
+"""PX4's COM_OF_LOSS_T as SITL-M and the MAVLink link use it: simulated seconds without a new
+setpoint before a vehicle holds."""
+
+
+def offboard_lost(t: float, last_setpoint_t: float, timeout_s: float) -> bool:
+    """PX4's offboard-loss test: no new setpoint for more than `timeout_s` at simulated time `t`."""
+    return t - last_setpoint_t > timeout_s + EPS
 
 
 class AgentError(CefcError, RuntimeError):
@@ -272,7 +280,7 @@ class SitlServer:
     """
 
     def __init__(self, bind: str, n_agents: int, welcome: dict, tick_s: float, link_delay_ms: float = 0.0,
-                 jitter_ms: float = 0.0, offboard_loss_timeout_s: float = 1.0, realtime: bool = False,
+                 jitter_ms: float = 0.0, offboard_loss_timeout_s: float = OFFBOARD_LOSS_TIMEOUT_S, realtime: bool = False,
                  lockstep: bool = False, lockstep_timeout_s: float = 10.0, seed: int = 0):
         import zmq
 
@@ -488,7 +496,7 @@ class SitlServer:
         for v in self.vehicles:
             if v.state == "flying" and v.replies:
                 self._apply(v, t)
-            if v.state in ("flying", "exited") and t - v.last_setpoint_t > self.offboard_loss_timeout_s + EPS:
+            if v.state in ("flying", "exited") and offboard_lost(t, v.last_setpoint_t, self.offboard_loss_timeout_s):
                 v.state = "failsafe"
                 v.outstanding.clear()
                 self.event(v.index, "offboard_loss_hold",

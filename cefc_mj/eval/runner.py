@@ -56,11 +56,11 @@ def condition_name(wind: float, deviation: float) -> str:
 
 def policy_name_for(policy: str, formation: int) -> str:
     """Resolve a policy choice for formation c: "atm" -> the AT-M Step 3 policy of c, "safe" ->
-    AT-M-Safe of c, "robust" -> AT-M-Robust of c, "quad" -> AT-M-Quad of c, "student" -> the distilled
-    student; anything else is a name or path."""
+    AT-M-Safe of c, "robust" -> AT-M-Robust of c, "quad" -> AT-M-Quad of c, "clm" -> the CL-M baseline
+    of c, "student" -> the distilled student; anything else is a name or path."""
     aliases = {"atm": f"atm_c{formation}_step3", "safe": f"atm_c{formation}_safe",
                "robust": f"atm_c{formation}_robust", "quad": f"atm_c{formation}_quad",
-               "student": "atm_student"}
+               "clm": f"clm_c{formation}", "student": "atm_student"}
     return aliases.get(policy, policy)
 
 
@@ -97,6 +97,14 @@ class EpisodeSpec:
     airframe: str = "iris"
     """MuJoCo airframe: a shipped name ("iris", "crazyflie") or an MJCF path (docs/mujoco_world.md);
     the particle backend has none and ignores it."""
+    estimator: str = "fused"
+    """The agents' position estimate (cefc_mj/task/estimator.py): "fused" (onboard filter of the
+    noisy fixes with the agent's own velocity) or "raw" (the paper's memoryless agent); bit-identical
+    without sensing deviation."""
+    offboard: str = "velocity"
+    """MuJoCo's offboard interface (docs/mujoco_world.md): "velocity" (the setpoint is integrated
+    into a velocity setpoint, the default) or "acceleration" (sent as PX4 acceleration setpoints, as
+    the paper does); the particle backend ignores it."""
 
     @property
     def mujoco_airframe(self) -> str | None:
@@ -110,7 +118,7 @@ class EpisodeSpec:
     def task_config(self) -> TaskConfig:
         return TaskConfig(
             n_agents=self.formation, mode="formation", obstacle_density=TABLE8_DENSITY, episode_steps=self.steps,
-            anchor_redraw_steps=TABLE8_ANCHOR_REDRAW, deviation=self.deviation,
+            anchor_redraw_steps=TABLE8_ANCHOR_REDRAW, deviation=self.deviation, position_estimator=self.estimator,
         )
 
 
@@ -140,16 +148,19 @@ def run_episode(spec: EpisodeSpec, policy: Policy | None = None, record: bool = 
     config = spec.task_config()
     if policy is None:
         policy = load_policy_for(spec.policy, spec.formation)
-    world = make_world(spec.backend, config, n_envs=1, wind=spec.wind, seed=spec.seed, airframe=spec.mujoco_airframe)
+    world = make_world(spec.backend, config, n_envs=1, wind=spec.wind, seed=spec.seed, airframe=spec.mujoco_airframe,
+                       offboard=spec.offboard if spec.backend == "mujoco" else None)
     env = BatchedCEFCEnv(config, n_envs=1, seed=spec.seed, world=world)
     recorder = _Recorder(env, spec) if record else None
+    # the AT-M actor's own rollout path: Policy.act's numbers bit for bit, without its per-call checks
+    act = getattr(policy.actor, "deterministic_actions", policy.act)
     start = time.perf_counter()
     obs = env.reset()
     diverged = None
     info: dict = {}
     for _ in range(spec.steps):
         try:
-            obs, _, done, info = env.step(policy.act(obs))
+            obs, _, done, info = env.step(act(obs))
         except SimulationDiverged as e:
             diverged = str(e)
             break

@@ -4,7 +4,10 @@ One group of c agents flies to a random anchor for 100 steps at obstacle density
 50 episodes (one batch of 50 envs, fixed seed, so every method sees the same episodes); the policy
 acts deterministically (Gaussian mean). Columns as the paper prints them:
 
-- R_L: the team reward R_L = 15 R_f + 4 R_n + 100 R_c per step, averaged over steps and episodes;
+- R_L: the team reward R_L = 15 R_f + 4 R_n + 100 R_c per step, averaged over steps and episodes
+  (R_n = -|centre - anchor|, the paper's low-level navigation reward);
+- R_L^a: the same with the navigation term summed over the agents, -sum_i |p_i - anchor| (the paper's
+  eq. 14 form); the paper's printed R_L values match this one (docs/baselines.md, "The unit of R_L");
 - F, N: steps per episode in formation (HD < 1 m) / with the swarm centre within 1 m of the anchor;
 - C: % of agent-steps in collision (a UAV disc overlapping an obstacle or another UAV).
 
@@ -32,16 +35,18 @@ TABLE3_DENSITY = 0.05
 TABLE3_EPISODES = 50
 TABLE3_STEPS = 100
 TABLE3_FORMATIONS = (6, 7, 8)
-METHODS = ("ORCA-F", "AT-M-Step1", "AT-M-Step2", "AT-M-Step3", "AT-M-Safe", "AT-M-Robust", "AT-M-Quad", "Student")
+METHODS = ("ORCA-F", "CL-M", "AT-M-Step1", "AT-M-Step2", "AT-M-Step3", "AT-M-Safe", "AT-M-Robust", "AT-M-Quad",
+           "Student")
 """Row names as the paper writes them (AT-M-Robust, AT-M-Quad and the student are this project's additions;
-ORCA-F is the baseline of cefc_mj/baselines/orca.py, docs/baselines.md)."""
+ORCA-F is the baseline of cefc_mj/baselines/orca.py, CL-M the curriculum baseline trained by `cefc-train clm`,
+docs/baselines.md)."""
 COLUMNS = ("R_L", "F", "N", "C")
 
 
 def _paper_table3() -> dict[str, dict[str, dict[str, float]]]:
-    """The paper's Table III AT-M rows from the shipped transcription (eval/paper_tables.json)."""
+    """The paper's Table III AT-M, ORCA-F and CL-M rows from the shipped transcription (eval/paper_tables.json)."""
     raw = json.loads((paths.EVAL_DIR / "paper_tables.json").read_text())["table3_atm_mpe"]
-    return {c: {m: dict(zip(COLUMNS, v)) for m, v in rows.items() if m.startswith("AT-M") or m == "ORCA-F"}
+    return {c: {m: dict(zip(COLUMNS, v)) for m, v in rows.items() if m.startswith("AT-M") or m in ("ORCA-F", "CL-M")}
             for c, rows in raw.items() if c.isdigit()}
 
 
@@ -54,6 +59,8 @@ def policy_file_for(method: str, formation: int) -> str | None:
         return None
     if method == "Student":
         return "atm_student"
+    if method == "CL-M":
+        return f"clm_c{formation}"
     if method == "AT-M-Safe":
         return f"atm_c{formation}_safe"
     if method == "AT-M-Robust":
@@ -84,12 +91,17 @@ def roll_out(env: BatchedCEFCEnv, obs: np.ndarray, act, steps: int) -> dict[str,
     """Fly every episode of a reset `env` to its end with `act(obs) -> actions`; per-episode R_L (team
     reward per step), F, N, C [episodes]: the Table III numbers of any controller."""
     total = np.zeros(env.n_envs)
+    navigation_swap = np.zeros(env.n_envs)  # R_L^a - R_L: the navigation term summed over the agents
+    w_n = env.config.rewards.navigation_weight_low
     done = np.zeros(env.n_envs, dtype=bool)
     while not done.all():
         obs, reward, done, info = env.step(act(obs))
         total += reward
+        per_agent = -np.linalg.norm(env.world.agent_pos - env.anchor[:, None], axis=-1).sum(axis=-1)
+        navigation_swap += w_n * (per_agent - info["reward_terms"]["R_n"])
     metrics = info["metrics"]
-    return {"R_L": total / steps, **{m: np.asarray(metrics[m], dtype=np.float64) for m in ("F", "N", "C")}}
+    return {"R_L": total / steps, "R_L_agents": (total + navigation_swap) / steps,
+            **{m: np.asarray(metrics[m], dtype=np.float64) for m in ("F", "N", "C")}}
 
 
 def evaluate_lowlevel(policy: Policy, formation: int, density: float = TABLE3_DENSITY, episodes: int = TABLE3_EPISODES,
@@ -100,7 +112,7 @@ def evaluate_lowlevel(policy: Policy, formation: int, density: float = TABLE3_DE
 
 
 POLICY_CHOICES = {"atm": "AT-M-Step3", "safe": "AT-M-Safe", "robust": "AT-M-Robust", "quad": "AT-M-Quad",
-                  "student": "Student", "orca": "ORCA-F"}
+                  "student": "Student", "orca": "ORCA-F", "clm": "CL-M"}
 """cefc-eval's --policy aliases and the Table III row each one is."""
 
 
@@ -181,7 +193,8 @@ def run_table3(formations=TABLE3_FORMATIONS, episodes: int = TABLE3_EPISODES, se
             except CheckpointError:
                 if policy is not None:
                     raise
-                result["protocol"]["missing"].append(f"{c}/{method} ({name}.pt)")
+                hint = f": train it with cefc-train clm --formation {c}" if method == "CL-M" else ""
+                result["protocol"]["missing"].append(f"{c}/{method} ({name}.pt{hint})")
                 continue
             per_episode = evaluate_lowlevel_episodes(load_policy(path), c, episodes=episodes, seed=seed, steps=steps)
             rows[method] = {**_row(per_episode, c, method), "policy": path.name, "sha256": file_sha256(path)}
@@ -199,19 +212,22 @@ def format_table3(result: dict) -> str:
     lines = [
         f"Table III protocol ({proto['backend']}, density {proto['density']}/m^2, {proto['episodes']} episodes x "
         f"{proto['steps']} steps, seed {proto['seed']}). R_L: team reward per step; F, N: steps in formation / "
-        "with the swarm centre within 1 m of the anchor; C: % of agent-steps in collision.",
-        "ours: mean ± sample std over episodes; paper: the paper's Table III AT-M row ('-': the paper has none).",
+        "with the swarm centre within 1 m of the anchor; C: % of agent-steps in collision. R_L^a: R_L with the "
+        "navigation term summed over the agents, the form the paper's R_L values match.",
+        "ours: mean ± sample std over episodes; paper: the paper's Table III row ('-': the paper has none).",
     ]
     if proto["steps"] != TABLE3_STEPS:
         lines.append(f"F, N over {proto['steps']} steps; the paper's are over {TABLE3_STEPS}: not comparable.")
-    table = [["c", "method", "", "R_L/step", "F (steps)", "N (steps)", "C (%)"]]
+    table = [["c", "method", "", "R_L/step", "R_L^a/step", "F (steps)", "N (steps)", "C (%)"]]
     for c, rows in result.items():
         if not c.isdigit():
             continue
         for method, row in rows.items():
             paper = row.get("paper") or {}
-            table.append([c, method, "ours"] + [format_mean_std(row[m], row.get(f"{m}_std"), ".2f") for m in COLUMNS])
-            table.append(["", "", "paper"]
+            table.append([c, method, "ours"] + [format_mean_std(row[m], row.get(f"{m}_std"), ".2f") if m in row
+                                                else "-" for m in ("R_L", "R_L_agents", *COLUMNS[1:])])
+            # the paper prints one R_L; its values match R_L^a, so it stands in that column
+            table.append(["", "", "paper", "-"]
                          + ["-" if paper.get(m) is None else format(paper[m], ".2f") for m in COLUMNS])
     widths = [max(len(r[i]) for r in table) for i in range(len(table[0]))]
     for r in table:

@@ -1,4 +1,5 @@
-"""The Table VIII protocol: every condition x c = 5..8 x K seeds, on a local process pool.
+"""The Table VIII protocol: every condition x c = 5..8 x K seeds, on a local process pool or a Ray
+cluster (`cefc_mj.executors`, docs/scaling.md).
 
 Finished episodes are appended to a JSON-lines cell file as they complete, so an interrupted run
 keeps them and a re-run skips them. A cell is reused only under the same key: the SHA-256 of the
@@ -17,7 +18,7 @@ import io
 import json
 import os
 from collections.abc import Callable, Iterator
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from contextlib import closing
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -27,6 +28,8 @@ from cefc_mj import paths
 from cefc_mj.eval.runner import (
     CONDITIONS, TABLE8_STEPS, EpisodeResult, EpisodeSpec, airframe_files, format_mean_std, load_policy_for, retention, run_episode, summarize,
 )
+from cefc_mj.errors import ConfigError
+from cefc_mj.executors import ExecutorConfig, map_unordered
 from cefc_mj.fileio import write_atomic
 
 PAPER_TABLES = paths.EVAL_DIR / "paper_tables.json"
@@ -48,11 +51,11 @@ def paper_table8() -> dict[str, dict[str, dict[str, float]]]:
 
 
 def table8_specs(formations, episodes: int, seed: int, steps: int, backend: str, policy: str,
-                 airframe: str = "iris") -> list[EpisodeSpec]:
+                 airframe: str = "iris", estimator: str = "fused", offboard: str = "velocity") -> list[EpisodeSpec]:
     """The grid, seeds seed .. seed+K-1 for every cell (the same layouts under every condition)."""
     return [
         EpisodeSpec(formation=c, seed=seed + k, backend=backend, wind=wind, deviation=dev, steps=steps, policy=policy,
-                    airframe=airframe)
+                    airframe=airframe, estimator=estimator, offboard=offboard)
         for c in formations
         for name, (wind, dev) in CONDITIONS.items()
         for k in range(episodes)
@@ -136,6 +139,28 @@ def _fly_row(spec: EpisodeSpec, drop=None) -> dict:
     return _fly(spec, drop=drop).to_dict()
 
 
+def _fly_cell(cell: Cell) -> dict:
+    """Fly a cell's episode wherever the executor runs it (this process, a pool worker, a Ray node),
+    after checking that the code, policy file and airframe files there are the ones its key names:
+    a Ray node with another installation would otherwise file its numbers under this machine's key."""
+    from cefc_mj.eval.runner import policy_files
+    from cefc_mj.provenance import code_version
+
+    spec, expected = cell.spec, cell.key_fields
+    here = {"code_version": code_version(),
+            "policy_sha256": policy_files(spec.policy, [spec.formation])[str(spec.formation)]["sha256"],
+            "airframe": airframe_files(spec)}
+    what = {"code_version": f"cefc-mj code (digest {here['code_version']}, the command's {expected['code_version']})",
+            "policy_sha256": f"policy file for {spec.policy} c = {spec.formation}", "airframe": "airframe files"}
+    differ = [what[name] for name, value in here.items() if expected[name] != value]
+    if differ:
+        import platform
+
+        raise ConfigError(f"{platform.node()} flies with other {' and other '.join(differ)} than the command that "
+                          "planned the cell: install the same cefc-mj and policy files on every node (docs/scaling.md)")
+    return _fly_row(spec)
+
+
 @dataclass
 class _PooledResult(EpisodeResult):
     """A result flown in a pool worker; `to_dict()` gives the worker's row as it was (a dropout's
@@ -163,25 +188,34 @@ def fly_episodes(specs: list[EpisodeSpec], workers: int = 1,
         return
     if record is not None:
         raise ValueError("fly_episodes: recording needs workers = 1")
-    pool = ProcessPoolExecutor(max_workers=min(workers, len(specs)))
-    try:
-        futures = {pool.submit(_fly_row, spec, drop): i for i, spec in enumerate(specs)}
-        for future in as_completed(futures):
-            i = futures[future]
-            row = future.result()
-            yield i, _PooledResult(spec=specs[i], row=row, **{k: row[k] for k in ("F", "N", "C", "steps", "wall_s",
-                                                                                    "diverged")})
-    finally:
-        pool.shutdown(wait=True, cancel_futures=True)
+    index = {id(spec): i for i, spec in enumerate(specs)}
+    with closing(map_unordered(functools.partial(_fly_row, drop=drop), specs, ExecutorConfig(workers=workers))) as rows:
+        for spec, row in rows:
+            yield index[id(spec)], _PooledResult(spec=spec, row=row, **{k: row[k] for k in ("F", "N", "C", "steps",
+                                                                                            "wall_s", "diverged")})
 
 
-def run_grid(cells: list[Cell], cell_file: Path, workers: int = 1, progress=None, fresh: bool = False) -> list[dict]:
+def _torn_tail(path: Path) -> bool:
+    """Whether the file ends without a newline (its last line was cut by a kill)."""
+    with open(path, "rb") as fh:
+        if fh.seek(0, os.SEEK_END) == 0:
+            return False
+        fh.seek(-1, os.SEEK_END)
+        return fh.read(1) != b"\n"
+
+
+def run_grid(cells: list[Cell], cell_file: Path, workers: int = 1, progress=None, fresh: bool = False,
+             executor: ExecutorConfig | None = None) -> list[dict]:
     """Fly the cells not yet in `cell_file` (all of them with `fresh`), appending each finished
     episode as one JSON line; returns the rows of all `cells` in order.
 
+    `executor` says where the lock-step cells fly (default: a local pool of `workers` processes;
+    `ExecutorConfig("ray", ...)`: Ray tasks), with the same cache, rows and resume either way.
+    SITL-M cells always fly here, one at a time (each runs c + 1 processes and times them).
     `fresh` moves an existing cell file aside (to `<name>.replaced-<n>`) rather than deleting it.
     The folder is created here, right before the first write.
     """
+    executor = executor or ExecutorConfig(workers=workers)
     cell_file.parent.mkdir(parents=True, exist_ok=True)
     if fresh and cell_file.exists():
         n = 1
@@ -192,19 +226,29 @@ def run_grid(cells: list[Cell], cell_file: Path, workers: int = 1, progress=None
     todo = [cell for cell in cells if cell.key not in done]
     if progress is not None:
         progress.update(len(cells) - len(todo))
+    lockstep = [c for c in todo if c.sitl is None]
+    sitl = [c for c in todo if c.sitl is not None]
     with open(cell_file, "a") as sink:
-        for group in ([c for c in todo if c.sitl is None], [c for c in todo if c.sitl is not None]):
-            if not group:
-                continue
-            for i, result in fly_episodes([cell.spec for cell in group], workers=workers, sitl=group[0].sitl):
-                cell = group[i]
-                row = {"key": cell.key, "key_fields": cell.key_fields, **result.to_dict()}
-                done[cell.key] = row
-                sink.write(json.dumps(row) + "\n")
-                sink.flush()
-                os.fsync(sink.fileno())
-                if progress is not None:
-                    progress.update(1)
+        if _torn_tail(cell_file):  # a kill mid-line: the next row starts on a line of its own, not glued to it
+            sink.write("\n")
+
+        def keep(cell: Cell, result: dict) -> None:
+            row = {"key": cell.key, "key_fields": cell.key_fields, **result}
+            done[cell.key] = row
+            sink.write(json.dumps(row) + "\n")  # one whole line, on disk before the next episode is counted
+            sink.flush()
+            os.fsync(sink.fileno())
+            if progress is not None:
+                progress.update(1)
+
+        # closing(): an error or Ctrl-C here stops the executor's jobs (and a Ray instance started for them) now
+        with closing(map_unordered(_fly_cell, lockstep, executor)) as flown:
+            for cell, result in flown:
+                keep(cell, result)
+        if sitl:
+            with closing(fly_episodes([cell.spec for cell in sitl], sitl=sitl[0].sitl)) as flown:
+                for i, result in flown:
+                    keep(sitl[i], result.to_dict())
     return [done[cell.key] for cell in cells]
 
 
@@ -248,7 +292,8 @@ def report_markdown(table: dict, meta: dict) -> str:
     """The Markdown report: ours (mean ± std over seeds) beside the paper, then provenance."""
     k = meta["episodes"]
     lines = [
-        f"# Table VIII: policy `{meta['policy']}` on the {meta['backend']} backend",
+        f"# Table VIII: policy `{meta['policy']}` on the {meta['backend']} backend, "
+        f"{meta.get('estimator', 'raw')} position estimate, {meta.get('offboard', 'velocity')} offboard setpoints",
         "",
         f"Command: `{meta['command']}`  ",
         f"{k} seed(s) per cell ({meta['seed']}..{meta['seed'] + k - 1}, the same layouts under every condition), "

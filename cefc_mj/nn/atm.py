@@ -25,7 +25,9 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 
+import numpy as np
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 from cefc_mj.errors import CheckpointError
@@ -137,8 +139,45 @@ class ATMActor(nn.Module):
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
         """Action mean [..., act_dim] for observations [..., obs_dim]."""
         f = self.formation(obs.index_select(-1, self.formation_index))
-        a = self.obstacle(self.lidar_input(obs)) - self.obstacle(self.free_lidar)
+        a = self.obstacle(self.lidar_input(obs)) - self.free_features()
         return self.output(f + a)
+
+    def free_features(self) -> torch.Tensor:
+        """F_a(d_free), the obstacle module's output with every beam at the LiDAR range.
+
+        With gradients on (training) it is computed afresh, since it depends on the weights being
+        trained, and so it is while a TorchScript trace records the forward. Otherwise it is a
+        constant of the weights: computed once by the same call and kept, so the forward gives the
+        same bits while skipping a quarter of its work. The cache is keyed on the weight tensors
+        themselves, their storage and their in-place version counters, so an optimizer step or a
+        load_state_dict (assign or copy) recomputes it."""
+        if torch.is_grad_enabled() or torch.jit.is_tracing():  # a TorchScript trace records the computation
+            return self.obstacle(self.free_lidar)
+        tensors = [self.free_lidar] + [t for layer in self.obstacle if isinstance(layer, nn.Linear) for t in (layer.weight, layer.bias)]
+        key = [(t, t.data_ptr(), t._version) for t in tensors]
+        cached = self.__dict__.get("_free_cache")
+        if cached is None or any(t is not c or p != cp or v != cv for (t, p, v), (c, cp, cv) in zip(key, cached[0])):
+            with torch.inference_mode(False), torch.no_grad():  # a plain tensor, even when called in inference mode
+                cached = (key, self.obstacle(self.free_lidar))
+            self.__dict__["_free_cache"] = cached
+        return cached[1]
+
+    def deterministic_actions(self, obs: np.ndarray) -> np.ndarray:
+        """float32 acceleration setpoints [..., act_dim] for float observations [..., obs_dim]:
+        `to_acceleration(self(obs), obs)` without gradients, i.e. exactly what `Policy.act` computes,
+        bit for bit (the same torch kernels on the same tensors). At rollout batch sizes a forward is
+        mostly per-call overhead, so the layers run as functions on plain views of the weights: no
+        nn.Module dispatch or attribute lookups, and no __torch_function__ handling, which every op
+        with an nn.Parameter argument goes through (see `_InferencePlan`)."""
+        plan = self.__dict__.get("_inference_plan")
+        if plan is None or not plan.current():
+            plan = _InferencePlan(self)
+            self.__dict__["_inference_plan"] = plan
+        with torch.no_grad():
+            obs_t = torch.as_tensor(obs, dtype=torch.float32)
+            f = _run_layers(plan.formation, obs_t.index_select(-1, plan.formation_index))
+            a = _run_layers(plan.obstacle, self.lidar_input(obs_t)) - plan.free
+            return self.to_acceleration(_run_layers(plan.output, f + a), obs_t).numpy()
 
     def distribution(self, obs: torch.Tensor) -> torch.distributions.Normal:
         mean = self(obs)
@@ -150,6 +189,49 @@ class ATMActor(nn.Module):
         if self.cfg.action == "velocity":
             command = self.cfg.velocity_gain * (command - obs[..., self.velocity_slice])
         return command.clamp(-limit, limit)
+
+
+class _InferencePlan:
+    """What `ATMActor.deterministic_actions` reads, gathered once: per Linear a plain view of its weight
+    and bias (sharing the parameters' storage, so in-place updates show through), F_a(d_free) and
+    the formation index. `current()` says whether it still describes the actor: no parameter or
+    buffer replaced (load_state_dict(assign=True)) or given new storage (`param.data = ...`), and for
+    F_a(d_free) no obstacle weight changed in place since it was computed."""
+
+    def __init__(self, actor: ATMActor):
+        self.tensors: list[tuple[dict, str, torch.Tensor, torch.Tensor]] = []  # (owner's dict, name, tensor, plain view)
+        self.formation, self.obstacle, self.output = (self._layers(m) for m in (actor.formation, actor.obstacle, actor.output))
+        self.formation_index = self._plain(actor._buffers, "formation_index")
+        free_lidar = self._plain(actor._buffers, "free_lidar")
+        self.obstacle_views = [v for layer in self.obstacle for v in layer[:2]] + [free_lidar]
+        self.versions = [v._version for v in self.obstacle_views]
+        with torch.no_grad():
+            self.free = actor.free_features()
+
+    def _plain(self, owner: dict, name: str) -> torch.Tensor:
+        tensor = owner[name]
+        view = tensor.detach()
+        self.tensors.append((owner, name, tensor, view))
+        return view
+
+    def _layers(self, seq: nn.Sequential) -> list[tuple[torch.Tensor, torch.Tensor, bool]]:
+        mods = list(seq)
+        return [(self._plain(m._parameters, "weight"), self._plain(m._parameters, "bias"),
+                 i + 1 < len(mods) and isinstance(mods[i + 1], nn.Tanh)) for i, m in enumerate(mods) if isinstance(m, nn.Linear)]
+
+    def current(self) -> bool:
+        return (all(owner[name] is tensor and tensor.data_ptr() == view.data_ptr() for owner, name, tensor, view in self.tensors)
+                and all(v._version == version for v, version in zip(self.obstacle_views, self.versions)))
+
+
+def _run_layers(layers: list[tuple[torch.Tensor, torch.Tensor, bool]], x: torch.Tensor) -> torch.Tensor:
+    """An `mlp` forward without gradients, computed as nn.Linear / nn.Tanh compute it (F.linear, tanh)
+    on plain views of its weights."""
+    for weight, bias, tanh in layers:
+        x = F.linear(x, weight, bias)
+        if tanh:
+            x = x.tanh_()  # in place on the fresh output: torch.tanh's kernel, one allocation less
+    return x
 
 
 def merge_step3(step1: ATMActor, step2: ATMActor) -> ATMActor:

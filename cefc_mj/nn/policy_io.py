@@ -183,9 +183,9 @@ class Policy:
 
     @torch.no_grad()
     def _act(self, obs: np.ndarray) -> np.ndarray:
-        """float32 accelerations [..., 2] for observations [..., D]."""
-        obs_t = torch.as_tensor(obs, dtype=torch.float32)
-        return self.actor.to_acceleration(self.actor(obs_t), obs_t).numpy()
+        """float32 accelerations [..., 2] for observations [..., D] (the actor's fast inference path,
+        bit-identical to to_acceleration(actor(obs)); tests/test_eval_speed_equivalence.py)."""
+        return self.actor.deterministic_actions(obs)
 
     @staticmethod
     def _as_array(obs, name: str) -> np.ndarray:

@@ -47,23 +47,30 @@ class SelectorConfig:
     layout: tuple[tuple[str, int], ...]
     """The CEFC observation layout as (part name, size) pairs; the encoder reads LOCAL_PARTS (o_i)."""
     consensus_dim: int = 64
-    """Size of the consensus input from ConsMAC (64: the message m_i^(t+1))."""
+    """Size of the consensus input from ConsMAC (64: the message m_i^(t+1)); 0: no consensus input
+    (plain MAPPO, no communication)."""
     hidden: int = 128
     """Hidden width of the encoder and the selector (2 layers each); the paper: 128."""
     anchor_values: tuple[float, ...] = ANCHOR_VALUES
     """Anchor coordinates per axis (m); the action space is their square grid."""
     obs_scale: float = 0.125
     """Multiplies o_i before the encoder (the same convention as ConsMACConfig.obs_scale)."""
+    consensus_gradient: bool = False
+    """False (ConsMAC, the paper): the selector detaches its consensus input, so the RL loss never
+    reaches the module that made it. True: the RL gradient flows into that module (a communication
+    baseline trained end to end, TarMAC-style); never for ConsMAC."""
 
     def __post_init__(self) -> None:
         names = [name for name, _ in self.layout]
         missing = [p for p in LOCAL_PARTS if p not in names]
         if missing:
             raise ConfigError(f"layout {names} lacks the selector input part(s) {missing}; use the CEFC layout")
-        for name in ("consensus_dim", "hidden"):
+        for name, least in (("consensus_dim", 0), ("hidden", 1)):
             value = getattr(self, name)
-            if not isinstance(value, int) or isinstance(value, bool) or value < 1:
-                raise ConfigError(f"{name}={value!r}: must be an integer >= 1")
+            if not isinstance(value, int) or isinstance(value, bool) or value < least:
+                raise ConfigError(f"{name}={value!r}: must be an integer >= {least}")
+        if not isinstance(self.consensus_gradient, bool):
+            raise ConfigError(f"consensus_gradient={self.consensus_gradient!r}: must be True or False")
         values = tuple(self.anchor_values)
         if not values or not all(math.isfinite(v) for v in values) or len(set(values)) != len(values):
             raise ConfigError(f"anchor_values={self.anchor_values!r}: need distinct finite coordinates")
@@ -165,8 +172,9 @@ class AnchorSelector(nn.Module):
                 f"the same leading shape, got {tuple(obs.shape)} and {tuple(consensus.shape)}"
             )
         encoded = self.encoder(obs.index_select(-1, self.local_index) * cfg.obs_scale)  # E_o,i
-        # Stop-gradient: ConsMAC learns only from its supervised loss.
-        return self.selector(torch.cat([encoded, consensus.detach()], dim=-1))
+        # Stop-gradient: ConsMAC learns only from its supervised loss (consensus_gradient is for baselines).
+        consensus = consensus if cfg.consensus_gradient else consensus.detach()
+        return self.selector(torch.cat([encoded, consensus], dim=-1))
 
     def distribution(self, obs: torch.Tensor, consensus: torch.Tensor) -> torch.distributions.Categorical:
         return torch.distributions.Categorical(logits=self(obs, consensus))

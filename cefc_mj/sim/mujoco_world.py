@@ -18,11 +18,12 @@ hands the setpoints to the offboard interface (`offboard`: "velocity" or "accele
 (`physics_loop = "compiled"`) or from Python (`"python"`, the same arithmetic).
 
 - Positions/velocities: the drones' true x-y from qpos/qvel.
-- LiDAR: `mj_multiRay` from the given origins at flight altitude, obstacles (static geoms, so
-  flg_static = 1) and, if lidar_sees_agents, the UAV footprints (group 2), excluding the casting
-  drone's body; the adversary (group 4) is not seen, as in the particle world. An origin inside a
-  circle reads 0 (the particle world's convention; a ray cast from inside a MuJoCo cylinder would
-  report the far wall).
+- LiDAR: what `mj_multiRay` reports from the given origins at flight altitude, obstacles (static
+  geoms, so flg_static = 1) and, if lidar_sees_agents, the UAV footprints (group 2), excluding the
+  casting drone's body; the adversary (group 4) is not seen, as in the particle world. An origin
+  inside a circle reads 0 (the particle world's convention; a ray cast from inside a MuJoCo cylinder
+  would report the far wall). Computed by one compiled call per env that runs MuJoCo's `mju_rayGeom`
+  on the geoms within range only (cefc_mj.sim.raycast; bit for bit `mj_multiRay`'s readings).
 - Collisions: MuJoCo contacts of a UAV footprint with an obstacle or another UAV footprint at any
   physics step of the last decision step, read from two MuJoCo contact sensors per UAV (all contacts
   of its footprint, those with the floor). The adversary does not collide (the particle world's
@@ -56,6 +57,7 @@ from cefc_mj.control.cascade import OFFBOARD_MODES, SP_VMAX, SP_Z, CascadeTiming
 from cefc_mj.control.params import load_params, params_for_airframe, params_path
 from cefc_mj.errors import ConfigError, SimulationDiverged
 from cefc_mj.paths import MJCF_DIR
+from cefc_mj.sim.raycast import MJU_RAY_GEOM, REACH_MARGIN, cast_lidar
 from cefc_mj.sim.wind import WindConfig, WindField
 from cefc_mj.task.config import TaskConfig
 
@@ -381,6 +383,23 @@ class MujocoWorld:
         self._ray_geomid = np.zeros(self.n_lidar_rays, dtype=np.int32)
         self._drone_body_list = [int(i) for i in self.drone_body_ids]
         self._ray_pnt = np.zeros(3)
+        # the compiled LiDAR (cefc_mj.sim.raycast): the geoms mj_multiRay would test (visible, in an enabled
+        # group), with their horizontal reach: the radius for the vertical obstacle cylinders, else the bounding sphere
+        self._lidar_compiled = MJU_RAY_GEOM is not None
+        alpha = base.geom_rgba[:, 3].copy()
+        if base.nmat:
+            with_material = base.geom_matid >= 0
+            alpha[with_material] = base.mat_rgba[base.geom_matid[with_material], 3]
+        seen = (alpha != 0) & (self._ray_group[np.clip(base.geom_group, 0, 5)] != 0)
+        self._ray_candidates = np.flatnonzero(seen).astype(np.int64)
+        reach = base.geom_rbound[self._ray_candidates].copy()
+        is_obstacle = np.isin(self._ray_candidates, self.obstacle_geom_ids)
+        reach[is_obstacle] = base.geom_size[self._ray_candidates[is_obstacle], 0]
+        self._ray_candidate_reach = reach + REACH_MARGIN
+        self._ray_candidate_body = base.geom_bodyid[self._ray_candidates].astype(np.int64)
+        self._ray_caster_body = self.drone_body_ids[:self.n_agents].astype(np.int64)
+        self._ray_directions = self._ray_vec.reshape(-1, 3).copy()
+        self._ray_arrays = [(dat.geom_xpos, dat.geom_xmat, mdl.geom_size, mdl.geom_type) for mdl, dat in zip(self.models, self.datas)]
 
     # ------------------------------------------------------------------ World protocol
     def reset(self, env_mask: np.ndarray, agent_pos: np.ndarray, adversary_pos: np.ndarray, obstacles: np.ndarray) -> None:
@@ -459,11 +478,15 @@ class MujocoWorld:
     @property
     def agent_pos(self) -> np.ndarray:
         """[B, N, 2] true positions (m)."""
+        if self.n_envs == 1:
+            return self._views[0][0][None, :self.n_agents, :2].copy()
         return np.stack([v[0][:self.n_agents, :2] for v in self._views])
 
     @property
     def agent_vel(self) -> np.ndarray:
         """[B, N, 2] true velocities (m/s)."""
+        if self.n_envs == 1:
+            return self._views[0][1][None, :self.n_agents, :2].copy()
         return np.stack([v[1][:self.n_agents, :2] for v in self._views])
 
     @property
@@ -485,14 +508,15 @@ class MujocoWorld:
         b, n, m = self.n_envs, self.n_agents, self.n_lidar_rays
         origins = _check(origins, (b, n, 2), "origins")
         out = np.empty((b, n, m))
-        pnt, geomid, vec, group, cutoff = self._ray_pnt, self._ray_geomid, self._ray_vec, self._ray_group, self.lidar_range
-        pnt[2] = self.config.flight_altitude
-        for e in range(b):
-            model, data = self.models[e], self.datas[e]
-            for i in range(n):
-                pnt[0] = origins[e, i, 0]
-                pnt[1] = origins[e, i, 1]
-                mujoco.mj_multiRay(model, data, pnt, vec, group, 1, self._drone_body_list[i], geomid, out[e, i], None, m, cutoff)
+        if self._lidar_compiled:
+            no_discs = np.empty((0, 2))
+            for e in range(b):
+                discs = np.ascontiguousarray(self._views[e][0][:n, :2]) if self.lidar_sees_agents else no_discs
+                cast_lidar(MJU_RAY_GEOM, origins[e], self.config.flight_altitude, self._ray_directions, self.lidar_range,
+                           *self._ray_arrays[e], self._ray_candidates, self._ray_candidate_body, self._ray_candidate_reach,
+                           self._ray_caster_body, self.obstacles[e], self.obstacle_radius, discs, self.uav_radius, out[e])
+            return out
+        self._multiray(origins, out)
         out[out < 0] = self.lidar_range  # no hit within the cutoff
         np.minimum(out, self.lidar_range, out=out)
         inside = _inside_any(origins, self.obstacles, self.obstacle_radius)
@@ -504,6 +528,19 @@ class MujocoWorld:
             inside |= within.any(-1)
         out[inside] = 0.0
         return out
+
+    def _multiray(self, origins: np.ndarray, out: np.ndarray) -> None:
+        """The beams' nearest hits (-1: none) from `mj_multiRay`, drone by drone: the reference the compiled
+        LiDAR equals bit for bit, and its fallback when mju_rayGeom's address is not found."""
+        pnt, geomid, vec, group, cutoff = self._ray_pnt, self._ray_geomid, self._ray_vec, self._ray_group, self.lidar_range
+        pnt[2] = self.config.flight_altitude
+        for e in range(self.n_envs):
+            model, data = self.models[e], self.datas[e]
+            for i in range(self.n_agents):
+                pnt[0] = origins[e, i, 0]
+                pnt[1] = origins[e, i, 1]
+                mujoco.mj_multiRay(model, data, pnt, vec, group, 1, self._drone_body_list[i], geomid, out[e, i], None,
+                                   self.n_lidar_rays, cutoff)
 
     def collisions(self) -> np.ndarray:
         """[B, N] bool: UAV touched an obstacle or another UAV during the last decision step."""

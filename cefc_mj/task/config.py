@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 from cefc_mj.errors import ConfigError
+from cefc_mj.task.estimator import POSITION_ESTIMATORS, PositionEstimator
 
 Mode = Literal["formation", "cefc"]
 AdversaryRule = Literal["nearest_group", "r_nearest", "r_largest", "none"]
@@ -128,6 +129,10 @@ class TaskConfig:
     """Where the adversary starts (m); its x is jittered by the scenario sampler."""
     deviation: float = 0.0
     """Sensing deviation d (m): each agent perceives from p + delta, |delta| ~ |Normal(d, d/4)|."""
+    position_estimator: PositionEstimator = "raw"
+    """How an agent turns its noisy position fixes into the position it acts on (task/estimator.py):
+    "raw" uses each fix as it is (the paper's memoryless agent); "fused" is an onboard Kalman filter
+    that fuses the fixes with the agent's own measured velocity, as a drone's EKF does."""
     deviation_sampling: str = "fixed"
     """"fixed": every episode uses `deviation`. "uniform": each env draws its episode's d uniformly
     from [0, deviation] at reset (training under a range of sensing quality)."""
@@ -208,6 +213,8 @@ class TaskConfig:
             fail("max_neighbours", self.max_neighbours, f"must be >= n_agents - 1 = {self.n_agents - 1}")
         if not isinstance(self.n_targets, int) or not 0 <= self.n_targets <= 4:
             fail("n_targets", self.n_targets, "must be an integer in 0..4")
+        if self.position_estimator not in POSITION_ESTIMATORS:
+            fail("position_estimator", self.position_estimator, f"must be one of {', '.join(POSITION_ESTIMATORS)}")
         if self.deviation_sampling not in ("fixed", "uniform"):
             fail("deviation_sampling", self.deviation_sampling, "must be 'fixed' or 'uniform'")
         if self.obstacle_layout not in OBSTACLE_LAYOUTS:

@@ -39,6 +39,12 @@ MAX_LR = 1.0
 """Largest Adam learning rate."""
 MAX_TUPLES = 1_000_000
 """Most replay tuples per teacher (about 260 MB each, held in memory)."""
+MAX_DENSITY = 0.2
+"""Largest training obstacle density (per m^2)."""
+MAX_CURRICULUM_PHASES = 20
+"""Most phases (densities) of a CL-M curriculum."""
+CLM_CURRICULUM = (0.0, 0.01, 0.02, 0.03)
+"""The default CL-M curriculum: from AT-M Step 1's free space to Step 2's density 0.03 in equal steps."""
 LOWLEVEL_EPISODE_STEPS = 100
 """Decision steps of a low-level (formation-mode) episode, TaskConfig's default."""
 
@@ -182,13 +188,15 @@ class PPOConfig:
 
 @dataclass(frozen=True)
 class LowLevelConfig:
-    """One AT-M training stage: formation size c, AT-M step, Safe or not."""
+    """One low-level training stage: formation size c, AT-M step, Safe or not; with a `curriculum`,
+    the CL-M baseline instead (one MAPPO stage from random weights over rising obstacle densities)."""
 
     formation: int
     """c: agents in the group (one of 3..8)."""
     step: int
     """AT-M step: 1 (no obstacles, random init), 2 (obstacles, random init), 3 (obstacles, init
-    from Step 1's formation & output modules and Step 2's obstacle module and critic)."""
+    from Step 1's formation & output modules and Step 2's obstacle module and critic). CL-M (a
+    `curriculum`) is step 1: random init, the curriculum's densities instead of 0."""
     budget: Budget
     """How long this stage trains."""
     safe: bool = False
@@ -222,17 +230,43 @@ class LowLevelConfig:
     """MAPPO hyperparameters."""
     checkpoint_every: int = 10
     """Write the resumable state every this many iterations (and always at the end)."""
+    curriculum: tuple[float, ...] | None = None
+    """CL-M: obstacle densities (per m^2, non-decreasing, 2 to 20 of them) trained in turn, each for
+    an equal share of the budget: phase k of K runs while the budget's progress (iterations done /
+    budget iterations, or training seconds / budget seconds, whichever is further) is in [k/K,
+    (k+1)/K). Only with step 1 (random init) and no obstacle_density; the stage is then CL-M,
+    named clm_c{c}. None: one density for the whole stage (AT-M)."""
 
     def __post_init__(self) -> None:
+        if isinstance(self.curriculum, (list, tuple)):  # JSON gives lists; keep configs comparable
+            object.__setattr__(self, "curriculum", tuple(
+                float(d) if isinstance(d, int) and not isinstance(d, bool) else d for d in self.curriculum))
         self.validate()
 
     @property
     def density(self) -> float:
+        """Training obstacle density (per m^2); with a curriculum, that of its first phase."""
+        if self.curriculum is not None:
+            return self.curriculum[0]
         return STEP_DENSITY[self.step] if self.obstacle_density is None else float(self.obstacle_density)
+
+    def curriculum_phase(self, iteration: int, seconds: float) -> int:
+        """The curriculum phase that training is in after `iteration` iterations and `seconds` s:
+        k while the budget's progress is in [k/K, (k+1)/K); the last phase once the budget is spent."""
+        k = len(self.curriculum)
+        phase = 0
+        if self.budget.iterations is not None:
+            phase = max(phase, iteration * k // self.budget.iterations)
+        if self.budget.seconds is not None:
+            phase = max(phase, int(seconds / self.budget.seconds * k))
+        return min(phase, k - 1)
 
     @property
     def name(self) -> str:
-        """Stage name, also the policy file stem: atm_c6_step3, atm_c6_safe, atm_c6_robust, atm_c6_quad."""
+        """Stage name, also the policy file stem: atm_c6_step3, atm_c6_safe, atm_c6_robust, atm_c6_quad,
+        clm_c6 (CL-M)."""
+        if self.curriculum is not None:
+            return f"clm_c{self.formation}"
         if self.safe:
             return f"atm_c{self.formation}_safe"
         if self.robust:
@@ -257,6 +291,8 @@ class LowLevelConfig:
     @property
     def method(self) -> str:
         """The method name as the paper's Table III writes it (Robust and Quad are this project's)."""
+        if self.curriculum is not None:
+            return "CL-M"
         if self.safe:
             return "AT-M-Safe"
         if self.robust:
@@ -288,13 +324,38 @@ class LowLevelConfig:
             _fail("response_time/velocity_noise", (self.response_time, self.velocity_noise),
                   "quadrotor-like dynamics fine-tune the Step 3 policy: use them with step 3 and without --safe")
         if self.obstacle_density is not None and (not isinstance(self.obstacle_density, (int, float))
-                                                  or not 0 <= self.obstacle_density <= 0.2):
-            _fail("obstacle_density", self.obstacle_density, "must be in [0, 0.2] per m^2")
+                                                  or not 0 <= self.obstacle_density <= MAX_DENSITY):
+            _fail("obstacle_density", self.obstacle_density, f"must be in [0, {MAX_DENSITY}] per m^2")
+        if self.curriculum is not None:
+            self._validate_curriculum()
         for name in ("hidden", "critic_hidden", "checkpoint_every"):
             v = getattr(self, name)
             if not isinstance(v, int) or v < 1:
                 _fail(name, v, "must be an integer >= 1")
         self.ppo.validate()
+
+    def _validate_curriculum(self) -> None:
+        densities = self.curriculum
+
+        def fail(why: str) -> None:  # names the densities as --curriculum takes them: 0,0.01,0.02
+            shown = (",".join(f"{d:g}" if isinstance(d, float) else repr(d) for d in densities)
+                     if isinstance(densities, tuple) else repr(densities))
+            raise ConfigError(f"curriculum={shown}: {why}")
+
+        if not isinstance(densities, tuple) or not 2 <= len(densities) <= MAX_CURRICULUM_PHASES:
+            fail(f"must be 2 to {MAX_CURRICULUM_PHASES} obstacle densities")
+        for d in densities:
+            if not isinstance(d, float) or not 0 <= d <= MAX_DENSITY:
+                fail(f"density {d!r} is not in [0, {MAX_DENSITY}] per m^2")
+        if any(later < earlier for earlier, later in zip(densities, densities[1:])):
+            fail("densities must not decrease (a curriculum gets harder)")
+        if self.step != 1:
+            fail("CL-M trains from random weights: use it with step 1")
+        if self.obstacle_density is not None:
+            fail("sets the densities itself: leave obstacle_density unset")
+        if self.budget.iterations is not None and self.budget.iterations < len(densities):
+            fail(f"{len(densities)} phases need a budget of at least {len(densities)} iterations, "
+                 f"got {self.budget.iterations}")
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)

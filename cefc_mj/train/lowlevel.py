@@ -3,7 +3,7 @@
     run folder   <out>/<name>/   config.json, progress.csv, tb/, state.pt (resumable)
     policy file  <policies_dir>/<name>.pt   + <name>.json model card
 
-with name = atm_c{c}_step{1,2,3}, atm_c{c}_safe, atm_c{c}_robust or atm_c{c}_quad. Initialisation:
+with name = atm_c{c}_step{1,2,3}, atm_c{c}_safe, atm_c{c}_robust, atm_c{c}_quad or clm_c{c}. Initialisation:
 
 - Step 1: random init, obstacle density 0.
 - Step 2: random init, density 0.03.
@@ -15,6 +15,11 @@ with name = atm_c{c}_step{1,2,3}, atm_c{c}_safe, atm_c{c}_robust or atm_c{c}_qua
 - Any Step 3 stage with `init_from` (a policy file, e.g. the shipped policies/atm_c6_step3.pt):
   the actor from that file, the critic and value normalisation fresh, because a policy file holds
   only the actor. This needs no earlier run folders.
+- CL-M (a config with a `curriculum`): random init like Step 1, then one MAPPO run whose obstacle
+  density rises through the curriculum's phases, each an equal share of the budget. Every iteration
+  logs its `curriculum_phase` and `obstacle_density`; the state records the iterations trained in
+  each phase, so `--resume` re-enters the phase the run had reached (and never goes back to an
+  easier one, even when a larger budget moves the phase boundaries).
 
 `state.pt` holds networks, optimizers, value-norm statistics, the torch RNG, counters and the
 config; `train_lowlevel(..., resume=True)` continues it exactly (see MAPPO).
@@ -46,9 +51,11 @@ STATE_FILE = "state.pt"
 PROGRESS_KEYS = ("reward_per_step", "metric/F", "metric/N", "metric/C", "approx_kl")
 
 
-def task_config_for(cfg: LowLevelConfig) -> TaskConfig:
-    """The low-level game of a stage: one group of c agents, an anchor, the step's obstacle density."""
-    return TaskConfig(n_agents=cfg.formation, mode="formation", obstacle_density=cfg.density, deviation=cfg.deviation,
+def task_config_for(cfg: LowLevelConfig, density: float | None = None) -> TaskConfig:
+    """The low-level game of a stage: one group of c agents, an anchor, the step's obstacle density
+    (or `density`, a curriculum phase's)."""
+    density = cfg.density if density is None else density
+    return TaskConfig(n_agents=cfg.formation, mode="formation", obstacle_density=density, deviation=cfg.deviation,
                       deviation_sampling=cfg.deviation_sampling, response_time=cfg.response_time,
                       velocity_noise=cfg.velocity_noise)
 
@@ -151,6 +158,31 @@ def initial_networks(cfg: LowLevelConfig, task: TaskConfig, out: Path,
     return actor, critic, value_norm, origin
 
 
+def curriculum_tasks(cfg: LowLevelConfig) -> list[TaskConfig] | None:
+    """The training game of each curriculum phase (None without a curriculum); building them checks
+    every phase's density against the arena before anything is written."""
+    return None if cfg.curriculum is None else [task_config_for(cfg, d) for d in cfg.curriculum]
+
+
+def enter_curriculum_phase(trainer: MAPPO, cfg: LowLevelConfig, tasks: list[TaskConfig], progress: dict) -> int:
+    """Move `trainer` to the curriculum phase its iterations and time have reached and return it.
+    `progress["phase"]` is the phase trained last; the phase never goes back (a resumed run with a
+    larger budget stays in the phase it reached). Each iteration reseeds its episodes, so swapping
+    the env between iterations keeps a resumed run identical to an uninterrupted one."""
+    phase = max(progress["phase"], cfg.curriculum_phase(trainer.iteration, trainer.elapsed))
+    progress["phase"] = phase
+    if trainer.task_cfg != tasks[phase]:
+        trainer.task_cfg = tasks[phase]
+        trainer.env = BatchedCEFCEnv(tasks[phase], n_envs=cfg.ppo.n_envs, seed=cfg.seed)
+    return phase
+
+
+def _curriculum_card(cfg: LowLevelConfig, progress: dict) -> dict:
+    """The curriculum as the model card records it: each phase's density and iterations trained."""
+    return {"schedule": "equal shares of the budget, in order", "final_phase": progress["phase"],
+            "phases": [{"density": d, "iterations": n} for d, n in zip(cfg.curriculum, progress["iterations"])]}
+
+
 def _last_csv_row(run_dir: Path) -> dict:
     with (run_dir / "progress.csv").open(newline="") as f:
         rows = list(csv.DictReader(f))
@@ -175,8 +207,10 @@ def _check_same_run(saved: dict, cfg: LowLevelConfig, path: Path) -> None:
 
 def train_lowlevel(cfg: LowLevelConfig, out: Path, policies_dir: Path, resume: bool = False,
                    show_progress: bool = True, evaluate: bool = True, init_from: str | Path | None = None,
-                   command: str | None = None) -> dict:
+                   command: str | None = None, policy_name: str | None = None) -> dict:
     """Train one stage under its budget; export the policy and its model card. Returns the card.
+    policy_name: the exported policy's name and file stem (default the stage name; a seed sweep
+    adds _s<seed>).
 
     resume: continue the run in <out>/<name>/ (ConfigError if there is none). init_from: a policy
     file or shipped policy name the actor of a Step 3 stage starts from (see load_init_policy).
@@ -186,6 +220,7 @@ def train_lowlevel(cfg: LowLevelConfig, out: Path, policies_dir: Path, resume: b
     run_dir = out / cfg.name
     state_path = run_dir / STATE_FILE
     task = task_config_for(cfg)
+    phase_tasks = curriculum_tasks(cfg)
     init = load_init_policy(init_from, cfg) if init_from is not None else None
 
     saved = None
@@ -206,13 +241,18 @@ def train_lowlevel(cfg: LowLevelConfig, out: Path, policies_dir: Path, resume: b
     trainer = MAPPO(task, cfg.ppo, actor, critic, seed=cfg.seed, value_norm=value_norm)
     if saved is not None:
         trainer.load_state_dict(saved["trainer"])
+    # CL-M: the phase trained last and the iterations of each phase (restored on resume).
+    curriculum = None
+    if cfg.curriculum is not None:
+        fresh = {"phase": 0, "iterations": [0] * len(cfg.curriculum)}
+        curriculum = saved["curriculum"] if saved is not None else fresh
 
     run_config = {"stage": cfg.to_dict(), "task": task.to_dict(), "init": origin, "command": command}
     write_atomic(run_dir / "config.json", json.dumps(run_config, indent=2) + "\n")
 
     def checkpoint() -> None:
         atomic_torch_save({"format": STATE_FORMAT, "config": cfg.to_dict(), "origin": origin,
-                           "trainer": trainer.state_dict()}, state_path)
+                           "trainer": trainer.state_dict(), "curriculum": curriculum}, state_path)
 
     if saved is None:
         checkpoint()  # iteration 0: a run killed before its first periodic checkpoint can still --resume
@@ -220,7 +260,12 @@ def train_lowlevel(cfg: LowLevelConfig, out: Path, policies_dir: Path, resume: b
     last_row: dict = {}
     try:
         while not cfg.budget.exhausted(trainer.iteration, trainer.elapsed):
+            if curriculum is not None:
+                phase = enter_curriculum_phase(trainer, cfg, phase_tasks, curriculum)
             last_row = trainer.iterate()
+            if curriculum is not None:
+                curriculum["iterations"][phase] += 1
+                last_row.update(curriculum_phase=phase, obstacle_density=cfg.curriculum[phase])
             logger.log(last_row, PROGRESS_KEYS)
             if trainer.iteration % cfg.checkpoint_every == 0:
                 checkpoint()
@@ -230,12 +275,13 @@ def train_lowlevel(cfg: LowLevelConfig, out: Path, policies_dir: Path, resume: b
     if not last_row and trainer.iteration:  # a finished run re-exported: report its last logged iteration
         last_row = {k: float(v) for k, v in _last_csv_row(run_dir).items()}
 
-    policy_path = save_policy(actor, policies_dir / f"{cfg.name}.pt", meta={
-        "name": cfg.name, "method": cfg.method, "formation": cfg.formation, "seed": cfg.seed,
+    name = policy_name or cfg.name
+    policy_path = save_policy(actor, policies_dir / f"{name}.pt", meta={
+        "name": name, "method": cfg.method, "formation": cfg.formation, "seed": cfg.seed,
         "iterations": trainer.iteration, "agent_steps": trainer.agent_steps,
     })
     card = {
-        "name": cfg.name,
+        "name": name,
         "method": cfg.method,
         "formation": cfg.formation,
         "seed": cfg.seed,
@@ -244,6 +290,7 @@ def train_lowlevel(cfg: LowLevelConfig, out: Path, policies_dir: Path, resume: b
         "network": actor.cfg.to_dict(),
         "init": origin,
         "init_from": origin.get("init_from"),
+        **({"curriculum": _curriculum_card(cfg, curriculum)} if curriculum is not None else {}),
         "iterations": trainer.iteration,
         "agent_steps": trainer.agent_steps,
         "env_steps": trainer.agent_steps // cfg.formation,

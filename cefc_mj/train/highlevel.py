@@ -1,0 +1,863 @@
+"""The high level's training (paper Sec. IV-C3, Algorithm 2): MAPPO anchor selection over ConsMAC.
+
+One iteration, CleanRL-style:
+
+1. **Collect** `n_envs x episodes_per_iteration` whole episodes of the hierarchical game
+   (`cefc_mj.hierarchy`, 40 decisions of 10 low-level steps each). At every decision agent i
+   receives its neighbours' messages of the previous decision (`MessageChannel`: one step late,
+   true distance < 3 m), ConsMAC turns [o_i, own message, inbox] into m_i^(t+1) and g_hat_i, the
+   message is sent, and the selector samples an anchor from (o_i, m_i^(t+1)) with the message
+   detached (eq. 12). ConsMAC's inputs and the label g_i (ConsMAC-A: every agent's anchor of this
+   decision; ConsMAC-O: every other agent's relative position and velocity) go to the replay B_C.
+2. **RL update** of the selector Theta_H and the critic phi_H: PPO epochs over the iteration's
+   decisions with the low level's PPO pieces (`cefc_mj.train.ppo`: GAE, clipped surrogate, value
+   normalisation) and `PPOConfig`. Every agent learns from the team reward R_H summed over the 10
+   low-level steps; the critic is V(s, o_i) (global state plus the agent's observation, MAPPO's
+   agent-specific state), 3 layers of 128. The RL loss never reaches ConsMAC: the consensus input is
+   stored detached and the selector detaches it again.
+3. **ConsMAC update** (every `consmac_every` iterations): `consmac_steps` Adam steps on batches of
+   `consmac_batch` tuples drawn from B_C, loss eq. (11).
+
+Algorithm 2 pre-trains with a navigation-only low level and then fine-tunes with the trained one:
+the first `pretrain_share` of the budget flies `NavigationOnly`, the rest `low_level` (default the
+distilled student); networks, optimizers and the critic carry over. Variants: consmac-a, consmac-o
+(the paper), mappo (no communication: the selector reads o_i only), tarmac (a TarMAC-style
+baseline: the same communication module, trained end to end by the RL loss instead of eq. (11)).
+
+    run folder   <out>/<name>/   config.json, progress.csv, tb/, state.pt (resumable)
+    policy file  <policies_dir>/<name>.pt  + <name>.json model card      name = cihrl_<variant>
+
+Every iteration's episodes are seeded from (seed, iteration) and `state.pt` holds networks,
+optimizers, value normalisation, the torch RNG, counters and the replay, so `--resume` continues a
+run as if it had not stopped.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import json
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+
+from cefc_mj.errors import CheckpointError, ConfigError
+from cefc_mj.fileio import write_atomic
+from cefc_mj.hierarchy import DECISION_INTERVAL, NAVIGATION, HierarchicalCEFCEnv, LowLevel, load_low_level
+from cefc_mj.nn.atm import Critic
+from cefc_mj.nn.consmac import ConsMAC, ConsMACConfig, consmac_loss, global_labels, inbox_tensors, seeded
+from cefc_mj.nn.layers import state_digest
+from cefc_mj.nn.policy_io import atomic_torch_save, safe_torch_load
+from cefc_mj.nn.selector import AnchorSelector, SelectorConfig, build_critic
+from cefc_mj.task.config import ADVERSARY_RULES, TaskConfig
+from cefc_mj.task.messages import Inbox, MessageChannel
+from cefc_mj.train.config import MAX_DENSITY, MAX_SEED, Budget, PPOConfig
+from cefc_mj.train.logger import RunLogger
+from cefc_mj.train.mappo import iteration_seed
+from cefc_mj.train.model_card import display_path, write_model_card
+from cefc_mj.train.ppo import ValueNorm, clipped_policy_loss, compute_gae, explained_variance
+
+VARIANTS = ("consmac-a", "consmac-o", "mappo", "tarmac")
+METHODS = {
+    "consmac-a": "CI-HRL (ConsMAC-A)",
+    "consmac-o": "CI-HRL (ConsMAC-O)",
+    "mappo": "MAPPO high level, no communication",
+    "tarmac": "TarMAC-style communication, trained by RL",
+}
+PHASES = ("pretrain", "finetune")
+PAPER_CONSMAC = {"every_episodes": 20, "steps": 5000, "batch": 2048}
+"""Algorithm 2's ConsMAC schedule (paper Sec. V-A), recorded beside what a run did."""
+STATE_FORMAT = "cefc-mj/highlevel-state"
+POLICY_FORMAT = "cefc-mj/highlevel-policy"
+POLICY_VERSION = 1
+STATE_FILE = "state.pt"
+PROGRESS_KEYS = ("episode_return", "metric/E", "consmac_loss", "approx_kl")
+CONSMAC_KEYS = ("consmac_loss", "consmac_loss_first", "consmac_loss_last", "consmac_steps", "replay_size")
+MAX_REPLAY = 1_000_000
+"""Most ConsMAC replay tuples (about 2.5 GB)."""
+
+
+def _paper_ppo() -> PPOConfig:
+    return PPOConfig(epochs=15, lr=1e-4, entropy_coef=0.01)
+
+
+def _fail(name: str, value: object, why: str) -> None:
+    raise ConfigError(f"{name}={value!r}: {why}")
+
+
+def _check_int(name: str, value: object, least: int, most: int | None = None) -> None:
+    if not isinstance(value, int) or isinstance(value, bool) or value < least or (most is not None and value > most):
+        _fail(name, value, f"must be an integer >= {least}" + (f" and <= {most}" if most is not None else ""))
+
+
+@dataclass(frozen=True)
+class HighLevelConfig:
+    """One high-level training run (Algorithm 2). Defaults are the paper's where it gives a value
+    (Sec. V-A); `consmac_steps` and `consmac_lr` are scaled to a 2-core budget (docs/high_level.md)."""
+
+    budget: Budget
+    """Iterations (each: n_envs x episodes_per_iteration episodes, then the updates) and/or
+    wall-clock time, counted across resumes. The paper's 1000 + 500 episodes are 75 iterations of 20."""
+    variant: str = "consmac-a"
+    """consmac-a / consmac-o: ConsMAC with the anchors / the observations of all agents as labels;
+    mappo: no communication; tarmac: the communication module trained end to end by the RL loss."""
+    seed: int = 0
+    """Seeds network init, anchor sampling, minibatches, replay sampling and every iteration's episodes."""
+    n_agents: int = 8
+    """N, UAVs in the game (paper: 8; the shipped low levels read at most 7 neighbours, so N <= 8)."""
+    obstacle_density: float = 0.03
+    """Obstacles per m^2 in the game (the density the low level was trained at; the paper's CEFC
+    space is obstacle-cluttered but gives no density for it)."""
+    adversary: str = "nearest_group"
+    """The env's rule adversary (TaskConfig.adversary); the paper's PPO adversary is not built."""
+    episode_steps: int = 400
+    """Low-level steps per episode (paper: 400); a multiple of decision_interval."""
+    decision_interval: int = DECISION_INTERVAL
+    """Low-level steps per high-level decision (paper: 10)."""
+    low_level: str = "atm_student"
+    """The fine-tuning low level: a policy name or file (default the distilled student) or
+    'per-group' (the AT-M teacher atm_c{c}_step3 of each agent's group size)."""
+    pretrain_share: float = 2 / 3
+    """Share of the budget flown with the navigation-only low level before fine-tuning with
+    `low_level` (paper: 1000 of 1500 episodes); 0 trains with `low_level` only (CI-HRL-DT)."""
+    consmac_every: int = 1
+    """ConsMAC trains after every this many iterations (1 with 20 envs: every 20 episodes, the paper's)."""
+    consmac_steps: int = 200
+    """Adam steps per ConsMAC round (paper: 5000; one step of batch 2048 costs 50-200 ms on a shared
+    2-core CPU, so 5000 would be 98 % of a run)."""
+    consmac_batch: int = 2048
+    """Tuples per ConsMAC step (paper: 2048), drawn uniformly with replacement from the replay."""
+    consmac_lr: float = 1e-3
+    """ConsMAC's Adam learning rate (the paper's 1e-4 was chosen for 25x more steps per round)."""
+    replay_capacity: int = 50_000
+    """Tuples (agent-decisions) the replay B_C keeps, newest first out last (about 8 iterations of
+    20 envs; 2.5 KB each)."""
+    hidden: int = 128
+    """Hidden width of the selector's encoder and head (paper: 128)."""
+    critic_hidden: int = 128
+    """Hidden width of the 3-layer critic V_phiH (paper: 128)."""
+    ppo: PPOConfig = field(default_factory=_paper_ppo)
+    """MAPPO hyperparameters of the selector and critic: the paper's 15 epochs and Adam 1e-4, gamma
+    0.8 per decision, and MAPPO's entropy bonus 0.01 (collision_credit is unused: R_H is a team reward)."""
+    checkpoint_every: int = 5
+    """Write the resumable state every this many iterations (and always at the end)."""
+    eval_episodes: int = 20
+    """Episodes of the final policy (the mode of each anchor distribution, the fine-tuning low level)
+    whose mean rewards the model card reports; 0 skips the evaluation."""
+
+    def __post_init__(self) -> None:
+        if isinstance(self.pretrain_share, int) and not isinstance(self.pretrain_share, bool):
+            object.__setattr__(self, "pretrain_share", float(self.pretrain_share))
+        self.validate()
+
+    # ------------------------------------------------------------------ derived
+    @property
+    def name(self) -> str:
+        """Run folder and policy file stem: cihrl_consmac_a, cihrl_consmac_o, cihrl_mappo, cihrl_tarmac."""
+        return "cihrl_" + self.variant.replace("-", "_")
+
+    @property
+    def communicates(self) -> bool:
+        return self.variant != "mappo"
+
+    @property
+    def supervised(self) -> bool:
+        """ConsMAC variants: the communication module learns from eq. (11) only."""
+        return self.variant in ("consmac-a", "consmac-o")
+
+    @property
+    def decision_steps(self) -> int:
+        return self.episode_steps // self.decision_interval
+
+    def task(self) -> TaskConfig:
+        return TaskConfig(n_agents=self.n_agents, mode="cefc", obstacle_density=self.obstacle_density,
+                          adversary=self.adversary, episode_steps=self.episode_steps)
+
+    def phase(self, iteration: int, seconds: float) -> int:
+        """0 (pre-training, navigation-only low level) until `pretrain_share` of the budget is
+        spent (iterations or seconds, whichever is further), then 1 (fine-tuning)."""
+        share = self.pretrain_share
+        if share <= 0:
+            return 1
+        done = self.budget.iterations is not None and iteration >= math.ceil(share * self.budget.iterations - 1e-9)
+        done |= self.budget.seconds is not None and seconds >= share * self.budget.seconds
+        return int(done and share < 1)
+
+    # ------------------------------------------------------------------ validation
+    def validate(self) -> None:
+        if self.variant not in VARIANTS:
+            _fail("variant", self.variant, f"must be one of {', '.join(VARIANTS)}")
+        if not isinstance(self.budget, Budget):
+            _fail("budget", self.budget, "must be a Budget")
+        _check_int("seed", self.seed, 0, MAX_SEED)
+        _check_int("n_agents", self.n_agents, 2, 8)
+        if not isinstance(self.obstacle_density, (int, float)) or not 0 <= self.obstacle_density <= MAX_DENSITY:
+            _fail("obstacle_density", self.obstacle_density, f"must be in [0, {MAX_DENSITY}] per m^2")
+        if self.adversary not in ADVERSARY_RULES:
+            _fail("adversary", self.adversary, f"must be one of {', '.join(ADVERSARY_RULES)}")
+        _check_int("decision_interval", self.decision_interval, 1, 1000)
+        _check_int("episode_steps", self.episode_steps, self.decision_interval, 100_000)
+        if self.episode_steps % self.decision_interval:
+            _fail("episode_steps", self.episode_steps,
+                  f"must be a multiple of decision_interval={self.decision_interval}")
+        if not isinstance(self.low_level, str) or not self.low_level or self.low_level == NAVIGATION:
+            _fail("low_level", self.low_level, "must name the fine-tuning low level: a policy name or file, or "
+                  "'per-group' (the navigation-only one is the pre-training's)")
+        if not isinstance(self.pretrain_share, float) or not 0 <= self.pretrain_share <= 1:
+            _fail("pretrain_share", self.pretrain_share, "must be a number in [0, 1]")
+        for name in ("consmac_every", "consmac_steps", "consmac_batch", "hidden", "critic_hidden", "checkpoint_every"):
+            _check_int(name, getattr(self, name), 1, 1_000_000)
+        _check_int("replay_capacity", self.replay_capacity, 1, MAX_REPLAY)
+        _check_int("eval_episodes", self.eval_episodes, 0, 1000)
+        lr = self.consmac_lr
+        if not isinstance(lr, (int, float)) or not math.isfinite(lr) or not 0 < lr <= 1:
+            _fail("consmac_lr", self.consmac_lr, "must be a number in (0, 1]")
+        if not isinstance(self.ppo, PPOConfig):
+            _fail("ppo", self.ppo, "must be a PPOConfig")
+        decisions = self.ppo.n_envs * self.ppo.episodes_per_iteration * self.decision_steps
+        if isinstance(self.ppo.minibatches, int) and self.ppo.minibatches > decisions:
+            _fail("minibatches", self.ppo.minibatches, f"must be at most the {decisions} env-decisions of an iteration "
+                  f"(n_envs x episodes x {self.decision_steps} decisions)")
+        self.ppo.validate()
+        self.task()  # the game itself (obstacle packing, ...)
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "HighLevelConfig":
+        d = dict(d)
+        d["budget"] = Budget(**d["budget"])
+        d["ppo"] = PPOConfig(**d["ppo"])
+        return cls(**d)
+
+
+# ---------------------------------------------------------------------------- networks
+class HighLevelPolicy(nn.Module):
+    """pi_H: the communication module (ConsMAC, or None for the mappo variant) and the anchor selector."""
+
+    def __init__(self, selector: AnchorSelector, comm: ConsMAC | None, variant: str):
+        super().__init__()
+        self.selector, self.comm, self.variant = selector, comm, variant
+
+    @classmethod
+    def build(cls, cfg: HighLevelConfig, task: TaskConfig) -> "HighLevelPolicy":
+        comm = None
+        if cfg.communicates:
+            comm = ConsMAC(ConsMACConfig.from_task(task, variant="O" if cfg.variant == "consmac-o" else "A"),
+                           seed=cfg.seed)
+            s_cfg = SelectorConfig.from_consmac(comm.cfg, hidden=cfg.hidden,
+                                                consensus_gradient=cfg.variant == "tarmac")
+        else:
+            s_cfg = SelectorConfig.from_task(task, consensus_dim=0, hidden=cfg.hidden)
+        return cls(AnchorSelector(s_cfg, seed=cfg.seed + 1), comm, cfg.variant)
+
+    @property
+    def message_dim(self) -> int:
+        return self.comm.cfg.message_dim if self.comm is not None else 0
+
+    def comm_inputs(self, obs: torch.Tensor, inbox: Inbox | None) -> tuple[torch.Tensor, ...]:
+        """(obs, own, messages, mask, distance) as ConsMAC takes them; () without communication."""
+        return (obs, *inbox_tensors(inbox)) if self.comm is not None else ()
+
+    def consensus(self, comm_inputs: tuple[torch.Tensor, ...], lead: tuple[int, ...]):
+        """(the selector's consensus input, ConsMAC's output or None). The input is detached
+        unless the variant trains the communication module by RL (tarmac)."""
+        if self.comm is None:
+            return torch.zeros(*lead, 0), None
+        out = self.comm(*comm_inputs)
+        live = self.selector.cfg.consensus_gradient
+        return (out.message if live else out.detach_for_policy("message")), out
+
+    @torch.no_grad()
+    def decide(self, obs: np.ndarray, inbox: Inbox | None, deterministic: bool = True,
+               generator: torch.Generator | None = None) -> tuple[np.ndarray, np.ndarray | None]:
+        """(anchor index [B, N], message to send [B, N, 64] or None) for CEFC observations [B, N, D]
+        and the channel's inbox of this decision."""
+        obs_t = torch.as_tensor(obs, dtype=torch.float32)
+        consensus, out = self.consensus(self.comm_inputs(obs_t, inbox), tuple(obs_t.shape[:-1]))
+        index, _ = self.selector.act(obs_t, consensus, deterministic=deterministic, generator=generator)
+        return index.numpy(), (None if out is None else out.message.numpy())
+
+
+def save_highlevel_policy(policy: HighLevelPolicy, path: Path, meta: dict | None = None) -> Path:
+    """Write pi_H (communication module and selector, with their configs) as one policy file."""
+    state = {k: v.detach().cpu().clone() for k, v in policy.state_dict().items()}
+    atomic_torch_save({
+        "format": POLICY_FORMAT, "version": POLICY_VERSION, "variant": policy.variant,
+        "comm": None if policy.comm is None else policy.comm.cfg.to_dict(),
+        "selector": policy.selector.cfg.to_dict(),
+        "state_dict": state, "sha256": state_digest(state), "meta": meta or {},
+    }, Path(path))
+    return Path(path)
+
+
+def load_highlevel_policy(path: Path) -> tuple[HighLevelPolicy, dict]:
+    """(policy, meta) from a file written by `save_highlevel_policy`; CheckpointError with one line
+    for a missing, foreign, tampered or mismatched file."""
+    path = Path(path)
+    payload = safe_torch_load(path)
+    if payload.get("format") != POLICY_FORMAT:
+        raise CheckpointError(f"{path}: not a high-level policy file (format {payload.get('format')!r})")
+    if payload.get("version") != POLICY_VERSION:
+        raise CheckpointError(f"{path}: high-level policy version {payload.get('version')!r}, this code reads "
+                              f"{POLICY_VERSION}")
+    state = payload.get("state_dict")
+    if not isinstance(state, dict) or state_digest(state) != payload.get("sha256"):
+        raise CheckpointError(f"{path}: weights do not match the stored SHA-256 (file modified or corrupted)")
+    try:
+        comm = None if payload.get("comm") is None else ConsMAC(ConsMACConfig.from_dict(payload["comm"]))
+        selector = AnchorSelector(SelectorConfig.from_dict(payload["selector"]))
+        policy = HighLevelPolicy(selector, comm, str(payload.get("variant")))
+        policy.load_state_dict(state)
+    except (ConfigError, RuntimeError, TypeError, KeyError) as e:
+        raise CheckpointError(f"{path}: weights do not fit the described networks "
+                              f"({str(e).splitlines()[0][:160]})") from None
+    policy.eval()
+    return policy, dict(payload.get("meta") or {})
+
+
+class ConsMACReplay:
+    """B_C of Algorithm 2: a ring buffer of ConsMAC's inputs and labels, one row per agent-decision."""
+
+    FIELDS = ("obs", "own", "messages", "mask", "distance", "label")
+
+    def __init__(self, capacity: int, cfg: ConsMACConfig):
+        k, d = cfg.n_agents - 1, cfg.message_dim
+        shapes = {"obs": ((cfg.env_obs_dim,), torch.float32), "own": ((d,), torch.float32),
+                  "messages": ((k, d), torch.float32), "mask": ((k,), torch.bool), "distance": ((k,), torch.float32),
+                  "label": ((cfg.global_dim,), torch.float32)}
+        self.capacity = capacity
+        self.data = {name: torch.zeros((capacity, *shape), dtype=dtype) for name, (shape, dtype) in shapes.items()}
+        self.size = 0
+        self.next = 0
+
+    def add(self, rows: dict[str, torch.Tensor]) -> None:
+        """Append rows (each [n, ...]); the oldest rows make room once the buffer is full."""
+        n = len(rows["obs"])
+        start = 0 if n <= self.capacity else n - self.capacity  # more rows than room: keep the newest
+        index = (self.next + torch.arange(n - start)) % self.capacity
+        for name in self.FIELDS:
+            self.data[name][index] = rows[name][start:].to(self.data[name].dtype)
+        self.next = int((self.next + n - start) % self.capacity)
+        self.size = min(self.capacity, self.size + n - start)
+
+    def sample(self, batch: int, generator: torch.Generator) -> dict[str, torch.Tensor]:
+        index = torch.randint(0, self.size, (batch,), generator=generator)
+        return {name: self.data[name][index] for name in self.FIELDS}
+
+    def state_dict(self) -> dict:
+        return {"size": self.size, "next": self.next, "data": {k: v[: self.size].clone() for k, v in self.data.items()}}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.size, self.next = int(state["size"]), int(state["next"])
+        for name in self.FIELDS:
+            self.data[name][: self.size] = state["data"][name]
+
+
+@dataclass
+class HighRollout:
+    """One iteration's decisions, time-major: T decisions x B envs (x N agents)."""
+
+    obs: torch.Tensor  # [T, B, N, D] CEFC observation at each decision
+    next_obs: torch.Tensor  # [T, B, N, D] at the next decision (an episode's final one before reset)
+    consensus: torch.Tensor  # [T, B, N, C] the selector's consensus input as acted on (detached)
+    comm_inputs: tuple[torch.Tensor, ...]  # tarmac: ConsMAC inputs (obs, own, messages, mask, distance), else ()
+    actions: torch.Tensor  # [T, B, N] anchor indices
+    logp: torch.Tensor  # [T, B, N]
+    states: torch.Tensor  # [T, B, S]
+    next_states: torch.Tensor  # [T, B, S]
+    rewards: torch.Tensor  # [T, B] R_H summed over the decision's low-level steps
+    episode_end: torch.Tensor  # [T, B] bool
+    stats: dict[str, float]
+
+
+# ---------------------------------------------------------------------------- trainer
+class HighLevelTrainer:
+    """Algorithm 2's learner: the policy (ConsMAC + selector), the critic, their optimizers, the
+    value normalizer, the replay B_C and a torch RNG; one `iterate()` = collect, RL update, ConsMAC."""
+
+    def __init__(self, cfg: HighLevelConfig, low_levels: tuple[LowLevel, LowLevel]):
+        self.cfg = cfg
+        self.task = cfg.task()
+        self.low_levels = low_levels  # (pre-training, fine-tuning)
+        self.policy = HighLevelPolicy.build(cfg, self.task)
+        probe = HierarchicalCEFCEnv(self.task, low_levels[1], n_envs=1, seed=0,
+                                    decision_interval=cfg.decision_interval)
+        with seeded(cfg.seed + 2):
+            self.critic: Critic = build_critic(probe.state_size + probe.layout.size, cfg.critic_hidden)
+        self.value_norm = ValueNorm()
+        rl_params = list(self.policy.selector.parameters())
+        if cfg.variant == "tarmac":
+            rl_params += list(self.policy.comm.parameters())
+        self.policy_opt = torch.optim.Adam(rl_params, lr=cfg.ppo.lr, eps=1e-5)
+        self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=cfg.ppo.lr, eps=1e-5)
+        self.consmac_opt = (torch.optim.Adam(self.policy.comm.parameters(), lr=cfg.consmac_lr)
+                            if cfg.supervised else None)
+        self.replay = ConsMACReplay(cfg.replay_capacity, self.policy.comm.cfg) if cfg.supervised else None
+        self.generator = torch.Generator().manual_seed(cfg.seed)
+        self.iteration = 0
+        self.episodes = 0
+        self.elapsed = 0.0
+        self.progress = {"phase": 0, "iterations": [0, 0]}
+        self.consmac_rounds = 0
+        self.consmac_steps = 0
+        self.envs: dict[int, HierarchicalCEFCEnv] = {}
+
+    # ------------------------------------------------------------------ phases
+    def enter_phase(self) -> int:
+        """The phase the budget has reached (never going back); builds its env on first entry."""
+        phase = max(self.progress["phase"], self.cfg.phase(self.iteration, self.elapsed))
+        self.progress["phase"] = phase
+        if phase not in self.envs:
+            self.envs[phase] = HierarchicalCEFCEnv(self.task, self.low_levels[phase], n_envs=self.cfg.ppo.n_envs,
+                                                   seed=self.cfg.seed, decision_interval=self.cfg.decision_interval)
+        return phase
+
+    # ------------------------------------------------------------------ rollout
+    @torch.no_grad()
+    def collect(self, env: HierarchicalCEFCEnv) -> HighRollout:
+        cfg, policy = self.cfg, self.policy
+        weights = self.task.rewards
+        channel = (MessageChannel(env.n_envs, env.n_agents, policy.message_dim, self.task.observation_distance)
+                   if policy.comm is not None else None)
+        obs = env.reset(seed=iteration_seed(cfg.seed, self.iteration))
+        state = env.global_state()
+        keys = ("obs", "next_obs", "consensus", "actions", "logp", "states", "next_states", "rewards", "episode_end")
+        buf: dict[str, list] = {k: [] for k in keys}
+        comm_buf: list[tuple[torch.Tensor, ...]] = []
+        episode_return = np.zeros(env.n_envs)
+        weighted = {"R_t": weights.task_weight, "R_n": weights.navigation_weight_high, "R_e": weights.evasion_weight}
+        term_sums = {name: np.zeros(env.n_envs) for name in weighted}
+        finished: dict[str, list[float]] = {"return": [], **{name: [] for name in weighted}}
+        metrics: dict[str, list[float]] = {}
+        anchor_counts = np.zeros(env.n_anchors)
+        for _ in range(cfg.ppo.episodes_per_iteration * env.decision_steps):
+            obs_t = torch.from_numpy(obs)
+            inbox = channel.receive(env.world.agent_pos) if channel is not None else None
+            comm_inputs = policy.comm_inputs(obs_t, inbox)
+            consensus, out = policy.consensus(comm_inputs, tuple(obs_t.shape[:-1]))
+            if out is not None:
+                channel.send(out.message.numpy())
+            index, logp = policy.selector.act(obs_t, consensus, generator=self.generator)
+            if self.replay is not None:
+                label = global_labels(policy.comm.cfg, env.world.agent_pos, env.world.agent_vel,
+                                      anchors=env.decode(index.numpy()))
+                rows = dict(zip(ConsMACReplay.FIELDS[:-1], comm_inputs))
+                rows["label"] = torch.from_numpy(label)
+                self.replay.add({k: v.reshape(-1, *v.shape[2:]) for k, v in rows.items()})
+            next_obs, reward, done, info = env.step(index.numpy())
+            next_state = env.global_state()
+            for k, v in (("obs", obs_t), ("next_obs", torch.from_numpy(next_obs)), ("consensus", consensus.detach()),
+                         ("actions", index), ("logp", logp), ("states", torch.from_numpy(state)),
+                         ("next_states", torch.from_numpy(next_state)),
+                         ("rewards", torch.from_numpy(reward.astype(np.float32))),
+                         ("episode_end", torch.from_numpy(done))):
+                buf[k].append(v)
+            if cfg.variant == "tarmac":
+                comm_buf.append(comm_inputs)
+            anchor_counts += np.bincount(index.numpy().ravel(), minlength=env.n_anchors)
+            episode_return += reward
+            for name, w in weighted.items():
+                term_sums[name] += w * info["reward_terms"][name]
+            obs, state = next_obs, next_state
+            if done.any():
+                finished["return"].extend(episode_return[done].tolist())
+                episode_return[done] = 0.0
+                for name in weighted:
+                    finished[name].extend(term_sums[name][done].tolist())
+                    term_sums[name][done] = 0.0
+                for name, value in info["metrics"].items():
+                    metrics.setdefault(name, []).extend(value[done].tolist())
+                obs = env.reset(mask=done)
+                if channel is not None:
+                    channel.reset(done)
+                state = env.global_state()
+        usage = anchor_counts / anchor_counts.sum()
+        stats = {
+            "episode_return": float(np.mean(finished["return"])),
+            **{f"term/{name}": float(np.mean(finished[name])) for name in weighted},
+            **{f"metric/{name}": float(np.mean(v)) for name, v in metrics.items() if name != "N"},
+            "anchor_usage_entropy": float(-(usage[usage > 0] * np.log(usage[usage > 0])).sum()),
+            "episodes": len(finished["return"]),
+        }
+        comm_inputs = tuple(torch.stack(parts) for parts in zip(*comm_buf)) if comm_buf else ()
+        return HighRollout(**{k: torch.stack(v) for k, v in buf.items()}, comm_inputs=comm_inputs, stats=stats)
+
+    def critic_input(self, states: torch.Tensor, obs: torch.Tensor) -> torch.Tensor:
+        """[..., S] global states and [..., N, D] observations -> [..., N, S + D] (V(s, o_i))."""
+        return torch.cat([states.unsqueeze(-2).expand(*obs.shape[:-1], states.shape[-1]), obs], dim=-1)
+
+    # ------------------------------------------------------------------ RL update
+    def policy_terms(self, obs: torch.Tensor, consensus: torch.Tensor, comm_inputs: tuple[torch.Tensor, ...],
+                     actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(log-probabilities, entropies) of taken anchors under the current policy. The ConsMAC
+        variants act on the stored (detached) consensus; tarmac recomputes it with gradients."""
+        if self.cfg.variant == "tarmac":
+            consensus, _ = self.policy.consensus(comm_inputs, tuple(obs.shape[:-1]))
+        return self.policy.selector.evaluate(obs, consensus, actions)
+
+    def update(self, ro: HighRollout) -> dict[str, float]:
+        """PPO epochs over one rollout (the low level's MAPPO, for a categorical policy)."""
+        ppo = self.cfg.ppo
+        t, b, n = ro.logp.shape
+        with torch.no_grad():
+            critic_in = self.critic_input(ro.states, ro.obs)
+            values = self.critic(critic_in)
+            next_values = self.critic(self.critic_input(ro.next_states, ro.next_obs))
+            if ppo.value_normalization:
+                values, next_values = self.value_norm.denormalize(values), self.value_norm.denormalize(next_values)
+            rewards = ro.rewards.unsqueeze(-1).expand(t, b, n)  # the team reward, for every agent
+            end = ro.episode_end.unsqueeze(-1).expand(t, b, n)
+            advantages, returns = compute_gae(rewards, values, next_values, end, ppo.gamma, ppo.gae_lambda)
+            ev = explained_variance(values.flatten(), returns.flatten())
+            if ppo.value_normalization:
+                self.value_norm.update(returns)
+                targets = self.value_norm.normalize(returns)
+            else:
+                targets = returns
+            if ppo.normalize_advantages:
+                advantages = (advantages - advantages.mean()) / (advantages.std() + 1e-8)
+
+        flat = lambda x: x.reshape(t * b, *x.shape[2:])  # noqa: E731 - a sample is one env-decision, all agents
+        obs, consensus, actions, old_logp = flat(ro.obs), flat(ro.consensus), flat(ro.actions), flat(ro.logp)
+        comm_inputs = tuple(flat(x) for x in ro.comm_inputs)
+        adv, critic_in, targets = flat(advantages), flat(critic_in), flat(targets)
+        rl_params = [p for group in self.policy_opt.param_groups for p in group["params"]]
+        sums = dict.fromkeys(("policy_loss", "value_loss", "entropy", "approx_kl", "clipfrac", "actor_grad_norm",
+                              "critic_grad_norm"), 0.0)
+        count = 0
+        for _ in range(ppo.epochs):
+            perm = torch.randperm(t * b, generator=self.generator)
+            for mb in perm.chunk(ppo.minibatches):
+                new_logp, entropy = self.policy_terms(obs[mb], consensus[mb], tuple(x[mb] for x in comm_inputs),
+                                                      actions[mb])
+                policy_loss, st = clipped_policy_loss(new_logp, old_logp[mb], adv[mb], ppo.clip_eps)
+                entropy = entropy.mean()
+                self.policy_opt.zero_grad()
+                (policy_loss - ppo.entropy_coef * entropy).backward()
+                actor_norm = torch.nn.utils.clip_grad_norm_(rl_params, ppo.max_grad_norm)
+                self.policy_opt.step()
+
+                value_loss = 0.5 * (self.critic(critic_in[mb]) - targets[mb]).pow(2).mean()
+                self.critic_opt.zero_grad()
+                value_loss.backward()
+                critic_norm = torch.nn.utils.clip_grad_norm_(self.critic.parameters(), ppo.max_grad_norm)
+                self.critic_opt.step()
+                for k, v in (("policy_loss", policy_loss.item()), ("value_loss", value_loss.item()),
+                             ("entropy", entropy.item()), ("approx_kl", st["approx_kl"]), ("clipfrac", st["clipfrac"]),
+                             ("actor_grad_norm", actor_norm.item()), ("critic_grad_norm", critic_norm.item())):
+                    sums[k] += v
+                count += 1
+        stats = {k: v / count for k, v in sums.items()}
+        stats["explained_variance"] = ev
+        return stats
+
+    # ------------------------------------------------------------------ ConsMAC update
+    def train_consmac(self, steps: int) -> dict[str, float]:
+        """`steps` Adam steps of eq. (11) on batches from the replay; returns the round's losses."""
+        comm, opt = self.policy.comm, self.consmac_opt
+        losses = []
+        for _ in range(steps):
+            batch = self.replay.sample(self.cfg.consmac_batch, self.generator)
+            out = comm(batch["obs"], batch["own"], batch["messages"], batch["mask"], batch["distance"])
+            loss = consmac_loss(out.estimate, batch["label"])
+            opt.zero_grad()
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(comm.parameters(), self.cfg.ppo.max_grad_norm)
+            opt.step()
+            losses.append(loss.item())
+        self.consmac_rounds += 1
+        self.consmac_steps += steps
+        return {"consmac_loss": float(np.mean(losses)), "consmac_loss_first": losses[0],
+                "consmac_loss_last": losses[-1], "consmac_steps": steps, "replay_size": self.replay.size}
+
+    # ------------------------------------------------------------------ one iteration
+    def iterate(self) -> dict[str, float]:
+        cfg = self.cfg
+        t0 = time.perf_counter()
+        phase = self.enter_phase()
+        env = self.envs[phase]
+        torch.set_num_threads(cfg.ppo.rollout_threads)
+        rollout = self.collect(env)
+        t1 = time.perf_counter()
+        torch.set_num_threads(cfg.ppo.update_threads)
+        stats = self.update(rollout)
+        t2 = time.perf_counter()
+        self.iteration += 1
+        self.episodes += rollout.stats["episodes"]
+        self.progress["iterations"][phase] += 1
+        consmac: dict[str, float] = {}
+        if self.replay is not None:  # the same CSV columns in every row, NaN between rounds
+            consmac = dict.fromkeys(CONSMAC_KEYS, math.nan)
+            if self.iteration % cfg.consmac_every == 0:
+                consmac.update(self.train_consmac(cfg.consmac_steps))
+        t3 = time.perf_counter()
+        self.elapsed += t3 - t0
+        decisions = rollout.logp.numel()
+        return {
+            "iteration": self.iteration, "episodes_total": self.episodes, "wall_s": self.elapsed,
+            "phase": phase, "low_level": self.low_levels[phase].name,
+            **rollout.stats, **stats, **consmac,
+            "rollout_s": t1 - t0, "update_s": t2 - t1, "consmac_s": t3 - t2,
+            "decisions_per_s": decisions / (t1 - t0),
+        }
+
+    # ------------------------------------------------------------------ checkpoint state
+    def state_dict(self) -> dict:
+        return {
+            "policy": self.policy.state_dict(), "critic": self.critic.state_dict(),
+            "value_norm": self.value_norm.state_dict(), "policy_opt": self.policy_opt.state_dict(),
+            "critic_opt": self.critic_opt.state_dict(),
+            "consmac_opt": None if self.consmac_opt is None else self.consmac_opt.state_dict(),
+            "replay": None if self.replay is None else self.replay.state_dict(),
+            "generator": self.generator.get_state(),
+            "progress": {"phase": self.progress["phase"], "iterations": list(self.progress["iterations"])},
+            "counters": {"iteration": self.iteration, "episodes": self.episodes, "elapsed": self.elapsed,
+                         "consmac_rounds": self.consmac_rounds, "consmac_steps": self.consmac_steps},
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        self.policy.load_state_dict(state["policy"])
+        self.critic.load_state_dict(state["critic"])
+        self.value_norm.load_state_dict(state["value_norm"])
+        self.policy_opt.load_state_dict(state["policy_opt"])
+        self.critic_opt.load_state_dict(state["critic_opt"])
+        if self.consmac_opt is not None:
+            self.consmac_opt.load_state_dict(state["consmac_opt"])
+            self.replay.load_state_dict(state["replay"])
+        self.generator.set_state(state["generator"])
+        self.progress = {"phase": int(state["progress"]["phase"]), "iterations": list(state["progress"]["iterations"])}
+        c = state["counters"]
+        self.iteration, self.episodes, self.elapsed = int(c["iteration"]), int(c["episodes"]), float(c["elapsed"])
+        self.consmac_rounds, self.consmac_steps = int(c["consmac_rounds"]), int(c["consmac_steps"])
+
+
+# ---------------------------------------------------------------------------- evaluation
+@torch.no_grad()
+def evaluate_highlevel(policy: HighLevelPolicy, task: TaskConfig, low_level: LowLevel, episodes: int, seed: int = 0,
+                       decision_interval: int = DECISION_INTERVAL) -> dict[str, float]:
+    """Mean per-episode figures of `episodes` episodes (one batch) with the mode of each anchor
+    distribution: R_H and its weighted parts R_t, R_n, R_e (they sum to R_H), and the env's
+    metrics E (steps with an agent within 2 m of the adversary), F and C."""
+    env = HierarchicalCEFCEnv(task, low_level, n_envs=episodes, seed=seed, decision_interval=decision_interval)
+    channel = (MessageChannel(episodes, task.n_agents, policy.message_dim, task.observation_distance)
+               if policy.comm is not None else None)
+    w = task.rewards
+    weights = {"R_t": w.task_weight, "R_n": w.navigation_weight_high, "R_e": w.evasion_weight}
+    obs = env.reset(seed=seed)
+    total = np.zeros(episodes)
+    parts = {name: np.zeros(episodes) for name in weights}
+    done = np.zeros(episodes, dtype=bool)
+    info: dict = {}
+    while not done.all():
+        inbox = channel.receive(env.world.agent_pos) if channel is not None else None
+        index, message = policy.decide(obs, inbox)
+        if channel is not None:
+            channel.send(message)
+        obs, reward, done, info = env.step(index)
+        total += reward
+        for name, weight in weights.items():
+            parts[name] += weight * info["reward_terms"][name]
+    metrics = info["metrics"]
+    return {"R_H": float(total.mean()), **{name: float(v.mean()) for name, v in parts.items()},
+            "E": float(metrics["E"].mean()), "F": float(metrics["F"].mean()), "C": float(metrics["C"].mean())}
+
+
+# ---------------------------------------------------------------------------- the run
+def read_state(path: Path) -> dict:
+    payload = safe_torch_load(path)
+    if payload.get("format") != STATE_FORMAT or "trainer" not in payload or "config" not in payload:
+        raise CheckpointError(f"{path}: not a cefc-mj high-level training state")
+    return payload
+
+
+def _check_same_run(saved: dict, cfg: HighLevelConfig, path: Path) -> None:
+    """A resumed run keeps its settings; only the budget, checkpointing, evaluation and threads may change."""
+    def comparable(config: HighLevelConfig) -> dict:
+        d = config.to_dict()
+        for key in ("budget", "checkpoint_every", "eval_episodes"):
+            del d[key]
+        d["ppo"] = {k: v for k, v in d["ppo"].items() if k not in ("rollout_threads", "update_threads")}
+        return d
+
+    mine, theirs = comparable(cfg), comparable(HighLevelConfig.from_dict(saved))
+    diffs = [k for k in mine if theirs.get(k) != mine[k]]
+    if diffs:
+        raise ConfigError(f"--resume: {path} was made with different settings ({', '.join(diffs)}); use another --out")
+
+
+def _display_paths(record):
+    """A low level's description with its file paths as model cards write them."""
+    if isinstance(record, dict):
+        return {k: (display_path(Path(v)) if k == "path" else _display_paths(v)) for k, v in record.items()}
+    return record
+
+
+def _last_csv_row(run_dir: Path) -> dict:
+    with (run_dir / "progress.csv").open(newline="") as f:
+        rows = list(csv.DictReader(f))
+    return rows[-1] if rows else {}
+
+
+def train_highlevel(cfg: HighLevelConfig, out: Path, policies_dir: Path, resume: bool = False,
+                    show_progress: bool = True, command: str | None = None, low_level_dir: Path | None = None) -> dict:
+    """Train under the budget, export pi_H and its model card to `policies_dir`; returns the card.
+
+    resume: continue the run in <out>/<name>/ (ConfigError if there is none, or if it was made with
+    other settings). low_level_dir: where `cfg.low_level` is looked up by name (default the shipped
+    policies). Everything the run needs is loaded and checked before the run folder is made."""
+    out, policies_dir = Path(out), Path(policies_dir)
+    run_dir = out / cfg.name
+    state_path = run_dir / STATE_FILE
+    task = cfg.task()
+    try:
+        low_levels = (load_low_level(NAVIGATION, task), load_low_level(cfg.low_level, task, low_level_dir))
+    except CheckpointError as e:
+        raise CheckpointError(f"--low-level: {e}") from None
+    saved = None
+    if state_path.exists():
+        if not resume:
+            raise ConfigError(f"{run_dir} already holds a run; pass --resume to continue it, or choose another --out")
+        saved = read_state(state_path)
+        _check_same_run(saved["config"], cfg, state_path)
+        if saved["low_level"]["finetune"] != _display_paths(low_levels[1].describe()):
+            raise ConfigError(f"--resume: {state_path} was trained with another fine-tuning low level "
+                              f"({saved['low_level']['finetune'].get('name')}); use another --out")
+    elif resume:
+        raise ConfigError(f"--resume: no run to continue in {run_dir} (no {STATE_FILE}); drop --resume to start one")
+    trainer = HighLevelTrainer(cfg, low_levels)
+    if saved is not None:
+        trainer.load_state_dict(saved["trainer"])
+    low_level_record = {"pretrain": _display_paths(low_levels[0].describe()),
+                        "finetune": _display_paths(low_levels[1].describe())}
+    write_atomic(run_dir / "config.json", json.dumps(
+        {"highlevel": cfg.to_dict(), "task": task.to_dict(), "low_level": low_level_record, "command": command},
+        indent=2) + "\n")
+
+    def checkpoint() -> None:
+        atomic_torch_save({"format": STATE_FORMAT, "config": cfg.to_dict(), "low_level": low_level_record,
+                           "trainer": trainer.state_dict()}, state_path)
+
+    if saved is None:
+        checkpoint()  # iteration 0: a run killed before its first periodic checkpoint can still --resume
+    logger = RunLogger(run_dir, trainer.iteration, cfg.budget.iterations, desc=cfg.name, show_progress=show_progress)
+    last_row: dict = {}
+    try:
+        while not cfg.budget.exhausted(trainer.iteration, trainer.elapsed):
+            last_row = trainer.iterate()
+            logger.log(last_row, PROGRESS_KEYS)
+            if trainer.iteration % cfg.checkpoint_every == 0:
+                checkpoint()
+    finally:
+        logger.close()
+    checkpoint()
+    if not last_row and trainer.iteration:  # a finished run re-exported: its last logged iteration
+        last_row = _last_csv_row(run_dir)
+
+    policy_path = save_highlevel_policy(trainer.policy, policies_dir / f"{cfg.name}.pt", meta={
+        "name": cfg.name, "variant": cfg.variant, "seed": cfg.seed, "iterations": trainer.iteration,
+        "decision_interval": cfg.decision_interval, "low_level": low_level_record["finetune"],
+    })
+    card = {
+        "name": cfg.name,
+        "method": METHODS[cfg.variant],
+        "variant": cfg.variant,
+        "seed": cfg.seed,
+        "config": cfg.to_dict(),
+        "task": task.to_dict(),
+        "networks": {"comm": None if trainer.policy.comm is None else trainer.policy.comm.cfg.to_dict(),
+                     "selector": trainer.policy.selector.cfg.to_dict(), "critic_hidden": cfg.critic_hidden},
+        "low_level": low_level_record,
+        "phases": [{"phase": name, "low_level": low_levels[i].name, "iterations": trainer.progress["iterations"][i]}
+                   for i, name in enumerate(PHASES)],
+        "consmac_training": None if not cfg.supervised else {
+            "rounds": trainer.consmac_rounds, "steps": trainer.consmac_steps, "steps_per_round": cfg.consmac_steps,
+            "every_iterations": cfg.consmac_every, "every_episodes": cfg.consmac_every * cfg.ppo.n_envs
+            * cfg.ppo.episodes_per_iteration, "batch": cfg.consmac_batch, "lr": cfg.consmac_lr,
+            "replay_capacity": cfg.replay_capacity, "paper": PAPER_CONSMAC},
+        "iterations": trainer.iteration,
+        "episodes": trainer.episodes,
+        "decisions": trainer.episodes * cfg.decision_steps * cfg.n_agents,
+        "train_wall_clock_s": round(trainer.elapsed, 1),
+        "last_iteration": {k: v for k, v in last_row.items() if isinstance(v, (int, float))},
+        "run_dir": str(run_dir),
+        "command": command,
+    }
+    if cfg.eval_episodes:
+        card["evaluation"] = {
+            "protocol": {"episodes": cfg.eval_episodes, "seed": 0, "anchors": "mode of the selector",
+                         "low_level": low_levels[1].name, "backend": "particle",
+                         "figures": "per-episode sums; R_t, R_n, R_e weighted, summing to R_H"},
+            "ours": evaluate_highlevel(trainer.policy, task, low_levels[1], cfg.eval_episodes, seed=0,
+                                       decision_interval=cfg.decision_interval),
+        }
+    write_model_card(policy_path, card)
+    return card
+
+
+def install_highlevel_policy(policy_path: Path, dest_dir: Path) -> Path:
+    """Copy a high-level policy file and its model card into `dest_dir` (loaded first, so a broken
+    export is never installed). Returns the installed path."""
+    policy_path, dest_dir = Path(policy_path), Path(dest_dir)
+    load_highlevel_policy(policy_path)
+    target = dest_dir / policy_path.name
+    if target.resolve() == policy_path.resolve():
+        return target
+    card = policy_path.with_suffix(".json")
+    write_atomic(target, policy_path.read_bytes())
+    write_atomic(target.with_suffix(".json"), card.read_bytes())
+    return target
+
+
+# ---------------------------------------------------------------------------- command line
+_FLAG_OF_FIELD = {
+    "variant": "--variant", "seed": "--seed", "obstacle_density": "--density", "adversary": "--adversary",
+    "episode_steps": "--episode-steps", "low_level": "--low-level", "pretrain_share": "--pretrain-share",
+    "consmac_every": "--consmac-every", "consmac_steps": "--consmac-steps", "consmac_batch": "--consmac-batch",
+    "consmac_lr": "--consmac-lr", "replay_capacity": "--replay", "eval_episodes": "--eval-episodes",
+    "n_envs": "--envs", "epochs": "--epochs", "minibatches": "--minibatches", "lr": "--lr",
+    "update_threads": "--threads", "entropy_coef": "--entropy",
+}
+"""Config fields set by `cefc-train highlevel` flags: their errors name the flag the user typed."""
+CLI_FIELDS = ("variant", "seed", "obstacle_density", "adversary", "episode_steps", "low_level", "pretrain_share",
+              "consmac_every", "consmac_steps", "consmac_batch", "consmac_lr", "replay_capacity", "eval_episodes")
+CLI_PPO_FIELDS = ("n_envs", "epochs", "minibatches", "lr", "update_threads", "entropy_coef")
+
+
+def config_from_args(args, budget: Budget) -> HighLevelConfig:
+    """The HighLevelConfig of `cefc-train highlevel` arguments (flags left out keep the config's
+    defaults); a bad value raises ConfigError naming the flag."""
+    given = {name: getattr(args, name) for name in CLI_FIELDS if getattr(args, name, None) is not None}
+    ppo_given = {name: getattr(args, name) for name in CLI_PPO_FIELDS if getattr(args, name, None) is not None}
+    try:
+        ppo = dataclasses.replace(_paper_ppo(), **ppo_given)
+        return HighLevelConfig(budget=budget, ppo=ppo, **given)
+    except ConfigError as e:
+        field_name, sep, rest = str(e).partition("=")
+        if sep and field_name in _FLAG_OF_FIELD:
+            value, _, why = rest.partition(": ")
+            raise ConfigError(f"{_FLAG_OF_FIELD[field_name]} {value}: {why}") from None
+        raise
+
+
+def summary_lines(card: dict, policies_dir: Path) -> list[str]:
+    """What `cefc-train highlevel` prints when a run ends."""
+    phases = ", ".join(f"{p['phase']} ({p['low_level']}): {p['iterations']} it" for p in card["phases"])
+    lines = [f"{card['name']}: {card['iterations']} iterations ({phases}), {card['episodes']} episodes, "
+             f"{card['train_wall_clock_s']} s -> {policies_dir / (card['name'] + '.pt')} (run {card['run_dir']})"]
+    if card.get("consmac_training"):
+        c = card["consmac_training"]
+        lines.append(f"ConsMAC: {c['rounds']} rounds, {c['steps']} steps of batch {c['batch']} "
+                     f"(paper: {c['paper']['steps']} steps every {c['paper']['every_episodes']} episodes)")
+    if "evaluation" in card:
+        o = card["evaluation"]["ours"]
+        lines.append(f"evaluation ({card['evaluation']['protocol']['episodes']} episodes): R_H {o['R_H']:.1f} = "
+                     f"R_t {o['R_t']:.1f} + R_n {o['R_n']:.1f} + R_e {o['R_e']:.1f}; E {o['E']:.1f}  F {o['F']:.1f}  "
+                     f"C {o['C']:.2f}%")
+    return lines

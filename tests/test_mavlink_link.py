@@ -1,0 +1,428 @@
+"""MAVLink offboard link (cefc_mj.deploy.mavlink_link; docs/sitl_m.md "MAVLink offboard link").
+
+The flight tests start the vehicle endpoint as a real process serving two drones on free localhost
+ports and fly them with plain pymavlink "offboard scripts" written as for PX4 SITL: wait for the
+heartbeat, stream acceleration setpoints, switch to OFFBOARD, arm, fly a P-controller on
+LOCAL_POSITION_NED. The process is always terminated and no process outlives the module (psutil).
+"""
+
+import math
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+
+import numpy as np
+import psutil
+import pytest
+from pymavlink import mavutil
+from pymavlink.dialects.v20 import common as mavlink
+
+from cefc_mj.deploy.mavlink_link import (MODE_HOLD, MODE_OFFBOARD, OFFBOARD_LOSS_TIMEOUT_S, MavlinkLink,
+                                         MavlinkLinkConfig, VehicleLink, attitude_ned, bind_udp, enu_to_ned)
+from cefc_mj.errors import ConfigError
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+REAL_TIME_FACTOR = 3.0
+"""Simulated seconds per wall second in the flight tests (the scripts pace themselves on the telemetry)."""
+FLIGHT_ALTITUDE = 2.0  # the world's fixed altitude: z = -2 in the local NED frame
+# MAVROS' acceleration offboard: position, velocity and yaw ignored; afx, afy, afz in use
+ACCEL_MASK = (mavlink.POSITION_TARGET_TYPEMASK_X_IGNORE | mavlink.POSITION_TARGET_TYPEMASK_Y_IGNORE
+              | mavlink.POSITION_TARGET_TYPEMASK_Z_IGNORE | mavlink.POSITION_TARGET_TYPEMASK_VX_IGNORE
+              | mavlink.POSITION_TARGET_TYPEMASK_VY_IGNORE | mavlink.POSITION_TARGET_TYPEMASK_VZ_IGNORE
+              | mavlink.POSITION_TARGET_TYPEMASK_YAW_IGNORE | mavlink.POSITION_TARGET_TYPEMASK_YAW_RATE_IGNORE)
+VELOCITY_MASK = 0b110111000111  # PX4 docs' velocity mask: vx, vy, vz in use
+
+
+def _gone(pid: int) -> bool:
+    try:
+        return psutil.Process(pid).status() == psutil.STATUS_ZOMBIE
+    except psutil.NoSuchProcess:
+        return True
+
+
+# ====================================================================== an offboard script, as for PX4
+class OffboardScript:
+    """A PX4 user's offboard loop over one pymavlink connection: every LOCAL_POSITION_NED updates the
+    state and, while `controller` is set, answers with an acceleration setpoint (so the stream runs at
+    the telemetry rate); acks, status texts and heartbeats are kept."""
+
+    def __init__(self, conn):
+        while conn.recv_match(blocking=False) is not None:  # the script starts now: drop what queued before
+            pass
+        self.conn = conn
+        self.controller = None
+        self.velocity = None  # or a fixed (north, east) velocity setpoint, streamed likewise
+        self.t = None  # time_boot_ms / 1000 of the newest LOCAL_POSITION_NED (simulated s)
+        self.pos = self.vel = None
+        self.track: list[tuple[float, float, float, float]] = []  # (t, x, y, z)
+        self.acks: list = []
+        self.texts: list[tuple[float, str]] = []
+        self.attitude = None
+        self.last_setpoint_t = None
+
+    def pump(self, until, wall_timeout: float = 30.0) -> None:
+        """Handle messages until `until()` is true; fails after `wall_timeout` wall seconds."""
+        deadline = time.monotonic() + wall_timeout
+        while not until():
+            assert time.monotonic() < deadline, "timed out waiting on the vehicle"
+            msg = self.conn.recv_match(blocking=True, timeout=0.5)
+            if msg is None:
+                continue
+            kind = msg.get_type()
+            if kind == "LOCAL_POSITION_NED":
+                self.t = msg.time_boot_ms / 1e3
+                self.pos, self.vel = np.array([msg.x, msg.y, msg.z]), np.array([msg.vx, msg.vy, msg.vz])
+                self.track.append((self.t, msg.x, msg.y, msg.z))
+                if self.controller is not None:
+                    accel = self.controller(self.pos, self.vel)
+                    self.conn.mav.set_position_target_local_ned_send(
+                        msg.time_boot_ms, self.conn.target_system, self.conn.target_component,
+                        mavlink.MAV_FRAME_LOCAL_NED, ACCEL_MASK, 0, 0, 0, 0, 0, 0, accel[0], accel[1], 0, 0, 0)
+                    self.last_setpoint_t = self.t
+                elif self.velocity is not None:
+                    self.conn.mav.set_position_target_local_ned_send(
+                        msg.time_boot_ms, self.conn.target_system, self.conn.target_component,
+                        mavlink.MAV_FRAME_LOCAL_NED, VELOCITY_MASK, 0, 0, 0, *self.velocity, 0, 0, 0, 0, 0, 0)
+                    self.last_setpoint_t = self.t
+            elif kind == "COMMAND_ACK":
+                self.acks.append(msg)
+            elif kind == "STATUSTEXT":
+                self.texts.append((self.t, msg.text))
+            elif kind == "ATTITUDE":
+                self.attitude = msg
+
+    def run_for(self, seconds: float) -> None:
+        """Pump for `seconds` of simulated time."""
+        self.pump(lambda: self.t is not None)
+        start = self.t
+        self.pump(lambda: self.t >= start + seconds)
+
+    def command(self, command: int, *params: float) -> int:
+        """COMMAND_LONG to the vehicle; returns the result of its COMMAND_ACK (pumping meanwhile)."""
+        params = list(params) + [0.0] * (7 - len(params))
+        self.conn.mav.command_long_send(self.conn.target_system, self.conn.target_component, command, 0, *params)
+        self.pump(lambda: any(a.command == command for a in self.acks))
+        ack = next(a for a in self.acks if a.command == command)
+        self.acks.remove(ack)
+        return ack.result
+
+    def set_offboard(self) -> int:
+        return self.command(mavlink.MAV_CMD_DO_SET_MODE, mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, 6)  # PX4 OFFBOARD
+
+    def arm(self) -> int:
+        return self.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1)
+
+    def wait_heartbeat_state(self, mode: str, armed: bool) -> None:
+        """Pump until a heartbeat reports `mode` (pymavlink's PX4 mode name) and the armed state."""
+
+        def state_ok():
+            hb = self.conn.messages.get("HEARTBEAT")
+            return hb is not None and self.conn.flightmode == mode and bool(self.conn.motors_armed()) == armed
+
+        self.pump(state_ok)
+
+
+def p_controller(goal_ne, kp: float = 1.0, kd: float = 1.8, limit: float = 2.0):
+    """Acceleration (north, east) toward `goal_ne` from LOCAL_POSITION_NED: a PD law, clipped."""
+    goal = np.asarray(goal_ne, dtype=float)
+
+    def control(pos, vel):
+        return np.clip(kp * (goal - pos[:2]) - kd * vel[:2], -limit, limit)
+
+    return control
+
+
+# ====================================================================== the vehicle process
+@pytest.fixture(scope="module")
+def vehicle(tmp_path_factory):
+    """The endpoint serving two drones (sysid 1 and 2, spawned 2 m apart along world x = east) to two
+    scripts listening on free ports (`udpin:`, as scripts listen for PX4 SITL on 14540), positions
+    reported from the world's origin (so both frames' axes are checked); terminated afterwards."""
+    conns = [mavutil.mavlink_connection("udpin:127.0.0.1:0") for _ in range(2)]
+    ports = [str(c.port.getsockname()[1]) for c in conns]
+    log = tmp_path_factory.mktemp("mavlink") / "vehicle.log"
+    argv = [sys.executable, "-m", "cefc_mj.deploy.mavlink_link", "--drones", "2", "--port", "0", "--origin", "world",
+            "--remote-port", *ports, "--real-time-factor", str(REAL_TIME_FACTOR), "--duration", "600"]
+    with open(log, "wb") as out:
+        proc = subprocess.Popen(argv, cwd=REPO, stdin=subprocess.DEVNULL, stdout=out, stderr=out)
+    try:
+        yield {"proc": proc, "conns": conns, "log": log}
+    finally:
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGTERM)
+        try:
+            code = proc.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            code = proc.wait()
+        for c in conns:
+            c.close()
+        text = log.read_text(errors="replace")
+        assert code == 0, text[-2000:]
+        assert "simulated in" in text  # the summary it prints when stopped by SIGTERM
+        assert _gone(proc.pid)
+        assert [p.pid for p in psutil.Process().children(recursive=True)] == []
+
+
+def test_offboard_script_flies_to_a_point_at_fixed_altitude(vehicle):
+    script = OffboardScript(vehicle["conns"][0])
+    hb = script.conn.wait_heartbeat(timeout=60)
+    assert (hb.get_srcSystem(), hb.type, hb.autopilot) == (1, mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_PX4)
+    assert script.conn.flightmode == "LOITER" and not script.conn.motors_armed()
+    script.run_for(0.2)
+    start = script.pos.copy()
+    assert np.allclose(start, [0.0, 0.0, -FLIGHT_ALTITUDE], atol=0.05)  # spawned at the world's origin, 2 m up
+    assert abs(script.attitude.yaw - math.pi / 2) < 0.05  # spawned facing world +x (ENU east): NED yaw 90 deg
+
+    # like PX4: OFFBOARD is refused until setpoints stream
+    assert script.set_offboard() == mavlink.MAV_RESULT_TEMPORARILY_REJECTED
+    goal = start[:2] + np.array([3.0, -2.0])  # 3 m north, 2 m west
+    script.controller = p_controller(goal)
+    script.run_for(0.3)
+    assert script.set_offboard() == mavlink.MAV_RESULT_ACCEPTED
+    assert script.arm() == mavlink.MAV_RESULT_ACCEPTED
+    script.wait_heartbeat_state("OFFBOARD", armed=True)
+
+    t_armed = script.t
+    script.pump(lambda: (np.linalg.norm(script.pos[:2] - goal) < 0.1 and np.linalg.norm(script.vel[:2]) < 0.05)
+                or script.t > t_armed + 25.0)
+    track = np.array([row for row in script.track if row[0] >= t_armed])
+    assert np.linalg.norm(script.pos[:2] - goal) < 0.1, f"ended at {script.pos} after {script.t - t_armed:.1f} s"
+    assert script.t - t_armed < 15.0  # 3.6 m at the 1 m/s speed limit, then settling
+    assert np.abs(track[:, 3] + FLIGHT_ALTITUDE).max() < 0.05  # the fixed altitude held all the way
+    assert abs(script.attitude.roll) < 0.05 and abs(script.attitude.pitch) < 0.05  # level once arrived
+    script.controller = None
+
+
+def test_setpoint_loss_holds_position_after_the_timeout(vehicle):
+    script = OffboardScript(vehicle["conns"][1])
+    hb = script.conn.wait_heartbeat(timeout=60)
+    assert hb.get_srcSystem() == 2  # the second drone: its own port and system id
+    script.run_for(0.1)
+    assert np.allclose(script.pos, [0.0, 2.0, -FLIGHT_ALTITUDE], atol=0.05)  # spawned 2 m along world x = east
+    script.controller = p_controller(script.pos[:2] + np.array([0.0, 30.0]))  # far east: full speed
+    script.run_for(0.3)
+    assert script.set_offboard() == mavlink.MAV_RESULT_ACCEPTED
+    assert script.arm() == mavlink.MAV_RESULT_ACCEPTED
+    script.pump(lambda: script.vel[1] > 0.9)
+
+    script.controller = None  # the script stops streaming
+    t_stop, p_stop = script.last_setpoint_t, script.pos.copy()
+    script.pump(lambda: script.texts)  # the vehicle announces the failsafe
+    t_switch, text = script.texts[0]
+    assert "offboard" in text.lower()
+    assert OFFBOARD_LOSS_TIMEOUT_S - 0.05 <= t_switch - t_stop <= OFFBOARD_LOSS_TIMEOUT_S + 0.1
+    p_switch = script.pos.copy()
+    assert p_switch[1] - p_stop[1] > 0.7  # until the timeout it flew its last setpoint, as PX4 does
+    script.wait_heartbeat_state("LOITER", armed=True)
+
+    script.pump(lambda: script.t >= t_switch + 2.5)
+    p_held = script.pos.copy()
+    script.run_for(1.5)
+    assert np.linalg.norm(script.pos - p_held) < 0.03, (p_held, script.pos)  # holding still
+    assert np.linalg.norm(script.vel) < 0.05
+    assert np.linalg.norm(script.pos[:2] - p_switch[:2]) < 1.0  # braked within the acceleration limit
+    assert abs(script.pos[2] + FLIGHT_ALTITUDE) < 0.05
+
+    # back to OFFBOARD only once setpoints stream again
+    assert script.set_offboard() == mavlink.MAV_RESULT_TEMPORARILY_REJECTED
+    script.controller = None
+    script.velocity = (0.5, 0.0)  # velocity setpoints fly too: 0.5 m/s north
+    script.run_for(0.2)
+    assert script.set_offboard() == mavlink.MAV_RESULT_ACCEPTED
+    script.run_for(2.0)
+    assert np.allclose(script.vel, [0.5, 0.0, 0.0], atol=0.03)
+    script.velocity = None
+
+
+# ====================================================================== in-process: one VehicleLink
+@pytest.fixture
+def link_pair():
+    """A VehicleLink on a free localhost port and the test's own UDP socket as its offboard script."""
+    script = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    script.bind(("127.0.0.1", 0))
+    script.settimeout(2.0)
+    link = VehicleLink(0, 1, bind_udp("127.0.0.1", 0), script.getsockname(), offboard_loss_timeout_s=1.0)
+    yield link, script
+    link.close()
+    script.close()
+
+
+def _frames(sender, *messages) -> bytes:
+    return b"".join(m.pack(sender) for m in messages)
+
+
+def _deliver(link, script, data: bytes, t: float) -> None:
+    script.sendto(data, link.sock.getsockname())
+    deadline = time.monotonic() + 2.0
+    while not link.poll(t):
+        assert time.monotonic() < deadline, "datagram not received"
+        time.sleep(0.001)
+
+
+def _acks(script) -> list:
+    parser = mavlink.MAVLink(None)
+    out = []
+    script.settimeout(0.2)
+    try:
+        while True:
+            out += [m for m in parser.parse_buffer(script.recv(65535)) or [] if m.get_type() == "COMMAND_ACK"]
+    except TimeoutError:
+        return out
+
+
+def test_malformed_unknown_and_unsupported_messages_are_ignored_and_counted(link_pair):
+    link, script = link_pair
+    gcs = mavlink.MAVLink(None, srcSystem=255, srcComponent=190)
+    accel = mavlink.MAVLink_set_position_target_local_ned_message(
+        0, 1, 1, mavlink.MAV_FRAME_LOCAL_NED, ACCEL_MASK, 0, 0, 0, 0, 0, 0, 1.0, 0.5, 0, 0, 0)
+    good = accel.pack(gcs)
+    bad_crc = bytearray(good)
+    bad_crc[-1] ^= 0xFF
+    unknown = bytearray(mavlink.MAVLink_heartbeat_message(6, 8, 0, 0, 0, 3).pack(gcs))
+    unknown[7:10] = (42001).to_bytes(3, "little")  # a message id no dialect knows; the CRC cannot match it either
+    cases = [
+        (b"\x00garbage\xff" * 3, "bad data (framing or CRC)"),
+        (bytes(bad_crc), "bad data (framing or CRC)"),
+        (good[:-5], "truncated frame"),
+        (_frames(gcs, mavlink.MAVLink_param_request_list_message(1, 1)), "unsupported message PARAM_REQUEST_LIST"),
+        (_frames(gcs, mavlink.MAVLink_set_position_target_local_ned_message(
+            0, 1, 1, mavlink.MAV_FRAME_BODY_NED, ACCEL_MASK, 0, 0, 0, 0, 0, 0, 1, 0, 0, 0, 0)),
+         "setpoint frame is not MAV_FRAME_LOCAL_NED"),
+        (_frames(gcs, mavlink.MAVLink_set_position_target_local_ned_message(
+            0, 1, 1, mavlink.MAV_FRAME_LOCAL_NED, 0b110111111000, 5, 5, -2, 0, 0, 0, 0, 0, 0, 0, 0)),
+         "setpoint without horizontal acceleration or velocity (position setpoints unsupported)"),
+        (_frames(gcs, mavlink.MAVLink_set_position_target_local_ned_message(
+            0, 1, 1, mavlink.MAV_FRAME_LOCAL_NED, ACCEL_MASK, 0, 0, 0, 0, 0, 0, math.nan, 0, 0, 0, 0)),
+         "setpoint not finite"),
+        (_frames(gcs, mavlink.MAVLink_set_position_target_local_ned_message(
+            0, 7, 1, mavlink.MAV_FRAME_LOCAL_NED, ACCEL_MASK, 0, 0, 0, 0, 0, 0, 1, 0, 0, 0, 0)),
+         "addressed to another system"),
+    ]
+    for data, reason in cases:
+        before = link.ignored[reason]
+        _deliver(link, script, data, t=0.0)
+        assert link.ignored[reason] == before + 1, (reason, dict(link.ignored))
+    before = sum(link.ignored.values())
+    _deliver(link, script, bytes(unknown), t=0.0)
+    assert sum(link.ignored.values()) == before + 1  # an unknown id: dropped and counted (bad CRC or unknown)
+    assert link.setpoint_kind is None and link.handled == {}  # nothing above was acted on
+
+    # a bad datagram cannot spoil the next one: a frame's start without its end, then a valid setpoint
+    _deliver(link, script, b"\xfd\x09\x00", t=0.5)
+    _deliver(link, script, good, t=0.5)
+    assert link.setpoint_kind == "accel" and np.allclose(link.setpoint, [0.5, 1.0])  # NED (1, 0.5) -> ENU (0.5, 1)
+    assert link.handled["SET_POSITION_TARGET_LOCAL_NED"] == 1
+
+    # an unknown command is answered UNSUPPORTED
+    _acks(script)
+    _deliver(link, script, _frames(gcs, mavlink.MAVLink_command_long_message(
+        1, 1, mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 0, 2)), t=0.5)
+    assert [(a.command, a.result) for a in _acks(script)] == [(mavlink.MAV_CMD_NAV_TAKEOFF, mavlink.MAV_RESULT_UNSUPPORTED)]
+
+
+def test_mode_logic_follows_px4(link_pair):
+    """OFFBOARD needs a setpoint stream; arming in OFFBOARD flies the setpoint; a velocity setpoint
+    works too; after COM_OF_LOSS_T without setpoints the vehicle holds (AUTO.LOITER)."""
+    link, script = link_pair
+    gcs = mavlink.MAVLink(None, srcSystem=255, srcComponent=190)
+
+    def command(cmd, *params, t):
+        params = list(params) + [0.0] * (7 - len(params))
+        _deliver(link, script, _frames(gcs, mavlink.MAVLink_command_long_message(1, 1, cmd, 0, *params)), t=t)
+        (ack,) = _acks(script)
+        return ack.result
+
+    set_offboard = (mavlink.MAV_CMD_DO_SET_MODE, 29, 6, 0)  # pymavlink's set_mode("OFFBOARD") for PX4
+    assert link.mode == MODE_HOLD and link.command(0.0) is None
+    assert command(*set_offboard, t=0.0) == mavlink.MAV_RESULT_TEMPORARILY_REJECTED
+    velocity = mavlink.MAVLink_set_position_target_local_ned_message(
+        0, 1, 1, mavlink.MAV_FRAME_LOCAL_NED, VELOCITY_MASK, 0, 0, 0, 0.4, -0.3, 0, 0, 0, 0, 0, 0)
+    _deliver(link, script, _frames(gcs, velocity), t=1.0)
+    assert command(*set_offboard, t=1.0) == mavlink.MAV_RESULT_ACCEPTED and link.mode == MODE_OFFBOARD
+    assert link.command(1.0) is None  # still disarmed: hold
+    assert command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1, t=1.0) == mavlink.MAV_RESULT_ACCEPTED
+    kind, value = link.command(1.5)
+    assert kind == "velocity" and np.allclose(value, [-0.3, 0.4])  # NED (0.4 north, -0.3 east) -> ENU
+    assert link.command(2.0) is not None  # exactly COM_OF_LOSS_T after the setpoint: still flying it
+    assert link.command(2.01) is None and link.mode == MODE_HOLD and link.armed
+    assert [e["event"] for e in link.events] == ["mode", "armed", "offboard_loss_hold"]
+    assert command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 3, t=2.0) == mavlink.MAV_RESULT_DENIED
+    assert command(mavlink.MAV_CMD_DO_SET_MODE, 29, 3, 0, t=2.0) == mavlink.MAV_RESULT_UNSUPPORTED  # POSCTL
+
+
+def test_local_origin_defaults_to_each_drones_spawn_point():
+    """PX4's home: every drone's LOCAL_POSITION_NED starts at (0, 0, -altitude) (in-process, real sockets)."""
+    script = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    script.bind(("127.0.0.1", 0))
+    port = script.getsockname()[1]
+    script.close()  # the ports of two drones: P and P + 1 (the second may be taken: then skip)
+    sockets = []
+    try:
+        for p in (port, port + 1):
+            sockets.append(socket.socket(socket.AF_INET, socket.SOCK_DGRAM))
+            sockets[-1].bind(("127.0.0.1", p))
+    except OSError:
+        pytest.skip("no two adjacent free UDP ports")
+    link = MavlinkLink(MavlinkLinkConfig(n_drones=2, ports=(0,), remote_ports=(port,), real_time_factor=100.0,
+                                         duration_s=0.1))
+    try:
+        link.run()
+        parser = mavlink.MAVLink(None)
+        for sock in sockets:
+            sock.settimeout(2.0)
+            positions = []
+            while not positions:
+                positions = [m for m in parser.parse_buffer(sock.recv(65535)) or [] if m.get_type() == "LOCAL_POSITION_NED"]
+            assert np.allclose([positions[0].x, positions[0].y, positions[0].z], [0, 0, -FLIGHT_ALTITUDE], atol=1e-3)
+    finally:
+        link.close()
+        for sock in sockets:
+            sock.close()
+
+
+def test_frame_conversions():
+    assert np.allclose(enu_to_ned(np.array([1.0, 2.0, 3.0])), [2.0, 1.0, -3.0])
+    half = math.sqrt(0.5)
+    assert np.allclose(attitude_ned(np.array([1.0, 0, 0, 0])), [0, 0, math.pi / 2])  # facing east
+    assert np.allclose(attitude_ned(np.array([half, 0, 0, half])), [0, 0, 0])  # ENU yaw 90 deg: facing north
+    roll, pitch, _ = attitude_ned(np.array([math.cos(0.05), 0, math.sin(0.05), 0]))  # nose down 0.1 rad about ENU y
+    assert abs(roll) < 1e-9 and abs(pitch + 0.1) < 1e-9  # FRD pitch is nose up: -0.1
+
+
+# ====================================================================== command line
+def _run_cli(*args, timeout=60):
+    return subprocess.run([sys.executable, "-m", "cefc_mj.deploy.mavlink_link", *args], cwd=REPO,
+                          capture_output=True, text=True, timeout=timeout)
+
+
+def test_cli_help_and_bad_input_exit_2_with_one_line():
+    assert _run_cli("--help").returncode == 0
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as taken:
+        taken.bind(("127.0.0.1", 0))
+        port = str(taken.getsockname()[1])
+        cases = {
+            ("--drones", "0"): "--drones=0",
+            ("--drones", "2", "--remote-port", "1", "2", "3"): "--remote-port",
+            ("--telemetry-hz", "30"): "--telemetry-hz",
+            ("--real-time-factor", "inf"): "--real-time-factor",
+            ("--airframe", "no-such-airframe"): "airframe",
+            ("--port", port): "cannot bind UDP",
+            ("--speed", "x"): "argument",
+        }
+        for args, expected in cases.items():
+            result = _run_cli(*args)
+            assert result.returncode == 2, (args, result.stderr)
+            lines = result.stderr.strip().splitlines()
+            assert len(lines) == 1 and expected in lines[0] and "Traceback" not in result.stderr, (args, result.stderr)
+
+
+def test_config_validation_names_the_field():
+    with pytest.raises(ConfigError, match="ports"):
+        MavlinkLinkConfig(n_drones=2, ports=(14580, 14580)).validate()
+    with pytest.raises(ConfigError, match="origin"):
+        MavlinkLinkConfig(origin="home").validate()
+    assert MavlinkLinkConfig(n_drones=3, ports=(0,), remote_ports=(14540,)).offboard_ports() == [14540, 14541, 14542]
