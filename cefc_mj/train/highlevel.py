@@ -60,7 +60,7 @@ from cefc_mj.train.config import MAX_DENSITY, MAX_SEED, Budget, PPOConfig
 from cefc_mj.train.logger import RunLogger
 from cefc_mj.train.mappo import iteration_seed
 from cefc_mj.train.model_card import display_path, write_model_card
-from cefc_mj.train.ppo import ValueNorm, clipped_policy_loss, compute_gae, explained_variance
+from cefc_mj.train.ppo import ValueNorm, advantages_and_targets, clipped_policy_loss
 
 VARIANTS = ("consmac-a", "consmac-o", "mappo", "tarmac")
 METHODS = {
@@ -510,19 +510,9 @@ class HighLevelTrainer:
             critic_in = self.critic_input(ro.states, ro.obs)
             values = self.critic(critic_in)
             next_values = self.critic(self.critic_input(ro.next_states, ro.next_obs))
-            if ppo.value_normalization:
-                values, next_values = self.value_norm.denormalize(values), self.value_norm.denormalize(next_values)
             rewards = ro.rewards.unsqueeze(-1).expand(t, b, n)  # the team reward, for every agent
             end = ro.episode_end.unsqueeze(-1).expand(t, b, n)
-            advantages, returns = compute_gae(rewards, values, next_values, end, ppo.gamma, ppo.gae_lambda)
-            ev = explained_variance(values.flatten(), returns.flatten())
-            if ppo.value_normalization:
-                self.value_norm.update(returns)
-                targets = self.value_norm.normalize(returns)
-            else:
-                targets = returns
-            if ppo.normalize_advantages:
-                advantages = (advantages - advantages.mean()) / (advantages.std() + 1e-8)
+            advantages, targets, ev = advantages_and_targets(rewards, values, next_values, end, ppo, self.value_norm)
 
         flat = lambda x: x.reshape(t * b, *x.shape[2:])  # noqa: E731 - a sample is one env-decision, all agents
         obs, consensus, actions, old_logp = flat(ro.obs), flat(ro.consensus), flat(ro.actions), flat(ro.logp)

@@ -31,7 +31,7 @@ from cefc_mj.env import BatchedCEFCEnv
 from cefc_mj.nn.atm import ATMActor, Critic
 from cefc_mj.task.config import TaskConfig
 from cefc_mj.train.config import PPOConfig
-from cefc_mj.train.ppo import ValueNorm, clipped_policy_loss, compute_gae, explained_variance
+from cefc_mj.train.ppo import ValueNorm, advantages_and_targets, clipped_policy_loss
 
 
 def iteration_seed(seed: int, iteration: int) -> int:
@@ -146,18 +146,8 @@ class MAPPO:
             critic_in = self.critic_input(ro.states, ro.obs)  # [T, B, N, S + D]
             values = self.critic(critic_in)
             next_values = self.critic(self.critic_input(ro.next_states, ro.next_obs))
-            if ppo.value_normalization:
-                values, next_values = self.value_norm.denormalize(values), self.value_norm.denormalize(next_values)
             end = ro.episode_end.unsqueeze(-1).expand_as(ro.rewards)
-            advantages, returns = compute_gae(ro.rewards, values, next_values, end, ppo.gamma, ppo.gae_lambda)
-            ev = explained_variance(values.flatten(), returns.flatten())
-            if ppo.value_normalization:
-                self.value_norm.update(returns)
-                targets = self.value_norm.normalize(returns)
-            else:
-                targets = returns
-            if ppo.normalize_advantages:
-                advantages = (advantages - advantages.mean()) / (advantages.std() + 1e-8)
+            advantages, targets, ev = advantages_and_targets(ro.rewards, values, next_values, end, ppo, self.value_norm)
 
         # Flatten time and env: a sample is one env-step with all its N agents.
         obs = ro.obs.reshape(t * b, n, -1)

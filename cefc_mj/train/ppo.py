@@ -102,3 +102,22 @@ def explained_variance(predicted: torch.Tensor, target: torch.Tensor) -> float:
     if var.item() == 0:
         return float("nan")
     return (1.0 - (target - predicted).var() / var).item()
+
+
+def advantages_and_targets(rewards, values, next_values, episode_end, ppo, value_norm: "ValueNorm"):
+    """GAE advantages, the critic's targets and the explained variance for one rollout [T, B, N],
+    as MAPPO uses them: values come normalized when ppo.value_normalization (and the norm is then
+    updated with the new returns), advantages are standardized when ppo.normalize_advantages."""
+    if ppo.value_normalization:
+        values, next_values = value_norm.denormalize(values), value_norm.denormalize(next_values)
+    advantages, returns = compute_gae(rewards, values, next_values, episode_end, ppo.gamma, ppo.gae_lambda)
+    ev = explained_variance(values.flatten(), returns.flatten())
+    if ppo.value_normalization:
+        value_norm.update(returns)
+        targets = value_norm.normalize(returns)
+    else:
+        targets = returns
+    if ppo.normalize_advantages:
+        advantages = (advantages - advantages.mean()) / (advantages.std() + 1e-8)
+    return advantages, targets, ev
+
