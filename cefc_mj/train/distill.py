@@ -33,6 +33,7 @@ from cefc_mj.task.config import TaskConfig
 from cefc_mj.train.config import DistillConfig
 from cefc_mj.train.logger import RunLogger
 from cefc_mj.train.mappo import iteration_seed
+from cefc_mj.train.run_state import STATE_FILE, run_state_path
 from cefc_mj.train.model_card import display_path, table3_figures, write_model_card
 
 STUDENT_NAME = "atm_student"
@@ -111,11 +112,8 @@ def train_student(cfg: DistillConfig, policies_dir: Path, out: Path, resume: boo
     policies_dir, out = Path(policies_dir), Path(out)
     teachers_dir = Path(teachers_dir) if teachers_dir is not None else policies_dir
     run_dir = out / STUDENT_NAME
-    state_path, replay_path = run_dir / "state.pt", run_dir / "replay.pt"
-    if state_path.exists() and not resume:
-        raise ConfigError(f"{run_dir} already holds a run; pass --resume to continue it, or choose another --out")
-    if resume and not state_path.exists():
-        raise ConfigError(f"--resume: no run to continue in {run_dir} (no state.pt); drop --resume to start one")
+    state_path, replay_path = run_dir / STATE_FILE, run_dir / "replay.pt"
+    run_state_path(run_dir, resume)
     teacher_paths = {c: resolve_policy_path(teacher_name(c), teachers_dir) for c in cfg.formations}
     teachers = {c: load_policy(path) for c, path in teacher_paths.items()}
     heads = {(t.actor.cfg.layout, t.actor.cfg.action, t.actor.cfg.velocity_gain) for t in teachers.values()}

@@ -60,7 +60,9 @@ from cefc_mj.train.config import MAX_DENSITY, MAX_SEED, Budget, PPOConfig
 from cefc_mj.train.logger import RunLogger
 from cefc_mj.train.mappo import iteration_seed
 from cefc_mj.train.model_card import display_path, write_model_card
+from cefc_mj.train import run_state
 from cefc_mj.train.ppo import ValueNorm, advantages_and_targets, clipped_policy_loss
+from cefc_mj.train.run_state import STATE_FILE
 
 VARIANTS = ("consmac-a", "consmac-o", "mappo", "tarmac")
 METHODS = {
@@ -75,7 +77,6 @@ PAPER_CONSMAC = {"every_episodes": 20, "steps": 5000, "batch": 2048}
 STATE_FORMAT = "cefc-mj/highlevel-state"
 POLICY_FORMAT = "cefc-mj/highlevel-policy"
 POLICY_VERSION = 1
-STATE_FILE = "state.pt"
 PROGRESS_KEYS = ("episode_return", "metric/E", "consmac_loss", "approx_kl")
 CONSMAC_KEYS = ("consmac_loss", "consmac_loss_first", "consmac_loss_last", "consmac_steps", "replay_size")
 MAX_REPLAY = 1_000_000
@@ -661,25 +662,7 @@ def evaluate_highlevel(policy: HighLevelPolicy, task: TaskConfig, low_level: Low
 
 # ---------------------------------------------------------------------------- the run
 def read_state(path: Path) -> dict:
-    payload = safe_torch_load(path)
-    if payload.get("format") != STATE_FORMAT or "trainer" not in payload or "config" not in payload:
-        raise CheckpointError(f"{path}: not a cefc-mj high-level training state")
-    return payload
-
-
-def _check_same_run(saved: dict, cfg: HighLevelConfig, path: Path) -> None:
-    """A resumed run keeps its settings; only the budget, checkpointing, evaluation and threads may change."""
-    def comparable(config: HighLevelConfig) -> dict:
-        d = config.to_dict()
-        for key in ("budget", "checkpoint_every", "eval_episodes"):
-            del d[key]
-        d["ppo"] = {k: v for k, v in d["ppo"].items() if k not in ("rollout_threads", "update_threads")}
-        return d
-
-    mine, theirs = comparable(cfg), comparable(HighLevelConfig.from_dict(saved))
-    diffs = [k for k in mine if theirs.get(k) != mine[k]]
-    if diffs:
-        raise ConfigError(f"--resume: {path} was made with different settings ({', '.join(diffs)}); use another --out")
+    return run_state.read_state(path, STATE_FORMAT, "high-level training state")
 
 
 def _display_paths(record):
@@ -711,16 +694,12 @@ def train_highlevel(cfg: HighLevelConfig, out: Path, policies_dir: Path, resume:
     except CheckpointError as e:
         raise CheckpointError(f"--low-level: {e}") from None
     saved = None
-    if state_path.exists():
-        if not resume:
-            raise ConfigError(f"{run_dir} already holds a run; pass --resume to continue it, or choose another --out")
+    if run_state.run_state_path(run_dir, resume) is not None:
         saved = read_state(state_path)
-        _check_same_run(saved["config"], cfg, state_path)
+        run_state.check_same_run(saved["config"], cfg, state_path, free=("budget", "checkpoint_every", "eval_episodes"))
         if saved["low_level"]["finetune"] != _display_paths(low_levels[1].describe()):
             raise ConfigError(f"--resume: {state_path} was trained with another fine-tuning low level "
                               f"({saved['low_level']['finetune'].get('name')}); use another --out")
-    elif resume:
-        raise ConfigError(f"--resume: no run to continue in {run_dir} (no {STATE_FILE}); drop --resume to start one")
     trainer = HighLevelTrainer(cfg, low_levels)
     if saved is not None:
         trainer.load_state_dict(saved["trainer"])

@@ -37,17 +37,18 @@ from cefc_mj.env import BatchedCEFCEnv
 from cefc_mj.errors import CheckpointError, ConfigError
 from cefc_mj.fileio import write_atomic
 from cefc_mj.nn.atm import ATMActor, ATMConfig, Critic, merge_step3
-from cefc_mj.nn.policy_io import atomic_torch_save, load_actor, resolve_policy_path, safe_torch_load, save_policy
+from cefc_mj.nn.policy_io import atomic_torch_save, load_actor, resolve_policy_path, save_policy
 from cefc_mj.provenance import file_sha256
 from cefc_mj.task.config import TaskConfig
 from cefc_mj.train.config import LowLevelConfig
 from cefc_mj.train.logger import RunLogger
 from cefc_mj.train.mappo import MAPPO
 from cefc_mj.train.model_card import display_path, table3_figures, write_model_card
+from cefc_mj.train import run_state
 from cefc_mj.train.ppo import ValueNorm
+from cefc_mj.train.run_state import STATE_FILE
 
 STATE_FORMAT = "cefc-mj/train-state"
-STATE_FILE = "state.pt"
 PROGRESS_KEYS = ("reward_per_step", "metric/F", "metric/N", "metric/C", "approx_kl")
 
 
@@ -66,10 +67,7 @@ def stage_name(formation: int, step: int, safe: bool = False) -> str:
 
 def read_state(path: Path) -> dict:
     """A training state written by `train_lowlevel`, checked for its format."""
-    payload = safe_torch_load(path)
-    if payload.get("format") != STATE_FORMAT or "trainer" not in payload or "config" not in payload:
-        raise CheckpointError(f"{path}: not a cefc-mj training state")
-    return payload
+    return run_state.read_state(path, STATE_FORMAT, "training state")
 
 
 def _fresh_networks(cfg: LowLevelConfig, task: TaskConfig) -> tuple[ATMActor, Critic]:
@@ -189,22 +187,6 @@ def _last_csv_row(run_dir: Path) -> dict:
     return rows[-1] if rows else {}
 
 
-def _check_same_run(saved: dict, cfg: LowLevelConfig, path: Path) -> None:
-    """A resumed run must have the same config except its budget (which may be extended) and how
-    many threads it uses."""
-    def comparable(config: LowLevelConfig) -> dict:
-        d = config.to_dict()
-        for key in ("budget", "checkpoint_every"):
-            del d[key]
-        d["ppo"] = {k: v for k, v in d["ppo"].items() if k not in ("rollout_threads", "update_threads")}
-        return d
-
-    mine, theirs = comparable(cfg), comparable(LowLevelConfig.from_dict(saved))  # fields added later: defaults
-    diffs = [k for k in mine if theirs.get(k) != mine[k]]
-    if diffs:
-        raise ConfigError(f"--resume: {path} was made with different settings ({', '.join(diffs)}); use another --out")
-
-
 def train_lowlevel(cfg: LowLevelConfig, out: Path, policies_dir: Path, resume: bool = False,
                    show_progress: bool = True, evaluate: bool = True, init_from: str | Path | None = None,
                    command: str | None = None, policy_name: str | None = None) -> dict:
@@ -224,18 +206,14 @@ def train_lowlevel(cfg: LowLevelConfig, out: Path, policies_dir: Path, resume: b
     init = load_init_policy(init_from, cfg) if init_from is not None else None
 
     saved = None
-    if state_path.exists():
-        if not resume:
-            raise ConfigError(f"{run_dir} already holds a run; pass --resume to continue it, or choose another --out")
+    if run_state.run_state_path(run_dir, resume) is not None:
         saved = read_state(state_path)
-        _check_same_run(saved["config"], cfg, state_path)
+        run_state.check_same_run(saved["config"], cfg, state_path, free=("budget", "checkpoint_every"))
         if init is not None and saved["origin"].get("init_from", {}).get("sha256") != init[1]["init_from"]["sha256"]:
             raise ConfigError(f"--init-from {init_from}: the run in {run_dir} started from {saved['origin']['actor']}; "
                               "resume it without --init-from, or choose another --out")
         actor, critic = _fresh_networks(cfg, task)
         value_norm, origin = ValueNorm(), saved["origin"]
-    elif resume:
-        raise ConfigError(f"--resume: no run to continue in {run_dir} (no {STATE_FILE}); drop --resume to start one")
     else:
         actor, critic, value_norm, origin = initial_networks(cfg, task, out, init)
     trainer = MAPPO(task, cfg.ppo, actor, critic, seed=cfg.seed, value_norm=value_norm)

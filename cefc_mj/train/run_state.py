@@ -1,0 +1,47 @@
+"""The resumable-run rules every trainer shares: is there a run in the folder, may it be resumed,
+is its saved state what it claims, and was it made with the same settings."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from cefc_mj.errors import CheckpointError, ConfigError
+from cefc_mj.nn.policy_io import safe_torch_load
+
+STATE_FILE = "state.pt"
+
+
+def run_state_path(run_dir: Path, resume: bool) -> Path | None:
+    """The state file of the run in `run_dir` when resuming it, None for a new run; ConfigError when
+    a new run would overwrite one, or when there is nothing to resume."""
+    state_path = run_dir / STATE_FILE
+    if state_path.exists() and not resume:
+        raise ConfigError(f"{run_dir} already holds a run; pass --resume to continue it, or choose another --out")
+    if resume and not state_path.exists():
+        raise ConfigError(f"--resume: no run to continue in {run_dir} (no {STATE_FILE}); drop --resume to start one")
+    return state_path if resume else None
+
+
+def read_state(path: Path, state_format: str, what: str) -> dict:
+    """A saved training state, checked for its format (`what` names it in the error)."""
+    payload = safe_torch_load(path)
+    if payload.get("format") != state_format or "trainer" not in payload or "config" not in payload:
+        raise CheckpointError(f"{path}: not a cefc-mj {what}")
+    return payload
+
+
+def check_same_run(saved: dict, cfg, path: Path, free: tuple[str, ...]) -> None:
+    """A resumed run keeps the settings of its config `cfg` (a dataclass with to_dict / from_dict;
+    fields added later load as defaults) except the `free` fields and the PPO thread counts."""
+    def comparable(config) -> dict:
+        d = config.to_dict()
+        for key in free:
+            del d[key]
+        if "ppo" in d:
+            d["ppo"] = {k: v for k, v in d["ppo"].items() if k not in ("rollout_threads", "update_threads")}
+        return d
+
+    mine, theirs = comparable(cfg), comparable(type(cfg).from_dict(saved))
+    diffs = [k for k in mine if theirs.get(k) != mine[k]]
+    if diffs:
+        raise ConfigError(f"--resume: {path} was made with different settings ({', '.join(diffs)}); use another --out")
