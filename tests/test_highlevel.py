@@ -253,6 +253,19 @@ def test_cli_trains_exports_and_resumes_a_run(tmp_path, monkeypatch, capsys):
         rows = list(csv.DictReader(f))
     assert [r["phase"] for r in rows] == ["0", "1"] and rows[1]["low_level"] == "atm_student"
 
+    # wo-FT: the weights when pre-training ended, exported beside the fine-tuned policy. They are
+    # those of a run that stops there (same seed, budget 1 = one pre-training iteration).
+    wo_ft = policy.with_name("cihrl_consmac_a_wo_ft.pt")
+    card_wo_ft = json.loads(wo_ft.with_suffix(".json").read_text())
+    assert card_wo_ft["iterations"] == 1 and [p["phase"] for p in card_wo_ft["phases"]] == ["pretrain"]
+    assert "wo-FT" in card_wo_ft["method"] and set(card_wo_ft["evaluation"]["ours"]) == set(card["evaluation"]["ours"])
+    main_ok(TINY + ["--budget", "1", "--out", "one"])
+    assert not (tmp_path / "one" / "policies" / "cihrl_consmac_a_wo_ft.pt").exists()  # no fine-tuning, no wo-FT
+    stopped, _ = load_highlevel_policy(tmp_path / "one" / "policies" / "cihrl_consmac_a.pt")
+    snapshot, _ = load_highlevel_policy(wo_ft)
+    assert all(torch.equal(a, b) for a, b in zip(stopped.state_dict().values(), snapshot.state_dict().values()))
+    assert not all(torch.equal(a, b) for a, b in zip(loaded.state_dict().values(), snapshot.state_dict().values()))
+
     # A second start without --resume refuses; --resume extends the run to 3 iterations (the larger
     # budget moves the pre-training boundary to 2 iterations, but a run never goes back to pre-training).
     assert "already holds a run" in usage_error(TINY + ["--budget", "3"], capsys)

@@ -77,9 +77,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--version", action=_VersionAction, help="print the version, code digest and libraries, then exit")
     p.add_argument("--backend", choices=["mujoco", "particle"], default="mujoco",
                    help="physics: MuJoCo quadrotors with the PX4-like controller (default) or the particle world")
-    p.add_argument("--protocol", choices=["single", "table8", "table3"], default="single",
+    p.add_argument("--protocol", choices=["single", "table8", "table3", "table5", "table6"], default="single",
                    help="single: one condition (from --wind/--deviation) vs calm; table8: the paper's 7 conditions "
-                        "(MuJoCo); table3: the paper's MPE Table III (particle backend)")
+                        "(MuJoCo); table3: the paper's MPE Table III (particle backend); table5 / table6: the "
+                        "high level's game, CI-HRL against the baselines / against adversary strategies (particle)")
     p.add_argument("--wind", type=float, default=None, metavar="MPS",
                    help=f"mean wind speed in m/s, 0..{MAX_WIND_SPEED:g} (single protocol, MuJoCo; default 0)")
     p.add_argument("--deviation", type=float, default=None, metavar="M",
@@ -87,7 +88,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--formation", type=int, nargs="+", metavar="C",
                    help="formation sizes c in 3..8 (default 5 6 7 8; table3: 6 7 8)")
     p.add_argument("--episodes", type=int, metavar="K",
-                   help=f"seeds per cell, 1..{MAX_EPISODES} (default 1; table8 5; table3 50)")
+                   help=f"seeds per cell, 1..{MAX_EPISODES} (default 1; table8 5; table3, table5, table6 50)")
     p.add_argument("--steps", type=int, metavar="T",
                    help=f"decision steps per episode, 1..{MAX_STEPS} (default 1000; table3 100); F and N are "
                         "comparable to the paper only at the default")
@@ -96,7 +97,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="atm (AT-M Step 3 of each c, default), safe, robust (AT-M-Robust, c = 5..8), quad "
                         "(AT-M-Quad, c = 5..8), clm (the CL-M baseline, where trained), student, orca (the ORCA-F baseline, table3 "
                         "only), a name in policies/, or a .pt path; "
-                        "table3 without it evaluates every method")
+                        "table3 without it evaluates every method; table5: one high-level policy (default every "
+                        "method); table6: the high-level policy to play (default cihrl_consmac_a)")
     p.add_argument("--sitl-m", action="store_true",
                    help="SITL-M: every UAV's policy in its own OS process over ZeroMQ, asynchronous (single: the "
                         "asked condition flown that way, vs the one-process calm reference; table8: adds the SITL-M "
@@ -134,9 +136,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="with --executor ray: the head of a running Ray cluster (`ray start --head`); its CPUs "
                         "decide how many episodes fly at once")
     p.add_argument("--report-dir", type=Path, default=None, metavar="DIR",
-                   help="table8 only: where table8.md/.csv/.json/.png and the resumable cell file go (default a new "
+                   help="table8: where table8.md/.csv/.json/.png and the resumable cell file go (default a new "
                         "folder ./cefc-eval-reports/table8-<policy>-<backend>-<time>/); give the folder of an "
-                        "interrupted run to resume it")
+                        "interrupted run to resume it. table5, table6: where table5.md/.json/.png go (none by default)")
     p.add_argument("--fresh", action="store_true",
                    help="table8 only: fly every episode anew; an existing cell file is moved aside, not reused")
     return p
@@ -217,6 +219,8 @@ def is_shipped_reports(path: Path) -> bool:
 def validate(args: argparse.Namespace) -> None:
     """Every flag checked before any work starts; one clear line each. Fills in the defaults."""
     proto = args.protocol
+    if proto in HIGHLEVEL_PROTOCOLS:
+        _validate_highlevel(args)
     for flag, value in (("--link-delay", args.link_delay), ("--jitter", args.jitter)):
         if value is not None:
             if not args.sitl_m:
@@ -271,15 +275,16 @@ def validate(args: argparse.Namespace) -> None:
         usage_error(f"--seed {args.seed}: must be >= 0")
     if not 1 <= args.workers <= MAX_WORKERS:
         usage_error(f"--workers {args.workers}: must be in 1..{MAX_WORKERS}")
-    episodes = args.episodes or {"single": 1, "table8": 5, "table3": 50}[proto]
+    episodes = args.episodes or {"single": 1, "table8": 5}.get(proto, 50)
     if args.seed + episodes - 1 > MAX_SEED:
         usage_error(f"--seed {args.seed}: seeds up to {args.seed + episodes - 1} pass the largest seed {MAX_SEED}")
 
     if args.backend == "particle" and args.wind:
         usage_error("--wind: the particle backend has no wind model; use --backend mujoco")
     recording = [flag for flag, on in (("--rrd", args.rrd), ("--png", args.png), ("--spawn", args.spawn)) if on]
-    if proto != "table8" and args.report_dir is not None:
-        usage_error(f"--report-dir: only --protocol table8 writes a report folder ({proto} writes --json only)")
+    if proto not in ("table8", *HIGHLEVEL_PROTOCOLS) and args.report_dir is not None:
+        usage_error(f"--report-dir: only --protocol table8, table5 and table6 write a report folder "
+                    f"({proto} writes --json only)")
     if proto != "table8" and args.fresh:
         usage_error("--fresh: only --protocol table8 keeps a cell cache")
     _validate_executor(args)
@@ -347,6 +352,27 @@ def validate(args: argparse.Namespace) -> None:
         check_output("--report-dir", args.report_dir, is_dir=True)
 
 
+HIGHLEVEL_PROTOCOLS = ("table5", "table6")
+
+
+def _validate_highlevel(args: argparse.Namespace) -> None:
+    """Tables V and VI play the paper's MPE game: the particle backend, its own layout and length."""
+    proto = args.protocol
+    if args.backend != "particle":
+        usage_error(f"--protocol {proto} is the paper's MPE protocol: add --backend particle")
+    given = [flag for flag, on in (
+        ("--wind", args.wind is not None), ("--deviation", args.deviation is not None),
+        ("--formation", args.formation is not None), ("--steps", args.steps is not None),
+        ("--sitl-m", args.sitl_m), ("--drop", args.drop is not None), ("--airframe", args.airframe is not None),
+        ("--estimator", args.estimator is not None), ("--offboard", args.offboard is not None),
+        ("--fresh", args.fresh)) if on]
+    if given:
+        usage_error(f"{given[0]}: --protocol {proto} plays the paper's game as it is (8 UAVs, 400 steps, exact "
+                    "sensing); see docs/high_level.md")
+    if args.workers > 1:
+        usage_error(f"--workers: {proto} flies all its episodes as one batch in one process")
+
+
 def _validate_executor(args: argparse.Namespace) -> None:
     """--executor/--address: table8 only, a well-formed address, --workers unused with a cluster, Ray
     installed; sets args.executor to an ExecutorConfig."""
@@ -372,6 +398,13 @@ def load_policies(args: argparse.Namespace) -> dict:
     from cefc_mj.eval.runner import provenance
     from cefc_mj.eval.table8 import cached_policy
 
+    if args.protocol in HIGHLEVEL_PROTOCOLS:
+        from cefc_mj.eval.highlevel import highlevel_policy_path
+        from cefc_mj.eval.runner import provenance
+
+        if args.policy is not None or args.protocol == "table6":
+            highlevel_policy_path(args.policy or "cihrl_consmac_a")  # a missing file fails before any episode
+        return provenance("atm", [])  # the tables record each row's file and sha256 themselves
     if args.protocol == "table3":
         from cefc_mj.eval.table3 import POLICY_CHOICES, policy_file_for
 
@@ -401,6 +434,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.protocol == "table3":
             return _table3(args)
+        if args.protocol in HIGHLEVEL_PROTOCOLS:
+            return _highlevel_table(args)
         if args.protocol == "table8":
             return _table8(args)
         return _single(args)
@@ -702,6 +737,37 @@ def _table3(args: argparse.Namespace) -> int:
     print(format_table3(result))
     if args.json is not None:
         _write_outputs([(args.json, json.dumps(result, indent=2) + "\n")])
+    return 0
+
+
+# ---------------------------------------------------------------------------- tables V and VI
+def _highlevel_table(args: argparse.Namespace) -> int:
+    import json
+
+    from cefc_mj.eval.highlevel import format_highlevel_table, plot_highlevel_table, run_table5, run_table6
+
+    proto = args.protocol
+    print(f"{PROG} {proto}: particle, 8 UAVs, {args.episodes} episodes x 400 steps, seed {args.seed}, "
+          f"{'policy ' + args.policy if args.policy else 'every method' if proto == 'table5' else 'cihrl_consmac_a'}")
+    prov = {k: v for k, v in args.provenance.items() if k != "policies"}
+    if proto == "table5":
+        result = run_table5(episodes=args.episodes, seed=args.seed, policy=args.policy, provenance=prov)
+    else:
+        result = run_table6(episodes=args.episodes, seed=args.seed, policy=args.policy or "cihrl_consmac_a",
+                            provenance=prov)
+    result["protocol"]["command"] = args.command
+    text = format_highlevel_table(result)
+    print(text)
+    data = json.dumps(result, indent=2) + "\n"
+    writes: list[tuple[Path, object]] = []
+    if args.report_dir is not None:
+        out = args.report_dir
+        writes += [(out / f"{proto}.md", f"# {proto}\n\n```\n{text}\n```\n\nCommand: `{args.command}`\n"),
+                   (out / f"{proto}.json", data),
+                   (out / f"{proto}.png", lambda path: plot_highlevel_table(result, path))]
+    if args.json is not None:
+        writes.append((args.json, data))
+    _write_outputs(writes)
     return 0
 
 

@@ -379,8 +379,9 @@ def run(args, command: str | None = None) -> list[dict]:
         card = train_highlevel(cfg, args.out, policies_dir, resume=args.resume, show_progress=show, command=command)
         print("\n".join(summary_lines(card, policies_dir)))
         if args.install:
-            target = install_highlevel_policy(policies_dir / f"{card['name']}.pt", paths.POLICIES_DIR)
-            print(f"installed {card['name']} -> {target}")
+            for name in filter(None, (card["name"], card.get("wo_ft"))):
+                target = install_highlevel_policy(policies_dir / f"{name}.pt", paths.POLICIES_DIR)
+                print(f"installed {name} -> {target}")
         return [card]
     elif args.command == "distill":
         cfg = DistillConfig(budget=budget, formations=args.formations, tuples_per_formation=args.tuples, seed=args.seed)

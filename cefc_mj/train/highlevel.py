@@ -44,18 +44,19 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from torch import nn
 
 from cefc_mj.errors import CheckpointError, ConfigError
+from cefc_mj.eval.highlevel import evaluate_highlevel
 from cefc_mj.fileio import write_atomic
 from cefc_mj.hierarchy import DECISION_INTERVAL, NAVIGATION, HierarchicalCEFCEnv, LowLevel, load_low_level
 from cefc_mj.nn.atm import Critic
-from cefc_mj.nn.consmac import ConsMAC, ConsMACConfig, consmac_loss, global_labels, inbox_tensors, seeded
-from cefc_mj.nn.layers import state_digest
-from cefc_mj.nn.policy_io import atomic_torch_save, safe_torch_load
-from cefc_mj.nn.selector import AnchorSelector, SelectorConfig, build_critic
+from cefc_mj.nn.consmac import ConsMACConfig, consmac_loss, global_labels, seeded
+from cefc_mj.nn.highlevel_policy import (VARIANTS, HighLevelPolicy, load_highlevel_policy,
+                                         save_highlevel_policy)
+from cefc_mj.nn.policy_io import atomic_torch_save
+from cefc_mj.nn.selector import build_critic
 from cefc_mj.task.config import ADVERSARY_RULES, TaskConfig
-from cefc_mj.task.messages import Inbox, MessageChannel
+from cefc_mj.task.messages import MessageChannel
 from cefc_mj.train.config import MAX_DENSITY, MAX_SEED, Budget, PPOConfig
 from cefc_mj.train.logger import RunLogger
 from cefc_mj.train.mappo import iteration_seed
@@ -64,7 +65,6 @@ from cefc_mj.train import run_state
 from cefc_mj.train.ppo import ValueNorm, advantages_and_targets, clipped_policy_loss
 from cefc_mj.train.run_state import STATE_FILE
 
-VARIANTS = ("consmac-a", "consmac-o", "mappo", "tarmac")
 METHODS = {
     "consmac-a": "CI-HRL (ConsMAC-A)",
     "consmac-o": "CI-HRL (ConsMAC-O)",
@@ -75,8 +75,6 @@ PHASES = ("pretrain", "finetune")
 PAPER_CONSMAC = {"every_episodes": 20, "steps": 5000, "batch": 2048}
 """Algorithm 2's ConsMAC schedule (paper Sec. V-A), recorded beside what a run did."""
 STATE_FORMAT = "cefc-mj/highlevel-state"
-POLICY_FORMAT = "cefc-mj/highlevel-policy"
-POLICY_VERSION = 1
 PROGRESS_KEYS = ("episode_return", "metric/E", "consmac_loss", "approx_kl")
 CONSMAC_KEYS = ("consmac_loss", "consmac_loss_first", "consmac_loss_last", "consmac_steps", "replay_size")
 MAX_REPLAY = 1_000_000
@@ -159,8 +157,11 @@ class HighLevelConfig:
     # ------------------------------------------------------------------ derived
     @property
     def name(self) -> str:
-        """Run folder and policy file stem: cihrl_consmac_a, cihrl_consmac_o, cihrl_mappo, cihrl_tarmac."""
-        return "cihrl_" + self.variant.replace("-", "_")
+        """Run folder and policy file stem: cihrl_<variant> (cihrl_consmac_a, cihrl_consmac_o, cihrl_mappo,
+        cihrl_tarmac), then _dt for direct training (no pre-training, the paper's CI-HRL-DT) and
+        _seed<k> for seeds other than 0, so the runs of a comparison never overwrite each other."""
+        return ("cihrl_" + self.variant.replace("-", "_") + ("_dt" if self.pretrain_share == 0 else "")
+                + (f"_seed{self.seed}" if self.seed else ""))
 
     @property
     def communicates(self) -> bool:
@@ -238,91 +239,6 @@ class HighLevelConfig:
         return cls(**d)
 
 
-# ---------------------------------------------------------------------------- networks
-class HighLevelPolicy(nn.Module):
-    """pi_H: the communication module (ConsMAC, or None for the mappo variant) and the anchor selector."""
-
-    def __init__(self, selector: AnchorSelector, comm: ConsMAC | None, variant: str):
-        super().__init__()
-        self.selector, self.comm, self.variant = selector, comm, variant
-
-    @classmethod
-    def build(cls, cfg: HighLevelConfig, task: TaskConfig) -> "HighLevelPolicy":
-        comm = None
-        if cfg.communicates:
-            comm = ConsMAC(ConsMACConfig.from_task(task, variant="O" if cfg.variant == "consmac-o" else "A"),
-                           seed=cfg.seed)
-            s_cfg = SelectorConfig.from_consmac(comm.cfg, hidden=cfg.hidden,
-                                                consensus_gradient=cfg.variant == "tarmac")
-        else:
-            s_cfg = SelectorConfig.from_task(task, consensus_dim=0, hidden=cfg.hidden)
-        return cls(AnchorSelector(s_cfg, seed=cfg.seed + 1), comm, cfg.variant)
-
-    @property
-    def message_dim(self) -> int:
-        return self.comm.cfg.message_dim if self.comm is not None else 0
-
-    def comm_inputs(self, obs: torch.Tensor, inbox: Inbox | None) -> tuple[torch.Tensor, ...]:
-        """(obs, own, messages, mask, distance) as ConsMAC takes them; () without communication."""
-        return (obs, *inbox_tensors(inbox)) if self.comm is not None else ()
-
-    def consensus(self, comm_inputs: tuple[torch.Tensor, ...], lead: tuple[int, ...]):
-        """(the selector's consensus input, ConsMAC's output or None). The input is detached
-        unless the variant trains the communication module by RL (tarmac)."""
-        if self.comm is None:
-            return torch.zeros(*lead, 0), None
-        out = self.comm(*comm_inputs)
-        live = self.selector.cfg.consensus_gradient
-        return (out.message if live else out.detach_for_policy("message")), out
-
-    @torch.no_grad()
-    def decide(self, obs: np.ndarray, inbox: Inbox | None, deterministic: bool = True,
-               generator: torch.Generator | None = None) -> tuple[np.ndarray, np.ndarray | None]:
-        """(anchor index [B, N], message to send [B, N, 64] or None) for CEFC observations [B, N, D]
-        and the channel's inbox of this decision."""
-        obs_t = torch.as_tensor(obs, dtype=torch.float32)
-        consensus, out = self.consensus(self.comm_inputs(obs_t, inbox), tuple(obs_t.shape[:-1]))
-        index, _ = self.selector.act(obs_t, consensus, deterministic=deterministic, generator=generator)
-        return index.numpy(), (None if out is None else out.message.numpy())
-
-
-def save_highlevel_policy(policy: HighLevelPolicy, path: Path, meta: dict | None = None) -> Path:
-    """Write pi_H (communication module and selector, with their configs) as one policy file."""
-    state = {k: v.detach().cpu().clone() for k, v in policy.state_dict().items()}
-    atomic_torch_save({
-        "format": POLICY_FORMAT, "version": POLICY_VERSION, "variant": policy.variant,
-        "comm": None if policy.comm is None else policy.comm.cfg.to_dict(),
-        "selector": policy.selector.cfg.to_dict(),
-        "state_dict": state, "sha256": state_digest(state), "meta": meta or {},
-    }, Path(path))
-    return Path(path)
-
-
-def load_highlevel_policy(path: Path) -> tuple[HighLevelPolicy, dict]:
-    """(policy, meta) from a file written by `save_highlevel_policy`; CheckpointError with one line
-    for a missing, foreign, tampered or mismatched file."""
-    path = Path(path)
-    payload = safe_torch_load(path)
-    if payload.get("format") != POLICY_FORMAT:
-        raise CheckpointError(f"{path}: not a high-level policy file (format {payload.get('format')!r})")
-    if payload.get("version") != POLICY_VERSION:
-        raise CheckpointError(f"{path}: high-level policy version {payload.get('version')!r}, this code reads "
-                              f"{POLICY_VERSION}")
-    state = payload.get("state_dict")
-    if not isinstance(state, dict) or state_digest(state) != payload.get("sha256"):
-        raise CheckpointError(f"{path}: weights do not match the stored SHA-256 (file modified or corrupted)")
-    try:
-        comm = None if payload.get("comm") is None else ConsMAC(ConsMACConfig.from_dict(payload["comm"]))
-        selector = AnchorSelector(SelectorConfig.from_dict(payload["selector"]))
-        policy = HighLevelPolicy(selector, comm, str(payload.get("variant")))
-        policy.load_state_dict(state)
-    except (ConfigError, RuntimeError, TypeError, KeyError) as e:
-        raise CheckpointError(f"{path}: weights do not fit the described networks "
-                              f"({str(e).splitlines()[0][:160]})") from None
-    policy.eval()
-    return policy, dict(payload.get("meta") or {})
-
-
 class ConsMACReplay:
     """B_C of Algorithm 2: a ring buffer of ConsMAC's inputs and labels, one row per agent-decision."""
 
@@ -387,7 +303,7 @@ class HighLevelTrainer:
         self.cfg = cfg
         self.task = cfg.task()
         self.low_levels = low_levels  # (pre-training, fine-tuning)
-        self.policy = HighLevelPolicy.build(cfg, self.task)
+        self.policy = HighLevelPolicy.build(cfg.variant, self.task, cfg.seed, cfg.hidden)
         probe = HierarchicalCEFCEnv(self.task, low_levels[1], n_envs=1, seed=0,
                                     decision_interval=cfg.decision_interval)
         with seeded(cfg.seed + 2):
@@ -409,11 +325,16 @@ class HighLevelTrainer:
         self.consmac_rounds = 0
         self.consmac_steps = 0
         self.envs: dict[int, HierarchicalCEFCEnv] = {}
+        self.pretrained: dict | None = None
+        """The policy's weights when pre-training ended (the paper's "wo-FT" ablation); None before
+        that, or when the run has no pre-training."""
 
     # ------------------------------------------------------------------ phases
     def enter_phase(self) -> int:
         """The phase the budget has reached (never going back); builds its env on first entry."""
         phase = max(self.progress["phase"], self.cfg.phase(self.iteration, self.elapsed))
+        if phase == 1 and self.progress["phase"] == 0 and self.progress["iterations"][0] > 0:
+            self.pretrained = {k: v.detach().clone() for k, v in self.policy.state_dict().items()}
         self.progress["phase"] = phase
         if phase not in self.envs:
             self.envs[phase] = HierarchicalCEFCEnv(self.task, self.low_levels[phase], n_envs=self.cfg.ppo.n_envs,
@@ -609,6 +530,7 @@ class HighLevelTrainer:
             "replay": None if self.replay is None else self.replay.state_dict(),
             "generator": self.generator.get_state(),
             "progress": {"phase": self.progress["phase"], "iterations": list(self.progress["iterations"])},
+            "pretrained": self.pretrained,
             "counters": {"iteration": self.iteration, "episodes": self.episodes, "elapsed": self.elapsed,
                          "consmac_rounds": self.consmac_rounds, "consmac_steps": self.consmac_steps},
         }
@@ -624,40 +546,10 @@ class HighLevelTrainer:
             self.replay.load_state_dict(state["replay"])
         self.generator.set_state(state["generator"])
         self.progress = {"phase": int(state["progress"]["phase"]), "iterations": list(state["progress"]["iterations"])}
+        self.pretrained = state.get("pretrained")  # absent in states written before wo-FT snapshots
         c = state["counters"]
         self.iteration, self.episodes, self.elapsed = int(c["iteration"]), int(c["episodes"]), float(c["elapsed"])
         self.consmac_rounds, self.consmac_steps = int(c["consmac_rounds"]), int(c["consmac_steps"])
-
-
-# ---------------------------------------------------------------------------- evaluation
-@torch.no_grad()
-def evaluate_highlevel(policy: HighLevelPolicy, task: TaskConfig, low_level: LowLevel, episodes: int, seed: int = 0,
-                       decision_interval: int = DECISION_INTERVAL) -> dict[str, float]:
-    """Mean per-episode figures of `episodes` episodes (one batch) with the mode of each anchor
-    distribution: R_H and its weighted parts R_t, R_n, R_e (they sum to R_H), and the env's
-    metrics E (steps with an agent within 2 m of the adversary), F and C."""
-    env = HierarchicalCEFCEnv(task, low_level, n_envs=episodes, seed=seed, decision_interval=decision_interval)
-    channel = (MessageChannel(episodes, task.n_agents, policy.message_dim, task.observation_distance)
-               if policy.comm is not None else None)
-    w = task.rewards
-    weights = {"R_t": w.task_weight, "R_n": w.navigation_weight_high, "R_e": w.evasion_weight}
-    obs = env.reset(seed=seed)
-    total = np.zeros(episodes)
-    parts = {name: np.zeros(episodes) for name in weights}
-    done = np.zeros(episodes, dtype=bool)
-    info: dict = {}
-    while not done.all():
-        inbox = channel.receive(env.world.agent_pos) if channel is not None else None
-        index, message = policy.decide(obs, inbox)
-        if channel is not None:
-            channel.send(message)
-        obs, reward, done, info = env.step(index)
-        total += reward
-        for name, weight in weights.items():
-            parts[name] += weight * info["reward_terms"][name]
-    metrics = info["metrics"]
-    return {"R_H": float(total.mean()), **{name: float(v.mean()) for name, v in parts.items()},
-            "E": float(metrics["E"].mean()), "F": float(metrics["F"].mean()), "C": float(metrics["C"].mean())}
 
 
 # ---------------------------------------------------------------------------- the run
@@ -729,41 +621,68 @@ def train_highlevel(cfg: HighLevelConfig, out: Path, policies_dir: Path, resume:
     if not last_row and trainer.iteration:  # a finished run re-exported: its last logged iteration
         last_row = _last_csv_row(run_dir)
 
-    policy_path = save_highlevel_policy(trainer.policy, policies_dir / f"{cfg.name}.pt", meta={
-        "name": cfg.name, "variant": cfg.variant, "seed": cfg.seed, "iterations": trainer.iteration,
+    card = export_policy(trainer.policy, cfg, task, low_levels, trainer, policies_dir, run_dir, command,
+                         last_row=last_row)
+    if trainer.pretrained is not None and trainer.progress["iterations"][1] > 0:
+        pretrained = HighLevelPolicy.build(cfg.variant, task, cfg.seed, cfg.hidden)
+        pretrained.load_state_dict(trainer.pretrained)
+        card["wo_ft"] = export_policy(pretrained, cfg, task, low_levels, trainer, policies_dir, run_dir, command,
+                                      wo_ft=True)["name"]
+    return card
+
+
+def export_policy(policy: HighLevelPolicy, cfg: HighLevelConfig, task: TaskConfig, low_levels: tuple[LowLevel, LowLevel],
+                  trainer: HighLevelTrainer, policies_dir: Path, run_dir: Path, command: str | None,
+                  last_row: dict | None = None, wo_ft: bool = False) -> dict:
+    """Write `policy` as <name>.pt with its model card (evaluated with the fine-tuning low level)
+    into `policies_dir`; returns the card. wo_ft: the weights at the end of pre-training, written
+    as <name>_wo_ft.pt (the paper's "wo-FT": pre-trained, then combined with the fine-tuning low
+    level without joint fine-tuning)."""
+    name = cfg.name + ("_wo_ft" if wo_ft else "")
+    low_level_record = {"pretrain": _display_paths(low_levels[0].describe()),
+                        "finetune": _display_paths(low_levels[1].describe())}
+    iterations = trainer.progress["iterations"][0] if wo_ft else trainer.iteration
+    episodes = iterations * cfg.ppo.n_envs * cfg.ppo.episodes_per_iteration if wo_ft else trainer.episodes
+    policy_path = save_highlevel_policy(policy, policies_dir / f"{name}.pt", meta={
+        "name": name, "variant": cfg.variant, "seed": cfg.seed, "iterations": iterations,
         "decision_interval": cfg.decision_interval, "low_level": low_level_record["finetune"],
     })
+    phases = [{"phase": phase, "low_level": low_levels[i].name, "iterations": trainer.progress["iterations"][i]}
+              for i, phase in enumerate(PHASES)]
     card = {
-        "name": cfg.name,
-        "method": METHODS[cfg.variant],
+        "name": name,
+        "method": METHODS[cfg.variant] + (", without fine-tuning (wo-FT)" if wo_ft else ""),
         "variant": cfg.variant,
         "seed": cfg.seed,
         "config": cfg.to_dict(),
         "task": task.to_dict(),
-        "networks": {"comm": None if trainer.policy.comm is None else trainer.policy.comm.cfg.to_dict(),
-                     "selector": trainer.policy.selector.cfg.to_dict(), "critic_hidden": cfg.critic_hidden},
+        "networks": {"comm": None if policy.comm is None else policy.comm.cfg.to_dict(),
+                     "selector": policy.selector.cfg.to_dict(), "critic_hidden": cfg.critic_hidden},
         "low_level": low_level_record,
-        "phases": [{"phase": name, "low_level": low_levels[i].name, "iterations": trainer.progress["iterations"][i]}
-                   for i, name in enumerate(PHASES)],
+        "phases": phases[:1] if wo_ft else phases,
         "consmac_training": None if not cfg.supervised else {
             "rounds": trainer.consmac_rounds, "steps": trainer.consmac_steps, "steps_per_round": cfg.consmac_steps,
             "every_iterations": cfg.consmac_every, "every_episodes": cfg.consmac_every * cfg.ppo.n_envs
             * cfg.ppo.episodes_per_iteration, "batch": cfg.consmac_batch, "lr": cfg.consmac_lr,
             "replay_capacity": cfg.replay_capacity, "paper": PAPER_CONSMAC},
-        "iterations": trainer.iteration,
-        "episodes": trainer.episodes,
-        "decisions": trainer.episodes * cfg.decision_steps * cfg.n_agents,
+        "iterations": iterations,
+        "episodes": episodes,
+        "decisions": episodes * cfg.decision_steps * cfg.n_agents,
         "train_wall_clock_s": round(trainer.elapsed, 1),
-        "last_iteration": {k: v for k, v in last_row.items() if isinstance(v, (int, float))},
         "run_dir": str(run_dir),
         "command": command,
     }
+    if wo_ft:
+        card["wo_ft"] = (f"the weights at the end of pre-training (iteration {iterations}) of the run that made "
+                         f"{cfg.name}; the ConsMAC and wall-clock figures are the whole run's")
+    else:
+        card["last_iteration"] = {k: v for k, v in (last_row or {}).items() if isinstance(v, (int, float))}
     if cfg.eval_episodes:
         card["evaluation"] = {
             "protocol": {"episodes": cfg.eval_episodes, "seed": 0, "anchors": "mode of the selector",
                          "low_level": low_levels[1].name, "backend": "particle",
                          "figures": "per-episode sums; R_t, R_n, R_e weighted, summing to R_H"},
-            "ours": evaluate_highlevel(trainer.policy, task, low_levels[1], cfg.eval_episodes, seed=0,
+            "ours": evaluate_highlevel(policy, task, low_levels[1], cfg.eval_episodes, seed=0,
                                        decision_interval=cfg.decision_interval),
         }
     write_model_card(policy_path, card)
@@ -824,6 +743,8 @@ def summary_lines(card: dict, policies_dir: Path) -> list[str]:
         c = card["consmac_training"]
         lines.append(f"ConsMAC: {c['rounds']} rounds, {c['steps']} steps of batch {c['batch']} "
                      f"(paper: {c['paper']['steps']} steps every {c['paper']['every_episodes']} episodes)")
+    if card.get("wo_ft"):
+        lines.append(f"pre-trained weights (wo-FT) -> {policies_dir / (card['wo_ft'] + '.pt')}")
     if "evaluation" in card:
         o = card["evaluation"]["ours"]
         lines.append(f"evaluation ({card['evaluation']['protocol']['episodes']} episodes): R_H {o['R_H']:.1f} = "

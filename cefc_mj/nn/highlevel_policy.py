@@ -1,0 +1,112 @@
+"""pi_H, the high level's policy: the communication module (ConsMAC, or none) and the anchor
+selector, with its own policy file format (docs/high_level.md).
+
+`HighLevelPolicy.decide(obs, inbox)` gives each agent's anchor index and the message it sends;
+`save_highlevel_policy` / `load_highlevel_policy` write and read `cefc-mj/highlevel-policy` files
+(configs, weights and their SHA-256)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+
+from cefc_mj.errors import CheckpointError, ConfigError
+from cefc_mj.nn.consmac import ConsMAC, ConsMACConfig, inbox_tensors
+from cefc_mj.nn.layers import state_digest
+from cefc_mj.nn.policy_io import atomic_torch_save, safe_torch_load
+from cefc_mj.nn.selector import AnchorSelector, SelectorConfig
+from cefc_mj.task.config import TaskConfig
+from cefc_mj.task.messages import Inbox
+
+VARIANTS = ("consmac-a", "consmac-o", "mappo", "tarmac")
+POLICY_FORMAT = "cefc-mj/highlevel-policy"
+POLICY_VERSION = 1
+
+
+class HighLevelPolicy(nn.Module):
+    """pi_H: the communication module (ConsMAC, or None for the mappo variant) and the anchor selector."""
+
+    def __init__(self, selector: AnchorSelector, comm: ConsMAC | None, variant: str):
+        super().__init__()
+        self.selector, self.comm, self.variant = selector, comm, variant
+
+    @classmethod
+    def build(cls, variant: str, task: TaskConfig, seed: int = 0, hidden: int = 128) -> "HighLevelPolicy":
+        """Fresh networks of a variant: consmac-a / consmac-o (ConsMAC with either label), tarmac (the
+        same module, its output left attached so the RL loss trains it) or mappo (no communication)."""
+        if variant not in VARIANTS:
+            raise ConfigError(f"variant={variant!r}: must be one of {', '.join(VARIANTS)}")
+        comm = None
+        if variant != "mappo":
+            comm = ConsMAC(ConsMACConfig.from_task(task, variant="O" if variant == "consmac-o" else "A"), seed=seed)
+            s_cfg = SelectorConfig.from_consmac(comm.cfg, hidden=hidden, consensus_gradient=variant == "tarmac")
+        else:
+            s_cfg = SelectorConfig.from_task(task, consensus_dim=0, hidden=hidden)
+        return cls(AnchorSelector(s_cfg, seed=seed + 1), comm, variant)
+
+    @property
+    def message_dim(self) -> int:
+        return self.comm.cfg.message_dim if self.comm is not None else 0
+
+    def comm_inputs(self, obs: torch.Tensor, inbox: Inbox | None) -> tuple[torch.Tensor, ...]:
+        """(obs, own, messages, mask, distance) as ConsMAC takes them; () without communication."""
+        return (obs, *inbox_tensors(inbox)) if self.comm is not None else ()
+
+    def consensus(self, comm_inputs: tuple[torch.Tensor, ...], lead: tuple[int, ...]):
+        """(the selector's consensus input, ConsMAC's output or None). The input is detached
+        unless the variant trains the communication module by RL (tarmac)."""
+        if self.comm is None:
+            return torch.zeros(*lead, 0), None
+        out = self.comm(*comm_inputs)
+        live = self.selector.cfg.consensus_gradient
+        return (out.message if live else out.detach_for_policy("message")), out
+
+    @torch.no_grad()
+    def decide(self, obs: np.ndarray, inbox: Inbox | None, deterministic: bool = True,
+               generator: torch.Generator | None = None) -> tuple[np.ndarray, np.ndarray | None]:
+        """(anchor index [B, N], message to send [B, N, 64] or None) for CEFC observations [B, N, D]
+        and the channel's inbox of this decision."""
+        obs_t = torch.as_tensor(obs, dtype=torch.float32)
+        consensus, out = self.consensus(self.comm_inputs(obs_t, inbox), tuple(obs_t.shape[:-1]))
+        index, _ = self.selector.act(obs_t, consensus, deterministic=deterministic, generator=generator)
+        return index.numpy(), (None if out is None else out.message.numpy())
+
+
+def save_highlevel_policy(policy: HighLevelPolicy, path: Path, meta: dict | None = None) -> Path:
+    """Write pi_H (communication module and selector, with their configs) as one policy file."""
+    state = {k: v.detach().cpu().clone() for k, v in policy.state_dict().items()}
+    atomic_torch_save({
+        "format": POLICY_FORMAT, "version": POLICY_VERSION, "variant": policy.variant,
+        "comm": None if policy.comm is None else policy.comm.cfg.to_dict(),
+        "selector": policy.selector.cfg.to_dict(),
+        "state_dict": state, "sha256": state_digest(state), "meta": meta or {},
+    }, Path(path))
+    return Path(path)
+
+
+def load_highlevel_policy(path: Path) -> tuple[HighLevelPolicy, dict]:
+    """(policy, meta) from a file written by `save_highlevel_policy`; CheckpointError with one line
+    for a missing, foreign, tampered or mismatched file."""
+    path = Path(path)
+    payload = safe_torch_load(path)
+    if payload.get("format") != POLICY_FORMAT:
+        raise CheckpointError(f"{path}: not a high-level policy file (format {payload.get('format')!r})")
+    if payload.get("version") != POLICY_VERSION:
+        raise CheckpointError(f"{path}: high-level policy version {payload.get('version')!r}, this code reads "
+                              f"{POLICY_VERSION}")
+    state = payload.get("state_dict")
+    if not isinstance(state, dict) or state_digest(state) != payload.get("sha256"):
+        raise CheckpointError(f"{path}: weights do not match the stored SHA-256 (file modified or corrupted)")
+    try:
+        comm = None if payload.get("comm") is None else ConsMAC(ConsMACConfig.from_dict(payload["comm"]))
+        selector = AnchorSelector(SelectorConfig.from_dict(payload["selector"]))
+        policy = HighLevelPolicy(selector, comm, str(payload.get("variant")))
+        policy.load_state_dict(state)
+    except (ConfigError, RuntimeError, TypeError, KeyError) as e:
+        raise CheckpointError(f"{path}: weights do not fit the described networks "
+                              f"({str(e).splitlines()[0][:160]})") from None
+    policy.eval()
+    return policy, dict(payload.get("meta") or {})

@@ -1,0 +1,131 @@
+"""Tables V and VI (cefc_mj/eval/highlevel.py, `cefc-eval --protocol table5|table6`).
+
+Real particle games flown by the shipped student under freshly built (untrained) high-level
+policies written as real policy files; 2-4 episodes, so the file takes well under a minute.
+"""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from cefc_mj import paths
+from cefc_mj.cli.eval import main
+from cefc_mj.eval.highlevel import (DT, evaluate_highlevel_episodes, format_highlevel_table, game_task, run_table5,
+                                    run_table6)
+from cefc_mj.hierarchy import load_low_level
+from cefc_mj.nn.highlevel_policy import HighLevelPolicy, save_highlevel_policy
+
+
+@pytest.fixture(autouse=True)
+def one_torch_thread():
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+@pytest.fixture
+def policies(tmp_path):
+    """A policies folder with MAPPO seeds 0 and 1 and a CI-HRL policy (untrained weights)."""
+    folder = tmp_path / "policies"
+    folder.mkdir()
+    task = game_task()
+    for name, variant, seed in (("cihrl_mappo", "mappo", 0), ("cihrl_mappo_seed1", "mappo", 1),
+                                ("cihrl_consmac_a", "consmac-a", 0)):
+        save_highlevel_policy(HighLevelPolicy.build(variant, task, seed=seed), folder / f"{name}.pt",
+                              meta={"name": name, "decision_interval": 10})
+    return folder
+
+
+def test_table5_rows_units_seeds_and_missing_methods(policies):
+    result = run_table5(episodes=2, seed=3, policies_dir=policies)
+    assert list(result["rows"]) == ["MAPPO+AT-M", "CI-HRL"]
+    assert result["protocol"]["missing"] == ["TarMAC+AT-M (cihrl_tarmac.pt)", "CI-HRL-DT (cihrl_consmac_a_dt.pt)",
+                                             "CI-HRL-wo-FT (cihrl_consmac_a_wo_ft.pt)"]
+    for row in result["rows"].values():
+        per = {k: np.array(v) for k, v in row["per_episode"].items()}
+        np.testing.assert_allclose(per["R_H"], per["R_t"] + per["R_n"] + per["R_e"], rtol=1e-12, atol=1e-9)
+        assert (per["E"] >= 0).all() and (per["E"] <= 400).all()
+        for m in ("R_H", "R_t", "R_n", "R_e", "E"):
+            assert row["seconds"][m] == pytest.approx(row[m] * DT)
+        assert row["R_n"] < 0 and row["paper"] is not None
+    seeds = result["rows"]["MAPPO+AT-M"]["training_seeds"]
+    assert seeds["seeds"] == [0, 1] and seeds["files"] == ["cihrl_mappo.pt", "cihrl_mappo_seed1.pt"]
+    assert seeds["mean"]["R_H"] == pytest.approx(np.mean(seeds["R_H"]))
+    assert "training_seeds" not in result["rows"]["CI-HRL"]
+    assert result["rows"]["CI-HRL"]["paper"]["E"] == 4.46
+    text = format_highlevel_table(result)
+    assert "MAPPO+AT-M" in text and "2 training seeds" in text and "missing policies: TarMAC+AT-M" in text
+    # The same seed flies the same episodes: bit-identical figures.
+    again = run_table5(episodes=2, seed=3, policies_dir=policies, policy="cihrl_mappo")
+    assert again["rows"]["cihrl_mappo"]["per_episode"] == result["rows"]["MAPPO+AT-M"]["per_episode"]
+
+
+def test_the_evaluation_follows_the_policy_a_better_anchor_choice_scores_more():
+    """Not a constant: a selector that sends everyone to one target corner covers it (R_t > 0) and
+    navigates better than one that sends everyone to the arena's far side of both targets."""
+    task = game_task()
+    low_level = load_low_level("atm_student", task)
+
+    class Fixed:
+        comm = None
+        message_dim = 0
+
+        def __init__(self, pick):
+            self.pick = pick
+
+        def decide(self, obs, inbox):
+            return self.pick(obs), None
+
+    def to_first_target(obs):
+        # targets come first in the CEFC observation: the offset to target 0, in metres
+        offset = obs[..., :2]
+        anchor = np.sign(offset.mean(axis=1, keepdims=True)).repeat(obs.shape[1], axis=1) + 1  # 0, 1, 2 per axis
+        return (3 * anchor[..., 0] + anchor[..., 1]).astype(np.int64)
+
+    good = evaluate_highlevel_episodes(Fixed(to_first_target), task, low_level, episodes=3, seed=5)
+    centre = evaluate_highlevel_episodes(Fixed(lambda obs: np.full(obs.shape[:2], 4)), task, low_level, 3, seed=5)
+    assert good["R_t"].mean() > centre["R_t"].mean() and good["R_n"].mean() > centre["R_n"].mean()
+
+
+def test_table6_plays_one_policy_against_each_adversary(policies):
+    result = run_table6(episodes=2, policies_dir=policies, policy="cihrl_mappo")
+    assert list(result["rows"]) == ["PPO", "R-Largest", "R-Nearest"]
+    assert [r["adversary"] for r in result["rows"].values()] == ["nearest_group", "r_largest", "r_nearest"]
+    assert "not like-for-like" in result["rows"]["PPO"]["differs"]
+    assert result["rows"]["R-Nearest"]["paper"] == {"R_t": 187.87, "R_e": -79.54, "E": 5.8}
+    # The adversary changes the episodes (same layouts and targets, another pursuer).
+    assert result["rows"]["R-Nearest"]["per_episode"]["R_e"] != result["rows"]["R-Largest"]["per_episode"]["R_e"]
+
+
+def test_cli_writes_the_report_folder(policies, tmp_path, monkeypatch, capsys):
+    (policies / "atm_student.pt").write_bytes((paths.POLICIES_DIR / "atm_student.pt").read_bytes())
+    monkeypatch.setattr(paths, "POLICIES_DIR", policies)
+    out = tmp_path / "reports"
+    assert main(["--backend", "particle", "--protocol", "table5", "--episodes", "2", "--report-dir", str(out),
+                 "--json", str(tmp_path / "t5.json")]) == 0
+    assert "MAPPO+AT-M" in capsys.readouterr().out
+    assert {p.name for p in out.iterdir()} == {"table5.md", "table5.json", "table5.png"}
+    data = json.loads((out / "table5.json").read_text())
+    assert data == json.loads((tmp_path / "t5.json").read_text())
+    assert data["protocol"]["command"].startswith("cefc-eval --backend particle --protocol table5")
+    assert (out / "table5.png").read_bytes()[:4] == b"\x89PNG"
+
+
+@pytest.mark.parametrize("argv, needle", [
+    (["--protocol", "table5"], "add --backend particle"),
+    (["--protocol", "table5", "--backend", "particle", "--deviation", "0.5"], "--deviation: --protocol table5"),
+    (["--protocol", "table6", "--backend", "particle", "--steps", "100"], "--steps: --protocol table6"),
+    (["--protocol", "table5", "--backend", "particle", "--workers", "2"], "--workers: table5"),
+    (["--protocol", "table5", "--backend", "particle", "--policy", "no_such"], "--policy no_such: no high-level"),
+    (["--protocol", "table6", "--backend", "particle", "--episodes", "0"], "--episodes 0"),
+])
+def test_cli_bad_input_exits_2_with_one_line(argv, needle, tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+    err = capsys.readouterr().err
+    assert exc.value.code == 2 and err.count("\n") == 1 and needle in err, err
+    assert not any(tmp_path.iterdir())
