@@ -22,13 +22,7 @@ from cefc_mj.task.messages import MessageChannel
 TASK = TaskConfig(n_agents=8, mode="cefc")
 
 
-@pytest.fixture(autouse=True)
-def one_torch_thread():
-    """Small networks: one thread is faster than two fighting over a loaded machine."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def random_inputs(cfg, b=3, seed=0, received=None):

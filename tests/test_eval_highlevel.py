@@ -8,22 +8,16 @@ import json
 
 import numpy as np
 import pytest
-import torch
 
 from cefc_mj import paths
 from cefc_mj.cli.eval import main
-from cefc_mj.eval.highlevel import (DT, evaluate_highlevel_episodes, format_highlevel_table, game_task, run_table5,
+from cefc_mj.eval.highlevel import (DT, Conditions, evaluate_highlevel_episodes, format_highlevel_table, game_task, run_table5,
                                     run_table6)
 from cefc_mj.hierarchy import load_low_level
 from cefc_mj.nn.highlevel_policy import HighLevelPolicy, save_highlevel_policy
 
 
-@pytest.fixture(autouse=True)
-def one_torch_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @pytest.fixture
@@ -100,6 +94,17 @@ def test_table6_plays_one_policy_against_each_adversary(policies):
     assert result["rows"]["R-Nearest"]["per_episode"]["R_e"] != result["rows"]["R-Largest"]["per_episode"]["R_e"]
 
 
+def test_the_game_flies_on_quadrotors_with_wind_and_deviation(policies):
+    """The same policy file on MuJoCo quadrotors: the same episodes (layouts, targets), other physics."""
+    calm = run_table5(episodes=1, seed=2, policies_dir=policies, policy="cihrl_mappo")["rows"]["cihrl_mappo"]
+    quad = run_table5(episodes=1, seed=2, policies_dir=policies, policy="cihrl_mappo",
+                      where=Conditions("mujoco", wind=5.0, deviation=0.3))
+    assert quad["protocol"]["backend"] == "mujoco" and not quad["protocol"]["comparable_to_paper"]
+    row = quad["rows"]["cihrl_mappo"]
+    assert row["per_episode"] != calm["per_episode"] and row["R_n"] < 0
+    assert "not like-for-like" in format_highlevel_table(quad)
+
+
 def test_cli_writes_the_report_folder(policies, tmp_path, monkeypatch, capsys):
     (policies / "atm_student.pt").write_bytes((paths.POLICIES_DIR / "atm_student.pt").read_bytes())
     monkeypatch.setattr(paths, "POLICIES_DIR", policies)
@@ -114,13 +119,29 @@ def test_cli_writes_the_report_folder(policies, tmp_path, monkeypatch, capsys):
     assert (out / "table5.png").read_bytes()[:4] == b"\x89PNG"
 
 
+def test_cli_records_one_game_of_a_policy(policies, tmp_path, monkeypatch, capsys):
+    """--rrd and --png with table5 --policy: one recorded game (the .rrd is read back in
+    tests/test_highlevel_log.py) and the similarity matrices; a policy without messages has none."""
+    (policies / "atm_student.pt").write_bytes((paths.POLICIES_DIR / "atm_student.pt").read_bytes())
+    monkeypatch.setattr(paths, "POLICIES_DIR", policies)
+    rrd, png = tmp_path / "game.rrd", tmp_path / "png"
+    assert main(["--backend", "particle", "--protocol", "table5", "--policy", "cihrl_consmac_a", "--episodes", "1",
+                 "--rrd", str(rrd), "--png", str(png)]) == 0
+    assert rrd.stat().st_size > 0 and [p.name for p in png.iterdir()] == ["similarity_cihrl_consmac_a_s0.png"]
+    with pytest.raises(SystemExit) as exc:
+        main(["--backend", "particle", "--protocol", "table5", "--policy", "cihrl_mappo", "--png", str(tmp_path / "x")])
+    assert exc.value.code == 2 and "sends no messages" in capsys.readouterr().err
+    assert not (tmp_path / "x").exists()
+
+
 @pytest.mark.parametrize("argv, needle", [
-    (["--protocol", "table5"], "add --backend particle"),
-    (["--protocol", "table5", "--backend", "particle", "--deviation", "0.5"], "--deviation: --protocol table5"),
+    (["--protocol", "table5", "--backend", "particle", "--wind", "3"], "--wind: the particle backend has no wind"),
+    (["--protocol", "table5", "--backend", "particle", "--estimator", "raw"], "--estimator: --protocol table5"),
     (["--protocol", "table6", "--backend", "particle", "--steps", "100"], "--steps: --protocol table6"),
     (["--protocol", "table5", "--backend", "particle", "--workers", "2"], "--workers: table5"),
     (["--protocol", "table5", "--backend", "particle", "--policy", "no_such"], "--policy no_such: no high-level"),
     (["--protocol", "table6", "--backend", "particle", "--episodes", "0"], "--episodes 0"),
+    (["--protocol", "table5", "--backend", "particle", "--rrd", "x.rrd"], "--rrd: recording works with"),
 ])
 def test_cli_bad_input_exits_2_with_one_line(argv, needle, tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)

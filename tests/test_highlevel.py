@@ -25,12 +25,7 @@ from cefc_mj.train.highlevel import HighLevelConfig, HighLevelTrainer, load_high
 TASK = TaskConfig(n_agents=8, mode="cefc", obstacle_density=0.03)
 
 
-@pytest.fixture(autouse=True)
-def one_torch_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def tiny_config(variant="consmac-a", **overrides) -> HighLevelConfig:

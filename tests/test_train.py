@@ -21,13 +21,7 @@ from cefc_mj.train.pipeline import plan
 TINY = PPOConfig(n_envs=8, lr=1e-3, update_threads=1)
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    """Tiny networks: one torch thread is fastest and does not oversubscribe a shared CPU."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def rows(run_dir):

@@ -80,11 +80,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--protocol", choices=["single", "table8", "table3", "table5", "table6"], default="single",
                    help="single: one condition (from --wind/--deviation) vs calm; table8: the paper's 7 conditions "
                         "(MuJoCo); table3: the paper's MPE Table III (particle backend); table5 / table6: the "
-                        "high level's game, CI-HRL against the baselines / against adversary strategies (particle)")
+                        "high level's game, CI-HRL against the baselines / against adversary strategies (the "
+                        "paper's on --backend particle; also on quadrotors, with --wind and --deviation)")
     p.add_argument("--wind", type=float, default=None, metavar="MPS",
-                   help=f"mean wind speed in m/s, 0..{MAX_WIND_SPEED:g} (single protocol, MuJoCo; default 0)")
+                   help=f"mean wind speed in m/s, 0..{MAX_WIND_SPEED:g} (single, table5, table6; MuJoCo; default 0)")
     p.add_argument("--deviation", type=float, default=None, metavar="M",
-                   help=f"sensing deviation in m, 0..{MAX_DEVIATION:g} (single protocol; default 0)")
+                   help=f"sensing deviation in m, 0..{MAX_DEVIATION:g} (single, table5, table6; default 0)")
     p.add_argument("--formation", type=int, nargs="+", metavar="C",
                    help="formation sizes c in 3..8 (default 5 6 7 8; table3: 6 7 8)")
     p.add_argument("--episodes", type=int, metavar="K",
@@ -122,9 +123,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help="MuJoCo: what the PX4-like offboard interface makes of the policy's acceleration setpoint: "
                         "velocity (default; integrated into a velocity setpoint) or acceleration (sent as PX4 "
                         "acceleration setpoints, as the paper does); single and table8, not with --sitl-m or --drop")
-    p.add_argument("--rrd", type=Path, metavar="PATH", help="record the episodes to a Rerun .rrd file (single)")
+    p.add_argument("--rrd", type=Path, metavar="PATH",
+                   help="record the episodes to a Rerun .rrd file (single; table5 with --policy: one game)")
     p.add_argument("--spawn", action="store_true", help="stream the episodes to a live Rerun viewer (single)")
-    p.add_argument("--png", type=Path, metavar="DIR", help="write a top-down PNG of each episode into DIR (single)")
+    p.add_argument("--png", type=Path, metavar="DIR",
+                   help="write a top-down PNG of each episode into DIR (single; table5 with --policy: the game's "
+                        "message-similarity matrices)")
     p.add_argument("--json", type=Path, metavar="PATH", help="also write the results as JSON (docs/evaluation.md)")
     p.add_argument("--workers", type=int, default=1, metavar="W",
                    help=f"processes flying episodes, 1..{MAX_WORKERS} (single without recording, table8; default 1)")
@@ -302,8 +306,10 @@ def validate(args: argparse.Namespace) -> None:
             usage_error("--deviation: Table III is flown with exact sensing; use --protocol single --backend particle")
         if args.workers > 1:
             usage_error("--workers: table3 flies all its episodes as one batch in one process")
-    if proto != "single" and recording:
-        usage_error(f"{recording[0]}: recording works with --protocol single only")
+    records_game = proto == "table5" and args.policy is not None and not args.spawn
+    if proto != "single" and recording and not records_game:
+        usage_error(f"{recording[0]}: recording works with --protocol single, or table5 with --policy NAME "
+                    "(--rrd, --png)")
     if proto == "single" and args.workers > 1 and recording:
         usage_error(f"--workers {args.workers}: {recording[0]} records in this process; use --workers 1")
     if args.spawn:
@@ -356,19 +362,17 @@ HIGHLEVEL_PROTOCOLS = ("table5", "table6")
 
 
 def _validate_highlevel(args: argparse.Namespace) -> None:
-    """Tables V and VI play the paper's MPE game: the particle backend, its own layout and length."""
+    """Tables V and VI play the paper's game as it is (8 UAVs, 400 steps), on particles (the paper's
+    MPE) or on MuJoCo quadrotors, with --wind (MuJoCo) and --deviation as perturbations."""
     proto = args.protocol
-    if args.backend != "particle":
-        usage_error(f"--protocol {proto} is the paper's MPE protocol: add --backend particle")
     given = [flag for flag, on in (
-        ("--wind", args.wind is not None), ("--deviation", args.deviation is not None),
         ("--formation", args.formation is not None), ("--steps", args.steps is not None),
         ("--sitl-m", args.sitl_m), ("--drop", args.drop is not None), ("--airframe", args.airframe is not None),
         ("--estimator", args.estimator is not None), ("--offboard", args.offboard is not None),
         ("--fresh", args.fresh)) if on]
     if given:
-        usage_error(f"{given[0]}: --protocol {proto} plays the paper's game as it is (8 UAVs, 400 steps, exact "
-                    "sensing); see docs/high_level.md")
+        usage_error(f"{given[0]}: --protocol {proto} plays the paper's game as it is (8 UAVs, 400 steps, the fused "
+                    "estimate); docs/high_level.md")
     if args.workers > 1:
         usage_error(f"--workers: {proto} flies all its episodes as one batch in one process")
 
@@ -403,7 +407,14 @@ def load_policies(args: argparse.Namespace) -> dict:
         from cefc_mj.eval.runner import provenance
 
         if args.policy is not None or args.protocol == "table6":
-            highlevel_policy_path(args.policy or "cihrl_consmac_a")  # a missing file fails before any episode
+            path = highlevel_policy_path(args.policy or "cihrl_consmac_a")  # a missing file fails before any episode
+            if args.png is not None and args.protocol == "table5":
+                from cefc_mj.errors import ConfigError
+                from cefc_mj.nn.highlevel_policy import load_highlevel_policy
+
+                if load_highlevel_policy(path)[0].comm is None:
+                    raise ConfigError(f"--png: {args.policy} sends no messages (no communication), so there is no "
+                                      "similarity to draw; drop --png")
         return provenance("atm", [])  # the tables record each row's file and sha256 themselves
     if args.protocol == "table3":
         from cefc_mj.eval.table3 import POLICY_CHOICES, policy_file_for
@@ -744,17 +755,18 @@ def _table3(args: argparse.Namespace) -> int:
 def _highlevel_table(args: argparse.Namespace) -> int:
     import json
 
-    from cefc_mj.eval.highlevel import format_highlevel_table, plot_highlevel_table, run_table5, run_table6
+    from cefc_mj.eval.highlevel import Conditions, format_highlevel_table, plot_highlevel_table, run_table5, run_table6
 
     proto = args.protocol
-    print(f"{PROG} {proto}: particle, 8 UAVs, {args.episodes} episodes x 400 steps, seed {args.seed}, "
+    print(f"{PROG} {proto}: {args.backend}, wind {args.wind:g} m/s, deviation {args.deviation:g} m, 8 UAVs, {args.episodes} episodes x 400 steps, seed {args.seed}, "
           f"{'policy ' + args.policy if args.policy else 'every method' if proto == 'table5' else 'cihrl_consmac_a'}")
     prov = {k: v for k, v in args.provenance.items() if k != "policies"}
+    where = Conditions(args.backend, args.wind, args.deviation)
     if proto == "table5":
-        result = run_table5(episodes=args.episodes, seed=args.seed, policy=args.policy, provenance=prov)
+        result = run_table5(episodes=args.episodes, seed=args.seed, policy=args.policy, provenance=prov, where=where)
     else:
         result = run_table6(episodes=args.episodes, seed=args.seed, policy=args.policy or "cihrl_consmac_a",
-                            provenance=prov)
+                            provenance=prov, where=where)
     result["protocol"]["command"] = args.command
     text = format_highlevel_table(result)
     print(text)
@@ -768,7 +780,36 @@ def _highlevel_table(args: argparse.Namespace) -> int:
     if args.json is not None:
         writes.append((args.json, data))
     _write_outputs(writes)
+    if proto == "table5" and (args.rrd is not None or args.png is not None):
+        for path in _record_highlevel(args, where):
+            print(f"wrote {path}")
     return 0
+
+
+def _record_highlevel(args: argparse.Namespace, where) -> list[Path]:
+    """--rrd / --png of table5: one game with --seed, flown by the evaluated policy, recorded (the
+    same game as a one-episode evaluation with that seed)."""
+    from cefc_mj.eval.highlevel import LOW_LEVEL, game_task, highlevel_policy_path
+    from cefc_mj.hierarchy import DECISION_INTERVAL, load_low_level
+    from cefc_mj.nn.highlevel_policy import load_highlevel_policy
+    from cefc_mj.provenance import file_sha256
+    from cefc_mj.viz.highlevel_log import play_highlevel_episode, plot_similarity_matrices, record_highlevel_episode
+
+    path = highlevel_policy_path(args.policy)
+    policy, meta = load_highlevel_policy(path)
+    task = game_task(deviation=where.deviation)
+    episode = play_highlevel_episode(policy, task, load_low_level(LOW_LEVEL, task), seed=args.seed,
+                                     world=where.world(task, 1, args.seed),
+                                     decision_interval=int(meta.get("decision_interval", DECISION_INTERVAL)))
+    episode.policy, episode.policy_sha256 = path.stem, file_sha256(path)
+    written: list[Path] = []
+    if args.rrd is not None:
+        args.rrd.parent.mkdir(parents=True, exist_ok=True)
+        written.append(record_highlevel_episode(episode, args.rrd, recording_id=f"{path.stem}_s{args.seed}"))
+    if args.png is not None:
+        args.png.mkdir(parents=True, exist_ok=True)
+        written.append(plot_similarity_matrices(episode, args.png / f"similarity_{path.stem}_s{args.seed}.png"))
+    return written
 
 
 # ---------------------------------------------------------------------------- recording

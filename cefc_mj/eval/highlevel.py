@@ -61,23 +61,56 @@ TABLE6_ROWS = (
 """(the paper's column, our adversary rule, what differs)."""
 
 
-def game_task(adversary: str = "nearest_group") -> TaskConfig:
-    """The CEFC game of Tables V and VI (the high level's training game, `HighLevelConfig.task`)."""
+def game_task(adversary: str = "nearest_group", deviation: float = 0.0) -> TaskConfig:
+    """The CEFC game of Tables V and VI (the high level's training game, `HighLevelConfig.task`),
+    optionally with sensing deviation (m; the agents then act on the fused position estimate, as in
+    `cefc-eval`; without deviation the estimate is the exact position)."""
     if adversary not in ADVERSARY_RULES:
         raise ConfigError(f"adversary={adversary!r}: must be one of {', '.join(ADVERSARY_RULES)}")
     return TaskConfig(n_agents=GAME_AGENTS, mode="cefc", obstacle_density=GAME_DENSITY, adversary=adversary,
-                      episode_steps=GAME_STEPS)
+                      episode_steps=GAME_STEPS, deviation=deviation, position_estimator="fused")
+
+
+class Conditions:
+    """Where Tables V and VI are played: the backend ("particle", the paper's MPE, or "mujoco", the
+    quadrotors), the mean wind speed (m/s, MuJoCo) and the sensing deviation (m)."""
+
+    def __init__(self, backend: str = "particle", wind: float = 0.0, deviation: float = 0.0):
+        if backend not in ("particle", "mujoco"):
+            raise ConfigError(f"backend={backend!r}: must be particle or mujoco")
+        if wind and backend != "mujoco":
+            raise ConfigError("wind: the particle backend has no wind model; use backend='mujoco'")
+        self.backend, self.wind, self.deviation = backend, float(wind), float(deviation)
+
+    @property
+    def paper_like(self) -> bool:
+        """The paper's Tables V and VI: the particle world, calm, exact sensing."""
+        return self.backend == "particle" and not self.wind and not self.deviation
+
+    def world(self, task: TaskConfig, episodes: int, seed: int):
+        """None (the env's own particle world) or the MuJoCo world of `episodes` envs."""
+        if self.backend == "particle":
+            return None
+        from cefc_mj import make_world
+
+        return make_world("mujoco", task, episodes, wind=self.wind, seed=seed)
+
+    def to_dict(self) -> dict:
+        return {"backend": self.backend, "wind": self.wind, "deviation": self.deviation}
 
 
 # ---------------------------------------------------------------------------- episodes
 @torch.no_grad()
 def evaluate_highlevel_episodes(policy: HighLevelPolicy, task: TaskConfig, low_level: LowLevel, episodes: int,
-                                seed: int = 0, decision_interval: int = DECISION_INTERVAL) -> dict[str, np.ndarray]:
+                                seed: int = 0, decision_interval: int = DECISION_INTERVAL,
+                                world=None) -> dict[str, np.ndarray]:
     """Per-episode figures [episodes] of `episodes` episodes (one batch, seeded by `seed`) with the
     mode of each anchor distribution: R_H and its weighted parts R_t, R_n, R_e (they sum to R_H),
     all summed over the episode's low-level steps, and the env's metrics E (steps with an agent
-    within 2 m of the adversary), F and C."""
-    env = HierarchicalCEFCEnv(task, low_level, n_envs=episodes, seed=seed, decision_interval=decision_interval)
+    within 2 m of the adversary), F and C. world: a physics world of `episodes` envs (default the
+    particle world)."""
+    env = HierarchicalCEFCEnv(task, low_level, n_envs=episodes, seed=seed, decision_interval=decision_interval,
+                              world=world)
     channel = (MessageChannel(episodes, task.n_agents, policy.message_dim, task.observation_distance)
                if policy.comm is not None else None)
     w = task.rewards
@@ -148,10 +181,12 @@ def highlevel_policy_path(policy: str, policies_dir: Path | None = None) -> Path
     return path
 
 
-def _evaluate_file(path: Path, task: TaskConfig, low_level: LowLevel, episodes: int, seed: int) -> dict:
+def _evaluate_file(path: Path, task: TaskConfig, low_level: LowLevel, episodes: int, seed: int,
+                   where: Conditions) -> dict:
     policy, meta = load_highlevel_policy(path)
     row = _stats(evaluate_highlevel_episodes(policy, task, low_level, episodes, seed=seed,
-                                             decision_interval=int(meta.get("decision_interval", DECISION_INTERVAL))))
+                                             decision_interval=int(meta.get("decision_interval", DECISION_INTERVAL)),
+                                             world=where.world(task, episodes, seed)))
     row.update({"policy": path.name, "sha256": file_sha256(path)})
     trained_with = (meta.get("low_level") or {}).get("file", {}).get("sha256")
     low_file = (low_level.describe().get("file") or {}).get("sha256")
@@ -160,15 +195,17 @@ def _evaluate_file(path: Path, task: TaskConfig, low_level: LowLevel, episodes: 
     return row
 
 
-def _protocol(episodes: int, seed: int, low_level: LowLevel, policies_dir: Path, adversary: str | None) -> dict:
+def _protocol(episodes: int, seed: int, low_level: LowLevel, policies_dir: Path, adversary: str | None,
+              where: Conditions) -> dict:
     if not isinstance(episodes, int) or isinstance(episodes, bool) or episodes < 1:
         raise ConfigError(f"episodes={episodes!r}: must be an integer >= 1")
     if not isinstance(seed, int) or isinstance(seed, bool) or seed < 0:
         raise ConfigError(f"seed={seed!r}: must be an integer >= 0")
-    return {"backend": "particle", "n_agents": GAME_AGENTS, "density": GAME_DENSITY, "steps": GAME_STEPS,
+    return {**where.to_dict(), "n_agents": GAME_AGENTS, "density": GAME_DENSITY, "steps": GAME_STEPS,
             "decision_interval": DECISION_INTERVAL, "episodes": episodes, "seed": seed, "adversary": adversary,
             "low_level": low_level.describe() | {"name": low_level.name}, "policies_dir": str(policies_dir),
-            "anchors": "mode of the selector", "dt": DT, "comparable_to_paper": episodes == EPISODES,
+            "anchors": "mode of the selector", "dt": DT,
+            "comparable_to_paper": episodes == EPISODES and where.paper_like,
             "units": "per-episode sums over 400 low-level steps; 'seconds' = x dt, the scale of the paper's values",
             "missing": []}
 
@@ -182,32 +219,35 @@ def _low_level(task: TaskConfig) -> LowLevel:
 
 
 def run_table5(episodes: int = EPISODES, seed: int = 0, policies_dir: Path | None = None,
-               policy: str | None = None, provenance: dict | None = None) -> dict:
+               policy: str | None = None, provenance: dict | None = None, where: Conditions | None = None) -> dict:
     """Table V: every method whose policy file exists (the others are listed in protocol["missing"]),
     or only `policy` (a file or a name in policies_dir, one row under its file name). Each row is
     the seed-0 policy over `episodes` episodes; where files of other training seeds exist,
-    row["training_seeds"] has each seed's means and their mean and sample std."""
+    row["training_seeds"] has each seed's means and their mean and sample std. where: backend, wind
+    and deviation (default the paper's: particles, calm, exact sensing)."""
     policies_dir = Path(policies_dir) if policies_dir is not None else paths.POLICIES_DIR
-    task = game_task()
+    where = where or Conditions()
+    task = game_task(deviation=where.deviation)
     low_level = _low_level(task)
     result = {"schema": "cefc-eval/table5", "schema_version": 1,
-              "protocol": _protocol(episodes, seed, low_level, policies_dir, task.adversary), "rows": {}}
+              "protocol": _protocol(episodes, seed, low_level, policies_dir, task.adversary, where), "rows": {}}
     paper = _paper("table5_cihrl_mpe")
     if provenance is not None:
         result["provenance"] = provenance
     if policy is not None:
         path = highlevel_policy_path(policy, policies_dir)
-        result["rows"][path.stem] = {**_evaluate_file(path, task, low_level, episodes, seed), "paper": None}
+        result["rows"][path.stem] = {**_evaluate_file(path, task, low_level, episodes, seed, where), "paper": None}
         return result
     for method, stem, suffix in TABLE5_ROWS:
         files = _seed_files(stem, suffix, policies_dir)
         if 0 not in files:
             result["protocol"]["missing"].append(f"{method} ({stem}{suffix}.pt)")
             continue
-        row = _evaluate_file(files[0], task, low_level, episodes, seed)
+        row = _evaluate_file(files[0], task, low_level, episodes, seed, where)
         row["paper"] = dict(zip(COLUMNS, paper[method])) if method in paper else None
         if len(files) > 1:
-            per_seed = {k: (row if k == 0 else _evaluate_file(f, task, low_level, episodes, seed)) for k, f in files.items()}
+            per_seed = {k: (row if k == 0 else _evaluate_file(f, task, low_level, episodes, seed, where))
+                        for k, f in files.items()}
             row["training_seeds"] = {
                 "seeds": list(per_seed), "files": [f.name for f in files.values()],
                 **{m: [r[m] for r in per_seed.values()] for m in COLUMNS},
@@ -219,20 +259,21 @@ def run_table5(episodes: int = EPISODES, seed: int = 0, policies_dir: Path | Non
 
 
 def run_table6(episodes: int = EPISODES, seed: int = 0, policies_dir: Path | None = None,
-               policy: str = "cihrl_consmac_a", provenance: dict | None = None) -> dict:
+               policy: str = "cihrl_consmac_a", provenance: dict | None = None, where: Conditions | None = None) -> dict:
     """Table VI: one high-level policy (default CI-HRL) against each adversary strategy, the same
     episodes otherwise. Columns R_t, R_e, E as the paper prints them (R_H, R_n ride along)."""
     policies_dir = Path(policies_dir) if policies_dir is not None else paths.POLICIES_DIR
     path = highlevel_policy_path(policy, policies_dir)
+    where = where or Conditions()
     low_level = _low_level(game_task())
     result = {"schema": "cefc-eval/table6", "schema_version": 1,
-              "protocol": _protocol(episodes, seed, low_level, policies_dir, None), "rows": {}}
+              "protocol": _protocol(episodes, seed, low_level, policies_dir, None, where), "rows": {}}
     result["protocol"]["policy"] = path.name
     paper = _paper("table6_adversaries")
     if provenance is not None:
         result["provenance"] = provenance
     for column, adversary, differs in TABLE6_ROWS:
-        row = _evaluate_file(path, game_task(adversary), low_level, episodes, seed)
+        row = _evaluate_file(path, game_task(adversary, where.deviation), low_level, episodes, seed, where)
         row.update({"adversary": adversary, "paper": dict(zip(("R_t", "R_e", "E"), paper[column]))})
         if differs:
             row["differs"] = differs
@@ -241,6 +282,15 @@ def run_table6(episodes: int = EPISODES, seed: int = 0, policies_dir: Path | Non
 
 
 # ---------------------------------------------------------------------------- reports
+def _where_text(proto: dict) -> str:
+    text = "particle" if proto["backend"] == "particle" else "MuJoCo quadrotors"
+    if proto["wind"]:
+        text += f", wind {proto['wind']:g} m/s"
+    if proto["deviation"]:
+        text += f", deviation {proto['deviation']:g} m (fused estimate)"
+    return text
+
+
 def format_highlevel_table(result: dict) -> str:
     """Plain text: per method ours (mean ± std over episodes, in seconds of flight) and the paper's row."""
     from cefc_mj.eval.runner import format_mean_std
@@ -249,15 +299,18 @@ def format_highlevel_table(result: dict) -> str:
     table_name = "Table VI" if result["schema"] == "cefc-eval/table6" else "Table V"
     adversary = proto["adversary"] or "per row"
     lines = [
-        f"{table_name} protocol (particle, N = {proto['n_agents']}, density {proto['density']}/m^2, {proto['episodes']} "
+        f"{table_name} protocol ({_where_text(proto)}, N = {proto['n_agents']}, density {proto['density']}/m^2, {proto['episodes']} "
         f"episodes x {proto['steps']} steps, seed {proto['seed']}, adversary {adversary}, low level "
         f"{proto['low_level']['name']}).",
         "R_H = R_t + R_n + R_e (weighted reward terms) and E (time with an agent within 2 m of the adversary), "
         "summed over each episode and given in seconds of flight (x 0.1 s), the scale of the paper's values; "
         "ours: mean ± sample std over episodes.",
     ]
-    if not proto.get("comparable_to_paper", True):
+    if proto["episodes"] != EPISODES:
         lines.append(f"{proto['episodes']} episodes; the paper evaluates {EPISODES}.")
+    if proto["backend"] != "particle" or proto["wind"] or proto["deviation"]:
+        lines.append("The paper's rows are from its MPE (particles, calm, exact sensing): shown for scale, not "
+                     "like-for-like.")
     table = [["method", "", *COLUMNS, "F (steps)", "C (%)"]]
     for method, row in result["rows"].items():
         label = method if result["schema"] != "cefc-eval/table6" else f"{method} ({row['adversary']})"

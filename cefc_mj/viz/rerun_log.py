@@ -130,11 +130,12 @@ def open_recording(
     spawn: bool = False,
     application_id: str = APPLICATION_ID,
     recording_id: str | None = None,
+    blueprint: rrb.Blueprint | None = None,
 ) -> rr.RecordingStream:
     """A new recording stream sending to a `.rrd` file, a spawned viewer, or both.
 
     Each call is a distinct recording (a fresh `recording_id` unless given), so one viewer can hold
-    several episodes side by side. The blueprint from `episode_blueprint` goes with it. Raises
+    several episodes side by side. `blueprint` (default `episode_blueprint()`) goes with it. Raises
     `ConfigError` when neither sink is asked for, the file cannot be written, or `spawn` has no
     viewer to show (`check_spawn_possible`).
     """
@@ -152,7 +153,7 @@ def open_recording(
     if spawn:
         rr.spawn(connect=False, recording=recording)
         sinks.append(rr.GrpcSink())
-    recording.set_sinks(*sinks, default_blueprint=episode_blueprint())
+    recording.set_sinks(*sinks, default_blueprint=blueprint or episode_blueprint())
     return recording
 
 
