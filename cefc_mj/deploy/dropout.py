@@ -15,12 +15,11 @@ same `drop` for SITL-M, where the dropped agents' processes are killed (or stopp
 
 from __future__ import annotations
 
-import time
 
 import numpy as np
 
 from cefc_mj.env import BatchedCEFCEnv
-from cefc_mj.errors import ConfigError, SimulationDiverged
+from cefc_mj.errors import ConfigError
 from cefc_mj.task.formation import connected_groups
 
 DROP_SEED_SALT = 0xD0
@@ -174,7 +173,7 @@ def run_dropout_episode(spec, drop: tuple[int, int], policy=None):
     from cefc_mj import make_world
     from cefc_mj.deploy.results import SitlEpisodeResult
     from cefc_mj.deploy.tick_world import TickedWorld
-    from cefc_mj.eval.runner import load_policy_for
+    from cefc_mj.eval.runner import episode_fields, fly, load_policy_for
 
     torch.set_num_threads(1)
     k, step = check_drop(drop, spec.formation, spec.steps)
@@ -184,26 +183,20 @@ def run_dropout_episode(spec, drop: tuple[int, int], policy=None):
                                    airframe=spec.mujoco_airframe), 1, config.dt)
     env = DropoutCEFCEnv(config, n_envs=1, seed=spec.seed, world=world)
     dropped = choose_dropouts(spec.formation, k, spec.seed)
-    start = time.perf_counter()
-    obs = env.reset()
-    diverged = None
-    for t in range(spec.steps):
+
+    def leave(t: int) -> None:
         if t == step:
             env.remove_agents(0, dropped)
+
+    def act(obs):
         actions = policy.act(obs)
         gone = ~env.active
         if gone.any():  # parked UAVs brake to a stop (their policy no longer runs)
             actions[gone] = world.brake_accel(config.accel_max)[gone]
-        try:
-            obs, _, done, _ = env.step(actions)
-        except SimulationDiverged as e:
-            diverged = str(e)
-            break
-        if done[0]:
-            break
-    metrics = env.episode_metrics()
+        return actions
+
+    diverged, wall_s = fly(env, spec.steps, act, before_step=leave)
     return SitlEpisodeResult(
-        spec=spec, F=float(metrics["F"][0]), N=float(metrics["N"][0]), C=float(metrics["C"][0]),
-        steps=int(env.t[0]), wall_s=time.perf_counter() - start, diverged=diverged,
+        **episode_fields(env, spec, diverged, wall_s),
         dropout=dropout_report(env, dropped, step), mode="lock-step",
     )

@@ -281,7 +281,7 @@ def run_latency_model_episode(spec: EpisodeSpec, latency_ticks: int = 1, control
     Returns mode "lock-step" and no SITL stats."""
     import torch
 
-    from cefc_mj.eval.runner import load_policy_for
+    from cefc_mj.eval.runner import episode_fields, fly, load_policy_for
 
     torch.set_num_threads(1)
     config = spec.task_config()
@@ -309,21 +309,14 @@ def run_latency_model_episode(spec: EpisodeSpec, latency_ticks: int = 1, control
         return held[0]
 
     world.controller = controller
-    start = time.perf_counter()
-    obs = env.reset()
-    diverged = None
-    for k in range(spec.steps):
+
+    def decide(obs):  # each agent's policy on its own observation, as in its process
+        commands[step_index] = np.concatenate([policy.act(obs[:, i:i + 1]) for i in range(spec.formation)], axis=1)
+        return commands[step_index]
+
+    def advance(k: int) -> None:
+        nonlocal step_index
         step_index = k
-        commands[k] = np.concatenate([policy.act(obs[:, i:i + 1]) for i in range(spec.formation)], axis=1)
-        try:
-            obs, _, done, _ = env.step(commands[k])
-        except SimulationDiverged as e:
-            diverged = str(e)
-            break
-        if done[0]:
-            break
-    metrics = env.episode_metrics()
-    return SitlEpisodeResult(
-        spec=spec, F=float(metrics["F"][0]), N=float(metrics["N"][0]), C=float(metrics["C"][0]),
-        steps=int(env.t[0]), wall_s=time.perf_counter() - start, diverged=diverged, mode="lock-step",
-    )
+
+    diverged, wall_s = fly(env, spec.steps, decide, before_step=advance)
+    return SitlEpisodeResult(**episode_fields(env, spec, diverged, wall_s), mode="lock-step")

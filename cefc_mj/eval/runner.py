@@ -142,6 +142,34 @@ class EpisodeResult:
         return out
 
 
+def fly(env, steps: int, act, before_step=None, after_step=None) -> tuple[str | None, float]:
+    """The episode loop every one-process runner shares: reset, then up to `steps` decision steps of
+    `env.step(act(obs))`, stopping at the episode's end or when the physics diverges. `before_step(k)`
+    runs before step k's action is chosen, `after_step()` after each step. Returns (the divergence
+    message or None, wall-clock seconds)."""
+    start = time.perf_counter()
+    obs = env.reset()
+    for k in range(steps):
+        if before_step is not None:
+            before_step(k)
+        try:
+            obs, _, done, _ = env.step(act(obs))
+        except SimulationDiverged as e:
+            return str(e), time.perf_counter() - start
+        if after_step is not None:
+            after_step()
+        if done[0]:
+            break
+    return None, time.perf_counter() - start
+
+
+def episode_fields(env, spec: EpisodeSpec, diverged: str | None, wall_s: float) -> dict:
+    """The fields every episode result shares: spec, F, N, C of env 0, steps flown, wall-clock, divergence."""
+    metrics = env.episode_metrics()
+    return {"spec": spec, "F": float(metrics["F"][0]), "N": float(metrics["N"][0]), "C": float(metrics["C"][0]),
+            "steps": int(env.t[0]), "wall_s": wall_s, "diverged": diverged}
+
+
 def run_episode(spec: EpisodeSpec, policy: Policy | None = None, record: bool = False) -> EpisodeResult:
     """Fly one episode. `policy` defaults to loading `spec.policy` for `spec.formation`."""
     torch.set_num_threads(1)
@@ -154,29 +182,9 @@ def run_episode(spec: EpisodeSpec, policy: Policy | None = None, record: bool = 
     recorder = _Recorder(env, spec) if record else None
     # the AT-M actor's own rollout path: Policy.act's numbers bit for bit, without its per-call checks
     act = getattr(policy.actor, "deterministic_actions", policy.act)
-    start = time.perf_counter()
-    obs = env.reset()
-    diverged = None
-    info: dict = {}
-    for _ in range(spec.steps):
-        try:
-            obs, _, done, info = env.step(act(obs))
-        except SimulationDiverged as e:
-            diverged = str(e)
-            break
-        if recorder is not None:
-            recorder.capture()
-        if done[0]:
-            break
-    metrics = info.get("metrics") or env.episode_metrics()
+    diverged, wall_s = fly(env, spec.steps, act, after_step=recorder.capture if recorder is not None else None)
     return EpisodeResult(
-        spec=spec,
-        F=float(metrics["F"][0]),
-        N=float(metrics["N"][0]),
-        C=float(metrics["C"][0]),
-        steps=int(env.t[0]),
-        wall_s=time.perf_counter() - start,
-        diverged=diverged,
+        **episode_fields(env, spec, diverged, wall_s),
         record=recorder.finish() if recorder is not None and int(env.t[0]) > 0 else None,
     )
 
