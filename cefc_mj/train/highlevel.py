@@ -62,7 +62,7 @@ from cefc_mj.train.logger import RunLogger
 from cefc_mj.train.mappo import iteration_seed
 from cefc_mj.train.model_card import display_path, write_model_card
 from cefc_mj.train import run_state
-from cefc_mj.train.ppo import ValueNorm, advantages_and_targets, clipped_policy_loss
+from cefc_mj.train.ppo import ValueNorm, advantages_and_targets, ppo_epochs
 from cefc_mj.train.run_state import STATE_FILE
 
 METHODS = {
@@ -441,32 +441,13 @@ class HighLevelTrainer:
         comm_inputs = tuple(flat(x) for x in ro.comm_inputs)
         adv, critic_in, targets = flat(advantages), flat(critic_in), flat(targets)
         rl_params = [p for group in self.policy_opt.param_groups for p in group["params"]]
-        sums = dict.fromkeys(("policy_loss", "value_loss", "entropy", "approx_kl", "clipfrac", "actor_grad_norm",
-                              "critic_grad_norm"), 0.0)
-        count = 0
-        for _ in range(ppo.epochs):
-            perm = torch.randperm(t * b, generator=self.generator)
-            for mb in perm.chunk(ppo.minibatches):
-                new_logp, entropy = self.policy_terms(obs[mb], consensus[mb], tuple(x[mb] for x in comm_inputs),
-                                                      actions[mb])
-                policy_loss, st = clipped_policy_loss(new_logp, old_logp[mb], adv[mb], ppo.clip_eps)
-                entropy = entropy.mean()
-                self.policy_opt.zero_grad()
-                (policy_loss - ppo.entropy_coef * entropy).backward()
-                actor_norm = torch.nn.utils.clip_grad_norm_(rl_params, ppo.max_grad_norm)
-                self.policy_opt.step()
+        def policy_terms(mb):
+            new_logp, entropy = self.policy_terms(obs[mb], consensus[mb], tuple(x[mb] for x in comm_inputs),
+                                                  actions[mb])
+            return new_logp, entropy.mean()
 
-                value_loss = 0.5 * (self.critic(critic_in[mb]) - targets[mb]).pow(2).mean()
-                self.critic_opt.zero_grad()
-                value_loss.backward()
-                critic_norm = torch.nn.utils.clip_grad_norm_(self.critic.parameters(), ppo.max_grad_norm)
-                self.critic_opt.step()
-                for k, v in (("policy_loss", policy_loss.item()), ("value_loss", value_loss.item()),
-                             ("entropy", entropy.item()), ("approx_kl", st["approx_kl"]), ("clipfrac", st["clipfrac"]),
-                             ("actor_grad_norm", actor_norm.item()), ("critic_grad_norm", critic_norm.item())):
-                    sums[k] += v
-                count += 1
-        stats = {k: v / count for k, v in sums.items()}
+        stats = ppo_epochs(t * b, ppo, self.generator, policy_terms, old_logp, adv, self.policy_opt, rl_params,
+                           self.critic, critic_in, targets, self.critic_opt)
         stats["explained_variance"] = ev
         return stats
 

@@ -31,7 +31,7 @@ from cefc_mj.env import BatchedCEFCEnv
 from cefc_mj.nn.atm import ATMActor, Critic
 from cefc_mj.task.config import TaskConfig
 from cefc_mj.train.config import PPOConfig
-from cefc_mj.train.ppo import ValueNorm, advantages_and_targets, clipped_policy_loss
+from cefc_mj.train.ppo import ValueNorm, advantages_and_targets, ppo_epochs
 
 
 def iteration_seed(seed: int, iteration: int) -> int:
@@ -157,34 +157,12 @@ class MAPPO:
         critic_in = critic_in.reshape(t * b, n, -1)
         targets = targets.reshape(t * b, n)
 
-        sums = {"policy_loss": 0.0, "value_loss": 0.0, "entropy": 0.0, "approx_kl": 0.0, "clipfrac": 0.0,
-                "actor_grad_norm": 0.0, "critic_grad_norm": 0.0}
-        count = 0
-        for _ in range(ppo.epochs):
-            perm = torch.randperm(t * b, generator=self.generator)
-            for mb in perm.chunk(ppo.minibatches):
-                dist = self.actor.distribution(obs[mb])
-                new_logp = dist.log_prob(actions[mb]).sum(-1)
-                entropy = dist.entropy().sum(-1).mean()
-                policy_loss, st = clipped_policy_loss(new_logp, old_logp[mb], adv[mb], ppo.clip_eps)
-                self.actor_opt.zero_grad()
-                (policy_loss - ppo.entropy_coef * entropy).backward()
-                actor_norm = torch.nn.utils.clip_grad_norm_(self.actor.parameters(), ppo.max_grad_norm)
-                self.actor_opt.step()
+        def policy_terms(mb):
+            dist = self.actor.distribution(obs[mb])
+            return dist.log_prob(actions[mb]).sum(-1), dist.entropy().sum(-1).mean()
 
-                value_loss = 0.5 * (self.critic(critic_in[mb]) - targets[mb]).pow(2).mean()
-                self.critic_opt.zero_grad()
-                value_loss.backward()
-                critic_norm = torch.nn.utils.clip_grad_norm_(self.critic.parameters(), ppo.max_grad_norm)
-                self.critic_opt.step()
-
-                for k, v in (("policy_loss", policy_loss.item()), ("value_loss", value_loss.item()),
-                             ("entropy", entropy.item()), ("approx_kl", st["approx_kl"]),
-                             ("clipfrac", st["clipfrac"]), ("actor_grad_norm", actor_norm.item()),
-                             ("critic_grad_norm", critic_norm.item())):
-                    sums[k] += v
-                count += 1
-        stats = {k: v / count for k, v in sums.items()}
+        stats = ppo_epochs(t * b, ppo, self.generator, policy_terms, old_logp, adv, self.actor_opt,
+                           list(self.actor.parameters()), self.critic, critic_in, targets, self.critic_opt)
         stats["explained_variance"] = ev
         stats["action_std"] = float(self.actor.log_std.detach().exp().mean())
         return stats

@@ -62,6 +62,46 @@ def clipped_policy_loss(
     return loss, {"approx_kl": approx_kl, "clipfrac": clipfrac}
 
 
+PPO_STATS = ("policy_loss", "value_loss", "entropy", "approx_kl", "clipfrac", "actor_grad_norm", "critic_grad_norm")
+
+
+def ppo_epochs(n_samples: int, ppo, generator: torch.Generator, policy_terms, old_logp: torch.Tensor,
+               advantages: torch.Tensor, policy_opt: torch.optim.Optimizer, policy_params: list,
+               critic: torch.nn.Module, critic_in: torch.Tensor, targets: torch.Tensor,
+               critic_opt: torch.optim.Optimizer) -> dict[str, float]:
+    """PPO's epochs over one rollout of `n_samples` samples in shuffled minibatches: per minibatch,
+    the clipped surrogate minus the entropy bonus for the policy and 0.5 MSE to the (normalized)
+    targets for the critic, each with its own optimizer and gradient-norm clip.
+
+    policy_terms(mb) -> (log-probabilities of the taken actions [mb, ...] under the current policy,
+    mean entropy); old_logp, advantages, critic_in, targets are indexed by sample first. Returns the
+    mean over minibatches of PPO_STATS. Shared by the low-level (Gaussian) and high-level
+    (categorical) MAPPO updates."""
+    sums = dict.fromkeys(PPO_STATS, 0.0)
+    count = 0
+    for _ in range(ppo.epochs):
+        perm = torch.randperm(n_samples, generator=generator)
+        for mb in perm.chunk(ppo.minibatches):
+            new_logp, entropy = policy_terms(mb)
+            policy_loss, st = clipped_policy_loss(new_logp, old_logp[mb], advantages[mb], ppo.clip_eps)
+            policy_opt.zero_grad()
+            (policy_loss - ppo.entropy_coef * entropy).backward()
+            actor_norm = torch.nn.utils.clip_grad_norm_(policy_params, ppo.max_grad_norm)
+            policy_opt.step()
+
+            value_loss = 0.5 * (critic(critic_in[mb]) - targets[mb]).pow(2).mean()
+            critic_opt.zero_grad()
+            value_loss.backward()
+            critic_norm = torch.nn.utils.clip_grad_norm_(critic.parameters(), ppo.max_grad_norm)
+            critic_opt.step()
+            for k, v in (("policy_loss", policy_loss.item()), ("value_loss", value_loss.item()),
+                         ("entropy", entropy.item()), ("approx_kl", st["approx_kl"]), ("clipfrac", st["clipfrac"]),
+                         ("actor_grad_norm", actor_norm.item()), ("critic_grad_norm", critic_norm.item())):
+                sums[k] += v
+            count += 1
+    return {k: v / count for k, v in sums.items()}
+
+
 class ValueNorm(torch.nn.Module):
     """Running mean and variance of return targets (exact, over every target seen so far, merged
     batch by batch with the parallel-variance formula). The critic regresses normalize(returns);
