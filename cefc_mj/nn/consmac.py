@@ -60,8 +60,25 @@ VARIANTS = ("A", "O")
 LABEL_ORDERS = ("nearest", "index")
 
 
+class LocalObservationSizes:
+    """The observation sizes of a high-level network config with a `layout` of (part, size) pairs."""
+
+    layout: tuple
+
+    @property
+    def env_obs_dim(self) -> int:
+        """Size of the full CEFC observation the network is fed."""
+        return sum(size for _, size in self.layout)
+
+    @property
+    def obs_dim(self) -> int:
+        """Size of o_i, the parts it reads (38 for N = 8 and two targets)."""
+        sizes = dict(self.layout)
+        return sum(sizes[p] for p in LOCAL_PARTS)
+
+
 @dataclass(frozen=True)
-class ConsMACConfig:
+class ConsMACConfig(LocalObservationSizes):
     """Shape and conventions of one ConsMAC module; meant to be saved beside its weights."""
 
     layout: tuple[tuple[str, int], ...]
@@ -114,17 +131,6 @@ class ConsMACConfig:
             raise ConfigError(f"n_heads={self.n_heads}: must divide attention_dim={self.attention_dim}")
         if not (math.isfinite(self.obs_scale) and self.obs_scale > 0):
             raise ConfigError(f"obs_scale={self.obs_scale!r}: must be a finite number > 0")
-
-    @property
-    def env_obs_dim(self) -> int:
-        """Size of the full CEFC observation the module is fed."""
-        return sum(size for _, size in self.layout)
-
-    @property
-    def obs_dim(self) -> int:
-        """Size of o_i (38 for N = 8 and two targets)."""
-        sizes = dict(self.layout)
-        return sum(sizes[p] for p in LOCAL_PARTS)
 
     @property
     def global_dim(self) -> int:

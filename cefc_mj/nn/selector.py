@@ -31,7 +31,7 @@ from torch import nn
 
 from cefc_mj.errors import ConfigError
 from cefc_mj.nn.atm import Critic
-from cefc_mj.nn.consmac import LOCAL_PARTS, ConsMACConfig, local_index, seeded
+from cefc_mj.nn.consmac import LOCAL_PARTS, ConsMACConfig, LocalObservationSizes, local_index, seeded
 from cefc_mj.nn.layers import mlp
 from cefc_mj.task.observation import cefc_layout
 
@@ -41,7 +41,7 @@ CONSENSUS_KINDS = ("message", "estimate", "message+estimate")
 
 
 @dataclass(frozen=True)
-class SelectorConfig:
+class SelectorConfig(LocalObservationSizes):
     """Shape and conventions of one anchor selector; meant to be saved beside its weights."""
 
     layout: tuple[tuple[str, int], ...]
@@ -76,15 +76,6 @@ class SelectorConfig:
             raise ConfigError(f"anchor_values={self.anchor_values!r}: need distinct finite coordinates")
         if not (math.isfinite(self.obs_scale) and self.obs_scale > 0):
             raise ConfigError(f"obs_scale={self.obs_scale!r}: must be a finite number > 0")
-
-    @property
-    def env_obs_dim(self) -> int:
-        return sum(size for _, size in self.layout)
-
-    @property
-    def obs_dim(self) -> int:
-        sizes = dict(self.layout)
-        return sum(sizes[p] for p in LOCAL_PARTS)
 
     @property
     def n_anchors(self) -> int:
