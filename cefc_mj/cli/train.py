@@ -372,7 +372,9 @@ def run(args, command: str | None = None) -> list[dict]:
         print(f"Table III protocol (density 0.05): R_L {o['R_L']:.2f}/step  F {o['F']:.2f}  N {o['N']:.2f}  C {o['C']:.2f}%")
         cards = [card]
     elif args.command == "highlevel":  # its own policy format, so its own --install
-        from cefc_mj.train.highlevel import config_from_args, install_highlevel_policy, summary_lines, train_highlevel
+        from cefc_mj.nn.highlevel_policy import load_highlevel_policy
+        from cefc_mj.train.highlevel import config_from_args, summary_lines, train_highlevel
+        from cefc_mj.train.model_card import install_policy
 
         cfg = config_from_args(args, budget)
         policies_dir = check_destinations(args)
@@ -380,7 +382,7 @@ def run(args, command: str | None = None) -> list[dict]:
         print("\n".join(summary_lines(card, policies_dir)))
         if args.install:
             for name in filter(None, (card["name"], card.get("wo_ft"))):
-                target = install_highlevel_policy(policies_dir / f"{name}.pt", paths.POLICIES_DIR)
+                target = install_policy(policies_dir / f"{name}.pt", paths.POLICIES_DIR, load=load_highlevel_policy)
                 print(f"installed {name} -> {target}")
         return [card]
     elif args.command == "distill":

@@ -670,20 +670,6 @@ def export_policy(policy: HighLevelPolicy, cfg: HighLevelConfig, task: TaskConfi
     return card
 
 
-def install_highlevel_policy(policy_path: Path, dest_dir: Path) -> Path:
-    """Copy a high-level policy file and its model card into `dest_dir` (loaded first, so a broken
-    export is never installed). Returns the installed path."""
-    policy_path, dest_dir = Path(policy_path), Path(dest_dir)
-    load_highlevel_policy(policy_path)
-    target = dest_dir / policy_path.name
-    if target.resolve() == policy_path.resolve():
-        return target
-    card = policy_path.with_suffix(".json")
-    write_atomic(target, policy_path.read_bytes())
-    write_atomic(target.with_suffix(".json"), card.read_bytes())
-    return target
-
-
 # ---------------------------------------------------------------------------- command line
 _FLAG_OF_FIELD = {
     "variant": "--variant", "seed": "--seed", "obstacle_density": "--density", "adversary": "--adversary",

@@ -58,11 +58,12 @@ def write_model_card(policy_path: Path, card: dict) -> Path:
     return path
 
 
-def install_policy(policy_path: Path, dest_dir: Path) -> Path:
+def install_policy(policy_path: Path, dest_dir: Path, load=load_policy) -> Path:
     """Copy a policy file and its model card into `dest_dir` (atomically, file by file; the policy
-    is loaded first, so a broken export is never installed). Returns the installed policy path."""
+    is loaded first with `load`, e.g. `load_highlevel_policy` for a high level, so a broken export
+    is never installed). Returns the installed policy path."""
     policy_path, dest_dir = Path(policy_path), Path(dest_dir)
-    load_policy(policy_path)  # raises CheckpointError on a broken file
+    load(policy_path)  # raises CheckpointError on a broken file
     target = dest_dir / policy_path.name
     if target.resolve() == policy_path.resolve():
         return target  # exported there already
