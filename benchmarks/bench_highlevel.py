@@ -1,8 +1,10 @@
 """Cost of one agent's full decision in the hierarchical game, on one core, as an agent would run it.
 
-One agent (batch 1) at a real decision of the game: ConsMAC (memory, distance code, attention over
-its neighbours' messages, the global estimate) + the anchor selector, then the low level's action
-toward the chosen anchor (the shipped student, one agent). The state comes from a game played to
+One agent (batch 1) at a real decision of the game, on the deployed paths an agent process runs:
+`HighLevelPolicy.agent_decider()` (ConsMAC's memory, distance code and attention over its
+neighbours' messages, then the anchor selector, as a TorchScript trace) and the low level's action
+toward the chosen anchor (the shipped student through `cefc_mj.deploy.agent.compile_policy`, the
+SITL-M agents' path). `--eager` adds, in the same run, `HighLevelPolicy.decide` and `Policy.act`. The state comes from a game played to
 decision `--decision` by the shipped CI-HRL, so the agent's inbox holds the messages it would hear.
 Reference measured in the same run: the low level alone (what the agent computes every 0.1 s
 anyway); the ratio full / low level is what moves least with the machine's load. Best of
@@ -21,7 +23,10 @@ import numpy as np
 import torch
 
 from cefc_mj.eval.highlevel import LOW_LEVEL, game_task, highlevel_policy_path
+from cefc_mj.deploy.agent import compile_policy
 from cefc_mj.hierarchy import HierarchicalCEFCEnv, load_low_level
+from cefc_mj.nn.policy_io import load_policy
+from cefc_mj.nn.policy_io import resolve_policy_path
 from cefc_mj.nn.highlevel_policy import load_highlevel_policy
 from cefc_mj.task.messages import Inbox, MessageChannel
 
@@ -53,6 +58,7 @@ def main() -> None:
     parser.add_argument("--decision", type=int, default=12, help="decision at which the state is taken (default 12)")
     parser.add_argument("--repeat", type=int, default=300, help="calls per round (default 300)")
     parser.add_argument("--rounds", type=int, default=5, help="rounds, best taken (default 5)")
+    parser.add_argument("--eager", action="store_true", help="also time the eager paths (decide, Policy.act)")
     args = parser.parse_args()
     torch.set_num_threads(1)
 
@@ -76,11 +82,15 @@ def main() -> None:
     agent_obs = obs[:, agent:agent + 1]
     one_inbox = agent_inbox(inbox, 0, agent) if inbox is not None else None
     low_obs = env.low_level_observation()[:, agent:agent + 1]
-    group = env.agent_group_size()[:, agent:agent + 1]
+    decider = policy.agent_decider()
+    student = load_policy(resolve_policy_path(LOW_LEVEL))
+    low_act = compile_policy(student)
+    index, message = decider(agent_obs, one_inbox)
+    reference = policy.decide(agent_obs, one_inbox)
+    assert (index == reference[0]).all() and (message is None or (message == reference[1]).all())
 
-    with torch.inference_mode():
-        high_us = best_us(lambda: policy.decide(agent_obs, one_inbox), args.repeat, args.rounds)
-        low_us = best_us(lambda: low_level.act(low_obs, group), args.repeat, args.rounds)
+    high_us = best_us(lambda: decider(agent_obs, one_inbox), args.repeat, args.rounds)
+    low_us = best_us(lambda: low_act(low_obs), args.repeat, args.rounds)
     full_us = high_us + low_us
     print(f"policy {path.name} ({policy.variant}), decision {args.decision}, agent {agent} with "
           f"{int(received[agent])} received messages, one torch thread, best of {args.rounds} x {args.repeat}")
@@ -89,7 +99,12 @@ def main() -> None:
     print(f"  full decision                    {full_us:8.1f} us = {full_us / low_us:.2f} x the low level alone; "
           f"target <= {TARGET_US:.0f} us: {'met' if full_us <= TARGET_US else 'NOT met'} "
           f"({full_us / TARGET_US:.2f} of it)")
-
+    if args.eager:
+        with torch.inference_mode():
+            eager_high = best_us(lambda: policy.decide(agent_obs, one_inbox), args.repeat, args.rounds)
+            eager_low = best_us(lambda: student.act(low_obs), args.repeat, args.rounds)
+        print(f"  eager paths: decide {eager_high:.1f} us ({eager_high / high_us:.2f} x the traced), "
+              f"Policy.act {eager_low:.1f} us ({eager_low / low_us:.2f} x)")
 
 if __name__ == "__main__":
     main()

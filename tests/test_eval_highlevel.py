@@ -13,6 +13,7 @@ from cefc_mj import paths
 from cefc_mj.cli.eval import main
 from cefc_mj.eval.highlevel import (DT, Conditions, evaluate_highlevel_episodes, format_highlevel_table, game_task, run_table5,
                                     run_table6)
+from cefc_mj.errors import ConfigError
 from cefc_mj.hierarchy import load_low_level
 from cefc_mj.nn.highlevel_policy import HighLevelPolicy, save_highlevel_policy
 
@@ -150,3 +151,39 @@ def test_cli_bad_input_exits_2_with_one_line(argv, needle, tmp_path, monkeypatch
     err = capsys.readouterr().err
     assert exc.value.code == 2 and err.count("\n") == 1 and needle in err, err
     assert not any(tmp_path.iterdir())
+
+
+def test_agent_decider_is_decide_bit_for_bit_for_one_agent(policies):
+    """The deployed, traced path of one agent: the same anchor and message as decide(), for any
+    number of received messages (none, some), for every variant, and a new trace per slot count."""
+    from cefc_mj.hierarchy import HierarchicalCEFCEnv
+    from cefc_mj.nn.highlevel_policy import load_highlevel_policy
+    from cefc_mj.task.messages import Inbox, MessageChannel
+
+    task = game_task()
+    env = HierarchicalCEFCEnv(task, load_low_level("atm_student", task), n_envs=1, seed=4)
+    for name in ("cihrl_consmac_a", "cihrl_mappo"):
+        policy, _ = load_highlevel_policy(policies / f"{name}.pt")
+        decider = policy.agent_decider()
+        channel = MessageChannel(1, 8, 64, task.observation_distance)
+        obs = env.reset(seed=4)
+        for _ in range(4):
+            inbox = channel.receive(env.world.agent_pos)
+            for agent in range(8):
+                one = Inbox(*(a[:, agent:agent + 1] for a in (inbox.messages, inbox.mask, inbox.distance,
+                                                             inbox.sender, inbox.received, inbox.own)))
+                one = one if policy.comm is not None else None
+                index, message = decider(obs[:, agent:agent + 1], one)
+                ref_index, ref_message = policy.decide(obs[:, agent:agent + 1], one)
+                assert (index == ref_index).all()
+                assert (message is None and ref_message is None) or (message == ref_message).all()
+            index, message = policy.decide(obs, inbox if policy.comm is not None else None)
+            if message is not None:
+                channel.send(message)
+            obs, _, _, _ = env.step(index)
+        if policy.comm is not None:  # 3 slots instead of 7: traced anew, still equal
+            short = Inbox(*(a[:, :1, :3] for a in (inbox.messages, inbox.mask, inbox.distance, inbox.sender)),
+                          np.minimum(inbox.received[:, :1], 3), inbox.own[:, :1])
+            assert (decider(obs[:, :1], short)[1] == policy.decide(obs[:, :1], short)[1]).all()
+    with pytest.raises(ConfigError, match=r"\[1, 1, D\]"):
+        decider(obs, None)

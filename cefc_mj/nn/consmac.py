@@ -172,7 +172,7 @@ class ConsMACOutput:
 
     message: torch.Tensor
     """m_i^(t+1) [B, N, message_dim]: broadcast next step, and the selector's consensus input, eq. (12)."""
-    estimate: torch.Tensor
+    estimate: torch.Tensor | None
     """g_hat_i^(t) [B, N, global_dim], eq. (10): the supervised output."""
     memory: torch.Tensor
     """m'_i0 [B, N, message_dim], eq. (7)."""
@@ -278,8 +278,10 @@ class ConsMAC(nn.Module):
         messages: torch.Tensor,
         mask: torch.Tensor,
         distance: torch.Tensor,
+        with_estimate: bool = True,
     ) -> ConsMACOutput:
-        """One step for every agent.
+        """One step for every agent (`with_estimate=False`: skip the global estimator, whose output
+        only the supervised loss reads; the output's estimate is then None).
 
         obs [B, N, env_obs_dim] (the env's CEFC observation), own_message [B, N, message_dim] (m_i0^(t)),
         messages [B, N, K, message_dim], mask [B, N, K] (bool or 0/1), distance [B, N, K] (m): the
@@ -311,10 +313,10 @@ class ConsMAC(nn.Module):
         )  # E_m-i, eq. (8)
         attended, weights = self.attention(query, keys, mask.reshape(rows, k))  # eq. (9)
         message = self.norm(memory + attended) if cfg.residual else attended
-        estimate = self.estimator(message)  # eq. (10)
+        estimate = self.estimator(message).reshape(*lead, cfg.global_dim) if with_estimate else None  # eq. (10)
         return ConsMACOutput(
             message=message.reshape(*lead, cfg.message_dim),
-            estimate=estimate.reshape(*lead, cfg.global_dim),
+            estimate=estimate,
             memory=memory.reshape(*lead, cfg.message_dim),
             attention=weights.reshape(*lead, cfg.n_heads, k),
         )

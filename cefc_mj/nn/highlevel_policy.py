@@ -70,9 +70,61 @@ class HighLevelPolicy(nn.Module):
         """(anchor index [B, N], message to send [B, N, 64] or None) for CEFC observations [B, N, D]
         and the channel's inbox of this decision."""
         obs_t = torch.as_tensor(obs, dtype=torch.float32)
-        consensus, out = self.consensus(self.comm_inputs(obs_t, inbox), tuple(obs_t.shape[:-1]))
-        index, _ = self.selector.act(obs_t, consensus, deterministic=deterministic, generator=generator)
-        return index.numpy(), (None if out is None else out.message.numpy())
+        if self.comm is None:
+            consensus, message = torch.zeros(*obs_t.shape[:-1], 0), None
+        else:  # the selector reads the message (eq. 12): the global estimate is not needed to act
+            consensus = self.comm(*self.comm_inputs(obs_t, inbox), with_estimate=False).message
+            message = consensus.numpy()
+        if deterministic:  # the mode: the largest logit (no distribution object on the deployed path)
+            return self.selector(obs_t, consensus).argmax(dim=-1).numpy(), message
+        index, _ = self.selector.act(obs_t, consensus, deterministic=False, generator=generator)
+        return index.numpy(), message
+
+
+    def agent_decider(self):
+        """One agent's deployed decision: `decide(obs, inbox)` for a batch of one ([1, 1, ...]
+        arrays, the inbox of that agent), the mode of its distribution. The networks run as a
+        TorchScript trace, made on first use for each neighbour-slot count K: the same operations
+        as `decide` (equal bit for bit), without the per-module Python overhead that dominates
+        these small networks at batch one. Falls back to `decide` if tracing fails."""
+        import warnings
+
+        policy = self
+        traced: dict[int, object] = {}
+
+        class _Step(nn.Module):
+            def __init__(self):
+                super().__init__()
+                self.policy = policy
+
+            def forward(self, obs, *inbox):
+                if not inbox:
+                    return self.policy.selector(obs, obs.new_zeros(*obs.shape[:-1], 0)).argmax(dim=-1)
+                message = self.policy.comm(obs, *inbox, with_estimate=False).message
+                return self.policy.selector(obs, message).argmax(dim=-1), message
+
+        def decide_one(obs: np.ndarray, inbox: Inbox | None) -> tuple[np.ndarray, np.ndarray | None]:
+            if np.shape(obs)[:2] != (1, 1):
+                raise ConfigError(f"agent_decider: expects one agent's observation [1, 1, D], got {np.shape(obs)}")
+            inputs = (torch.as_tensor(obs, dtype=torch.float32),
+                      *(inbox_tensors(inbox) if policy.comm is not None else ()))
+            k = inputs[2].shape[-2] if policy.comm is not None else 0
+            if k not in traced:
+                try:
+                    with warnings.catch_warnings(), torch.no_grad():
+                        warnings.simplefilter("ignore")  # the shape checks become constants of this K
+                        traced[k] = torch.jit.trace(_Step().eval(), inputs, check_trace=False)
+                except Exception:  # a network that does not trace: the eager path is always right
+                    traced[k] = None
+            if traced[k] is None:
+                return policy.decide(obs, inbox)
+            with torch.inference_mode():
+                out = traced[k](*inputs)
+            if policy.comm is None:
+                return out.numpy(), None
+            return out[0].numpy(), out[1].numpy()
+
+        return decide_one
 
 
 def save_highlevel_policy(policy: HighLevelPolicy, path: Path, meta: dict | None = None) -> Path:
