@@ -19,3 +19,14 @@ def one_torch_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(threads)
+
+
+@pytest.fixture
+def strict_rerun():
+    """Make Rerun raise on data it cannot log instead of warning and dropping it."""
+    import rerun as rr
+
+    before = rr.strict_mode()
+    rr.set_strict_mode(True)
+    yield
+    rr.set_strict_mode(before)

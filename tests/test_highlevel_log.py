@@ -33,19 +33,12 @@ from cefc_mj.viz.highlevel_log import (
 )
 from cefc_mj.viz.rerun_log import group_colors
 
-pytestmark = pytest.mark.usefixtures("one_torch_thread")
+pytestmark = pytest.mark.usefixtures("one_torch_thread", "strict_rerun")
 
 STEPS, INTERVAL, SEED = 50, 10, 3
 K = STEPS // INTERVAL
 
 
-@pytest.fixture(autouse=True)
-def strict_rerun():
-    """Make Rerun raise on data it cannot log instead of warning and dropping it."""
-    before = rr.strict_mode()
-    rr.set_strict_mode(True)
-    yield
-    rr.set_strict_mode(before)
 
 
 @pytest.fixture(scope="module")

@@ -32,14 +32,7 @@ from cefc_mj.viz.rerun_log import (
 MINI_QUAD = Path(__file__).parent / "data" / "mini_quad.xml"
 T, N, M = 300, 5, 12  # 300 steps: the anchor jumps once, at step 250
 
-
-@pytest.fixture(autouse=True)
-def strict_rerun():
-    """Make Rerun raise on data it cannot log instead of warning and dropping it."""
-    before = rr.strict_mode()
-    rr.set_strict_mode(True)
-    yield
-    rr.set_strict_mode(before)
+pytestmark = pytest.mark.usefixtures("strict_rerun")
 
 
 @pytest.fixture(scope="module")
