@@ -134,7 +134,9 @@ class BatchedCEFCEnv:
                 cfg.adversary, self.world.adversary_pos, self.world.agent_pos, self.group_size, self.group_centre
             )
             adversary_accel = pursuit_acceleration(
-                goal, self.world.adversary_pos, self.world.adversary_vel, cfg.adversary_speed_max, cfg.accel_max, cfg.dt
+                goal, self.world.adversary_pos, self.world.adversary_vel, cfg.adversary_speed_max, cfg.accel_max, cfg.dt,
+                obstacles=self.obstacles if cfg.adversary_avoids_obstacles else None,
+                keep_out=cfg.obstacle_radius + cfg.uav_radius,
             )
         else:
             adversary_accel = np.zeros((self.n_envs, 2))

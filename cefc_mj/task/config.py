@@ -127,6 +127,10 @@ class TaskConfig:
     agent), R-Largest (largest group), or none."""
     adversary_start: tuple[float, float] = (0.0, 8.0)
     """Where the adversary starts (m); its x is jittered by the scenario sampler."""
+    adversary_avoids_obstacles: bool = False
+    """The rule adversary steers around the obstacles, keeping uav_radius + obstacle_radius from
+    their centres (task/adversary.py); False: it flies straight through them, the game the shipped
+    high levels were trained in."""
     deviation: float = 0.0
     """Sensing deviation d (m): each agent perceives from p + delta, |delta| ~ |Normal(d, d/4)|."""
     position_estimator: PositionEstimator = "raw"
@@ -221,6 +225,8 @@ class TaskConfig:
             fail("obstacle_layout", self.obstacle_layout, f"must be one of {', '.join(OBSTACLE_LAYOUTS)}")
         if self.adversary not in ADVERSARY_RULES:
             fail("adversary", self.adversary, f"must be one of {', '.join(ADVERSARY_RULES)}")
+        if not isinstance(self.adversary_avoids_obstacles, bool):
+            fail("adversary_avoids_obstacles", self.adversary_avoids_obstacles, "must be True or False")
         if self.start_half_size >= self.arena_half_size:
             fail("start_half_size", self.start_half_size, "must be smaller than arena_half_size")
         if self.anchor_half_size > self.arena_half_size:
