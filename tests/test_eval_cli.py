@@ -77,7 +77,7 @@ BAD_INPUTS = [
     (["--protocol", "table8", "--wind", "3"], "its own 7 conditions"),
     (["--protocol", "table8", "--deviation", "0.5"], "its own 7 conditions"),
     (["--protocol", "table8", "--backend", "particle"], "needs --backend mujoco"),
-    (["--protocol", "table8", "--png", "png"], "--protocol single only"),
+    (["--protocol", "table8", "--png", "png"], "recording works with --protocol single, or table5 with --policy"),
     (["--protocol", "table8", "--report-dir", "{file}"], "is a file, not a folder"),
     (["--protocol", "table8", "--report-dir", "/nonexistent/reports"], "will not create /nonexistent"),
     (["--protocol", "table3"], "--backend particle"),
