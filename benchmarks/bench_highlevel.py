@@ -4,11 +4,12 @@ One agent (batch 1) at a real decision of the game, on the deployed paths an age
 `HighLevelPolicy.agent_decider()` (ConsMAC's memory, distance code and attention over its
 neighbours' messages, then the anchor selector, as a TorchScript trace) and the low level's action
 toward the chosen anchor (the shipped student through `cefc_mj.deploy.agent.compile_policy`, the
-SITL-M agents' path). `--eager` adds, in the same run, `HighLevelPolicy.decide` and `Policy.act`. The state comes from a game played to
-decision `--decision` by the shipped CI-HRL, so the agent's inbox holds the messages it would hear.
-Reference measured in the same run: the low level alone (what the agent computes every 0.1 s
-anyway); the ratio full / low level is what moves least with the machine's load. Best of
-`--rounds` rounds of `--repeat` calls each, one torch thread, no autograd.
+SITL-M agents' path). `--eager` adds, in the same run, `HighLevelPolicy.decide` and `Policy.act`.
+The state comes from a game played to decision `--decision` by the shipped CI-HRL, so the agent's
+inbox holds the messages it would hear. Reference measured in the same run: the low level alone
+(what the agent computes every 0.1 s anyway); the ratio full / low level is what moves least with
+the machine's load. Best of `--rounds` rounds of `--repeat` calls each, one torch thread, no
+autograd.
 
     .venv/bin/python benchmarks/bench_highlevel.py
     .venv/bin/python benchmarks/bench_highlevel.py --policy cihrl_mappo --rounds 9
@@ -22,12 +23,11 @@ import time
 import numpy as np
 import torch
 
-from cefc_mj.eval.highlevel import LOW_LEVEL, game_task, highlevel_policy_path
 from cefc_mj.deploy.agent import compile_policy
+from cefc_mj.eval.highlevel import LOW_LEVEL, game_task, highlevel_policy_path
 from cefc_mj.hierarchy import HierarchicalCEFCEnv, load_low_level
-from cefc_mj.nn.policy_io import load_policy
-from cefc_mj.nn.policy_io import resolve_policy_path
 from cefc_mj.nn.highlevel_policy import load_highlevel_policy
+from cefc_mj.nn.policy_io import load_policy, resolve_policy_path
 from cefc_mj.task.messages import Inbox, MessageChannel
 
 TARGET_US = 500.0

@@ -11,8 +11,8 @@ import pytest
 
 from cefc_mj import paths
 from cefc_mj.cli.eval import main
-from cefc_mj.eval.highlevel import (DT, Conditions, evaluate_highlevel_episodes, format_highlevel_table, game_task, run_table5,
-                                    run_table6)
+from cefc_mj.eval.highlevel import (DT, Conditions, evaluate_highlevel_episodes, format_highlevel_table, game_task,
+                                    run_table5, run_table6)
 from cefc_mj.errors import ConfigError
 from cefc_mj.hierarchy import load_low_level
 from cefc_mj.nn.highlevel_policy import HighLevelPolicy, save_highlevel_policy

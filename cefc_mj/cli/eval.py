@@ -142,7 +142,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--report-dir", type=Path, default=None, metavar="DIR",
                    help="table8: where table8.md/.csv/.json/.png and the resumable cell file go (default a new "
                         "folder ./cefc-eval-reports/table8-<policy>-<backend>-<time>/); give the folder of an "
-                        "interrupted run to resume it. table5, table6: where table5.md/.json/.png go (none by default)")
+                        "interrupted run to resume it. table5, table6: where table5.md/.json/.png go (none by "
+                        "default)")
     p.add_argument("--fresh", action="store_true",
                    help="table8 only: fly every episode anew; an existing cell file is moved aside, not reused")
     return p
@@ -755,11 +756,13 @@ def _table3(args: argparse.Namespace) -> int:
 def _highlevel_table(args: argparse.Namespace) -> int:
     import json
 
-    from cefc_mj.eval.highlevel import Conditions, format_highlevel_table, plot_highlevel_table, run_table5, run_table6
+    from cefc_mj.eval.highlevel import (Conditions, format_highlevel_table, plot_highlevel_table, run_table5,
+                                        run_table6)
 
     proto = args.protocol
-    print(f"{PROG} {proto}: {args.backend}, wind {args.wind:g} m/s, deviation {args.deviation:g} m, 8 UAVs, {args.episodes} episodes x 400 steps, seed {args.seed}, "
-          f"{'policy ' + args.policy if args.policy else 'every method' if proto == 'table5' else 'cihrl_consmac_a'}")
+    playing = f"policy {args.policy}" if args.policy else "every method" if proto == "table5" else "cihrl_consmac_a"
+    print(f"{PROG} {proto}: {args.backend}, wind {args.wind:g} m/s, deviation {args.deviation:g} m, 8 UAVs, "
+          f"{args.episodes} episodes x 400 steps, seed {args.seed}, {playing}")
     prov = {k: v for k, v in args.provenance.items() if k != "policies"}
     where = Conditions(args.backend, args.wind, args.deviation)
     if proto == "table5":

@@ -259,7 +259,8 @@ def run_table5(episodes: int = EPISODES, seed: int = 0, policies_dir: Path | Non
 
 
 def run_table6(episodes: int = EPISODES, seed: int = 0, policies_dir: Path | None = None,
-               policy: str = "cihrl_consmac_a", provenance: dict | None = None, where: Conditions | None = None) -> dict:
+               policy: str = "cihrl_consmac_a", provenance: dict | None = None,
+               where: Conditions | None = None) -> dict:
     """Table VI: one high-level policy (default CI-HRL) against each adversary strategy, the same
     episodes otherwise. Columns R_t, R_e, E as the paper prints them (R_H, R_n ride along)."""
     policies_dir = Path(policies_dir) if policies_dir is not None else paths.POLICIES_DIR
@@ -299,7 +300,8 @@ def format_highlevel_table(result: dict) -> str:
     table_name = "Table VI" if result["schema"] == "cefc-eval/table6" else "Table V"
     adversary = proto["adversary"] or "per row"
     lines = [
-        f"{table_name} protocol ({_where_text(proto)}, N = {proto['n_agents']}, density {proto['density']}/m^2, {proto['episodes']} "
+        f"{table_name} protocol ({_where_text(proto)}, N = {proto['n_agents']}, density {proto['density']}/m^2, "
+        f"{proto['episodes']} "
         f"episodes x {proto['steps']} steps, seed {proto['seed']}, adversary {adversary}, low level "
         f"{proto['low_level']['name']}).",
         "R_H = R_t + R_n + R_e (weighted reward terms) and E (time with an agent within 2 m of the adversary), "

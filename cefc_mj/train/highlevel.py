@@ -164,10 +164,6 @@ class HighLevelConfig:
                 + (f"_seed{self.seed}" if self.seed else ""))
 
     @property
-    def communicates(self) -> bool:
-        return self.variant != "mappo"
-
-    @property
     def supervised(self) -> bool:
         """ConsMAC variants: the communication module learns from eq. (11) only."""
         return self.variant in ("consmac-a", "consmac-o")
@@ -612,7 +608,8 @@ def train_highlevel(cfg: HighLevelConfig, out: Path, policies_dir: Path, resume:
     return card
 
 
-def export_policy(policy: HighLevelPolicy, cfg: HighLevelConfig, task: TaskConfig, low_levels: tuple[LowLevel, LowLevel],
+def export_policy(policy: HighLevelPolicy, cfg: HighLevelConfig, task: TaskConfig,
+                  low_levels: tuple[LowLevel, LowLevel],
                   trainer: HighLevelTrainer, policies_dir: Path, run_dir: Path, command: str | None,
                   last_row: dict | None = None, wo_ft: bool = False) -> dict:
     """Write `policy` as <name>.pt with its model card (evaluated with the fine-tuning low level)
