@@ -101,36 +101,46 @@ class Conditions:
 
 # ---------------------------------------------------------------------------- episodes
 @torch.no_grad()
-def evaluate_highlevel_episodes(policy: HighLevelPolicy, task: TaskConfig, low_level: LowLevel, episodes: int,
-                                seed: int = 0, decision_interval: int = DECISION_INTERVAL,
-                                world=None) -> dict[str, np.ndarray]:
-    """Per-episode figures [episodes] of `episodes` episodes (one batch, seeded by `seed`) with the
-    mode of each anchor distribution: R_H and its weighted parts R_t, R_n, R_e (they sum to R_H),
-    all summed over the episode's low-level steps, and the env's metrics E (steps with an agent
-    within 2 m of the adversary), F and C. world: a physics world of `episodes` envs (default the
-    particle world)."""
-    env = HierarchicalCEFCEnv(task, low_level, n_envs=episodes, seed=seed, decision_interval=decision_interval,
-                              world=world)
-    channel = (MessageChannel(episodes, task.n_agents, policy.message_dim, task.observation_distance)
+def play_highlevel(policy: HighLevelPolicy, game: HierarchicalCEFCEnv, seed: int,
+                   on_decision=None) -> dict[str, np.ndarray]:
+    """Play the game's B episodes (seeded by `seed`) to the end with the mode of each anchor
+    distribution; returns per-episode [B] R_H and its weighted parts R_t, R_n, R_e (they sum to
+    R_H), all summed over the episode's low-level steps, and the env's metrics E (steps with an
+    agent within 2 m of the adversary), F and C. on_decision(inbox, index, message), if given, sees
+    every decision (inbox None without communication)."""
+    task = game.task
+    channel = (MessageChannel(game.n_envs, task.n_agents, policy.message_dim, task.observation_distance)
                if policy.comm is not None else None)
     w = task.rewards
     weights = {"R_t": w.task_weight, "R_n": w.navigation_weight_high, "R_e": w.evasion_weight}
-    obs = env.reset(seed=seed)
-    total = np.zeros(episodes)
-    parts = {name: np.zeros(episodes) for name in weights}
-    done = np.zeros(episodes, dtype=bool)
+    obs = game.reset(seed=seed)
+    total = np.zeros(game.n_envs)
+    parts = {name: np.zeros(game.n_envs) for name in weights}
+    done = np.zeros(game.n_envs, dtype=bool)
     info: dict = {}
     while not done.all():
-        inbox = channel.receive(env.world.agent_pos) if channel is not None else None
+        inbox = channel.receive(game.world.agent_pos) if channel is not None else None
         index, message = policy.decide(obs, inbox)
         if channel is not None:
             channel.send(message)
-        obs, reward, done, info = env.step(index)
+        if on_decision is not None:
+            on_decision(inbox, index, message)
+        obs, reward, done, info = game.step(index)
         total += reward
         for name, weight in weights.items():
             parts[name] += weight * info["reward_terms"][name]
     metrics = info["metrics"]
     return {"R_H": total, **parts, **{m: np.asarray(metrics[m], dtype=float) for m in ("E", "F", "C")}}
+
+
+def evaluate_highlevel_episodes(policy: HighLevelPolicy, task: TaskConfig, low_level: LowLevel, episodes: int,
+                                seed: int = 0, decision_interval: int = DECISION_INTERVAL,
+                                world=None) -> dict[str, np.ndarray]:
+    """`play_highlevel` on `episodes` episodes in one batch (seeded by `seed`). world: a physics
+    world of `episodes` envs (default the particle world)."""
+    game = HierarchicalCEFCEnv(task, low_level, n_envs=episodes, seed=seed, decision_interval=decision_interval,
+                               world=world)
+    return play_highlevel(policy, game, seed)
 
 
 def evaluate_highlevel(policy: HighLevelPolicy, task: TaskConfig, low_level: LowLevel, episodes: int, seed: int = 0,

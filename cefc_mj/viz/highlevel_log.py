@@ -1,9 +1,8 @@
 """One episode of the hierarchical CEFC game, recorded for Rerun and drawn as message-similarity
 matrices (the paper's Fig. 12).
 
-`play_highlevel_episode` flies one episode exactly as `evaluate_highlevel_episodes` flies each of
-its episodes (same decide / channel / step order, so seed s gives the episode of a 1-episode
-evaluation with seed s) and keeps every low-level step's state and every decision's anchors and
+`play_highlevel_episode` flies one episode with the evaluation's own loop (`play_highlevel`, so
+seed s gives the episode of a 1-episode evaluation with seed s) and keeps every low-level step's state and every decision's anchors and
 messages in a `HighLevelEpisode`. `log_highlevel_episode` sends it to a Rerun recording (entity
 paths in docs/rerun.md, "The hierarchical game"), `record_highlevel_episode` writes it as a `.rrd`
 file, and `plot_similarity_matrices` draws a PNG of the message similarity at a few decisions.
@@ -36,12 +35,12 @@ import torch
 from cefc_mj.errors import ConfigError
 from cefc_mj.eval.record import code_provenance
 from cefc_mj.fileio import atomic_write
+from cefc_mj.eval.highlevel import play_highlevel
 from cefc_mj.hierarchy import DECISION_INTERVAL, HierarchicalCEFCEnv, LowLevel
 from cefc_mj.nn.highlevel_policy import HighLevelPolicy
 from cefc_mj.sim.particle import ParticleWorld
 from cefc_mj.task.adversary import adversary_goal
 from cefc_mj.task.config import TaskConfig
-from cefc_mj.task.messages import MessageChannel
 from cefc_mj.viz.rerun_log import _segments_arrow, close_recording, group_colors, open_recording
 
 REWARD_PARTS = ("R_t", "R_n", "R_e")
@@ -173,14 +172,19 @@ def similarity_floor(similarity: np.ndarray) -> float:
 
 # ---------------------------------------------------------------------------- playing
 class _StepTap:
-    """Stands in for the game's `BatchedCEFCEnv`, passes everything through, and keeps the state and
-    reward terms after each low-level step."""
+    """Stands in for the game's `BatchedCEFCEnv`, passes everything through, and keeps the state
+    after the reset (`on_reset()`) and the state and reward terms after each low-level step."""
 
-    def __init__(self, env, on_step):
-        self._env, self._on_step = env, on_step
+    def __init__(self, env, on_reset, on_step):
+        self._env, self._on_reset, self._on_step = env, on_reset, on_step
 
     def __getattr__(self, name):
         return getattr(self._env, name)
+
+    def reset(self, *args, **kwargs):
+        obs = self._env.reset(*args, **kwargs)
+        self._on_reset()
+        return obs
 
     def step(self, actions):
         obs, reward, done, info = self._env.step(actions)
@@ -223,30 +227,17 @@ def play_highlevel_episode(policy: HighLevelPolicy, task: TaskConfig, low_level:
             step_parts[name].append(float(weight * terms[name][0]))
         capture()
 
-    game.env = _StepTap(env, on_step)
-    channel = (MessageChannel(1, task.n_agents, policy.message_dim, task.observation_distance)
-               if policy.comm is not None else None)
-    # the same loop as evaluate_highlevel_episodes, its sums in the same order
-    total = np.zeros(1)
-    parts = {name: np.zeros(1) for name in weights}
+    game.env = _StepTap(env, capture, on_step)
     indices, messages, received = [], [], []
-    done = np.zeros(1, dtype=bool)
-    info: dict = {}
+
+    def on_decision(inbox, index, message) -> None:
+        if message is not None:
+            messages.append(np.array(message[0], dtype=np.float32))
+            received.append(inbox.received[0].copy())
+        indices.append(np.array(index[0], dtype=np.int64))
+
     try:
-        obs = game.reset(seed=seed)
-        capture()
-        while not done.all():
-            inbox = channel.receive(game.world.agent_pos) if channel is not None else None
-            index, message = policy.decide(obs, inbox)
-            if channel is not None:
-                channel.send(message)
-                messages.append(np.array(message[0], dtype=np.float32))
-                received.append(inbox.received[0].copy())
-            indices.append(np.array(index[0], dtype=np.int64))
-            obs, reward, done, info = game.step(index)
-            total += reward
-            for name, weight in weights.items():
-                parts[name] += weight * info["reward_terms"][name]
+        result = play_highlevel(policy, game, seed, on_decision)  # the evaluation's own loop
     finally:
         game.env = env
 
@@ -268,8 +259,8 @@ def play_highlevel_episode(policy: HighLevelPolicy, task: TaskConfig, low_level:
         anchor_index=anchor_index, anchors=game.grid[anchor_index],
         received=np.stack(received) if received else None, messages=sent,
         similarity=None if sent is None else message_similarity(sent),
-        metrics={m: float(info["metrics"][m][0]) for m in ("F", "N", "C", "E")},
-        returns={"R_H": float(total[0]), **{k: float(v[0]) for k, v in parts.items()}},
+        metrics={m: float(game.episode_metrics()[m][0]) for m in ("F", "N", "C", "E")},
+        returns={name: float(result[name][0]) for name in ("R_H", *weights)},
     )
 
 
