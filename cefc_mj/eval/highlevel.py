@@ -30,6 +30,7 @@ from cefc_mj import paths
 from cefc_mj.errors import CheckpointError, ConfigError
 from cefc_mj.hierarchy import DECISION_INTERVAL, HierarchicalCEFCEnv, LowLevel, load_low_level
 from cefc_mj.nn.highlevel_policy import HighLevelPolicy, load_highlevel_policy
+from cefc_mj.nn.policy_io import resolve_policy_path
 from cefc_mj.provenance import file_sha256
 from cefc_mj.task.config import ADVERSARY_RULES, TaskConfig
 from cefc_mj.task.messages import MessageChannel
@@ -158,10 +159,9 @@ def _paper(key: str) -> dict:
 def _stats(per_episode: dict[str, np.ndarray]) -> dict:
     """Means and sample std over episodes (per-episode sums), the same in seconds (x dt; C is a
     percentage and F a step count, left as they are), and the per-episode values."""
-    row: dict = {"per_episode": {m: [float(v) for v in values] for m, values in per_episode.items()}}
-    for m, values in per_episode.items():
-        row[m] = float(values.mean())
-        row[f"{m}_std"] = float(values.std(ddof=1)) if values.size > 1 else None
+    from cefc_mj.eval.runner import episode_stats
+
+    row = episode_stats(per_episode)
     row["seconds"] = {m: row[m] * DT for m in COLUMNS}
     row["seconds_std"] = {m: None if row[f"{m}_std"] is None else row[f"{m}_std"] * DT for m in COLUMNS}
     return row
@@ -182,13 +182,12 @@ def _seed_files(stem: str, suffix: str, policies_dir: Path) -> dict[int, Path]:
 
 def highlevel_policy_path(policy: str, policies_dir: Path | None = None) -> Path:
     """The file of a high-level policy given by name (in policies_dir, default the shipped folder) or
-    path; CheckpointError (one line) when there is none."""
-    policies_dir = Path(policies_dir) if policies_dir is not None else paths.POLICIES_DIR
-    path = Path(policy) if policy.endswith(".pt") else policies_dir / f"{policy}.pt"
-    if not path.is_file():
-        raise CheckpointError(f"--policy {policy}: no high-level policy file {path} (train it with "
-                              "cefc-train highlevel)")
-    return path
+    path (`resolve_policy_path`); CheckpointError (one line) when there is none."""
+    try:
+        return resolve_policy_path(policy, policies_dir)
+    except CheckpointError as e:
+        raise CheckpointError(f"--policy {policy}: no high-level policy file ({e}); train it with "
+                              "cefc-train highlevel") from None
 
 
 def _evaluate_file(path: Path, task: TaskConfig, low_level: LowLevel, episodes: int, seed: int,

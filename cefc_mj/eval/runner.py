@@ -262,6 +262,16 @@ def _mean_std(values: list[float]) -> tuple[float | None, float | None]:
     return float(arr.mean()), (float(arr.std(ddof=1)) if arr.size > 1 else None)
 
 
+def episode_stats(per_episode: dict[str, np.ndarray]) -> dict:
+    """Per metric of {metric: values over episodes}: the mean under its name, the sample std
+    (`<metric>_std`, None for one episode), and the values themselves under "per_episode"."""
+    row: dict = {}
+    for m, values in per_episode.items():
+        row[m], row[f"{m}_std"] = _mean_std([float(v) for v in values])
+    row["per_episode"] = {m: [float(v) for v in values] for m, values in per_episode.items()}
+    return row
+
+
 def summarize(episodes: list[dict]) -> dict:
     """Mean and sample std over episodes (`EpisodeResult.to_dict()` rows) of F, N, C and F+N.
 

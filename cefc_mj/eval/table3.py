@@ -118,13 +118,9 @@ POLICY_CHOICES = {"atm": "AT-M-Step3", "safe": "AT-M-Safe", "robust": "AT-M-Robu
 
 def _row(per_episode: dict[str, np.ndarray], c: int, method: str) -> dict:
     """Means, sample std and per-episode values of each metric, with the paper's row."""
-    row: dict = {}
-    for m, values in per_episode.items():
-        row[m] = float(values.mean())
-        row[f"{m}_std"] = float(values.std(ddof=1)) if values.size > 1 else None
-    row["per_episode"] = {m: [float(v) for v in values] for m, values in per_episode.items()}
-    row["paper"] = PAPER_TABLE3.get(str(c), {}).get(method)
-    return row
+    from cefc_mj.eval.runner import episode_stats
+
+    return {**episode_stats(per_episode), "paper": PAPER_TABLE3.get(str(c), {}).get(method)}
 
 
 def _orca_row(c: int, episodes: int, seed: int, steps: int, required: bool) -> dict | None:
