@@ -23,8 +23,8 @@ from cefc_mj.errors import ConfigError
 from cefc_mj.sim.particle import ParticleWorld
 from cefc_mj.sim.world import World
 from cefc_mj.task import rewards as R
-from cefc_mj.task.adversary import adversary_goal, pursuit_acceleration
-from cefc_mj.task.config import TaskConfig
+from cefc_mj.task.adversary import adversary_goal, adversary_observation, pursuit_acceleration
+from cefc_mj.task.config import LEARNED_ADVERSARY, TaskConfig
 from cefc_mj.task.deviation import sample_deviation
 from cefc_mj.task.estimator import FusedPositionEstimate
 from cefc_mj.task.formation import agent_group_error, connected_groups, group_formation_error
@@ -42,9 +42,20 @@ class BatchedCEFCEnv:
     Episodes of all envs end together after `config.steps` steps; `reset(mask)` restarts some.
     """
 
-    def __init__(self, config: TaskConfig, n_envs: int = 1, seed: int | None = 0, world: World | None = None):
+    def __init__(self, config: TaskConfig, n_envs: int = 1, seed: int | None = 0, world: World | None = None,
+                 adversary_policy=None):
+        """adversary_policy: with config.adversary = "learned", a callable mapping the adversary's
+        observation [B, D] (`adversary_observation`) to its acceleration setpoint [B, 2] (m/s^2),
+        called at every step (e.g. a loaded `nn.adversary_policy.AdversaryPolicy`)."""
         if not isinstance(n_envs, int) or n_envs < 1:
             raise ConfigError(f"n_envs={n_envs!r}: must be an integer >= 1")
+        learned = config.mode == "cefc" and config.adversary == LEARNED_ADVERSARY
+        if learned and adversary_policy is None:
+            raise ConfigError("adversary='learned': give the env an adversary_policy (a trained adversary)")
+        if adversary_policy is not None and not learned:
+            raise ConfigError(f"adversary_policy: flies only the 'learned' adversary of cefc mode (this task: "
+                              f"mode={config.mode!r}, adversary={config.adversary!r})")
+        self.adversary_policy = adversary_policy
         if config.mode == "formation" and config.n_agents < 3:
             raise ConfigError(f"n_agents={config.n_agents}: formation mode needs a group of at least 3 agents")
         self.config = config
@@ -129,15 +140,13 @@ class BatchedCEFCEnv:
             raise ConfigError("step() called on a finished episode; call reset(mask=done) first")
         actions = np.clip(actions, -cfg.accel_max, cfg.accel_max)
 
-        if cfg.mode == "cefc" and cfg.adversary != "none":
-            goal = adversary_goal(
-                cfg.adversary, self.world.adversary_pos, self.world.agent_pos, self.group_size, self.group_centre
-            )
-            adversary_accel = pursuit_acceleration(
-                goal, self.world.adversary_pos, self.world.adversary_vel, cfg.adversary_speed_max, cfg.accel_max, cfg.dt,
-                obstacles=self.obstacles if cfg.adversary_avoids_obstacles else None,
-                keep_out=cfg.obstacle_radius + cfg.uav_radius,
-            )
+        if self.adversary_policy is not None:
+            adversary_accel = np.asarray(self.adversary_policy(self.adversary_observation()), dtype=np.float64)
+            if adversary_accel.shape != (self.n_envs, 2) or not np.isfinite(adversary_accel).all():
+                raise ConfigError(f"adversary_policy: must return finite accelerations of shape ({self.n_envs}, 2)")
+            adversary_accel = np.clip(adversary_accel, -cfg.accel_max, cfg.accel_max)
+        elif cfg.mode == "cefc" and cfg.adversary != "none":
+            adversary_accel = self.rule_adversary_acceleration(cfg.adversary)
         else:
             adversary_accel = np.zeros((self.n_envs, 2))
         self.world.step(actions, adversary_accel)
@@ -198,6 +207,25 @@ class BatchedCEFCEnv:
                 world.adversary_pos, world.adversary_vel, self.lidar,
             )
         self._obs[mask] = obs[mask]
+
+    def rule_adversary_acceleration(self, rule: str) -> np.ndarray:
+        """The acceleration [B, 2] a rule adversary (task/adversary.py) commands at this step."""
+        cfg = self.config
+        goal = adversary_goal(rule, self.world.adversary_pos, self.world.agent_pos, self.group_size, self.group_centre)
+        return pursuit_acceleration(
+            goal, self.world.adversary_pos, self.world.adversary_vel, cfg.adversary_speed_max, cfg.accel_max, cfg.dt,
+            obstacles=self.obstacles if cfg.adversary_avoids_obstacles else None,
+            keep_out=cfg.obstacle_radius + cfg.uav_radius,
+        )
+
+    def adversary_observation(self) -> np.ndarray:
+        """The learned adversary's observation [B, D] of the current step (task/adversary.py)."""
+        world, cfg = self.world, self.config
+        goal = adversary_goal("nearest_group", world.adversary_pos, world.agent_pos, self.group_size, self.group_centre)
+        return adversary_observation(world.adversary_pos, world.adversary_vel, goal, world.agent_pos, world.agent_vel,
+                                     np.take_along_axis(self.group_size, self.labels, axis=1), self.obstacles,
+                                     cfg.arena_half_size, cfg.adversary_speed_max,
+                                     cfg.obstacle_radius + cfg.uav_radius)
 
     def _rewards(self, pos, group_error, group_size, group_centre):
         cfg, w = self.config, self.config.rewards

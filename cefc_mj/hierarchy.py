@@ -191,7 +191,8 @@ class HierarchicalCEFCEnv:
 
     def __init__(self, task: TaskConfig, low_level: LowLevel, n_envs: int = 1, seed: int | None = 0,
                  decision_interval: int = DECISION_INTERVAL, anchor_values: tuple[float, ...] = ANCHOR_VALUES,
-                 world: World | None = None):
+                 world: World | None = None, adversary_policy=None):
+        """adversary_policy: the trained adversary of a task with adversary='learned' (BatchedCEFCEnv)."""
         if task.mode != "cefc":
             raise ConfigError(f"mode={task.mode!r}: the hierarchical game is the CEFC game (mode='cefc')")
         if not isinstance(decision_interval, int) or isinstance(decision_interval, bool) or decision_interval < 1:
@@ -208,7 +209,7 @@ class HierarchicalCEFCEnv:
         self.low_level = low_level
         self.decision_interval = decision_interval
         self.grid = anchor_grid(tuple(anchor_values))
-        self.env = BatchedCEFCEnv(task, n_envs=n_envs, seed=seed, world=world)
+        self.env = BatchedCEFCEnv(task, n_envs=n_envs, seed=seed, world=world, adversary_policy=adversary_policy)
         self.n_envs, self.n_agents = n_envs, task.n_agents
         self.layout = self.env.layout
         self.anchors = np.zeros((n_envs, task.n_agents, 2))

@@ -15,6 +15,7 @@ from cefc_mj.eval.highlevel import (DT, Conditions, evaluate_highlevel_episodes,
                                     run_table5, run_table6)
 from cefc_mj.errors import ConfigError
 from cefc_mj.hierarchy import load_low_level
+from cefc_mj.nn.adversary_policy import AdversaryNetConfig, AdversaryPolicy, save_adversary_policy
 from cefc_mj.nn.highlevel_policy import HighLevelPolicy, save_highlevel_policy
 
 
@@ -23,7 +24,7 @@ pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 @pytest.fixture
 def policies(tmp_path):
-    """A policies folder with MAPPO seeds 0 and 1 and a CI-HRL policy (untrained weights)."""
+    """A policies folder with MAPPO seeds 0 and 1, a CI-HRL policy and a PPO adversary (untrained weights)."""
     folder = tmp_path / "policies"
     folder.mkdir()
     task = game_task()
@@ -31,6 +32,7 @@ def policies(tmp_path):
                                 ("cihrl_consmac_a", "consmac-a", 0)):
         save_highlevel_policy(HighLevelPolicy.build(variant, task, seed=seed), folder / f"{name}.pt",
                               meta={"name": name, "decision_interval": 10})
+    save_adversary_policy(AdversaryPolicy(AdversaryNetConfig(), seed=0), folder / "adversary_ppo.pt")
     return folder
 
 
@@ -87,12 +89,20 @@ def test_the_evaluation_follows_the_policy_a_better_anchor_choice_scores_more():
 
 def test_table6_plays_one_policy_against_each_adversary(policies):
     result = run_table6(episodes=2, policies_dir=policies, policy="cihrl_mappo")
-    assert list(result["rows"]) == ["PPO", "R-Largest", "R-Nearest"]
-    assert [r["adversary"] for r in result["rows"].values()] == ["nearest_group", "r_largest", "r_nearest"]
-    assert "not like-for-like" in result["rows"]["PPO"]["differs"]
+    assert list(result["rows"]) == ["PPO", "R-Largest", "R-Nearest", "Nearest-group rule"]
+    assert [r["adversary"] for r in result["rows"].values()] == ["adversary_ppo", "r_largest", "r_nearest",
+                                                                 "nearest_group"]
+    assert result["rows"]["PPO"]["adversary_record"]["policy"] == "adversary_ppo.pt"
+    assert "not in the paper" in result["rows"]["Nearest-group rule"]["differs"]
+    assert result["rows"]["Nearest-group rule"]["paper"] is None
     assert result["rows"]["R-Nearest"]["paper"] == {"R_t": 187.87, "R_e": -79.54, "E": 5.8}
     # The adversary changes the episodes (same layouts and targets, another pursuer).
     assert result["rows"]["R-Nearest"]["per_episode"]["R_e"] != result["rows"]["R-Largest"]["per_episode"]["R_e"]
+    # Table V against a rule: the same games as Table VI's row of that rule.
+    rule = run_table5(episodes=2, policies_dir=policies, policy="cihrl_mappo", adversary="r_nearest")
+    assert rule["rows"]["cihrl_mappo"]["per_episode"] == result["rows"]["R-Nearest"]["per_episode"]
+    assert rule["protocol"]["adversary"] == {"rule": "r_nearest"} and "adversary r_nearest" in \
+        format_highlevel_table(rule)
 
 
 def test_the_game_flies_on_quadrotors_with_wind_and_deviation(policies):
@@ -117,6 +127,7 @@ def test_cli_writes_the_report_folder(policies, tmp_path, monkeypatch, capsys):
     data = json.loads((out / "table5.json").read_text())
     assert data == json.loads((tmp_path / "t5.json").read_text())
     assert data["protocol"]["command"].startswith("cefc-eval --backend particle --protocol table5")
+    assert data["protocol"]["adversary"]["policy"] == "adversary_ppo.pt"  # the PPO adversary by default
     assert (out / "table5.png").read_bytes()[:4] == b"\x89PNG"
 
 
@@ -143,6 +154,9 @@ def test_cli_records_one_game_of_a_policy(policies, tmp_path, monkeypatch, capsy
     (["--protocol", "table5", "--backend", "particle", "--policy", "no_such"], "--policy no_such: no high-level"),
     (["--protocol", "table6", "--backend", "particle", "--episodes", "0"], "--episodes 0"),
     (["--protocol", "table5", "--backend", "particle", "--rrd", "x.rrd"], "--rrd: recording works with"),
+    (["--protocol", "table6", "--backend", "particle", "--adversary", "r_nearest"], "--adversary r_nearest: chooses"),
+    (["--formation", "6", "--adversary", "r_nearest"], "--adversary r_nearest: chooses"),
+    (["--protocol", "table5", "--backend", "particle", "--adversary", "no_such"], "adversary no_such: "),
 ])
 def test_cli_bad_input_exits_2_with_one_line(argv, needle, tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)

@@ -128,7 +128,8 @@ def test_messages_arrive_one_decision_late_within_3_m_and_restart_with_each_epis
     cfg = tiny_config("tarmac", ppo=PPOConfig(n_envs=2, episodes_per_iteration=2, epochs=1, minibatches=2,
                                               update_threads=1))
     trainer = make_trainer(cfg)
-    ro = trainer.collect(HierarchicalCEFCEnv(trainer.task, trainer.low_levels[0], n_envs=2, seed=0))
+    ro = trainer.collect(HierarchicalCEFCEnv(trainer.task, trainer.low_levels[0], n_envs=2, seed=0,
+                                         adversary_policy=trainer.adversary_policy))
     obs, own, messages, mask, distance = ro.comm_inputs
     assert obs.shape[:3] == (10, 2, 8) and messages.shape == (10, 2, 8, 7, 64)
     for start in (0, 5):  # each episode starts silent
@@ -144,7 +145,8 @@ def test_messages_arrive_one_decision_late_within_3_m_and_restart_with_each_epis
 def test_the_rl_update_never_changes_consmac_but_reaches_tarmacs_communication():
     for variant in ("consmac-a", "tarmac"):
         trainer = make_trainer(tiny_config(variant))
-        env = HierarchicalCEFCEnv(trainer.task, trainer.low_levels[1], n_envs=2, seed=0)
+        env = HierarchicalCEFCEnv(trainer.task, trainer.low_levels[1], n_envs=2, seed=0,
+                                         adversary_policy=trainer.adversary_policy)
         ro = trainer.collect(env)
         comm_before = {k: v.clone() for k, v in trainer.policy.comm.state_dict().items()}
         selector_before = {k: v.clone() for k, v in trainer.policy.selector.state_dict().items()}
@@ -171,7 +173,8 @@ def test_the_rl_update_never_changes_consmac_but_reaches_tarmacs_communication()
 def test_consmac_supervised_loss_falls_on_a_small_fixed_replay():
     cfg = tiny_config("consmac-o", replay_capacity=64, consmac_batch=32, consmac_lr=3e-3)
     trainer = make_trainer(cfg)
-    env = HierarchicalCEFCEnv(trainer.task, trainer.low_levels[0], n_envs=2, seed=0)
+    env = HierarchicalCEFCEnv(trainer.task, trainer.low_levels[0], n_envs=2, seed=0,
+                                         adversary_policy=trainer.adversary_policy)
     trainer.collect(env)  # 80 agent-decisions; the replay keeps the newest 64
     assert trainer.replay.size == 64
     data = {k: v.clone() for k, v in trainer.replay.data.items()}
@@ -305,7 +308,8 @@ def test_cli_install_copies_the_policy_and_card_into_the_shipped_folder(tmp_path
     monkeypatch.chdir(tmp_path)
     fake_shipped = tmp_path / "shipped"
     fake_shipped.mkdir()
-    (fake_shipped / "atm_student.pt").write_bytes((paths.POLICIES_DIR / "atm_student.pt").read_bytes())
+    for name in ("atm_student.pt", "adversary_ppo.pt"):  # the game's low level and adversary
+        (fake_shipped / name).write_bytes((paths.POLICIES_DIR / name).read_bytes())
     monkeypatch.setattr(paths, "POLICIES_DIR", fake_shipped)
     main_ok(TINY + ["--budget", "1", "--variant", "mappo", "--eval-episodes", "0", "--install"])
     assert "installed cihrl_mappo" in capsys.readouterr().out

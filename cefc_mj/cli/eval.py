@@ -100,6 +100,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "only), a name in policies/, or a .pt path; "
                         "table3 without it evaluates every method; table5: one high-level policy (default every "
                         "method); table6: the high-level policy to play (default cihrl_consmac_a)")
+    p.add_argument("--adversary", default=None, metavar="RULE|NAME|PATH",
+                   help="table5: the game's adversary, a rule (nearest_group, r_nearest, r_largest, none) or a "
+                        "trained adversary's policy name or file (default adversary_ppo, the PPO adversary); "
+                        "table6 plays each adversary in turn")
     p.add_argument("--sitl-m", action="store_true",
                    help="SITL-M: every UAV's policy in its own OS process over ZeroMQ, asynchronous (single: the "
                         "asked condition flown that way, vs the one-process calm reference; table8: adds the SITL-M "
@@ -224,6 +228,9 @@ def is_shipped_reports(path: Path) -> bool:
 def validate(args: argparse.Namespace) -> None:
     """Every flag checked before any work starts; one clear line each. Fills in the defaults."""
     proto = args.protocol
+    if args.adversary is not None and proto != "table5":
+        usage_error(f"--adversary {args.adversary}: chooses the adversary of --protocol table5 (table6 plays each "
+                    "adversary of the paper's table in turn; the other protocols have none)")
     if proto in HIGHLEVEL_PROTOCOLS:
         _validate_highlevel(args)
     for flag, value in (("--link-delay", args.link_delay), ("--jitter", args.jitter)):
@@ -416,6 +423,10 @@ def load_policies(args: argparse.Namespace) -> dict:
                 if load_highlevel_policy(path)[0].comm is None:
                     raise ConfigError(f"--png: {args.policy} sends no messages (no communication), so there is no "
                                       "similarity to draw; drop --png")
+        if args.protocol == "table5":  # a missing or broken adversary file fails before any episode
+            from cefc_mj.eval.highlevel import GAME_ADVERSARY, resolve_adversary
+
+            resolve_adversary(args.adversary or GAME_ADVERSARY)
         return provenance("atm", [])  # the tables record each row's file and sha256 themselves
     if args.protocol == "table3":
         from cefc_mj.eval.table3 import POLICY_CHOICES, policy_file_for
@@ -756,8 +767,8 @@ def _table3(args: argparse.Namespace) -> int:
 def _highlevel_table(args: argparse.Namespace) -> int:
     import json
 
-    from cefc_mj.eval.highlevel import (Conditions, format_highlevel_table, plot_highlevel_table, run_table5,
-                                        run_table6)
+    from cefc_mj.eval.highlevel import (GAME_ADVERSARY, Conditions, format_highlevel_table, plot_highlevel_table,
+                                        run_table5, run_table6)
 
     proto = args.protocol
     playing = f"policy {args.policy}" if args.policy else "every method" if proto == "table5" else "cihrl_consmac_a"
@@ -766,7 +777,8 @@ def _highlevel_table(args: argparse.Namespace) -> int:
     prov = {k: v for k, v in args.provenance.items() if k != "policies"}
     where = Conditions(args.backend, args.wind, args.deviation)
     if proto == "table5":
-        result = run_table5(episodes=args.episodes, seed=args.seed, policy=args.policy, provenance=prov, where=where)
+        result = run_table5(episodes=args.episodes, seed=args.seed, policy=args.policy, provenance=prov, where=where,
+                            adversary=args.adversary or GAME_ADVERSARY)
     else:
         result = run_table6(episodes=args.episodes, seed=args.seed, policy=args.policy or "cihrl_consmac_a",
                             provenance=prov, where=where)
@@ -792,7 +804,7 @@ def _highlevel_table(args: argparse.Namespace) -> int:
 def _record_highlevel(args: argparse.Namespace, where) -> list[Path]:
     """--rrd / --png of table5: one game with --seed, flown by the evaluated policy, recorded (the
     same game as a one-episode evaluation with that seed)."""
-    from cefc_mj.eval.highlevel import LOW_LEVEL, game_task, highlevel_policy_path
+    from cefc_mj.eval.highlevel import GAME_ADVERSARY, LOW_LEVEL, game_task, highlevel_policy_path, resolve_adversary
     from cefc_mj.hierarchy import DECISION_INTERVAL, load_low_level
     from cefc_mj.nn.highlevel_policy import load_highlevel_policy
     from cefc_mj.provenance import file_sha256
@@ -800,11 +812,15 @@ def _record_highlevel(args: argparse.Namespace, where) -> list[Path]:
 
     path = highlevel_policy_path(args.policy)
     policy, meta = load_highlevel_policy(path)
-    task = game_task(deviation=where.deviation)
+    adversary = args.adversary or GAME_ADVERSARY
+    kind, adversary_policy, _ = resolve_adversary(adversary)
+    task = game_task(kind, deviation=where.deviation)
     episode = play_highlevel_episode(policy, task, load_low_level(LOW_LEVEL, task), seed=args.seed,
                                      world=where.world(task, 1, args.seed),
-                                     decision_interval=int(meta.get("decision_interval", DECISION_INTERVAL)))
+                                     decision_interval=int(meta.get("decision_interval", DECISION_INTERVAL)),
+                                     adversary_policy=adversary_policy)
     episode.policy, episode.policy_sha256 = path.stem, file_sha256(path)
+    episode.adversary_rule = adversary if adversary_policy is None else f"{adversary} (trained)"
     written: list[Path] = []
     if args.rrd is not None:
         args.rrd.parent.mkdir(parents=True, exist_ok=True)

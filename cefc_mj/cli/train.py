@@ -7,6 +7,7 @@ the CL-M baseline).
     cefc-train lowlevel-all --budget 80m            # the whole pipeline
     cefc-train clm --formation 6 --budget 1404s     # the CL-M baseline (curriculum 0,0.01,0.02,0.03)
     cefc-train highlevel --variant consmac-a --budget 75it   # the high level (Algorithm 2) over atm_student
+    cefc-train adversary --budget 100it                      # the PPO adversary against CI-HRL
 
 Everything a run writes goes under --out (default runs/<command>, relative to the current folder):
 run folders (config, CSV and TensorBoard logs, resumable state) and the exported policies with their
@@ -120,7 +121,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="cefc-train", description=__doc__.split("\n\n")[0],
                      formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__.split("\n\n", 1)[1])
     parser.add_argument("--version", action=_VersionAction, help="print the version, code digest and libraries")
-    sub = parser.add_subparsers(dest="command", required=True, metavar="{lowlevel,distill,lowlevel-all,clm,highlevel}")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="{lowlevel,distill,lowlevel-all,clm,highlevel,adversary}")
 
     p = sub.add_parser("lowlevel", help="one AT-M stage for one formation size",
                        description="Train one AT-M stage (Algorithm 1): step 1 without obstacles, step 2 with "
@@ -196,8 +197,32 @@ def build_parser() -> argparse.ArgumentParser:
     _common(p, "clm", "100it")
     _ppo_args(p)
     _highlevel_parser(sub)
+    _adversary_parser(sub)
     return parser
 
+
+def _adversary_parser(sub) -> None:
+    """`cefc-train adversary`; flags left out keep AdversaryConfig's defaults (cefc_mj/train/adversary.py)."""
+    p = sub.add_parser("adversary", help="the PPO adversary (the paper's predator) against a trained UAV team",
+                       description="Single-agent PPO with the low level's network shape: chase the nearest group "
+                                   "of >= 3 UAVs, avoid obstacles, against a trained high level over a trained low "
+                                   "level. Written as adversary_ppo[_seed<k>].")
+    p.add_argument("--high-level", default=None, metavar="NAME|PATH",
+                   help="the UAV team's high level (default cihrl_consmac_a)")
+    p.add_argument("--low-level", default=None, metavar="NAME|PATH|per-group",
+                   help="the UAV team's low level (default atm_student)")
+    p.add_argument("--density", type=float, default=None, dest="obstacle_density", metavar="D",
+                   help="obstacle density per m^2 (default 0.03)")
+    p.add_argument("--collision-weight", type=float, default=None, metavar="W",
+                   help="penalty per step inside an obstacle (default 30)")
+    p.add_argument("--eval-episodes", type=int, default=None, metavar="N",
+                   help="episodes evaluated for the model card (default 20; 0 skips)")
+    p.add_argument("--envs", type=int, default=None, dest="n_envs", metavar="N", help="parallel envs (default 20)")
+    p.add_argument("--epochs", type=int, default=None, metavar="N", help="PPO epochs per iteration (default 5)")
+    p.add_argument("--lr", type=float, default=None, metavar="LR", help="Adam learning rate (default 3e-4)")
+    p.add_argument("--threads", type=int, default=None, dest="update_threads", metavar="N",
+                   help="torch threads of the update (default 1)")
+    _common(p, "adversary", "100it")
 
 def _highlevel_parser(sub) -> None:
     """`cefc-train highlevel`; flags left out keep HighLevelConfig's defaults (cefc_mj/train/highlevel.py)."""
@@ -216,8 +241,9 @@ def _highlevel_parser(sub) -> None:
                         "1500 episodes; 0: direct training)")
     p.add_argument("--density", type=float, default=None, dest="obstacle_density", metavar="D",
                    help="obstacle density per m^2 (default 0.03)")
-    p.add_argument("--adversary", choices=("nearest_group", "r_nearest", "r_largest", "none"), default=None,
-                   help="the rule adversary (default nearest_group)")
+    p.add_argument("--adversary", default=None, metavar="RULE|NAME|PATH",
+                   help="the game's adversary: a rule (nearest_group, r_nearest, r_largest, none) or a trained "
+                        "adversary's policy name or file (default adversary_ppo, the shipped PPO adversary)")
     p.add_argument("--episode-steps", type=int, default=None, metavar="N",
                    help="low-level steps per episode, a multiple of 10 (default 400)")
     p.add_argument("--consmac-every", type=int, default=None, metavar="IT",
@@ -384,6 +410,19 @@ def run(args, command: str | None = None) -> list[dict]:
             for name in filter(None, (card["name"], card.get("wo_ft"))):
                 target = install_policy(policies_dir / f"{name}.pt", paths.POLICIES_DIR, load=load_highlevel_policy)
                 print(f"installed {name} -> {target}")
+        return [card]
+    elif args.command == "adversary":  # its own policy format, so its own --install
+        from cefc_mj.nn.adversary_policy import load_adversary_policy
+        from cefc_mj.train.adversary import config_from_args, summary_lines, train_adversary
+        from cefc_mj.train.model_card import install_policy
+
+        cfg = config_from_args(args, budget)
+        policies_dir = check_destinations(args)
+        card = train_adversary(cfg, args.out, policies_dir, resume=args.resume, show_progress=show, command=command)
+        print("\n".join(summary_lines(card, policies_dir)))
+        if args.install:
+            target = install_policy(policies_dir / f"{card['name']}.pt", paths.POLICIES_DIR, load=load_adversary_policy)
+            print(f"installed {card['name']} -> {target}")
         return [card]
     elif args.command == "distill":
         cfg = DistillConfig(budget=budget, formations=args.formations, tuples_per_formation=args.tuples, seed=args.seed)

@@ -32,7 +32,7 @@ from cefc_mj.hierarchy import DECISION_INTERVAL, HierarchicalCEFCEnv, LowLevel, 
 from cefc_mj.nn.highlevel_policy import HighLevelPolicy, load_highlevel_policy
 from cefc_mj.nn.policy_io import resolve_policy_path
 from cefc_mj.provenance import file_sha256
-from cefc_mj.task.config import ADVERSARY_RULES, TaskConfig
+from cefc_mj.task.config import ADVERSARIES, ADVERSARY_RULES, LEARNED_ADVERSARY, TaskConfig
 from cefc_mj.task.messages import MessageChannel
 
 EPISODES = 50
@@ -54,22 +54,43 @@ TABLE5_ROWS = (
 """(the paper's row, the stem of our policy file, its suffix): seed 0 is <stem><suffix>.pt, seed k
 <stem>_seed<k><suffix>.pt (the names `cefc-train highlevel` writes)."""
 TABLE6_ROWS = (
-    ("PPO", "nearest_group", "the rule chasing the nearest group of >= 3, the objective the paper's PPO adversary "
-                             "is trained for (no PPO adversary is trained yet): not like-for-like"),
+    ("PPO", "adversary_ppo", None),
     ("R-Largest", "r_largest", None),
     ("R-Nearest", "r_nearest", None),
+    ("Nearest-group rule", "nearest_group", "not in the paper: the rule the PPO adversary's reward describes"),
 )
-"""(the paper's column, our adversary rule, what differs)."""
+"""(the paper's column, our adversary (a rule, or a trained adversary's policy name), what differs).
+The paper's DDPG column has no counterpart here."""
+GAME_ADVERSARY = "adversary_ppo"
+"""The adversary of Table V: the shipped PPO adversary, the paper's default predator."""
 
 
 def game_task(adversary: str = "nearest_group", deviation: float = 0.0) -> TaskConfig:
     """The CEFC game of Tables V and VI (the high level's training game, `HighLevelConfig.task`),
     optionally with sensing deviation (m; the agents then act on the fused position estimate, as in
-    `cefc-eval`; without deviation the estimate is the exact position)."""
-    if adversary not in ADVERSARY_RULES:
-        raise ConfigError(f"adversary={adversary!r}: must be one of {', '.join(ADVERSARY_RULES)}")
+    `cefc-eval`; without deviation the estimate is the exact position). adversary: a rule, or
+    'learned' (the env then needs the adversary's policy: `resolve_adversary`)."""
+    if adversary not in ADVERSARIES:
+        raise ConfigError(f"adversary={adversary!r}: must be one of {', '.join(ADVERSARIES)}")
     return TaskConfig(n_agents=GAME_AGENTS, mode="cefc", obstacle_density=GAME_DENSITY, adversary=adversary,
                       episode_steps=GAME_STEPS, deviation=deviation, position_estimator="fused")
+
+
+def resolve_adversary(spec: str, policies_dir: Path | None = None) -> tuple[str, object, dict]:
+    """(TaskConfig.adversary, the env's adversary_policy or None, a record for reports) of an
+    adversary given as a rule name or as a trained adversary's policy name (in policies_dir, default
+    the shipped folder) or file; CheckpointError (one line) for a missing or broken file."""
+    if spec in ADVERSARY_RULES:
+        return spec, None, {"rule": spec}
+    from cefc_mj.nn.adversary_policy import load_adversary_policy
+
+    try:
+        path = resolve_policy_path(spec, policies_dir)
+        policy, _ = load_adversary_policy(path)
+    except CheckpointError as e:
+        raise CheckpointError(f"adversary {spec}: {e} (a rule is one of {', '.join(ADVERSARY_RULES)}; a trained "
+                              "adversary comes from cefc-train adversary)") from None
+    return LEARNED_ADVERSARY, policy.act, {"policy": path.name, "sha256": file_sha256(path)}
 
 
 class Conditions:
@@ -136,18 +157,20 @@ def play_highlevel(policy: HighLevelPolicy, game: HierarchicalCEFCEnv, seed: int
 
 def evaluate_highlevel_episodes(policy: HighLevelPolicy, task: TaskConfig, low_level: LowLevel, episodes: int,
                                 seed: int = 0, decision_interval: int = DECISION_INTERVAL,
-                                world=None) -> dict[str, np.ndarray]:
+                                world=None, adversary_policy=None) -> dict[str, np.ndarray]:
     """`play_highlevel` on `episodes` episodes in one batch (seeded by `seed`). world: a physics
-    world of `episodes` envs (default the particle world)."""
+    world of `episodes` envs (default the particle world); adversary_policy: the trained adversary
+    of a task with adversary='learned'."""
     game = HierarchicalCEFCEnv(task, low_level, n_envs=episodes, seed=seed, decision_interval=decision_interval,
-                               world=world)
+                               world=world, adversary_policy=adversary_policy)
     return play_highlevel(policy, game, seed)
 
 
 def evaluate_highlevel(policy: HighLevelPolicy, task: TaskConfig, low_level: LowLevel, episodes: int, seed: int = 0,
-                       decision_interval: int = DECISION_INTERVAL) -> dict[str, float]:
+                       decision_interval: int = DECISION_INTERVAL, adversary_policy=None) -> dict[str, float]:
     """The means over episodes of `evaluate_highlevel_episodes`."""
-    per_episode = evaluate_highlevel_episodes(policy, task, low_level, episodes, seed, decision_interval)
+    per_episode = evaluate_highlevel_episodes(policy, task, low_level, episodes, seed, decision_interval,
+                                              adversary_policy=adversary_policy)
     return {name: float(values.mean()) for name, values in per_episode.items()}
 
 
@@ -191,11 +214,12 @@ def highlevel_policy_path(policy: str, policies_dir: Path | None = None) -> Path
 
 
 def _evaluate_file(path: Path, task: TaskConfig, low_level: LowLevel, episodes: int, seed: int,
-                   where: Conditions) -> dict:
+                   where: Conditions, adversary_policy=None) -> dict:
     policy, meta = load_highlevel_policy(path)
     row = _stats(evaluate_highlevel_episodes(policy, task, low_level, episodes, seed=seed,
                                              decision_interval=int(meta.get("decision_interval", DECISION_INTERVAL)),
-                                             world=where.world(task, episodes, seed)))
+                                             world=where.world(task, episodes, seed),
+                                             adversary_policy=adversary_policy))
     row.update({"policy": path.name, "sha256": file_sha256(path)})
     trained_with = (meta.get("low_level") or {}).get("file", {}).get("sha256")
     low_file = (low_level.describe().get("file") or {}).get("sha256")
@@ -204,7 +228,7 @@ def _evaluate_file(path: Path, task: TaskConfig, low_level: LowLevel, episodes: 
     return row
 
 
-def _protocol(episodes: int, seed: int, low_level: LowLevel, policies_dir: Path, adversary: str | None,
+def _protocol(episodes: int, seed: int, low_level: LowLevel, policies_dir: Path, adversary: dict | None,
               where: Conditions) -> dict:
     if not isinstance(episodes, int) or isinstance(episodes, bool) or episodes < 1:
         raise ConfigError(f"episodes={episodes!r}: must be an integer >= 1")
@@ -228,34 +252,39 @@ def _low_level(task: TaskConfig) -> LowLevel:
 
 
 def run_table5(episodes: int = EPISODES, seed: int = 0, policies_dir: Path | None = None,
-               policy: str | None = None, provenance: dict | None = None, where: Conditions | None = None) -> dict:
+               policy: str | None = None, provenance: dict | None = None, where: Conditions | None = None,
+               adversary: str = GAME_ADVERSARY) -> dict:
     """Table V: every method whose policy file exists (the others are listed in protocol["missing"]),
     or only `policy` (a file or a name in policies_dir, one row under its file name). Each row is
     the seed-0 policy over `episodes` episodes; where files of other training seeds exist,
     row["training_seeds"] has each seed's means and their mean and sample std. where: backend, wind
-    and deviation (default the paper's: particles, calm, exact sensing)."""
+    and deviation (default the paper's: particles, calm, exact sensing). adversary: a rule or a
+    trained adversary (name in policies_dir, or file; default the PPO adversary)."""
     policies_dir = Path(policies_dir) if policies_dir is not None else paths.POLICIES_DIR
     where = where or Conditions()
-    task = game_task(deviation=where.deviation)
+    kind, adversary_policy, record = resolve_adversary(adversary, policies_dir)
+    task = game_task(kind, deviation=where.deviation)
     low_level = _low_level(task)
     result = {"schema": "cefc-eval/table5", "schema_version": 1,
-              "protocol": _protocol(episodes, seed, low_level, policies_dir, task.adversary, where), "rows": {}}
+              "protocol": _protocol(episodes, seed, low_level, policies_dir, record, where), "rows": {}}
     paper = _paper("table5_cihrl_mpe")
     if provenance is not None:
         result["provenance"] = provenance
     if policy is not None:
         path = highlevel_policy_path(policy, policies_dir)
-        result["rows"][path.stem] = {**_evaluate_file(path, task, low_level, episodes, seed, where), "paper": None}
+        result["rows"][path.stem] = {**_evaluate_file(path, task, low_level, episodes, seed, where, adversary_policy),
+                                     "paper": None}
         return result
     for method, stem, suffix in TABLE5_ROWS:
         files = _seed_files(stem, suffix, policies_dir)
         if 0 not in files:
             result["protocol"]["missing"].append(f"{method} ({stem}{suffix}.pt)")
             continue
-        row = _evaluate_file(files[0], task, low_level, episodes, seed, where)
+        row = _evaluate_file(files[0], task, low_level, episodes, seed, where, adversary_policy)
         row["paper"] = dict(zip(COLUMNS, paper[method])) if method in paper else None
         if len(files) > 1:
-            per_seed = {k: (row if k == 0 else _evaluate_file(f, task, low_level, episodes, seed, where))
+            per_seed = {k: (row if k == 0 else _evaluate_file(f, task, low_level, episodes, seed, where,
+                                                              adversary_policy))
                         for k, f in files.items()}
             row["training_seeds"] = {
                 "seeds": list(per_seed), "files": [f.name for f in files.values()],
@@ -271,9 +300,11 @@ def run_table6(episodes: int = EPISODES, seed: int = 0, policies_dir: Path | Non
                policy: str = "cihrl_consmac_a", provenance: dict | None = None,
                where: Conditions | None = None) -> dict:
     """Table VI: one high-level policy (default CI-HRL) against each adversary strategy, the same
-    episodes otherwise. Columns R_t, R_e, E as the paper prints them (R_H, R_n ride along)."""
+    episodes otherwise. Columns R_t, R_e, E as the paper prints them (R_H, R_n ride along); a row
+    without a paper column (the nearest-group rule) has paper None."""
     policies_dir = Path(policies_dir) if policies_dir is not None else paths.POLICIES_DIR
     path = highlevel_policy_path(policy, policies_dir)
+    adversaries = {column: resolve_adversary(adversary, policies_dir) for column, adversary, _ in TABLE6_ROWS}
     where = where or Conditions()
     low_level = _low_level(game_task())
     result = {"schema": "cefc-eval/table6", "schema_version": 1,
@@ -283,8 +314,10 @@ def run_table6(episodes: int = EPISODES, seed: int = 0, policies_dir: Path | Non
     if provenance is not None:
         result["provenance"] = provenance
     for column, adversary, differs in TABLE6_ROWS:
-        row = _evaluate_file(path, game_task(adversary, where.deviation), low_level, episodes, seed, where)
-        row.update({"adversary": adversary, "paper": dict(zip(("R_t", "R_e", "E"), paper[column]))})
+        kind, adversary_policy, record = adversaries[column]
+        row = _evaluate_file(path, game_task(kind, where.deviation), low_level, episodes, seed, where, adversary_policy)
+        row.update({"adversary": adversary, "adversary_record": record,
+                    "paper": dict(zip(("R_t", "R_e", "E"), paper[column])) if column in paper else None})
         if differs:
             row["differs"] = differs
         result["rows"][column] = row
@@ -301,13 +334,22 @@ def _where_text(proto: dict) -> str:
     return text
 
 
+def _adversary_text(record) -> str:
+    """A report's adversary: "per row" (Table VI), a rule, or a trained adversary's file."""
+    if not record:
+        return "per row"
+    if isinstance(record, str):  # reports written before trained adversaries
+        return record
+    return record.get("rule") or f"{record['policy']} (trained)"
+
+
 def format_highlevel_table(result: dict) -> str:
     """Plain text: per method ours (mean ± std over episodes, in seconds of flight) and the paper's row."""
     from cefc_mj.eval.runner import format_mean_std
 
     proto = result["protocol"]
     table_name = "Table VI" if result["schema"] == "cefc-eval/table6" else "Table V"
-    adversary = proto["adversary"] or "per row"
+    adversary = _adversary_text(proto["adversary"])
     lines = [
         f"{table_name} protocol ({_where_text(proto)}, N = {proto['n_agents']}, density {proto['density']}/m^2, "
         f"{proto['episodes']} "

@@ -8,6 +8,11 @@
 The adversary flies at top speed toward that point (`pursuit_acceleration`). With
 `TaskConfig.adversary_avoids_obstacles` it steers around the obstacle cylinders on the way
 (`avoiding_velocity`); otherwise it flies straight through them, as neither world stops it.
+
+The learned adversary (TaskConfig.adversary = "learned", the paper's PPO predator) reads
+`adversary_observation` and is trained on `adversary_reward`; both are task code, the same for
+particles and quadrotors. Its observation does not grow with N: the nearest `ADVERSARY_SLOTS`
+agents and the nearest `ADVERSARY_OBSTACLE_SLOTS` obstacles, each slot with a presence flag.
 """
 
 from __future__ import annotations
@@ -76,3 +81,84 @@ def pursuit_acceleration(
     if obstacles is not None and obstacles.shape[1]:
         desired = avoiding_velocity(desired, position, obstacles, keep_out, margin)
     return np.clip((desired - velocity) / dt, -accel_max, accel_max)
+
+
+# ---------------------------------------------------------------------------- learned adversary
+ADVERSARY_SLOTS = 8
+"""Agents the learned adversary observes (the nearest first); fewer agents leave slots empty."""
+ADVERSARY_OBSTACLE_SLOTS = 4
+"""Obstacles the learned adversary observes (the nearest first)."""
+ADVERSARY_OBS_DIM = 6 + 6 * ADVERSARY_SLOTS + 4 * ADVERSARY_OBSTACLE_SLOTS
+"""[own position / a, own velocity / v_max, the goal relative to it / a (the centre of the nearest
+group of >= 3, `adversary_goal("nearest_group")`, what it is set to chase)] + per agent slot
+[relative position / a, relative velocity / v_max, group size / N, present] + per obstacle slot
+[unit direction to it, clearance / range (the gap to its keep-out disc, clipped to [0, 1]),
+present]; a is the arena's half size. The clearance is what avoidance needs at full resolution:
+a 0.65 m keep-out disc is a few hundredths of the arena-scaled positions."""
+ADVERSARY_OBSTACLE_RANGE = 3.0
+"""Clearance (m) at which an obstacle slot reads 1 (the UAVs' LiDAR range)."""
+
+
+def _nearest(offset: np.ndarray, slots: int) -> tuple[np.ndarray, np.ndarray]:
+    """Indices [B, slots] of the nearest rows of offset [B, K, 2] (padded with 0) and their presence."""
+    b, k = offset.shape[:2]
+    order = np.argsort((offset * offset).sum(-1), axis=-1, kind="stable")[:, :slots]
+    present = np.ones((b, min(slots, k)), dtype=bool)
+    if k < slots:
+        order = np.concatenate([order, np.zeros((b, slots - k), dtype=order.dtype)], axis=1)
+        present = np.concatenate([present, np.zeros((b, slots - k), dtype=bool)], axis=1)
+    return order, present
+
+
+def adversary_observation(adversary_pos: np.ndarray, adversary_vel: np.ndarray, goal: np.ndarray,
+                          agent_pos: np.ndarray, agent_vel: np.ndarray, agent_group_size: np.ndarray,
+                          obstacles: np.ndarray, arena_half_size: float, speed_max: float,
+                          keep_out: float) -> np.ndarray:
+    """The learned adversary's observation [B, ADVERSARY_OBS_DIM] float32 (layout: ADVERSARY_OBS_DIM)
+    from true states: it is the simulator's agent, not a sensing UAV. goal [B, 2] is the point it is
+    set to chase; agent_group_size [B, N] is the size of each agent's group; keep_out (m) is the
+    obstacle radius plus its body radius."""
+    b, n = agent_pos.shape[:2]
+    rows = np.arange(b)[:, None]
+    offset = agent_pos - adversary_pos[:, None, :]
+    order, present = _nearest(offset, ADVERSARY_SLOTS)
+    agents = np.concatenate([offset[rows, order] / arena_half_size,
+                             (agent_vel - adversary_vel[:, None, :])[rows, order] / speed_max,
+                             agent_group_size[rows, order][..., None] / n, present[..., None]], axis=-1)
+    agents *= present[..., None]
+    obstacle_offset = obstacles - adversary_pos[:, None, :]
+    order, present = _nearest(obstacle_offset, ADVERSARY_OBSTACLE_SLOTS)
+    if obstacle_offset.shape[1] == 0:
+        obstacle_offset = np.zeros((b, 1, 2))
+    offset = obstacle_offset[rows, order]
+    dist = np.maximum(np.linalg.norm(offset, axis=-1, keepdims=True), 1e-9)
+    clearance = np.clip((dist - keep_out) / ADVERSARY_OBSTACLE_RANGE, 0.0, 1.0)
+    near = np.concatenate([offset / dist, clearance, present[..., None]], axis=-1)
+    near *= present[..., None]
+    own = np.concatenate([adversary_pos / arena_half_size, adversary_vel / speed_max,
+                          (goal - adversary_pos) / arena_half_size], axis=-1)
+    return np.concatenate([own, agents.reshape(b, -1), near.reshape(b, -1)], axis=-1).astype(np.float32)
+
+
+def adversary_reward(adversary_pos: np.ndarray, goal: np.ndarray, agent_pos: np.ndarray, obstacles: np.ndarray,
+                     alert_distance: float, keep_out: float, distance_weight: float = 0.1,
+                     alert_weight: float = 1.0, collision_weight: float = 10.0,
+                     previous_distance: np.ndarray | None = None, progress_weight: float = 0.0,
+                     gamma: float = 1.0) -> dict[str, np.ndarray]:
+    """The learned adversary's reward terms [B] after a step, and their weighted sum "reward":
+    "distance" = -|goal - p| (m; goal: the nearest group of >= 3, `adversary_goal("nearest_group")`),
+    "alert" = share of agents within `alert_distance` of it, "collision" = -1 inside an obstacle's
+    keep-out disc (obstacle plus body radius), else 0, and "progress" = d_before - gamma d_after
+    (potential-based shaping with the potential -d, which leaves the optimal policy unchanged and
+    credits each step with the approach it made; 0 without previous_distance, the step's d_before)."""
+    distance = -np.linalg.norm(goal - adversary_pos, axis=-1)
+    progress = (np.zeros_like(distance) if previous_distance is None
+                else previous_distance + gamma * distance)
+    alert = (np.linalg.norm(agent_pos - adversary_pos[:, None, :], axis=-1) < alert_distance).mean(axis=-1)
+    if obstacles.shape[1]:
+        inside = (np.linalg.norm(obstacles - adversary_pos[:, None, :], axis=-1) < keep_out).any(axis=-1)
+    else:
+        inside = np.zeros(len(adversary_pos), dtype=bool)
+    collision = -inside.astype(float)
+    reward = distance_weight * distance + alert_weight * alert + collision_weight * collision + progress_weight * progress
+    return {"distance": distance, "alert": alert, "collision": collision, "progress": progress, "reward": reward}

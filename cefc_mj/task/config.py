@@ -16,10 +16,13 @@ from cefc_mj.errors import ConfigError
 from cefc_mj.task.estimator import POSITION_ESTIMATORS, PositionEstimator
 
 Mode = Literal["formation", "cefc"]
-AdversaryRule = Literal["nearest_group", "r_nearest", "r_largest", "none"]
+AdversaryRule = Literal["nearest_group", "r_nearest", "r_largest", "none", "learned"]
 ObstacleLayout = Literal["clear-start", "paper"]
 
 ADVERSARY_RULES = ("nearest_group", "r_nearest", "r_largest", "none")
+LEARNED_ADVERSARY = "learned"
+"""TaskConfig.adversary of a trained adversary: the env asks its `adversary_policy` for the acceleration."""
+ADVERSARIES = ADVERSARY_RULES + (LEARNED_ADVERSARY,)
 OBSTACLE_LAYOUTS = ("clear-start", "paper")
 
 
@@ -123,8 +126,9 @@ class TaskConfig:
     """K: neighbour slots in the low-level observation; None picks max(N - 1, 7), so that every
     low-level policy for c = 3..8 has the same observation shape."""
     adversary: AdversaryRule = "nearest_group"
-    """Adversary strategy in cefc mode: pursue the nearest group of >= 3 agents, R-Nearest (nearest
-    agent), R-Largest (largest group), or none."""
+    """Adversary strategy in cefc mode: the rules pursue the nearest group of >= 3 agents, the nearest
+    agent (R-Nearest) or the largest group (R-Largest); "none" has no adversary; "learned" is flown by
+    a trained policy handed to the env (`BatchedCEFCEnv(adversary_policy=...)`, e.g. the PPO adversary)."""
     adversary_start: tuple[float, float] = (0.0, 8.0)
     """Where the adversary starts (m); its x is jittered by the scenario sampler."""
     adversary_avoids_obstacles: bool = False
@@ -223,8 +227,8 @@ class TaskConfig:
             fail("deviation_sampling", self.deviation_sampling, "must be 'fixed' or 'uniform'")
         if self.obstacle_layout not in OBSTACLE_LAYOUTS:
             fail("obstacle_layout", self.obstacle_layout, f"must be one of {', '.join(OBSTACLE_LAYOUTS)}")
-        if self.adversary not in ADVERSARY_RULES:
-            fail("adversary", self.adversary, f"must be one of {', '.join(ADVERSARY_RULES)}")
+        if self.adversary not in ADVERSARIES:
+            fail("adversary", self.adversary, f"must be one of {', '.join(ADVERSARIES)}")
         if not isinstance(self.adversary_avoids_obstacles, bool):
             fail("adversary_avoids_obstacles", self.adversary_avoids_obstacles, "must be True or False")
         if self.start_half_size >= self.arena_half_size:

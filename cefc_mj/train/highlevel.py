@@ -46,7 +46,7 @@ import numpy as np
 import torch
 
 from cefc_mj.errors import CheckpointError, ConfigError
-from cefc_mj.eval.highlevel import evaluate_highlevel
+from cefc_mj.eval.highlevel import evaluate_highlevel, resolve_adversary
 from cefc_mj.fileio import write_atomic
 from cefc_mj.hierarchy import DECISION_INTERVAL, NAVIGATION, HierarchicalCEFCEnv, LowLevel, load_low_level
 from cefc_mj.nn.atm import Critic
@@ -55,12 +55,12 @@ from cefc_mj.nn.highlevel_policy import (VARIANTS, HighLevelPolicy, load_highlev
                                          save_highlevel_policy)
 from cefc_mj.nn.policy_io import atomic_torch_save
 from cefc_mj.nn.selector import build_critic
-from cefc_mj.task.config import ADVERSARY_RULES, TaskConfig
+from cefc_mj.task.config import ADVERSARY_RULES, LEARNED_ADVERSARY, TaskConfig
 from cefc_mj.task.messages import MessageChannel
 from cefc_mj.train.config import MAX_DENSITY, MAX_SEED, Budget, PPOConfig
 from cefc_mj.train.logger import RunLogger
 from cefc_mj.train.mappo import iteration_seed
-from cefc_mj.train.model_card import display_path, write_model_card
+from cefc_mj.train.model_card import display_paths, write_model_card
 from cefc_mj.train import run_state
 from cefc_mj.train.ppo import ValueNorm, advantages_and_targets, ppo_epochs
 from cefc_mj.train.run_state import STATE_FILE
@@ -112,8 +112,9 @@ class HighLevelConfig:
     obstacle_density: float = 0.03
     """Obstacles per m^2 in the game (the density the low level was trained at; the paper's CEFC
     space is obstacle-cluttered but gives no density for it)."""
-    adversary: str = "nearest_group"
-    """The env's rule adversary (TaskConfig.adversary); the paper's PPO adversary is not built."""
+    adversary: str = "adversary_ppo"
+    """The game's adversary (default the shipped PPO adversary, the paper's predator): a rule (TaskConfig.adversary: nearest_group, r_nearest, r_largest, none)
+    or a trained adversary's policy name (in the shipped folder) or file (`cefc-train adversary`)."""
     episode_steps: int = 400
     """Low-level steps per episode (paper: 400); a multiple of decision_interval."""
     decision_interval: int = DECISION_INTERVAL
@@ -173,8 +174,9 @@ class HighLevelConfig:
         return self.episode_steps // self.decision_interval
 
     def task(self) -> TaskConfig:
+        adversary = self.adversary if self.adversary in ADVERSARY_RULES else LEARNED_ADVERSARY
         return TaskConfig(n_agents=self.n_agents, mode="cefc", obstacle_density=self.obstacle_density,
-                          adversary=self.adversary, episode_steps=self.episode_steps)
+                          adversary=adversary, episode_steps=self.episode_steps)
 
     def phase(self, iteration: int, seconds: float) -> int:
         """0 (pre-training, navigation-only low level) until `pretrain_share` of the budget is
@@ -196,8 +198,9 @@ class HighLevelConfig:
         _check_int("n_agents", self.n_agents, 2, 8)
         if not isinstance(self.obstacle_density, (int, float)) or not 0 <= self.obstacle_density <= MAX_DENSITY:
             _fail("obstacle_density", self.obstacle_density, f"must be in [0, {MAX_DENSITY}] per m^2")
-        if self.adversary not in ADVERSARY_RULES:
-            _fail("adversary", self.adversary, f"must be one of {', '.join(ADVERSARY_RULES)}")
+        if not isinstance(self.adversary, str) or not self.adversary or self.adversary == LEARNED_ADVERSARY:
+            _fail("adversary", self.adversary, f"must be a rule ({', '.join(ADVERSARY_RULES)}) or a trained "
+                  "adversary's policy name or file")
         _check_int("decision_interval", self.decision_interval, 1, 1000)
         _check_int("episode_steps", self.episode_steps, self.decision_interval, 100_000)
         if self.episode_steps % self.decision_interval:
@@ -295,13 +298,19 @@ class HighLevelTrainer:
     """Algorithm 2's learner: the policy (ConsMAC + selector), the critic, their optimizers, the
     value normalizer, the replay B_C and a torch RNG; one `iterate()` = collect, RL update, ConsMAC."""
 
-    def __init__(self, cfg: HighLevelConfig, low_levels: tuple[LowLevel, LowLevel]):
+    def __init__(self, cfg: HighLevelConfig, low_levels: tuple[LowLevel, LowLevel], adversary_policy=None):
+        """adversary_policy: the trained adversary's action function when cfg.adversary names one
+        (default: loaded from that name)."""
         self.cfg = cfg
         self.task = cfg.task()
         self.low_levels = low_levels  # (pre-training, fine-tuning)
+        self.adversary_record: dict = {"rule": cfg.adversary}
+        if adversary_policy is None and self.task.adversary == LEARNED_ADVERSARY:  # the one cfg names
+            _, adversary_policy, self.adversary_record = resolve_adversary(cfg.adversary)
+        self.adversary_policy = adversary_policy  # the trained adversary of a 'learned' game, else None
         self.policy = HighLevelPolicy.build(cfg.variant, self.task, cfg.seed, cfg.hidden)
         probe = HierarchicalCEFCEnv(self.task, low_levels[1], n_envs=1, seed=0,
-                                    decision_interval=cfg.decision_interval)
+                                    decision_interval=cfg.decision_interval, adversary_policy=adversary_policy)
         with seeded(cfg.seed + 2):
             self.critic: Critic = build_critic(probe.state_size + probe.layout.size, cfg.critic_hidden)
         self.value_norm = ValueNorm()
@@ -334,7 +343,8 @@ class HighLevelTrainer:
         self.progress["phase"] = phase
         if phase not in self.envs:
             self.envs[phase] = HierarchicalCEFCEnv(self.task, self.low_levels[phase], n_envs=self.cfg.ppo.n_envs,
-                                                   seed=self.cfg.seed, decision_interval=self.cfg.decision_interval)
+                                                   seed=self.cfg.seed, decision_interval=self.cfg.decision_interval,
+                                                   adversary_policy=self.adversary_policy)
         return phase
 
     # ------------------------------------------------------------------ rollout
@@ -534,13 +544,6 @@ def read_state(path: Path) -> dict:
     return run_state.read_state(path, STATE_FORMAT, "high-level training state")
 
 
-def _display_paths(record):
-    """A low level's description with its file paths as model cards write them."""
-    if isinstance(record, dict):
-        return {k: (display_path(Path(v)) if k == "path" else _display_paths(v)) for k, v in record.items()}
-    return record
-
-
 def _last_csv_row(run_dir: Path) -> dict:
     with (run_dir / "progress.csv").open(newline="") as f:
         rows = list(csv.DictReader(f))
@@ -562,25 +565,34 @@ def train_highlevel(cfg: HighLevelConfig, out: Path, policies_dir: Path, resume:
         low_levels = (load_low_level(NAVIGATION, task), load_low_level(cfg.low_level, task, low_level_dir))
     except CheckpointError as e:
         raise CheckpointError(f"--low-level: {e}") from None
+    try:
+        _, adversary_policy, adversary_record = resolve_adversary(cfg.adversary)
+    except CheckpointError as e:
+        raise CheckpointError(f"--adversary: {e}") from None
     saved = None
     if run_state.run_state_path(run_dir, resume) is not None:
         saved = read_state(state_path)
         run_state.check_same_run(saved["config"], cfg, state_path, free=("budget", "checkpoint_every", "eval_episodes"))
-        if saved["low_level"]["finetune"] != _display_paths(low_levels[1].describe()):
+        if saved["low_level"]["finetune"] != display_paths(low_levels[1].describe()):
             raise ConfigError(f"--resume: {state_path} was trained with another fine-tuning low level "
                               f"({saved['low_level']['finetune'].get('name')}); use another --out")
-    trainer = HighLevelTrainer(cfg, low_levels)
+        if saved.get("adversary", {"rule": cfg.adversary}) != adversary_record:
+            raise ConfigError(f"--resume: {state_path} was trained against another adversary file "
+                              f"({saved['adversary'].get('policy')}); use another --out")
+    trainer = HighLevelTrainer(cfg, low_levels, adversary_policy)
+    trainer.adversary_record = adversary_record
     if saved is not None:
         trainer.load_state_dict(saved["trainer"])
-    low_level_record = {"pretrain": _display_paths(low_levels[0].describe()),
-                        "finetune": _display_paths(low_levels[1].describe())}
+    low_level_record = {"pretrain": display_paths(low_levels[0].describe()),
+                        "finetune": display_paths(low_levels[1].describe())}
     write_atomic(run_dir / "config.json", json.dumps(
-        {"highlevel": cfg.to_dict(), "task": task.to_dict(), "low_level": low_level_record, "command": command},
+        {"highlevel": cfg.to_dict(), "task": task.to_dict(), "low_level": low_level_record,
+         "adversary": adversary_record, "command": command},
         indent=2) + "\n")
 
     def checkpoint() -> None:
         atomic_torch_save({"format": STATE_FORMAT, "config": cfg.to_dict(), "low_level": low_level_record,
-                           "trainer": trainer.state_dict()}, state_path)
+                           "adversary": adversary_record, "trainer": trainer.state_dict()}, state_path)
 
     if saved is None:
         checkpoint()  # iteration 0: a run killed before its first periodic checkpoint can still --resume
@@ -617,8 +629,8 @@ def export_policy(policy: HighLevelPolicy, cfg: HighLevelConfig, task: TaskConfi
     as <name>_wo_ft.pt (the paper's "wo-FT": pre-trained, then combined with the fine-tuning low
     level without joint fine-tuning)."""
     name = cfg.name + ("_wo_ft" if wo_ft else "")
-    low_level_record = {"pretrain": _display_paths(low_levels[0].describe()),
-                        "finetune": _display_paths(low_levels[1].describe())}
+    low_level_record = {"pretrain": display_paths(low_levels[0].describe()),
+                        "finetune": display_paths(low_levels[1].describe())}
     iterations = trainer.progress["iterations"][0] if wo_ft else trainer.iteration
     episodes = iterations * cfg.ppo.n_envs * cfg.ppo.episodes_per_iteration if wo_ft else trainer.episodes
     policy_path = save_highlevel_policy(policy, policies_dir / f"{name}.pt", meta={
@@ -637,6 +649,7 @@ def export_policy(policy: HighLevelPolicy, cfg: HighLevelConfig, task: TaskConfi
         "networks": {"comm": None if policy.comm is None else policy.comm.cfg.to_dict(),
                      "selector": policy.selector.cfg.to_dict(), "critic_hidden": cfg.critic_hidden},
         "low_level": low_level_record,
+        "adversary": trainer.adversary_record,
         "phases": phases[:1] if wo_ft else phases,
         "consmac_training": None if not cfg.supervised else {
             "rounds": trainer.consmac_rounds, "steps": trainer.consmac_steps, "steps_per_round": cfg.consmac_steps,
@@ -661,7 +674,8 @@ def export_policy(policy: HighLevelPolicy, cfg: HighLevelConfig, task: TaskConfi
                          "low_level": low_levels[1].name, "backend": "particle",
                          "figures": "per-episode sums; R_t, R_n, R_e weighted, summing to R_H"},
             "ours": evaluate_highlevel(policy, task, low_levels[1], cfg.eval_episodes, seed=0,
-                                       decision_interval=cfg.decision_interval),
+                                       decision_interval=cfg.decision_interval,
+                                       adversary_policy=trainer.adversary_policy),
         }
     write_model_card(policy_path, card)
     return card

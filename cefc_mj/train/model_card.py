@@ -37,6 +37,13 @@ def display_path(path: Path) -> str:
         return str(path)
 
 
+def display_paths(record):
+    """A record (e.g. a low level's description) with every "path" entry written by `display_path`."""
+    if isinstance(record, dict):
+        return {k: (display_path(Path(v)) if k == "path" else display_paths(v)) for k, v in record.items()}
+    return record
+
+
 def card_path(policy_path: Path) -> Path:
     """The model card of a policy file: same folder, same stem, `.json`."""
     return Path(policy_path).with_suffix(".json")

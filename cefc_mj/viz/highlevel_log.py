@@ -40,7 +40,7 @@ from cefc_mj.hierarchy import DECISION_INTERVAL, HierarchicalCEFCEnv, LowLevel
 from cefc_mj.nn.highlevel_policy import HighLevelPolicy
 from cefc_mj.sim.particle import ParticleWorld
 from cefc_mj.task.adversary import adversary_goal
-from cefc_mj.task.config import TaskConfig
+from cefc_mj.task.config import LEARNED_ADVERSARY, TaskConfig
 from cefc_mj.viz.rerun_log import _segments_arrow, close_recording, group_colors, open_recording
 
 REWARD_PARTS = ("R_t", "R_n", "R_e")
@@ -194,13 +194,18 @@ class _StepTap:
 
 @torch.no_grad()
 def play_highlevel_episode(policy: HighLevelPolicy, task: TaskConfig, low_level: LowLevel, seed: int = 0,
-                           world=None, decision_interval: int = DECISION_INTERVAL) -> HighLevelEpisode:
+                           world=None, decision_interval: int = DECISION_INTERVAL,
+                           adversary_policy=None) -> HighLevelEpisode:
     """Fly one episode of the hierarchical game (mode of each anchor distribution, as the evaluation)
-    and record it. world: a physics world of 1 env (default the particle world)."""
+    and record it. world: a physics world of 1 env (default the particle world); adversary_policy:
+    the trained adversary of a task with adversary='learned' (its goal drawn is the nearest group of
+    >= 3, the point it is trained to chase)."""
     if not isinstance(seed, int) or isinstance(seed, bool) or seed < 0:
         raise ConfigError(f"seed={seed!r}: must be an integer >= 0")
-    game = HierarchicalCEFCEnv(task, low_level, n_envs=1, seed=seed, decision_interval=decision_interval, world=world)
+    game = HierarchicalCEFCEnv(task, low_level, n_envs=1, seed=seed, decision_interval=decision_interval, world=world,
+                               adversary_policy=adversary_policy)
     env = game.env
+    goal_rule = "nearest_group" if task.adversary == LEARNED_ADVERSARY else task.adversary
     weights = {"R_t": task.rewards.task_weight, "R_n": task.rewards.navigation_weight_high,
                "R_e": task.rewards.evasion_weight}
     has_adversary = task.adversary != "none"
@@ -218,7 +223,7 @@ def play_highlevel_episode(policy: HighLevelPolicy, task: TaskConfig, low_level:
         rows["group_size"].append(game.agent_group_size()[0].copy())
         if has_adversary:  # the goal env.step computes first thing in the next step, from this state
             rows["adversary_pos"].append(w.adversary_pos[0].copy())
-            rows["adversary_goal"].append(adversary_goal(task.adversary, w.adversary_pos, w.agent_pos,
+            rows["adversary_goal"].append(adversary_goal(goal_rule, w.adversary_pos, w.agent_pos,
                                                          env.group_size, env.group_centre)[0].copy())
 
     def on_step(reward, terms) -> None:

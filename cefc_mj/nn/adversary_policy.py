@@ -1,0 +1,117 @@
+"""The learned adversary (the paper's PPO predator): a single-agent Gaussian actor with the low
+level's network shape, and its policy file format.
+
+    mu, sigma = F_o(F_f(o_adv))
+
+F_f and F_o are 3-layer tanh MLPs of width 128, as AT-M's formation module and output layer (the
+adversary has no LiDAR, so no obstacle module: it reads its nearest obstacles' positions,
+`task.adversary.adversary_observation`); sigma is a state-independent learned log-std and the
+action is the adversary's horizontal acceleration setpoint (m/s^2). `act` maps an observation batch
+[B, D] to the mean clipped to accel_max, the deployed (deterministic) action: a loaded policy's
+`act` is what `BatchedCEFCEnv(adversary_policy=...)` takes.
+
+Files are `cefc-mj/adversary-policy`: the config, the weights and their SHA-256, and meta.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+
+from cefc_mj.errors import CheckpointError, ConfigError
+from cefc_mj.nn.layers import mlp, state_digest
+from cefc_mj.nn.policy_io import atomic_torch_save, safe_torch_load
+from cefc_mj.task.adversary import ADVERSARY_OBS_DIM
+
+POLICY_FORMAT = "cefc-mj/adversary-policy"
+POLICY_VERSION = 1
+
+
+@dataclass(frozen=True)
+class AdversaryNetConfig:
+    """Shape of the adversary's actor; saved inside its policy file."""
+
+    obs_dim: int = ADVERSARY_OBS_DIM
+    """Observation size (task.adversary.ADVERSARY_OBS_DIM)."""
+    hidden: int = 128
+    """Width of every hidden layer (the low level's 128)."""
+    accel_max: float = 2.0
+    """Per-axis action bound (m/s^2); the deployed action is the mean clipped to it."""
+    init_log_std: float = 0.0
+    """Initial log-std of the Gaussian (std 1 m/s^2)."""
+
+    def __post_init__(self) -> None:
+        for name in ("obs_dim", "hidden"):
+            value = getattr(self, name)
+            if not isinstance(value, int) or isinstance(value, bool) or value < 1:
+                raise ConfigError(f"{name}={value!r}: must be an integer >= 1")
+        if not isinstance(self.accel_max, (int, float)) or not self.accel_max > 0:
+            raise ConfigError(f"accel_max={self.accel_max!r}: must be a positive number")
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+class AdversaryPolicy(nn.Module):
+    """F_o(F_f(o)) -> the mean acceleration [.., 2]; `log_std` is the Gaussian's learned log-std."""
+
+    def __init__(self, cfg: AdversaryNetConfig, seed: int | None = None):
+        super().__init__()
+        self.cfg = cfg
+        if seed is not None:
+            torch.manual_seed(seed)
+        h = cfg.hidden
+        self.features = mlp([cfg.obs_dim, h, h, h], activate_last=True)
+        self.head = mlp([h, h, h, 2], activate_last=False, last_gain=0.01)
+        self.log_std = nn.Parameter(torch.full((2,), float(cfg.init_log_std)))
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        return self.head(self.features(obs))
+
+    def distribution(self, obs: torch.Tensor) -> torch.distributions.Normal:
+        mean = self(obs)
+        return torch.distributions.Normal(mean, self.log_std.exp().expand_as(mean))
+
+    @torch.no_grad()
+    def act(self, obs: np.ndarray) -> np.ndarray:
+        """The deployed action [B, 2] (float64, m/s^2) of observations [B, D]: the mean, clipped."""
+        mean = self(torch.as_tensor(np.asarray(obs), dtype=torch.float32))
+        return mean.clamp(-self.cfg.accel_max, self.cfg.accel_max).numpy().astype(np.float64)
+
+
+def save_adversary_policy(policy: AdversaryPolicy, path: Path, meta: dict | None = None) -> Path:
+    state = {k: v.detach().cpu().clone() for k, v in policy.state_dict().items()}
+    atomic_torch_save({"format": POLICY_FORMAT, "version": POLICY_VERSION, "net": policy.cfg.to_dict(),
+                       "state_dict": state, "sha256": state_digest(state), "meta": meta or {}}, Path(path))
+    return Path(path)
+
+
+def load_adversary_policy(path: Path) -> tuple[AdversaryPolicy, dict]:
+    """(policy, meta) of a file written by `save_adversary_policy`; CheckpointError with one line
+    for a missing, foreign, tampered or mismatched file."""
+    path = Path(path)
+    payload = safe_torch_load(path)
+    if payload.get("format") != POLICY_FORMAT:
+        raise CheckpointError(f"{path}: not an adversary policy file (format {payload.get('format')!r})")
+    if payload.get("version") != POLICY_VERSION:
+        raise CheckpointError(f"{path}: adversary policy version {payload.get('version')!r}, this code reads "
+                              f"{POLICY_VERSION}")
+    state = payload.get("state_dict")
+    if not isinstance(state, dict) or state_digest(state) != payload.get("sha256"):
+        raise CheckpointError(f"{path}: weights do not match the stored SHA-256 (file modified or corrupted)")
+    try:
+        cfg = AdversaryNetConfig(**payload["net"])
+        if cfg.obs_dim != ADVERSARY_OBS_DIM:
+            raise ConfigError(f"observation size {cfg.obs_dim}, this code builds {ADVERSARY_OBS_DIM}")
+        policy = AdversaryPolicy(cfg)
+        policy.load_state_dict(state)
+    except (ConfigError, RuntimeError, TypeError, KeyError) as e:
+        raise CheckpointError(f"{path}: weights do not fit the described network "
+                              f"({str(e).splitlines()[0][:160]})") from None
+    policy.eval()
+    return policy, dict(payload.get("meta") or {})

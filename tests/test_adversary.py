@@ -1,0 +1,171 @@
+"""The learned adversary: its observation and reward (task core), the env's plumbing on both
+backends, the policy file, the PPO trainer (resume, CLI) and the shipped PPO adversary."""
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from cefc_mj import paths
+from cefc_mj.cli.train import main
+from cefc_mj.env import BatchedCEFCEnv
+from cefc_mj.errors import CheckpointError, ConfigError
+from cefc_mj.eval.highlevel import game_task
+from cefc_mj.nn.adversary_policy import AdversaryNetConfig, AdversaryPolicy, load_adversary_policy, \
+    save_adversary_policy
+from cefc_mj.task.adversary import (ADVERSARY_OBS_DIM, ADVERSARY_OBSTACLE_SLOTS, ADVERSARY_SLOTS,
+                                    adversary_observation, adversary_reward)
+from cefc_mj.train.adversary import AdversaryConfig, AdversaryTrainer, _adversary_ppo, evaluate_adversary, load_team
+from cefc_mj.train.config import Budget
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+
+def _obs(agent_pos, obstacles, adversary_pos=(0.0, 0.0), goal=(1.0, 1.0)):
+    agent_pos = np.asarray(agent_pos, dtype=float)[None]
+    n = agent_pos.shape[1]
+    return adversary_observation(np.array([adversary_pos]), np.array([[0.3, -0.3]]), np.array([goal]), agent_pos,
+                                 np.zeros_like(agent_pos), np.full((1, n), 3), np.asarray(obstacles, float)[None]
+                                 .reshape(1, -1, 2), arena_half_size=10.0, speed_max=0.75, keep_out=0.65)[0]
+
+
+def test_observation_layout_nearest_first_with_presence_flags_and_padding():
+    agents = [[5.0, 0.0], [1.0, 0.0], [0.0, -3.0]]  # distances 5, 1, 3
+    obs = _obs(agents, [[0.0, 2.0], [-9.0, 0.0]])
+    assert obs.shape == (ADVERSARY_OBS_DIM,) and obs.dtype == np.float32
+    np.testing.assert_allclose(obs[:6], [0, 0, 0.4, -0.4, 0.1, 0.1])
+    slots = obs[6:6 + 6 * ADVERSARY_SLOTS].reshape(ADVERSARY_SLOTS, 6)
+    np.testing.assert_allclose(slots[:3, :2], [[0.1, 0.0], [0.0, -0.3], [0.5, 0.0]])  # nearest first
+    np.testing.assert_allclose(slots[:3, 4:], [[3 / 3, 1]] * 3)  # group size / N, present
+    assert not slots[3:].any()  # 3 agents: 5 empty slots
+    near = obs[6 + 6 * ADVERSARY_SLOTS:].reshape(ADVERSARY_OBSTACLE_SLOTS, 4)
+    # unit direction, clearance to the 0.65 m keep-out disc over 3 m (clipped to 1), present
+    np.testing.assert_allclose(near[:2], [[0, 1, (2 - 0.65) / 3, 1], [-1, 0, 1, 1]], atol=1e-7)
+    assert not near[2:].any()
+    # The agents' order in the swarm does not matter; an obstacle-free arena leaves the slots empty.
+    np.testing.assert_array_equal(_obs(agents[::-1], [[0.0, 2.0], [-9.0, 0.0]]), obs)
+    assert not _obs(agents, np.zeros((0, 2)))[6 + 6 * ADVERSARY_SLOTS:].any()
+
+
+def test_reward_terms_by_hand():
+    adversary = np.array([[0.0, 0.0], [5.0, 5.0]])
+    goal = np.array([[3.0, 4.0], [5.0, 5.0]])
+    agents = np.array([[[1.0, 0.0], [4.0, 0.0]], [[9.0, 9.0], [9.0, 8.0]]])
+    obstacles = np.array([[[0.5, 0.0]], [[0.0, 0.0]]])
+    terms = adversary_reward(adversary, goal, agents, obstacles, alert_distance=2.0, keep_out=0.65)
+    np.testing.assert_allclose(terms["distance"], [-5.0, 0.0])
+    np.testing.assert_allclose(terms["alert"], [0.5, 0.0])
+    np.testing.assert_allclose(terms["collision"], [-1.0, 0.0])
+    np.testing.assert_allclose(terms["reward"], [0.1 * -5 + 0.5 - 10, 0.0])
+    assert not terms["progress"].any()  # no step before
+    # Potential-based shaping: approached from 6 m to 5 m (gamma 0.9): 6 - 0.9 x 5.
+    shaped = adversary_reward(adversary, goal, agents, obstacles, 2.0, 0.65, previous_distance=np.array([6.0, 1.0]),
+                              progress_weight=2.0, gamma=0.9)
+    np.testing.assert_allclose(shaped["progress"], [6 - 0.9 * 5, 1.0])
+    np.testing.assert_allclose(shaped["reward"] - terms["reward"], 2.0 * shaped["progress"])
+
+
+def test_env_needs_a_policy_for_a_learned_adversary_and_refuses_one_for_a_rule():
+    with pytest.raises(ConfigError, match="adversary_policy"):
+        BatchedCEFCEnv(game_task("learned"), n_envs=1)
+    with pytest.raises(ConfigError, match="only the 'learned' adversary"):
+        BatchedCEFCEnv(game_task("nearest_group"), n_envs=1, adversary_policy=lambda obs: np.zeros((1, 2)))
+    env = BatchedCEFCEnv(game_task("learned"), n_envs=2, adversary_policy=lambda obs: np.full((1, 2), np.nan))
+    env.reset()
+    with pytest.raises(ConfigError, match="finite accelerations of shape"):
+        env.step(np.zeros((2, 8, 2)))
+
+
+@pytest.mark.parametrize("backend", ["particle", "mujoco"])
+def test_a_policy_that_replays_the_rule_flies_the_rules_episode_on_both_backends(backend):
+    """The plumbing is exact: a 'learned' adversary whose policy returns what the rule commands flies
+    the rule's episode bit for bit, on particles and on quadrotors."""
+    from cefc_mj import make_world
+
+    def env_for(adversary, policy=None):
+        task = dataclasses.replace(game_task(adversary), episode_steps=30)
+        world = None if backend == "particle" else make_world("mujoco", task, 2, seed=4)
+        return BatchedCEFCEnv(task, n_envs=2, seed=4, world=world, adversary_policy=policy)
+
+    rule = env_for("nearest_group")
+    learned = env_for("learned", lambda obs: learned.rule_adversary_acceleration("nearest_group"))
+    rng = np.random.default_rng(0)
+    rule.reset(seed=1), learned.reset(seed=1)
+    for _ in range(30):
+        actions = rng.uniform(-1, 1, (2, 8, 2))
+        rule.step(actions), learned.step(actions)
+    np.testing.assert_array_equal(learned.world.adversary_pos, rule.world.adversary_pos)
+    np.testing.assert_array_equal(learned.world.agent_pos, rule.world.agent_pos)
+    assert np.linalg.norm(rule.world.adversary_pos - np.array([[0.0, 8.0]]), axis=-1).min() > 0.5  # it moved
+
+
+def test_policy_file_round_trip_clipped_actions_and_tampering(tmp_path):
+    policy = AdversaryPolicy(AdversaryNetConfig(), seed=3)
+    with torch.no_grad():
+        policy.head[-1].bias.fill_(5.0)  # a mean beyond the bound
+    obs = np.random.default_rng(0).normal(size=(4, ADVERSARY_OBS_DIM)).astype(np.float32)
+    np.testing.assert_array_equal(policy.act(obs), np.full((4, 2), 2.0))
+    path = save_adversary_policy(policy, tmp_path / "adv.pt", meta={"name": "adv"})
+    loaded, meta = load_adversary_policy(path)
+    np.testing.assert_array_equal(loaded.act(obs), policy.act(obs))
+    assert meta == {"name": "adv"}
+    payload = torch.load(path, weights_only=True)
+    payload["state_dict"]["log_std"] += 1.0
+    torch.save(payload, tmp_path / "tampered.pt")
+    with pytest.raises(CheckpointError, match="SHA-256"):
+        load_adversary_policy(tmp_path / "tampered.pt")
+    with pytest.raises(CheckpointError, match="not an adversary policy"):
+        load_adversary_policy(paths.POLICIES_DIR / "atm_student.pt")
+
+
+def _tiny(iterations, **kw):
+    return AdversaryConfig(budget=Budget(iterations=iterations), ppo=dataclasses.replace(_adversary_ppo(), n_envs=2),
+                           eval_episodes=0, **kw)
+
+
+def test_a_checkpointed_trainer_continues_exactly_as_an_uninterrupted_one():
+    cfg = _tiny(2)
+    team = load_team(cfg)
+    straight = AdversaryTrainer(cfg, *team)
+    rows = [straight.iterate() for _ in range(2)]
+    first = AdversaryTrainer(cfg, *team)
+    first.iterate()
+    resumed = AdversaryTrainer(cfg, *team)
+    resumed.load_state_dict(first.state_dict())
+    row = resumed.iterate()
+    assert row["episode_return"] == rows[1]["episode_return"]
+    for a, b in zip(straight.actor.parameters(), resumed.actor.parameters()):
+        torch.testing.assert_close(a, b, rtol=0, atol=0)
+    assert rows[0]["episodes"] == 2 and np.isfinite(rows[1]["approx_kl"])
+
+
+def test_cli_trains_exports_a_card_and_resumes(tmp_path, capsys):
+    out = tmp_path / "runs"
+    argv = ["adversary", "--budget", "1it", "--envs", "2", "--eval-episodes", "1", "--out", str(out), "--no-progress"]
+    assert main(argv) == 0
+    card = json.loads((out / "policies" / "adversary_ppo.json").read_text())
+    assert card["iterations"] == 1 and card["team"]["high_level"] == "policies/cihrl_consmac_a.pt"
+    assert set(card["evaluation"]) == {"protocol", "ours", "rule_nearest_group"}
+    assert 0 <= card["evaluation"]["ours"]["adversary_collision_share"] <= 1
+    load_adversary_policy(out / "policies" / "adversary_ppo.pt")
+    assert "PPO adversary vs cihrl_consmac_a" in capsys.readouterr().out
+    assert main([*argv[:2], "2it", *argv[3:], "--resume"]) == 0
+    assert json.loads((out / "policies" / "adversary_ppo.json").read_text())["iterations"] == 2
+
+
+@pytest.mark.parametrize("argv, needle", [
+    (["--envs", "0"], "--envs 0: must be an integer >= 1"),
+    (["--high-level", "no_such_policy"], "--high-level: "),
+    (["--low-level", "no_such_policy"], "--low-level: "),
+    (["--density", "-1"], "--density -1.0: must be in"),
+])
+def test_cli_bad_input_exits_2_with_one_line_and_writes_nothing(argv, needle, tmp_path, capsys):
+    out = tmp_path / "runs"
+    with pytest.raises(SystemExit) as e:
+        main(["adversary", "--out", str(out), *argv])
+    assert e.value.code == 2
+    err = capsys.readouterr().err.strip()
+    assert needle in err and len(err.splitlines()) == 1
+    assert not out.exists()
