@@ -202,7 +202,8 @@ class HierarchicalCEFCEnv:
                               f"{decision_interval}")
         needed = low_level_layout(task).size
         if getattr(low_level, "obs_dim", needed) != needed:
-            raise ConfigError(f"n_agents={task.n_agents}: the low level {low_level.name!r} reads {low_level.obs_dim} "
+            raise ConfigError(f"max_neighbours={task.neighbour_slots}: the low level {low_level.name!r} reads "
+                              f"{low_level.obs_dim} "
                               f"numbers, this game's low-level observation has {needed} "
                               f"({task.neighbour_slots} neighbour slots)")
         self.task = task

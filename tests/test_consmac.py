@@ -349,7 +349,7 @@ def test_configs_round_trip_and_bad_configs_raise_config_error():
         lambda: ConsMACConfig.from_task(TASK, message_dim=0),
         lambda: ConsMACConfig.from_task(TASK, obs_scale=float("nan")),
         lambda: ConsMACConfig.from_task(TaskConfig(n_agents=8, mode="formation")),
-        lambda: ConsMACConfig(layout=cfg.layout, n_agents=5),
+        lambda: ConsMACConfig(layout=tuple((n, 27 if n == "neighbours" else k) for n, k in cfg.layout), n_agents=8),
         lambda: ConsMACConfig.from_dict({"layout": [], "bogus": 1}),
         lambda: SelectorConfig.from_task(TASK, anchor_values=(-8.0, 8.0, 8.0)),
         lambda: SelectorConfig.from_task(TASK, hidden=0),

@@ -12,7 +12,7 @@ import pytest
 from cefc_mj import paths
 from cefc_mj.cli.eval import main
 from cefc_mj.eval.highlevel import (DT, Conditions, evaluate_highlevel_episodes, format_highlevel_table, game_task,
-                                    run_table5, run_table6)
+                                    plot_highlevel_table, run_table5, run_table6, run_table7)
 from cefc_mj.errors import ConfigError
 from cefc_mj.hierarchy import load_low_level
 from cefc_mj.nn.adversary_policy import AdversaryNetConfig, AdversaryPolicy, save_adversary_policy
@@ -55,6 +55,7 @@ def test_table5_rows_units_seeds_and_missing_methods(policies):
     assert result["rows"]["CI-HRL"]["paper"]["E"] == 4.46
     text = format_highlevel_table(result)
     assert "MAPPO+AT-M" in text and "2 training seeds" in text and "missing policies: TarMAC+AT-M" in text
+    assert "Table IV, message size per agent and decision: MAPPO+AT-M 0 (paper 0), CI-HRL 64 (paper 64)" in text
     # The same seed flies the same episodes: bit-identical figures.
     again = run_table5(episodes=2, seed=3, policies_dir=policies, policy="cihrl_mappo")
     assert again["rows"]["cihrl_mappo"]["per_episode"] == result["rows"]["MAPPO+AT-M"]["per_episode"]
@@ -103,6 +104,23 @@ def test_table6_plays_one_policy_against_each_adversary(policies):
     assert rule["rows"]["cihrl_mappo"]["per_episode"] == result["rows"]["R-Nearest"]["per_episode"]
     assert rule["protocol"]["adversary"] == {"rule": "r_nearest"} and "adversary r_nearest" in \
         format_highlevel_table(rule)
+
+
+def test_table7_plays_the_n8_policy_in_larger_swarms_per_agent(policies, tmp_path):
+    """Table VII: the same policy file, trained for N = 8, plays 8 and 12 UAVs (the observations read
+    the 7 nearest neighbours); the per-agent columns are the seconds-scale means divided by N."""
+    result = run_table7(episodes=2, policies_dir=policies, policy="cihrl_consmac_a", sizes=(8, 12))
+    assert list(result["rows"]) == ["N = 8", "N = 12"] and result["protocol"]["n_agents"] == [8, 12]
+    for n, row in zip((8, 12), result["rows"].values()):
+        assert len(row["per_episode"]["R_H"]) == 2 and row["n_agents"] == n
+        for m in ("R_H", "R_t", "R_n", "R_e", "E"):
+            assert row["per_agent"][m] == pytest.approx(row[m] * DT / n)
+    assert result["rows"]["N = 12"]["paper"] == {"R_H": -42.26, "R_t": 8.91, "R_n": -44.97, "R_e": -6.2, "E": 0.49}
+    text = format_highlevel_table(result)
+    assert "Table VII protocol (particle, N = 8, 12" in text and "R_t/N" in text
+    assert plot_highlevel_table(result, tmp_path / "t7.png").read_bytes()[:4] == b"\x89PNG"
+    # more UAVs share the targets: the same episodes' total R_n (all agents' distances) grows with N
+    assert result["rows"]["N = 12"]["R_n"] < result["rows"]["N = 8"]["R_n"]
 
 
 def test_the_game_flies_on_quadrotors_with_wind_and_deviation(policies):
@@ -156,6 +174,7 @@ def test_cli_records_one_game_of_a_policy(policies, tmp_path, monkeypatch, capsy
     (["--protocol", "table5", "--backend", "particle", "--rrd", "x.rrd"], "--rrd: recording works with"),
     (["--protocol", "table6", "--backend", "particle", "--adversary", "r_nearest"], "--adversary r_nearest: chooses"),
     (["--formation", "6", "--adversary", "r_nearest"], "--adversary r_nearest: chooses"),
+    (["--protocol", "table7", "--backend", "particle", "--formation", "6"], "--formation: --protocol table7"),
     (["--protocol", "table5", "--backend", "particle", "--adversary", "no_such"], "adversary no_such: "),
 ])
 def test_cli_bad_input_exits_2_with_one_line(argv, needle, tmp_path, monkeypatch, capsys):

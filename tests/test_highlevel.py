@@ -74,9 +74,14 @@ def test_shapes_anchor_decoding_and_a_400_step_episode_of_40_decisions():
     assert (env.env.t == 0).all()
     with pytest.raises(ConfigError, match="multiple"):
         HierarchicalCEFCEnv(TaskConfig(n_agents=8, mode="cefc", episode_steps=45), NavigationOnly.for_task(TASK))
-    with pytest.raises(ConfigError, match="n_agents=9"):
-        task9 = TaskConfig(n_agents=9, mode="cefc")
-        HierarchicalCEFCEnv(task9, load_low_level("atm_student", TASK))
+    # The observations do not grow with N (the 7 nearest neighbours within 3 m): the student flies
+    # a 12-UAV game and the CEFC observation keeps its 69 numbers; a low level for other K is refused.
+    task12 = TaskConfig(n_agents=12, mode="cefc")
+    big = HierarchicalCEFCEnv(task12, load_low_level("atm_student", task12), n_envs=1, seed=0)
+    assert big.reset().shape == (1, 12, 69) and big.low_level_observation().shape == (1, 12, 63)
+    big.step(np.full((1, 12), 4))
+    with pytest.raises(ConfigError, match="max_neighbours=9: the low level 'atm_student' reads 63"):
+        HierarchicalCEFCEnv(TaskConfig(n_agents=8, mode="cefc", max_neighbours=9), load_low_level("atm_student", TASK))
 
 
 def test_reward_is_the_envs_r_h_summed_over_ten_low_level_steps_of_the_student():

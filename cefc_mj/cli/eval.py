@@ -77,19 +77,21 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--version", action=_VersionAction, help="print the version, code digest and libraries, then exit")
     p.add_argument("--backend", choices=["mujoco", "particle"], default="mujoco",
                    help="physics: MuJoCo quadrotors with the PX4-like controller (default) or the particle world")
-    p.add_argument("--protocol", choices=["single", "table8", "table3", "table5", "table6"], default="single",
+    p.add_argument("--protocol", choices=["single", "table8", "table3", "table5", "table6", "table7"],
+                   default="single",
                    help="single: one condition (from --wind/--deviation) vs calm; table8: the paper's 7 conditions "
-                        "(MuJoCo); table3: the paper's MPE Table III (particle backend); table5 / table6: the "
-                        "high level's game, CI-HRL against the baselines / against adversary strategies (the "
-                        "paper's on --backend particle; also on quadrotors, with --wind and --deviation)")
+                        "(MuJoCo); table3: the paper's MPE Table III (particle backend); table5 / table6 / table7: "
+                        "the high level's game, CI-HRL against the baselines / against adversary strategies / with "
+                        "N = 8, 9, 10, 12, 15 UAVs (the paper's on --backend particle; also on quadrotors, with "
+                        "--wind and --deviation)")
     p.add_argument("--wind", type=float, default=None, metavar="MPS",
-                   help=f"mean wind speed in m/s, 0..{MAX_WIND_SPEED:g} (single, table5, table6; MuJoCo; default 0)")
+                   help=f"mean wind speed in m/s, 0..{MAX_WIND_SPEED:g} (single, table5-7; MuJoCo; default 0)")
     p.add_argument("--deviation", type=float, default=None, metavar="M",
-                   help=f"sensing deviation in m, 0..{MAX_DEVIATION:g} (single, table5, table6; default 0)")
+                   help=f"sensing deviation in m, 0..{MAX_DEVIATION:g} (single, table5-7; default 0)")
     p.add_argument("--formation", type=int, nargs="+", metavar="C",
                    help="formation sizes c in 3..8 (default 5 6 7 8; table3: 6 7 8)")
     p.add_argument("--episodes", type=int, metavar="K",
-                   help=f"seeds per cell, 1..{MAX_EPISODES} (default 1; table8 5; table3, table5, table6 50)")
+                   help=f"seeds per cell, 1..{MAX_EPISODES} (default 1; table8 5; table3, table5-7 50)")
     p.add_argument("--steps", type=int, metavar="T",
                    help=f"decision steps per episode, 1..{MAX_STEPS} (default 1000; table3 100); F and N are "
                         "comparable to the paper only at the default")
@@ -99,10 +101,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "(AT-M-Quad, c = 5..8), clm (the CL-M baseline, where trained), student, orca (the ORCA-F baseline, table3 "
                         "only), a name in policies/, or a .pt path; "
                         "table3 without it evaluates every method; table5: one high-level policy (default every "
-                        "method); table6: the high-level policy to play (default cihrl_consmac_a)")
+                        "method); table6, table7: the high-level policy to play (default cihrl_consmac_a)")
     p.add_argument("--adversary", default=None, metavar="RULE|NAME|PATH",
-                   help="table5: the game's adversary, a rule (nearest_group, r_nearest, r_largest, none) or a "
-                        "trained adversary's policy name or file (default adversary_ppo, the PPO adversary); "
+                   help="table5, table7: the game's adversary, a rule (nearest_group, r_nearest, r_largest, none) "
+                        "or a trained adversary's policy name or file (default adversary_ppo, the PPO adversary); "
                         "table6 plays each adversary in turn")
     p.add_argument("--sitl-m", action="store_true",
                    help="SITL-M: every UAV's policy in its own OS process over ZeroMQ, asynchronous (single: the "
@@ -146,7 +148,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--report-dir", type=Path, default=None, metavar="DIR",
                    help="table8: where table8.md/.csv/.json/.png and the resumable cell file go (default a new "
                         "folder ./cefc-eval-reports/table8-<policy>-<backend>-<time>/); give the folder of an "
-                        "interrupted run to resume it. table5, table6: where table5.md/.json/.png go (none by "
+                        "interrupted run to resume it. table5-7: where table<k>.md/.json/.png go (none by "
                         "default)")
     p.add_argument("--fresh", action="store_true",
                    help="table8 only: fly every episode anew; an existing cell file is moved aside, not reused")
@@ -228,9 +230,9 @@ def is_shipped_reports(path: Path) -> bool:
 def validate(args: argparse.Namespace) -> None:
     """Every flag checked before any work starts; one clear line each. Fills in the defaults."""
     proto = args.protocol
-    if args.adversary is not None and proto != "table5":
-        usage_error(f"--adversary {args.adversary}: chooses the adversary of --protocol table5 (table6 plays each "
-                    "adversary of the paper's table in turn; the other protocols have none)")
+    if args.adversary is not None and proto not in ("table5", "table7"):
+        usage_error(f"--adversary {args.adversary}: chooses the adversary of --protocol table5 and table7 (table6 "
+                    "plays each adversary of the paper's table in turn; the other protocols have none)")
     if proto in HIGHLEVEL_PROTOCOLS:
         _validate_highlevel(args)
     for flag, value in (("--link-delay", args.link_delay), ("--jitter", args.jitter)):
@@ -295,7 +297,7 @@ def validate(args: argparse.Namespace) -> None:
         usage_error("--wind: the particle backend has no wind model; use --backend mujoco")
     recording = [flag for flag, on in (("--rrd", args.rrd), ("--png", args.png), ("--spawn", args.spawn)) if on]
     if proto not in ("table8", *HIGHLEVEL_PROTOCOLS) and args.report_dir is not None:
-        usage_error(f"--report-dir: only --protocol table8, table5 and table6 write a report folder "
+        usage_error(f"--report-dir: only --protocol table8, table5, table6 and table7 write a report folder "
                     f"({proto} writes --json only)")
     if proto != "table8" and args.fresh:
         usage_error("--fresh: only --protocol table8 keeps a cell cache")
@@ -366,7 +368,7 @@ def validate(args: argparse.Namespace) -> None:
         check_output("--report-dir", args.report_dir, is_dir=True)
 
 
-HIGHLEVEL_PROTOCOLS = ("table5", "table6")
+HIGHLEVEL_PROTOCOLS = ("table5", "table6", "table7")
 
 
 def _validate_highlevel(args: argparse.Namespace) -> None:
@@ -414,7 +416,7 @@ def load_policies(args: argparse.Namespace) -> dict:
         from cefc_mj.eval.highlevel import highlevel_policy_path
         from cefc_mj.eval.runner import provenance
 
-        if args.policy is not None or args.protocol == "table6":
+        if args.policy is not None or args.protocol in ("table6", "table7"):
             path = highlevel_policy_path(args.policy or "cihrl_consmac_a")  # a missing file fails before any episode
             if args.png is not None and args.protocol == "table5":
                 from cefc_mj.errors import ConfigError
@@ -423,7 +425,7 @@ def load_policies(args: argparse.Namespace) -> dict:
                 if load_highlevel_policy(path)[0].comm is None:
                     raise ConfigError(f"--png: {args.policy} sends no messages (no communication), so there is no "
                                       "similarity to draw; drop --png")
-        if args.protocol == "table5":  # a missing or broken adversary file fails before any episode
+        if args.protocol in ("table5", "table7"):  # a missing or broken adversary file fails before any episode
             from cefc_mj.eval.highlevel import GAME_ADVERSARY, resolve_adversary
 
             resolve_adversary(args.adversary or GAME_ADVERSARY)
@@ -767,21 +769,25 @@ def _table3(args: argparse.Namespace) -> int:
 def _highlevel_table(args: argparse.Namespace) -> int:
     import json
 
-    from cefc_mj.eval.highlevel import (GAME_ADVERSARY, Conditions, format_highlevel_table, plot_highlevel_table,
-                                        run_table5, run_table6)
+    from cefc_mj.eval.highlevel import (GAME_ADVERSARY, TABLE7_SIZES, Conditions, format_highlevel_table,
+                                        plot_highlevel_table, run_table5, run_table6, run_table7)
 
     proto = args.protocol
     playing = f"policy {args.policy}" if args.policy else "every method" if proto == "table5" else "cihrl_consmac_a"
-    print(f"{PROG} {proto}: {args.backend}, wind {args.wind:g} m/s, deviation {args.deviation:g} m, 8 UAVs, "
+    uavs = "N = " + ", ".join(map(str, TABLE7_SIZES)) if proto == "table7" else "8"
+    print(f"{PROG} {proto}: {args.backend}, wind {args.wind:g} m/s, deviation {args.deviation:g} m, {uavs} UAVs, "
           f"{args.episodes} episodes x 400 steps, seed {args.seed}, {playing}")
     prov = {k: v for k, v in args.provenance.items() if k != "policies"}
     where = Conditions(args.backend, args.wind, args.deviation)
     if proto == "table5":
         result = run_table5(episodes=args.episodes, seed=args.seed, policy=args.policy, provenance=prov, where=where,
                             adversary=args.adversary or GAME_ADVERSARY)
-    else:
+    elif proto == "table6":
         result = run_table6(episodes=args.episodes, seed=args.seed, policy=args.policy or "cihrl_consmac_a",
                             provenance=prov, where=where)
+    else:
+        result = run_table7(episodes=args.episodes, seed=args.seed, policy=args.policy or "cihrl_consmac_a",
+                            provenance=prov, where=where, adversary=args.adversary or GAME_ADVERSARY)
     result["protocol"]["command"] = args.command
     text = format_highlevel_table(result)
     print(text)

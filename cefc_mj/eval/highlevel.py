@@ -61,18 +61,21 @@ TABLE6_ROWS = (
 )
 """(the paper's column, our adversary (a rule, or a trained adversary's policy name), what differs).
 The paper's DDPG column has no counterpart here."""
+TABLE7_SIZES = (8, 9, 10, 12, 15)
+"""The swarm sizes N of Table VII."""
 GAME_ADVERSARY = "adversary_ppo"
 """The adversary of Table V: the shipped PPO adversary, the paper's default predator."""
 
 
-def game_task(adversary: str = "nearest_group", deviation: float = 0.0) -> TaskConfig:
+def game_task(adversary: str = "nearest_group", deviation: float = 0.0, n_agents: int = GAME_AGENTS) -> TaskConfig:
     """The CEFC game of Tables V and VI (the high level's training game, `HighLevelConfig.task`),
     optionally with sensing deviation (m; the agents then act on the fused position estimate, as in
     `cefc-eval`; without deviation the estimate is the exact position). adversary: a rule, or
-    'learned' (the env then needs the adversary's policy: `resolve_adversary`)."""
+    'learned' (the env then needs the adversary's policy: `resolve_adversary`). n_agents: the
+    swarm's size (Table VII; the observations read the 7 nearest neighbours whatever N is)."""
     if adversary not in ADVERSARIES:
         raise ConfigError(f"adversary={adversary!r}: must be one of {', '.join(ADVERSARIES)}")
-    return TaskConfig(n_agents=GAME_AGENTS, mode="cefc", obstacle_density=GAME_DENSITY, adversary=adversary,
+    return TaskConfig(n_agents=n_agents, mode="cefc", obstacle_density=GAME_DENSITY, adversary=adversary,
                       episode_steps=GAME_STEPS, deviation=deviation, position_estimator="fused")
 
 
@@ -214,17 +217,24 @@ def highlevel_policy_path(policy: str, policies_dir: Path | None = None) -> Path
 
 
 def _evaluate_file(path: Path, task: TaskConfig, low_level: LowLevel, episodes: int, seed: int,
-                   where: Conditions, adversary_policy=None) -> dict:
+                   where: Conditions, adversary_policy=None, adversary: dict | None = None) -> dict:
+    """One policy file's row; adversary: the record (`resolve_adversary`) of the adversary played,
+    noted in the row when the policy was trained against another one."""
     policy, meta = load_highlevel_policy(path)
     row = _stats(evaluate_highlevel_episodes(policy, task, low_level, episodes, seed=seed,
                                              decision_interval=int(meta.get("decision_interval", DECISION_INTERVAL)),
                                              world=where.world(task, episodes, seed),
                                              adversary_policy=adversary_policy))
-    row.update({"policy": path.name, "sha256": file_sha256(path)})
+    row.update({"policy": path.name, "sha256": file_sha256(path), "message_dim": policy.message_dim})
     trained_with = (meta.get("low_level") or {}).get("file", {}).get("sha256")
     low_file = (low_level.describe().get("file") or {}).get("sha256")
     if trained_with and low_file and trained_with != low_file:
         row["low_level_differs"] = "fine-tuned with another low-level file than the one evaluated here"
+    # Files written before trained adversaries carry no record: they were trained against the rule.
+    trained_against = meta.get("adversary", {"rule": "nearest_group"})
+    if adversary is not None and trained_against != adversary:
+        row["adversary_differs"] = f"trained against {_adversary_text(trained_against)}, played here against " \
+                                   f"{_adversary_text(adversary)}"
     return row
 
 
@@ -272,7 +282,8 @@ def run_table5(episodes: int = EPISODES, seed: int = 0, policies_dir: Path | Non
         result["provenance"] = provenance
     if policy is not None:
         path = highlevel_policy_path(policy, policies_dir)
-        result["rows"][path.stem] = {**_evaluate_file(path, task, low_level, episodes, seed, where, adversary_policy),
+        result["rows"][path.stem] = {**_evaluate_file(path, task, low_level, episodes, seed, where, adversary_policy,
+                                                      record),
                                      "paper": None}
         return result
     for method, stem, suffix in TABLE5_ROWS:
@@ -280,11 +291,11 @@ def run_table5(episodes: int = EPISODES, seed: int = 0, policies_dir: Path | Non
         if 0 not in files:
             result["protocol"]["missing"].append(f"{method} ({stem}{suffix}.pt)")
             continue
-        row = _evaluate_file(files[0], task, low_level, episodes, seed, where, adversary_policy)
+        row = _evaluate_file(files[0], task, low_level, episodes, seed, where, adversary_policy, record)
         row["paper"] = dict(zip(COLUMNS, paper[method])) if method in paper else None
         if len(files) > 1:
             per_seed = {k: (row if k == 0 else _evaluate_file(f, task, low_level, episodes, seed, where,
-                                                              adversary_policy))
+                                                              adversary_policy, record))
                         for k, f in files.items()}
             row["training_seeds"] = {
                 "seeds": list(per_seed), "files": [f.name for f in files.values()],
@@ -324,6 +335,37 @@ def run_table6(episodes: int = EPISODES, seed: int = 0, policies_dir: Path | Non
     return result
 
 
+def run_table7(episodes: int = EPISODES, seed: int = 0, policies_dir: Path | None = None,
+               policy: str = "cihrl_consmac_a", provenance: dict | None = None, where: Conditions | None = None,
+               adversary: str = GAME_ADVERSARY, sizes: tuple[int, ...] = TABLE7_SIZES) -> dict:
+    """Table VII: one high-level policy (default CI-HRL, trained with N = 8) in games of N UAVs for
+    each N in `sizes`, the same adversary, targets and obstacle density; each row adds the per-agent
+    averages (R_H, R_t, R_n, R_e and E in seconds, divided by N), the paper's columns."""
+    policies_dir = Path(policies_dir) if policies_dir is not None else paths.POLICIES_DIR
+    path = highlevel_policy_path(policy, policies_dir)
+    where = where or Conditions()
+    if not sizes or any(not isinstance(n, int) or isinstance(n, bool) or not 3 <= n <= 32 for n in sizes):
+        raise ConfigError(f"sizes={sizes!r}: must be swarm sizes in [3, 32]")
+    kind, adversary_policy, record = resolve_adversary(adversary, policies_dir)
+    low_level = _low_level(game_task(kind))
+    result = {"schema": "cefc-eval/table7", "schema_version": 1,
+              "protocol": _protocol(episodes, seed, low_level, policies_dir, record, where), "rows": {}}
+    result["protocol"].update({"policy": path.name, "n_agents": list(sizes)})
+    paper = _paper("table7_large_scale")
+    if provenance is not None:
+        result["provenance"] = provenance
+    for n in sizes:
+        task = game_task(kind, where.deviation, n_agents=n)
+        row = _evaluate_file(path, task, low_level, episodes, seed, where, adversary_policy, record)
+        row["n_agents"] = n
+        row["per_agent"] = {m: row["seconds"][m] / n for m in COLUMNS}
+        row["per_agent_std"] = {m: row["seconds_std"][m] / n if row["seconds_std"][m] is not None else None
+                                for m in COLUMNS}
+        row["paper"] = dict(zip(COLUMNS, paper[str(n)])) if str(n) in paper else None
+        result["rows"][f"N = {n}"] = row
+    return result
+
+
 # ---------------------------------------------------------------------------- reports
 def _where_text(proto: dict) -> str:
     text = "particle" if proto["backend"] == "particle" else "MuJoCo quadrotors"
@@ -348,26 +390,32 @@ def format_highlevel_table(result: dict) -> str:
     from cefc_mj.eval.runner import format_mean_std
 
     proto = result["protocol"]
-    table_name = "Table VI" if result["schema"] == "cefc-eval/table6" else "Table V"
+    per_agent = result["schema"] == "cefc-eval/table7"
+    table_name = {"cefc-eval/table6": "Table VI", "cefc-eval/table7": "Table VII"}.get(result["schema"], "Table V")
     adversary = _adversary_text(proto["adversary"])
     lines = [
-        f"{table_name} protocol ({_where_text(proto)}, N = {proto['n_agents']}, density {proto['density']}/m^2, "
+        f"{table_name} protocol ({_where_text(proto)}, N = "
+        f"{', '.join(map(str, proto['n_agents'])) if per_agent else proto['n_agents']}, density {proto['density']}/m^2, "
         f"{proto['episodes']} "
         f"episodes x {proto['steps']} steps, seed {proto['seed']}, adversary {adversary}, low level "
         f"{proto['low_level']['name']}).",
         "R_H = R_t + R_n + R_e (weighted reward terms) and E (time with an agent within 2 m of the adversary), "
         "summed over each episode and given in seconds of flight (x 0.1 s), the scale of the paper's values; "
-        "ours: mean ± sample std over episodes.",
+        "ours: mean ± sample std over episodes." + (f" Table VII: per agent (divided by N), {proto['policy']} "
+                                                   "trained with N = 8." if per_agent else ""),
     ]
     if proto["episodes"] != EPISODES:
         lines.append(f"{proto['episodes']} episodes; the paper evaluates {EPISODES}.")
     if proto["backend"] != "particle" or proto["wind"] or proto["deviation"]:
         lines.append("The paper's rows are from its MPE (particles, calm, exact sensing): shown for scale, not "
                      "like-for-like.")
-    table = [["method", "", *COLUMNS, "F (steps)", "C (%)"]]
+    header = [f"{m}/N" for m in COLUMNS] if per_agent else list(COLUMNS)
+    table = [["method", "", *header, "F (steps)", "C (%)"]]
     for method, row in result["rows"].items():
         label = method if result["schema"] != "cefc-eval/table6" else f"{method} ({row['adversary']})"
-        table.append([label, "ours"] + [format_mean_std(row["seconds"][m], row["seconds_std"][m], ".1f")
+        figures, spread = (row["per_agent"], row["per_agent_std"]) if per_agent else (row["seconds"],
+                                                                                   row["seconds_std"])
+        table.append([label, "ours"] + [format_mean_std(figures[m], spread[m], ".2f" if per_agent else ".1f")
                                         for m in COLUMNS]
                      + [format_mean_std(row["F"], row["F_std"], ".0f"), format_mean_std(row["C"], row["C_std"], ".2f")])
         seeds = row.get("training_seeds")
@@ -383,16 +431,29 @@ def format_highlevel_table(result: dict) -> str:
         lines.append("  ".join(cell.ljust(w) if i < 2 else cell.rjust(w) for i, (cell, w) in enumerate(zip(r, widths)))
                      .rstrip())
     for method, row in result["rows"].items():
-        for key in ("differs", "low_level_differs"):
+        for key in ("differs", "low_level_differs", "adversary_differs"):
             if row.get(key):
                 lines.append(f"{method}: {row[key]}")
     if proto.get("missing"):
         lines.append("missing policies: " + ", ".join(proto["missing"]))
+    if result["schema"] == "cefc-eval/table5":
+        lines.append(table4_line(result))
     return "\n".join(lines)
 
 
+def table4_line(result: dict) -> str:
+    """The paper's Table IV (numbers each agent sends per decision) for the methods of a Table V
+    result, read from the policy files, beside the paper's."""
+    paper = _paper("table4_comm_dims")
+    named = {"MAPPO+AT-M": "MAPPO", "TarMAC+AT-M": "TarMAC", "CI-HRL": "ConsMAC"}
+    cells = [f"{method} {row['message_dim']} (paper {paper[named[method]]})"
+             for method, row in result["rows"].items() if method in named and "message_dim" in row]
+    return "Table IV, message size per agent and decision: " + (", ".join(cells) if cells else "no method")
+
+
 def plot_highlevel_table(result: dict, path: Path) -> Path:
-    """Bars of R_t and E (seconds scale) per row, ours with the std over episodes beside the paper's."""
+    """Bars of R_t and E (seconds scale; Table VII per agent) per row, ours with the std over
+    episodes beside the paper's."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -400,17 +461,18 @@ def plot_highlevel_table(result: dict, path: Path) -> Path:
 
     rows = result["rows"]
     names = list(rows)
+    key = "per_agent" if result["schema"] == "cefc-eval/table7" else "seconds"
     x = np.arange(len(names))
     fig, axes = plt.subplots(1, 2, figsize=(4 + 1.6 * len(names), 3.6))
     for ax, m in zip(axes, ("R_t", "E")):
-        ours = [rows[n]["seconds"][m] for n in names]
-        err = [rows[n]["seconds_std"][m] or 0.0 for n in names]
+        ours = [rows[n][key][m] for n in names]
+        err = [rows[n][f"{key}_std"][m] or 0.0 for n in names]
         paper = [np.nan if not rows[n].get("paper") or rows[n]["paper"].get(m) is None else rows[n]["paper"][m]
                  for n in names]
         ax.bar(x - 0.2, ours, 0.4, yerr=err, capsize=3, label="ours")
         ax.bar(x + 0.2, paper, 0.4, label="paper")
         ax.set_xticks(x, names, rotation=20, ha="right", fontsize=8)
-        ax.set_title(f"{m} ({'higher' if m == 'R_t' else 'lower'} is better)")
+        ax.set_title(f"{m}{'/N' if key == 'per_agent' else ''} ({'higher' if m == 'R_t' else 'lower'} is better)")
         ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=110)

@@ -117,8 +117,9 @@ class ConsMACConfig(LocalObservationSizes):
             raise ConfigError(f"layout {names} lacks the ConsMAC input part(s) {missing}; use the CEFC layout")
         if not isinstance(self.n_agents, int) or self.n_agents < 2:
             raise ConfigError(f"n_agents={self.n_agents!r}: ConsMAC needs at least 2 agents")
-        if dict(self.layout)["neighbours"] != 4 * (self.n_agents - 1):
-            raise ConfigError(f"n_agents={self.n_agents}: the layout's neighbour block is not 4(N-1) numbers")
+        if dict(self.layout)["neighbours"] % 4:
+            raise ConfigError(f"layout: the neighbour block ({dict(self.layout)['neighbours']}) is not 4 numbers "
+                              "per slot")
         if self.variant not in VARIANTS:
             raise ConfigError(f"variant={self.variant!r}: must be one of {VARIANTS}")
         if self.label_order not in LABEL_ORDERS:

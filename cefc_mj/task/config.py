@@ -19,6 +19,8 @@ Mode = Literal["formation", "cefc"]
 AdversaryRule = Literal["nearest_group", "r_nearest", "r_largest", "none", "learned"]
 ObstacleLayout = Literal["clear-start", "paper"]
 
+DEFAULT_NEIGHBOUR_SLOTS = 7
+"""K when TaskConfig.max_neighbours is None: N - 1 for the paper's 8 UAVs."""
 ADVERSARY_RULES = ("nearest_group", "r_nearest", "r_largest", "none")
 LEARNED_ADVERSARY = "learned"
 """TaskConfig.adversary of a trained adversary: the env asks its `adversary_policy` for the acceleration."""
@@ -123,8 +125,10 @@ class TaskConfig:
     lidar_sees_agents: bool = True
     """LiDAR beams hit other UAVs' discs as well as obstacles."""
     max_neighbours: int | None = None
-    """K: neighbour slots in the low-level observation; None picks max(N - 1, 7), so that every
-    low-level policy for c = 3..8 has the same observation shape."""
+    """K: neighbour slots in the observations (low level and CEFC): each agent sees its K nearest
+    neighbours within observation_distance, nearest first. None picks 7 (N - 1 for the paper's 8
+    UAVs), so every policy reads the same observation shape for any N: the low level for c = 3..8,
+    and the whole hierarchy for N = 8..15 (Table VII)."""
     adversary: AdversaryRule = "nearest_group"
     """Adversary strategy in cefc mode: the rules pursue the nearest group of >= 3 agents, the nearest
     agent (R-Nearest) or the largest group (R-Largest); "none" has no adversary; "learned" is flown by
@@ -166,10 +170,8 @@ class TaskConfig:
 
     @property
     def neighbour_slots(self) -> int:
-        """K: neighbour slots of the low-level observation."""
-        if self.max_neighbours is not None:
-            return self.max_neighbours
-        return max(self.n_agents - 1, 7)
+        """K: neighbour slots of the observations (the K nearest within observation_distance)."""
+        return self.max_neighbours if self.max_neighbours is not None else DEFAULT_NEIGHBOUR_SLOTS
 
     @property
     def n_obstacles(self) -> int:
@@ -217,8 +219,6 @@ class TaskConfig:
             fail("n_lidar_rays", self.n_lidar_rays, "must be an integer >= 1")
         if self.max_neighbours is not None and (not isinstance(self.max_neighbours, int) or self.max_neighbours < 1):
             fail("max_neighbours", self.max_neighbours, "must be an integer >= 1 or None")
-        if self.max_neighbours is not None and self.max_neighbours < self.n_agents - 1:
-            fail("max_neighbours", self.max_neighbours, f"must be >= n_agents - 1 = {self.n_agents - 1}")
         if not isinstance(self.n_targets, int) or not 0 <= self.n_targets <= 4:
             fail("n_targets", self.n_targets, "must be an integer in 0..4")
         if self.position_estimator not in POSITION_ESTIMATORS:

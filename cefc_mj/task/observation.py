@@ -50,9 +50,9 @@ def low_level_layout(cfg: TaskConfig) -> ObservationLayout:
 
 
 def cefc_layout(cfg: TaskConfig) -> ObservationLayout:
-    """[targets 3J, adversary 4, neighbours 4(N-1), neighbour_mask N-1, lidar M]; the first
-    3J + 4 + 4(N-1) numbers are the paper's o_i (38 for N = 8, J = 2)."""
-    k = cfg.n_agents - 1
+    """[targets 3J, adversary 4, neighbours 4K, neighbour_mask K, lidar M]; the first 3J + 4 + 4K
+    numbers are the paper's o_i (38 for K = 7 = N - 1 at N = 8, J = 2). K = cfg.neighbour_slots."""
+    k = cfg.neighbour_slots
     return ObservationLayout(
         (
             ("targets", 3 * cfg.n_targets),
@@ -118,7 +118,7 @@ def build_cefc_observation(
     adversary_part = np.concatenate(
         [adversary_pos[:, None, :] - perceived_pos, adversary_vel[:, None, :] - velocity], axis=-1
     )
-    feats, mask = neighbour_features(perceived_pos, velocity, n - 1, cfg.observation_distance)
+    feats, mask = neighbour_features(perceived_pos, velocity, cfg.neighbour_slots, cfg.observation_distance)
     return np.concatenate(
         [target_part, adversary_part, feats.reshape(b, n, -1), mask, lidar], axis=-1
     ).astype(np.float32)

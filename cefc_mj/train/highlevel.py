@@ -636,6 +636,7 @@ def export_policy(policy: HighLevelPolicy, cfg: HighLevelConfig, task: TaskConfi
     policy_path = save_highlevel_policy(policy, policies_dir / f"{name}.pt", meta={
         "name": name, "variant": cfg.variant, "seed": cfg.seed, "iterations": iterations,
         "decision_interval": cfg.decision_interval, "low_level": low_level_record["finetune"],
+        "adversary": trainer.adversary_record,
     })
     phases = [{"phase": phase, "low_level": low_levels[i].name, "iterations": trainer.progress["iterations"][i]}
               for i, phase in enumerate(PHASES)]
