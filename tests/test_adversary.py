@@ -169,3 +169,25 @@ def test_cli_bad_input_exits_2_with_one_line_and_writes_nothing(argv, needle, tm
     err = capsys.readouterr().err.strip()
     assert needle in err and len(err.splitlines()) == 1
     assert not out.exists()
+
+
+# ---------------------------------------------------------------------------- the shipped adversary
+# 20 games (seed 100) against the shipped CI-HRL, E in steps; bands from the measured spread (module
+# docstring of the regression section below).
+def _pressure(adversary) -> dict:
+    cfg = AdversaryConfig(budget=Budget(iterations=1))
+    team, meta, low_level = load_team(cfg)
+    return evaluate_adversary(adversary, team, low_level, cfg.task(), episodes=20, seed=100)
+
+
+def test_shipped_ppo_adversary_chases_the_swarm_and_keeps_out_of_obstacles():
+    """Measured (20 games against the shipped CI-HRL, seeds 100 / 200): E {PPO_E} steps, inside an
+    obstacle {PPO_IN}; the nearest-group rule E {RULE_E} with {RULE_IN} inside (it flies through
+    them); an untrained adversary E {UNTRAINED_E}. Bands: E >= {E_FLOOR} and at most {IN_CEILING}
+    of its steps inside an obstacle."""
+    policy, _ = load_adversary_policy(paths.POLICIES_DIR / "adversary_ppo.pt")
+    shipped = _pressure(policy.act)
+    assert shipped["E"] >= E_FLOOR, f"E {shipped['E']:.1f} steps below the band {E_FLOOR}"
+    assert shipped["adversary_collision_share"] <= IN_CEILING
+    untrained = _pressure(AdversaryPolicy(AdversaryNetConfig(), seed=0).act)
+    assert untrained["E"] < E_FLOOR  # the band fails an adversary that has not learned to chase

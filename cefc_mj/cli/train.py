@@ -334,11 +334,9 @@ def _seed_sweep(args):
 
 def _as_flag_error(e: ConfigError) -> ConfigError:
     """'n_envs=0: must be ...' from a config -> '--envs 0: must be ...', the flag the user typed."""
-    field, sep, rest = str(e).partition("=")
-    if sep and field in _FLAG_OF_FIELD:
-        value, _, why = rest.partition(": ")
-        return ConfigError(f"{_FLAG_OF_FIELD[field]} {value}: {why}")
-    return e
+    from cefc_mj.train.config import flag_error
+
+    return flag_error(e, _FLAG_OF_FIELD)
 
 
 # ---------------------------------------------------------------------------- commands
@@ -397,32 +395,23 @@ def run(args, command: str | None = None) -> list[dict]:
         o = card["table3"]["ours"]
         print(f"Table III protocol (density 0.05): R_L {o['R_L']:.2f}/step  F {o['F']:.2f}  N {o['N']:.2f}  C {o['C']:.2f}%")
         cards = [card]
-    elif args.command == "highlevel":  # its own policy format, so its own --install
-        from cefc_mj.nn.highlevel_policy import load_highlevel_policy
-        from cefc_mj.train.highlevel import config_from_args, summary_lines, train_highlevel
+    elif args.command in ("highlevel", "adversary"):  # their own policy formats, so their own --install
         from cefc_mj.train.model_card import install_policy
 
+        if args.command == "highlevel":
+            from cefc_mj.nn.highlevel_policy import load_highlevel_policy as load
+            from cefc_mj.train.highlevel import config_from_args, summary_lines, train_highlevel as train
+        else:
+            from cefc_mj.nn.adversary_policy import load_adversary_policy as load
+            from cefc_mj.train.adversary import config_from_args, summary_lines, train_adversary as train
         cfg = config_from_args(args, budget)
         policies_dir = check_destinations(args)
-        card = train_highlevel(cfg, args.out, policies_dir, resume=args.resume, show_progress=show, command=command)
+        card = train(cfg, args.out, policies_dir, resume=args.resume, show_progress=show, command=command)
         print("\n".join(summary_lines(card, policies_dir)))
         if args.install:
-            for name in filter(None, (card["name"], card.get("wo_ft"))):
-                target = install_policy(policies_dir / f"{name}.pt", paths.POLICIES_DIR, load=load_highlevel_policy)
+            for name in filter(None, (card["name"], card.get("wo_ft"))):  # wo_ft: the high level's pre-training
+                target = install_policy(policies_dir / f"{name}.pt", paths.POLICIES_DIR, load=load)
                 print(f"installed {name} -> {target}")
-        return [card]
-    elif args.command == "adversary":  # its own policy format, so its own --install
-        from cefc_mj.nn.adversary_policy import load_adversary_policy
-        from cefc_mj.train.adversary import config_from_args, summary_lines, train_adversary
-        from cefc_mj.train.model_card import install_policy
-
-        cfg = config_from_args(args, budget)
-        policies_dir = check_destinations(args)
-        card = train_adversary(cfg, args.out, policies_dir, resume=args.resume, show_progress=show, command=command)
-        print("\n".join(summary_lines(card, policies_dir)))
-        if args.install:
-            target = install_policy(policies_dir / f"{card['name']}.pt", paths.POLICIES_DIR, load=load_adversary_policy)
-            print(f"installed {card['name']} -> {target}")
         return [card]
     elif args.command == "distill":
         cfg = DistillConfig(budget=budget, formations=args.formations, tuples_per_formation=args.tuples, seed=args.seed)

@@ -25,7 +25,7 @@ from torch import nn
 
 from cefc_mj.errors import CheckpointError, ConfigError
 from cefc_mj.nn.layers import mlp, state_digest
-from cefc_mj.nn.policy_io import atomic_torch_save, safe_torch_load
+from cefc_mj.nn.policy_io import atomic_torch_save, read_policy_payload
 from cefc_mj.task.adversary import ADVERSARY_OBS_DIM
 
 POLICY_FORMAT = "cefc-mj/adversary-policy"
@@ -95,15 +95,8 @@ def load_adversary_policy(path: Path) -> tuple[AdversaryPolicy, dict]:
     """(policy, meta) of a file written by `save_adversary_policy`; CheckpointError with one line
     for a missing, foreign, tampered or mismatched file."""
     path = Path(path)
-    payload = safe_torch_load(path)
-    if payload.get("format") != POLICY_FORMAT:
-        raise CheckpointError(f"{path}: not an adversary policy file (format {payload.get('format')!r})")
-    if payload.get("version") != POLICY_VERSION:
-        raise CheckpointError(f"{path}: adversary policy version {payload.get('version')!r}, this code reads "
-                              f"{POLICY_VERSION}")
-    state = payload.get("state_dict")
-    if not isinstance(state, dict) or state_digest(state) != payload.get("sha256"):
-        raise CheckpointError(f"{path}: weights do not match the stored SHA-256 (file modified or corrupted)")
+    payload = read_policy_payload(path, POLICY_FORMAT, POLICY_VERSION, "an adversary policy")
+    state = payload["state_dict"]
     try:
         cfg = AdversaryNetConfig(**payload["net"])
         if cfg.obs_dim != ADVERSARY_OBS_DIM:

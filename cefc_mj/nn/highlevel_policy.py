@@ -16,7 +16,7 @@ from torch import nn
 from cefc_mj.errors import CheckpointError, ConfigError
 from cefc_mj.nn.consmac import ConsMAC, ConsMACConfig, inbox_tensors
 from cefc_mj.nn.layers import state_digest
-from cefc_mj.nn.policy_io import atomic_torch_save, safe_torch_load
+from cefc_mj.nn.policy_io import atomic_torch_save, read_policy_payload
 from cefc_mj.nn.selector import AnchorSelector, SelectorConfig
 from cefc_mj.task.config import TaskConfig
 from cefc_mj.task.messages import Inbox
@@ -143,15 +143,8 @@ def load_highlevel_policy(path: Path) -> tuple[HighLevelPolicy, dict]:
     """(policy, meta) from a file written by `save_highlevel_policy`; CheckpointError with one line
     for a missing, foreign, tampered or mismatched file."""
     path = Path(path)
-    payload = safe_torch_load(path)
-    if payload.get("format") != POLICY_FORMAT:
-        raise CheckpointError(f"{path}: not a high-level policy file (format {payload.get('format')!r})")
-    if payload.get("version") != POLICY_VERSION:
-        raise CheckpointError(f"{path}: high-level policy version {payload.get('version')!r}, this code reads "
-                              f"{POLICY_VERSION}")
-    state = payload.get("state_dict")
-    if not isinstance(state, dict) or state_digest(state) != payload.get("sha256"):
-        raise CheckpointError(f"{path}: weights do not match the stored SHA-256 (file modified or corrupted)")
+    payload = read_policy_payload(path, POLICY_FORMAT, POLICY_VERSION, "a high-level policy")
+    state = payload["state_dict"]
     try:
         comm = None if payload.get("comm") is None else ConsMAC(ConsMACConfig.from_dict(payload["comm"]))
         selector = AnchorSelector(SelectorConfig.from_dict(payload["selector"]))

@@ -80,18 +80,26 @@ def save_policy(actor: ATMActor, path: Path, meta: dict | None = None) -> Path:
     return Path(path)
 
 
-def load_actor(path: Path, obs_dim: int | None = None) -> tuple[ATMActor, dict]:
-    """(actor, meta) from a policy file. obs_dim, if given, must match the file's input size."""
+def read_policy_payload(path: Path, file_format: str, version: int, what: str) -> dict:
+    """A policy file's payload, checked: readable, of `file_format` (`what` names it in the error,
+    e.g. "an AT-M policy") and `version`, with a tensor state_dict that matches its SHA-256."""
     payload = safe_torch_load(path)
-    if payload.get("format") != POLICY_FORMAT:
-        raise CheckpointError(f"{path}: not an AT-M policy file (format {payload.get('format')!r})")
-    if payload.get("version") != POLICY_VERSION:
-        raise CheckpointError(f"{path}: policy file version {payload.get('version')!r}, this code reads {POLICY_VERSION}")
+    if payload.get("format") != file_format:
+        raise CheckpointError(f"{path}: not {what} file (format {payload.get('format')!r})")
+    if payload.get("version") != version:
+        raise CheckpointError(f"{path}: {what} file version {payload.get('version')!r}, this code reads {version}")
     state = payload.get("state_dict")
     if not isinstance(state, dict) or not all(isinstance(v, torch.Tensor) for v in state.values()):
-        raise CheckpointError(f"{path}: policy file without a tensor state_dict")
+        raise CheckpointError(f"{path}: {what} file without a tensor state_dict")
     if state_digest(state) != payload.get("sha256"):
         raise CheckpointError(f"{path}: weights do not match the stored SHA-256 (file modified or corrupted)")
+    return payload
+
+
+def load_actor(path: Path, obs_dim: int | None = None) -> tuple[ATMActor, dict]:
+    """(actor, meta) from a policy file. obs_dim, if given, must match the file's input size."""
+    payload = read_policy_payload(path, POLICY_FORMAT, POLICY_VERSION, "an AT-M policy")
+    state = payload["state_dict"]
     cfg = ATMConfig.from_dict(payload.get("net"))
     if obs_dim is not None and cfg.obs_dim != obs_dim:
         raise CheckpointError(f"{path}: made for observations of size {cfg.obs_dim}, this env gives {obs_dim}")

@@ -48,12 +48,12 @@ from cefc_mj.nn.policy_io import atomic_torch_save
 from cefc_mj.task.adversary import adversary_goal, adversary_reward
 from cefc_mj.task.config import LEARNED_ADVERSARY, TaskConfig
 from cefc_mj.train import run_state
-from cefc_mj.train.config import MAX_DENSITY, MAX_SEED, Budget, PPOConfig
+from cefc_mj.train.config import MAX_DENSITY, MAX_SEED, Budget, BudgetPPODict, PPOConfig, config_from_flags
 from cefc_mj.train.logger import RunLogger
 from cefc_mj.train.mappo import iteration_seed
 from cefc_mj.provenance import file_sha256
 from cefc_mj.train.model_card import display_path, display_paths, write_model_card
-from cefc_mj.train.ppo import ValueNorm, advantages_and_targets, ppo_epochs
+from cefc_mj.train.ppo import ValueNorm, advantages_and_targets, learner_state, load_learner_state, ppo_epochs
 from cefc_mj.train.run_state import STATE_FILE
 
 STATE_FORMAT = "cefc-mj/adversary-state"
@@ -69,7 +69,7 @@ def _fail(name: str, value: object, why: str) -> None:
 
 
 @dataclass(frozen=True)
-class AdversaryConfig:
+class AdversaryConfig(BudgetPPODict):
     """One PPO adversary training run; saved next to the run and in the model card."""
 
     budget: Budget
@@ -140,16 +140,6 @@ class AdversaryConfig:
             _fail("ppo", self.ppo, "must be a PPOConfig")
         self.ppo.validate()
         self.task()
-
-    def to_dict(self) -> dict:
-        return dataclasses.asdict(self)
-
-    @classmethod
-    def from_dict(cls, d: dict) -> "AdversaryConfig":
-        d = dict(d)
-        d["budget"] = Budget(**d["budget"])
-        d["ppo"] = PPOConfig(**d["ppo"])
-        return cls(**d)
 
 
 class _Sampler:
@@ -273,18 +263,11 @@ class AdversaryTrainer:
                 **stats, **update, "rollout_s": t1 - t0, "update_s": t2 - t1}
 
     def state_dict(self) -> dict:
-        return {"actor": self.actor.state_dict(), "critic": self.critic.state_dict(),
-                "value_norm": self.value_norm.state_dict(), "actor_opt": self.actor_opt.state_dict(),
-                "critic_opt": self.critic_opt.state_dict(), "generator": self.generator.get_state(),
+        return {**learner_state(self),
                 "counters": {"iteration": self.iteration, "episodes": self.episodes, "elapsed": self.elapsed}}
 
     def load_state_dict(self, state: dict) -> None:
-        self.actor.load_state_dict(state["actor"])
-        self.critic.load_state_dict(state["critic"])
-        self.value_norm.load_state_dict(state["value_norm"])
-        self.actor_opt.load_state_dict(state["actor_opt"])
-        self.critic_opt.load_state_dict(state["critic_opt"])
-        self.generator.set_state(state["generator"])
+        load_learner_state(self, state)
         c = state["counters"]
         self.iteration, self.episodes, self.elapsed = int(c["iteration"]), int(c["episodes"]), float(c["elapsed"])
 
@@ -363,16 +346,8 @@ def train_adversary(cfg: AdversaryConfig, out: Path, policies_dir: Path, resume:
     if saved is None:
         checkpoint()
     logger = RunLogger(run_dir, trainer.iteration, cfg.budget.iterations, desc=cfg.name, show_progress=show_progress)
-    last_row: dict = {}
-    try:
-        while not cfg.budget.exhausted(trainer.iteration, trainer.elapsed):
-            last_row = trainer.iterate()
-            logger.log(last_row, PROGRESS_KEYS)
-            if trainer.iteration % cfg.checkpoint_every == 0:
-                checkpoint()
-    finally:
-        logger.close()
-    checkpoint()
+    last_row = run_state.train_under_budget(trainer, cfg.budget, cfg.checkpoint_every, logger, PROGRESS_KEYS,
+                                            checkpoint)
 
     policy_path = save_adversary_policy(trainer.actor, policies_dir / f"{cfg.name}.pt", meta={
         "name": cfg.name, "seed": cfg.seed, "iterations": trainer.iteration})
@@ -435,13 +410,5 @@ CLI_PPO_FIELDS = ("n_envs", "epochs", "lr", "update_threads")
 def config_from_args(args, budget: Budget) -> AdversaryConfig:
     """The AdversaryConfig of `cefc-train adversary` arguments (flags left out keep the defaults);
     a bad value raises ConfigError naming the flag."""
-    given = {name: getattr(args, name) for name in CLI_FIELDS if getattr(args, name, None) is not None}
-    ppo_given = {name: getattr(args, name) for name in CLI_PPO_FIELDS if getattr(args, name, None) is not None}
-    try:
-        return AdversaryConfig(budget=budget, ppo=dataclasses.replace(_adversary_ppo(), **ppo_given), **given)
-    except ConfigError as e:
-        field_name, sep, rest = str(e).partition("=")
-        if sep and field_name in _FLAG_OF_FIELD:
-            value, _, why = rest.partition(": ")
-            raise ConfigError(f"{_FLAG_OF_FIELD[field_name]} {value}: {why}") from None
-        raise
+    return config_from_flags(AdversaryConfig, args, budget, CLI_FIELDS, CLI_PPO_FIELDS, _adversary_ppo(),
+                             _FLAG_OF_FIELD)

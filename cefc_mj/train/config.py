@@ -186,8 +186,44 @@ class PPOConfig:
             _fail("entropy_coef", self.entropy_coef, "must be >= 0")
 
 
+def flag_error(error: ConfigError, flag_of_field: dict[str, str]) -> ConfigError:
+    """'n_envs=0: must be ...' from a config -> '--envs 0: must be ...', naming the flag the user typed."""
+    field_name, sep, rest = str(error).partition("=")
+    if sep and field_name in flag_of_field:
+        value, _, why = rest.partition(": ")
+        return ConfigError(f"{flag_of_field[field_name]} {value}: {why}")
+    return error
+
+
+def config_from_flags(make, args, budget: "Budget", fields: tuple[str, ...], ppo_fields: tuple[str, ...],
+                      base_ppo: "PPOConfig", flag_of_field: dict[str, str]):
+    """make(budget=, ppo=, **fields) from command-line arguments: the `fields` and `ppo_fields` given
+    (not None) override the defaults and `base_ppo`; a bad value raises ConfigError naming its flag."""
+    given = {name: getattr(args, name) for name in fields if getattr(args, name, None) is not None}
+    ppo_given = {name: getattr(args, name) for name in ppo_fields if getattr(args, name, None) is not None}
+    try:
+        return make(budget=budget, ppo=dataclasses.replace(base_ppo, **ppo_given), **given)
+    except ConfigError as e:
+        raise flag_error(e, flag_of_field) from None
+
+
+class BudgetPPODict:
+    """to_dict / from_dict of a run config whose `budget` is a Budget and `ppo` a PPOConfig (the
+    form saved in config.json and state.pt, read back by --resume)."""
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict):
+        d = dict(d)
+        d["budget"] = Budget(**d["budget"])
+        d["ppo"] = PPOConfig(**d["ppo"])
+        return cls(**d)
+
+
 @dataclass(frozen=True)
-class LowLevelConfig:
+class LowLevelConfig(BudgetPPODict):
     """One low-level training stage: formation size c, AT-M step, Safe or not; with a `curriculum`,
     the CL-M baseline instead (one MAPPO stage from random weights over rising obstacle densities)."""
 
@@ -356,16 +392,6 @@ class LowLevelConfig:
         if self.budget.iterations is not None and self.budget.iterations < len(densities):
             fail(f"{len(densities)} phases need a budget of at least {len(densities)} iterations, "
                  f"got {self.budget.iterations}")
-
-    def to_dict(self) -> dict:
-        return dataclasses.asdict(self)
-
-    @classmethod
-    def from_dict(cls, d: dict) -> "LowLevelConfig":
-        d = dict(d)
-        d["budget"] = Budget(**d["budget"])
-        d["ppo"] = PPOConfig(**d["ppo"])
-        return cls(**d)
 
 
 @dataclass(frozen=True)

@@ -35,7 +35,6 @@ run as if it had not stopped.
 from __future__ import annotations
 
 import csv
-import dataclasses
 import json
 import math
 import time
@@ -57,7 +56,7 @@ from cefc_mj.nn.policy_io import atomic_torch_save
 from cefc_mj.nn.selector import build_critic
 from cefc_mj.task.config import ADVERSARY_RULES, LEARNED_ADVERSARY, TaskConfig
 from cefc_mj.task.messages import MessageChannel
-from cefc_mj.train.config import MAX_DENSITY, MAX_SEED, Budget, PPOConfig
+from cefc_mj.train.config import MAX_DENSITY, MAX_SEED, Budget, BudgetPPODict, PPOConfig, config_from_flags
 from cefc_mj.train.logger import RunLogger
 from cefc_mj.train.mappo import iteration_seed
 from cefc_mj.train.model_card import display_paths, write_model_card
@@ -95,7 +94,7 @@ def _check_int(name: str, value: object, least: int, most: int | None = None) ->
 
 
 @dataclass(frozen=True)
-class HighLevelConfig:
+class HighLevelConfig(BudgetPPODict):
     """One high-level training run (Algorithm 2). Defaults are the paper's where it gives a value
     (Sec. V-A); `consmac_steps` and `consmac_lr` are scaled to a 2-core budget (docs/high_level.md)."""
 
@@ -226,16 +225,6 @@ class HighLevelConfig:
                   f"(n_envs x episodes x {self.decision_steps} decisions)")
         self.ppo.validate()
         self.task()  # the game itself (obstacle packing, ...)
-
-    def to_dict(self) -> dict:
-        return dataclasses.asdict(self)
-
-    @classmethod
-    def from_dict(cls, d: dict) -> "HighLevelConfig":
-        d = dict(d)
-        d["budget"] = Budget(**d["budget"])
-        d["ppo"] = PPOConfig(**d["ppo"])
-        return cls(**d)
 
 
 class ConsMACReplay:
@@ -597,16 +586,8 @@ def train_highlevel(cfg: HighLevelConfig, out: Path, policies_dir: Path, resume:
     if saved is None:
         checkpoint()  # iteration 0: a run killed before its first periodic checkpoint can still --resume
     logger = RunLogger(run_dir, trainer.iteration, cfg.budget.iterations, desc=cfg.name, show_progress=show_progress)
-    last_row: dict = {}
-    try:
-        while not cfg.budget.exhausted(trainer.iteration, trainer.elapsed):
-            last_row = trainer.iterate()
-            logger.log(last_row, PROGRESS_KEYS)
-            if trainer.iteration % cfg.checkpoint_every == 0:
-                checkpoint()
-    finally:
-        logger.close()
-    checkpoint()
+    last_row = run_state.train_under_budget(trainer, cfg.budget, cfg.checkpoint_every, logger, PROGRESS_KEYS,
+                                            checkpoint)
     if not last_row and trainer.iteration:  # a finished run re-exported: its last logged iteration
         last_row = _last_csv_row(run_dir)
 
@@ -700,17 +681,8 @@ CLI_PPO_FIELDS = ("n_envs", "epochs", "minibatches", "lr", "update_threads", "en
 def config_from_args(args, budget: Budget) -> HighLevelConfig:
     """The HighLevelConfig of `cefc-train highlevel` arguments (flags left out keep the config's
     defaults); a bad value raises ConfigError naming the flag."""
-    given = {name: getattr(args, name) for name in CLI_FIELDS if getattr(args, name, None) is not None}
-    ppo_given = {name: getattr(args, name) for name in CLI_PPO_FIELDS if getattr(args, name, None) is not None}
-    try:
-        ppo = dataclasses.replace(_paper_ppo(), **ppo_given)
-        return HighLevelConfig(budget=budget, ppo=ppo, **given)
-    except ConfigError as e:
-        field_name, sep, rest = str(e).partition("=")
-        if sep and field_name in _FLAG_OF_FIELD:
-            value, _, why = rest.partition(": ")
-            raise ConfigError(f"{_FLAG_OF_FIELD[field_name]} {value}: {why}") from None
-        raise
+    return config_from_flags(HighLevelConfig, args, budget, CLI_FIELDS, CLI_PPO_FIELDS, _paper_ppo(),
+                             _FLAG_OF_FIELD)
 
 
 def summary_lines(card: dict, policies_dir: Path) -> list[str]:

@@ -234,22 +234,18 @@ def train_lowlevel(cfg: LowLevelConfig, out: Path, policies_dir: Path, resume: b
 
     if saved is None:
         checkpoint()  # iteration 0: a run killed before its first periodic checkpoint can still --resume
+    def iterate() -> dict:
+        if curriculum is None:
+            return trainer.iterate()
+        phase = enter_curriculum_phase(trainer, cfg, phase_tasks, curriculum)
+        row = trainer.iterate()
+        curriculum["iterations"][phase] += 1
+        row.update(curriculum_phase=phase, obstacle_density=cfg.curriculum[phase])
+        return row
+
     logger = RunLogger(run_dir, trainer.iteration, cfg.budget.iterations, desc=cfg.name, show_progress=show_progress)
-    last_row: dict = {}
-    try:
-        while not cfg.budget.exhausted(trainer.iteration, trainer.elapsed):
-            if curriculum is not None:
-                phase = enter_curriculum_phase(trainer, cfg, phase_tasks, curriculum)
-            last_row = trainer.iterate()
-            if curriculum is not None:
-                curriculum["iterations"][phase] += 1
-                last_row.update(curriculum_phase=phase, obstacle_density=cfg.curriculum[phase])
-            logger.log(last_row, PROGRESS_KEYS)
-            if trainer.iteration % cfg.checkpoint_every == 0:
-                checkpoint()
-    finally:
-        logger.close()
-    checkpoint()
+    last_row = run_state.train_under_budget(trainer, cfg.budget, cfg.checkpoint_every, logger, PROGRESS_KEYS,
+                                            checkpoint, iterate)
     if not last_row and trainer.iteration:  # a finished run re-exported: report its last logged iteration
         last_row = {k: float(v) for k, v in _last_csv_row(run_dir).items()}
 

@@ -31,7 +31,7 @@ from cefc_mj.env import BatchedCEFCEnv
 from cefc_mj.nn.atm import ATMActor, Critic
 from cefc_mj.task.config import TaskConfig
 from cefc_mj.train.config import PPOConfig
-from cefc_mj.train.ppo import ValueNorm, advantages_and_targets, ppo_epochs
+from cefc_mj.train.ppo import ValueNorm, advantages_and_targets, learner_state, load_learner_state, ppo_epochs
 
 
 def iteration_seed(seed: int, iteration: int) -> int:
@@ -194,23 +194,11 @@ class MAPPO:
 
     # ------------------------------------------------------------------ checkpoint state
     def state_dict(self) -> dict:
-        return {
-            "actor": self.actor.state_dict(),
-            "critic": self.critic.state_dict(),
-            "value_norm": self.value_norm.state_dict(),
-            "actor_opt": self.actor_opt.state_dict(),
-            "critic_opt": self.critic_opt.state_dict(),
-            "generator": self.generator.get_state(),
-            "counters": {"iteration": self.iteration, "agent_steps": self.agent_steps, "elapsed": self.elapsed},
-        }
+        return {**learner_state(self),
+                "counters": {"iteration": self.iteration, "agent_steps": self.agent_steps, "elapsed": self.elapsed}}
 
     def load_state_dict(self, state: dict) -> None:
-        self.actor.load_state_dict(state["actor"])
-        self.critic.load_state_dict(state["critic"])
-        self.value_norm.load_state_dict(state["value_norm"])
-        self.actor_opt.load_state_dict(state["actor_opt"])
-        self.critic_opt.load_state_dict(state["critic_opt"])
-        self.generator.set_state(state["generator"])
+        load_learner_state(self, state)
         counters = state["counters"]
         self.iteration = int(counters["iteration"])
         self.agent_steps = int(counters["agent_steps"])

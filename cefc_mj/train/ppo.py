@@ -102,6 +102,23 @@ def ppo_epochs(n_samples: int, ppo, generator: torch.Generator, policy_terms, ol
     return {k: v / count for k, v in sums.items()}
 
 
+LEARNER_PARTS = ("actor", "critic", "value_norm", "actor_opt", "critic_opt")
+"""The attributes of an actor-critic PPO learner saved in its resumable state (with `generator`)."""
+
+
+def learner_state(learner) -> dict:
+    """The state dicts of a learner's LEARNER_PARTS and its torch generator's state."""
+    return {**{name: getattr(learner, name).state_dict() for name in LEARNER_PARTS},
+            "generator": learner.generator.get_state()}
+
+
+def load_learner_state(learner, state: dict) -> None:
+    """Restore what `learner_state` saved."""
+    for name in LEARNER_PARTS:
+        getattr(learner, name).load_state_dict(state[name])
+    learner.generator.set_state(state["generator"])
+
+
 class ValueNorm(torch.nn.Module):
     """Running mean and variance of return targets (exact, over every target seen so far, merged
     batch by batch with the parallel-variance formula). The critic regresses normalize(returns);
