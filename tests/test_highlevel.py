@@ -331,3 +331,17 @@ def test_cli_install_copies_the_policy_and_card_into_the_shipped_folder(tmp_path
     torch.save(payload, tmp_path / "edited.pt")
     with pytest.raises(CheckpointError, match="SHA-256"):
         load_highlevel_policy(tmp_path / "edited.pt")
+
+
+def test_trains_against_a_trained_adversary_named_by_the_config():
+    """--adversary adversary_ppo: the envs fly the shipped PPO adversary (not the rule), and the
+    run records which file it was."""
+    cfg = tiny_config("mappo", adversary="adversary_ppo")
+    trainer = make_trainer(cfg)
+    assert trainer.task.adversary == "learned" and trainer.adversary_record["policy"] == "adversary_ppo.pt"
+    row = trainer.iterate()
+    assert np.isfinite(row["episode_return"])
+    env = trainer.envs[trainer.progress["phase"]]
+    assert env.env.adversary_policy is trainer.adversary_policy
+    with pytest.raises(ConfigError, match="adversary='learned'"):
+        tiny_config("mappo", adversary="learned")
