@@ -172,22 +172,28 @@ def test_cli_bad_input_exits_2_with_one_line_and_writes_nothing(argv, needle, tm
 
 
 # ---------------------------------------------------------------------------- the shipped adversary
-# 20 games (seed 100) against the shipped CI-HRL, E in steps; bands from the measured spread (module
-# docstring of the regression section below).
+# Bands from the measured spread: 20 games against the shipped CI-HRL (seeds 100 / 200 / 300), E in
+# steps and the share of the adversary's steps inside an obstacle's keep-out disc:
+#     shipped adversary_ppo    E 60.0 / 90.2 / 88.4    inside 1.27 / 0.39 / 0.85 %
+#     nearest-group rule       E 92.2 / 107.5 / 118.1  inside 4.74 / 4.34 / 4.10 %  (flies through them)
+#     untrained network        E 0 / 0 / 0             inside 8.14 / 6.35 / 4.55 %
+# A 20-game mean of E moves by about 15 steps between seeds; the floor sits two of those under the
+# lowest measured mean, the ceiling at twice the highest measured share.
+E_FLOOR = 30.0
+IN_CEILING = 0.025
+SEED = 100
+
+
 def _pressure(adversary) -> dict:
     cfg = AdversaryConfig(budget=Budget(iterations=1))
     team, meta, low_level = load_team(cfg)
-    return evaluate_adversary(adversary, team, low_level, cfg.task(), episodes=20, seed=100)
+    return evaluate_adversary(adversary, team, low_level, cfg.task(), episodes=20, seed=SEED)
 
 
 def test_shipped_ppo_adversary_chases_the_swarm_and_keeps_out_of_obstacles():
-    """Measured (20 games against the shipped CI-HRL, seeds 100 / 200): E {PPO_E} steps, inside an
-    obstacle {PPO_IN}; the nearest-group rule E {RULE_E} with {RULE_IN} inside (it flies through
-    them); an untrained adversary E {UNTRAINED_E}. Bands: E >= {E_FLOOR} and at most {IN_CEILING}
-    of its steps inside an obstacle."""
     policy, _ = load_adversary_policy(paths.POLICIES_DIR / "adversary_ppo.pt")
     shipped = _pressure(policy.act)
     assert shipped["E"] >= E_FLOOR, f"E {shipped['E']:.1f} steps below the band {E_FLOOR}"
-    assert shipped["adversary_collision_share"] <= IN_CEILING
-    untrained = _pressure(AdversaryPolicy(AdversaryNetConfig(), seed=0).act)
-    assert untrained["E"] < E_FLOOR  # the band fails an adversary that has not learned to chase
+    assert shipped["adversary_collision_share"] <= IN_CEILING, shipped["adversary_collision_share"]
+    untrained = _pressure(AdversaryPolicy(AdversaryNetConfig(), seed=0).act)  # the bands fail it
+    assert untrained["E"] < E_FLOOR and untrained["adversary_collision_share"] > IN_CEILING
