@@ -436,19 +436,19 @@ def format_highlevel_table(result: dict) -> str:
                 lines.append(f"{method}: {row[key]}")
     if proto.get("missing"):
         lines.append("missing policies: " + ", ".join(proto["missing"]))
-    if result["schema"] == "cefc-eval/table5":
+    if result["schema"] == "cefc-eval/table5" and table4_line(result):
         lines.append(table4_line(result))
     return "\n".join(lines)
 
 
-def table4_line(result: dict) -> str:
+def table4_line(result: dict) -> str | None:
     """The paper's Table IV (numbers each agent sends per decision) for the methods of a Table V
-    result, read from the policy files, beside the paper's."""
+    result, read from the policy files, beside the paper's; None without such a method (--policy)."""
     paper = _paper("table4_comm_dims")
     named = {"MAPPO+AT-M": "MAPPO", "TarMAC+AT-M": "TarMAC", "CI-HRL": "ConsMAC"}
     cells = [f"{method} {row['message_dim']} (paper {paper[named[method]]})"
              for method, row in result["rows"].items() if method in named and "message_dim" in row]
-    return "Table IV, message size per agent and decision: " + (", ".join(cells) if cells else "no method")
+    return "Table IV, message size per agent and decision: " + ", ".join(cells) if cells else None
 
 
 def plot_highlevel_table(result: dict, path: Path) -> Path:
