@@ -65,9 +65,14 @@ class OffboardScript:
 
     def pump(self, until, wall_timeout: float = 30.0) -> None:
         """Handle messages until `until()` is true; fails after `wall_timeout` wall seconds."""
+        assert self.pump_until(until, wall_timeout), "timed out waiting on the vehicle"
+
+    def pump_until(self, until, wall_timeout: float) -> bool:
+        """Handle messages until `until()` is true (True) or `wall_timeout` wall seconds pass (False)."""
         deadline = time.monotonic() + wall_timeout
         while not until():
-            assert time.monotonic() < deadline, "timed out waiting on the vehicle"
+            if time.monotonic() >= deadline:
+                return False
             msg = self.conn.recv_match(blocking=True, timeout=0.5)
             if msg is None:
                 continue
@@ -93,6 +98,7 @@ class OffboardScript:
                 self.texts.append((self.t, msg.text))
             elif kind == "ATTITUDE":
                 self.attitude = msg
+        return True
 
     def run_for(self, seconds: float) -> None:
         """Pump for `seconds` of simulated time."""
@@ -101,10 +107,19 @@ class OffboardScript:
         self.pump(lambda: self.t >= start + seconds)
 
     def command(self, command: int, *params: float) -> int:
-        """COMMAND_LONG to the vehicle; returns the result of its COMMAND_ACK (pumping meanwhile)."""
+        """COMMAND_LONG to the vehicle; returns the result of its COMMAND_ACK (pumping meanwhile). As
+        MAVLink's command protocol does, the command is sent again, with the confirmation field
+        counting up, while no ACK came back: a UDP datagram (the command or its ACK) can be dropped
+        when a loaded machine lets the socket buffer overflow with the vehicle's telemetry."""
         params = list(params) + [0.0] * (7 - len(params))
-        self.conn.mav.command_long_send(self.conn.target_system, self.conn.target_component, command, 0, *params)
-        self.pump(lambda: any(a.command == command for a in self.acks))
+        self.acks = [a for a in self.acks if a.command != command]  # late ACKs of an earlier, resent call
+        acked = lambda: any(a.command == command for a in self.acks)  # noqa: E731
+        for confirmation in range(15):
+            self.conn.mav.command_long_send(self.conn.target_system, self.conn.target_component, command,
+                                            confirmation, *params)
+            if self.pump_until(acked, wall_timeout=2.0):
+                break
+        assert acked(), "timed out waiting on the vehicle's COMMAND_ACK"
         ack = next(a for a in self.acks if a.command == command)
         self.acks.remove(ack)
         return ack.result
