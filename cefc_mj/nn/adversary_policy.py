@@ -24,8 +24,8 @@ import torch
 from torch import nn
 
 from cefc_mj.errors import CheckpointError, ConfigError
-from cefc_mj.nn.layers import mlp, state_digest
-from cefc_mj.nn.policy_io import atomic_torch_save, read_policy_payload
+from cefc_mj.nn.layers import mlp
+from cefc_mj.nn.policy_io import read_policy_payload, write_policy_payload
 from cefc_mj.task.adversary import ADVERSARY_OBS_DIM
 
 POLICY_FORMAT = "cefc-mj/adversary-policy"
@@ -85,10 +85,7 @@ class AdversaryPolicy(nn.Module):
 
 
 def save_adversary_policy(policy: AdversaryPolicy, path: Path, meta: dict | None = None) -> Path:
-    state = {k: v.detach().cpu().clone() for k, v in policy.state_dict().items()}
-    atomic_torch_save({"format": POLICY_FORMAT, "version": POLICY_VERSION, "net": policy.cfg.to_dict(),
-                       "state_dict": state, "sha256": state_digest(state), "meta": meta or {}}, Path(path))
-    return Path(path)
+    return write_policy_payload(path, POLICY_FORMAT, POLICY_VERSION, policy, meta, net=policy.cfg.to_dict())
 
 
 def load_adversary_policy(path: Path) -> tuple[AdversaryPolicy, dict]:

@@ -15,8 +15,7 @@ from torch import nn
 
 from cefc_mj.errors import CheckpointError, ConfigError
 from cefc_mj.nn.consmac import ConsMAC, ConsMACConfig, inbox_tensors
-from cefc_mj.nn.layers import state_digest
-from cefc_mj.nn.policy_io import atomic_torch_save, read_policy_payload
+from cefc_mj.nn.policy_io import read_policy_payload, write_policy_payload
 from cefc_mj.nn.selector import AnchorSelector, SelectorConfig
 from cefc_mj.task.config import TaskConfig
 from cefc_mj.task.messages import Inbox
@@ -129,14 +128,9 @@ class HighLevelPolicy(nn.Module):
 
 def save_highlevel_policy(policy: HighLevelPolicy, path: Path, meta: dict | None = None) -> Path:
     """Write pi_H (communication module and selector, with their configs) as one policy file."""
-    state = {k: v.detach().cpu().clone() for k, v in policy.state_dict().items()}
-    atomic_torch_save({
-        "format": POLICY_FORMAT, "version": POLICY_VERSION, "variant": policy.variant,
-        "comm": None if policy.comm is None else policy.comm.cfg.to_dict(),
-        "selector": policy.selector.cfg.to_dict(),
-        "state_dict": state, "sha256": state_digest(state), "meta": meta or {},
-    }, Path(path))
-    return Path(path)
+    return write_policy_payload(path, POLICY_FORMAT, POLICY_VERSION, policy, meta, variant=policy.variant,
+                                comm=None if policy.comm is None else policy.comm.cfg.to_dict(),
+                                selector=policy.selector.cfg.to_dict())
 
 
 def load_highlevel_policy(path: Path) -> tuple[HighLevelPolicy, dict]:

@@ -63,21 +63,20 @@ def safe_torch_load(path: Path) -> dict:
     return payload
 
 
+def write_policy_payload(path: Path, file_format: str, version: int, module: torch.nn.Module,
+                         meta: dict | None = None, **configs) -> Path:
+    """Write `module`'s weights (copied to the CPU, with their SHA-256) as a policy file of
+    `file_format` and `version`, with its `configs` and `meta`, atomically: what
+    `read_policy_payload` reads back."""
+    state = {k: v.detach().cpu().clone() for k, v in module.state_dict().items()}
+    atomic_torch_save({"format": file_format, "version": version, **configs, "state_dict": state,
+                       "sha256": state_digest(state), "meta": meta or {}}, Path(path))
+    return Path(path)
+
+
 def save_policy(actor: ATMActor, path: Path, meta: dict | None = None) -> Path:
     """Write `actor` as a policy file; `meta` (JSON-like: str/int/float/bool/list/dict) rides along."""
-    state = {k: v.detach().cpu().clone() for k, v in actor.state_dict().items()}
-    atomic_torch_save(
-        {
-            "format": POLICY_FORMAT,
-            "version": POLICY_VERSION,
-            "net": actor.cfg.to_dict(),
-            "state_dict": state,
-            "sha256": state_digest(state),
-            "meta": meta or {},
-        },
-        Path(path),
-    )
-    return Path(path)
+    return write_policy_payload(path, POLICY_FORMAT, POLICY_VERSION, actor, meta, net=actor.cfg.to_dict())
 
 
 def read_policy_payload(path: Path, file_format: str, version: int, what: str) -> dict:
