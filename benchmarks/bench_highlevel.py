@@ -3,8 +3,8 @@
 One agent (batch 1) at a real decision of the game, on the deployed paths an agent process runs:
 `HighLevelPolicy.agent_decider()` (ConsMAC's memory, distance code and attention over its
 neighbours' messages, then the anchor selector, as a TorchScript trace) and the low level's action
-toward the chosen anchor (the shipped student through `cefc_mj.deploy.agent.compile_policy`, the
-SITL-M agents' path). `--eager` adds, in the same run, `HighLevelPolicy.decide` and `Policy.act`.
+toward the chosen anchor (the shipped student through `ATMActor.deterministic_actions`, the compiled kernel
+the SITL-M agents run). `--eager` adds, in the same run, `HighLevelPolicy.decide` and `Policy.act`.
 The state comes from a game played to decision `--decision` by the shipped CI-HRL, so the agent's
 inbox holds the messages it would hear. Reference measured in the same run: the low level alone
 (what the agent computes every 0.1 s anyway); the ratio full / low level is what moves least with
@@ -23,7 +23,6 @@ import time
 import numpy as np
 import torch
 
-from cefc_mj.deploy.agent import compile_policy
 from cefc_mj.eval.highlevel import LOW_LEVEL, game_task, highlevel_policy_path
 from cefc_mj.hierarchy import HierarchicalCEFCEnv, load_low_level
 from cefc_mj.nn.highlevel_policy import load_highlevel_policy
@@ -84,7 +83,7 @@ def main() -> None:
     low_obs = env.low_level_observation()[:, agent:agent + 1]
     decider = policy.agent_decider()
     student = load_policy(resolve_policy_path(LOW_LEVEL))
-    low_act = compile_policy(student)
+    low_act = student.actor.deterministic_actions
     index, message = decider(agent_obs, one_inbox)
     reference = policy.decide(agent_obs, one_inbox)
     assert (index == reference[0]).all() and (message is None or (message == reference[1]).all())

@@ -12,8 +12,9 @@ time. Episodes and raw runs alternate, best of `--rounds` each; the ratio loop R
 read (1.0 would be a loop that costs nothing beside the physics). A breakdown (world.step, LiDAR,
 policy, the rest: task core and observations) comes from one more, instrumented, episode.
 `--before` adds, in the same run, the loop as it was before the speed-ups: LiDAR by `mj_multiRay` drone
-by drone, the policy through `Policy.act` with nn.Module dispatch and the free-space pass recomputed
-(the same numbers bit for bit, so the episode's metrics are identical).
+by drone, the policy through torch's nn.Module forward with the free-space pass recomputed (the
+compiled kernel agrees with it to float32 rounding, so the two episodes part ways after a while and
+their F / N / C differ as two seeds' would).
 
 (ii) `--sweep 8,16,...,256`: one world of N drones (formation mode, obstacles at the Table VIII density
 in an arena grown with N), the same per-step loop as run_episode for `--sweep-steps` decision steps,

@@ -7,6 +7,7 @@ import json
 import os
 import signal
 import socket
+import struct
 import subprocess
 import sys
 import textwrap
@@ -19,13 +20,12 @@ import zmq
 
 from cefc_mj.deploy import (AgentFault, SitlConfig, parse_drop, run_dropout_episode, run_latency_model_episode,
                             run_sitl_episode, wire)
-from cefc_mj.deploy.agent import EXIT_LOST, compile_policy, observation_from_packet
+from cefc_mj.deploy.agent import EXIT_LOST, observation_from_packet
 from cefc_mj.deploy.dropout import DropoutCEFCEnv
 from cefc_mj.deploy.sim_server import sensor_packets
 from cefc_mj.env import BatchedCEFCEnv
 from cefc_mj.errors import CefcError, ConfigError
 from cefc_mj.eval.runner import EpisodeSpec, run_episode
-from cefc_mj.nn.policy_io import load_policy
 from cefc_mj.task.config import TaskConfig
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -84,7 +84,7 @@ def test_agent_builds_the_lockstep_observation_from_its_packet():
             packets = sensor_packets(7, 0.7, env.perceived_pos[0], world.agent_vel[0], env.lidar[0], env.anchor[0],
                                      world.agent_pos[0], cfg.observation_distance, np.ones(8, bool), list(range(8)))
             for i, packet in enumerate(packets):
-                packet = wire.decode(wire.encode({"v": 1, **packet}), wire.SIM_TO_AGENT)
+                packet = wire.decode(wire.encode({"v": wire.WIRE_VERSION, **packet}), wire.SIM_TO_AGENT)
                 wire.check_sensor(packet, cfg.n_lidar_rays, cfg.n_agents, i)
                 true_d = np.linalg.norm(world.agent_pos[0] - world.agent_pos[0, i], axis=-1)
                 seen_d = np.linalg.norm(env.perceived_pos[0] - env.perceived_pos[0, i], axis=-1)
@@ -96,31 +96,45 @@ def test_agent_builds_the_lockstep_observation_from_its_packet():
         assert agreeing == rows if deviation == 0 else agreeing >= rows / 2
 
 
-@pytest.mark.parametrize("name", ["atm_c5_step3", "atm_c6_safe", "atm_student"])
-def test_agent_fast_path_is_the_policy(name):
-    """The agent's compiled forward pass gives Policy.act's actions bit for bit."""
-    policy = load_policy(name)
-    act = compile_policy(load_policy(name))
-    obs = np.random.default_rng(0).uniform(-3, 3, (200, 1, 1, policy.obs_dim)).astype(np.float32)
-    obs[..., -24:] = np.abs(obs[..., -24:])  # LiDAR ranges, some below the range (the Safe transform acts)
-    for row in obs:
-        assert np.array_equal(act(row), policy.act(row))
+def _binary_garbage(good_action: bytes, good_sensor: bytes) -> list[bytes]:
+    """Binary frames that must be refused: truncated, another version, an unknown kind, a length that
+    disagrees with the header, NaN, a fractional neighbour id."""
+    nan = struct.pack("<d", float("nan"))
+    header = 12
+    return [good_action[:8], good_action[:2] + b"\x01" + good_action[3:], good_action[:3] + b"\x09" + good_action[4:],
+            good_action + b"\x00" * 8, good_action[:header] + nan + good_action[header + 8:],
+            good_sensor[:-40] + struct.pack("<d", 1.5) + good_sensor[-32:],  # the last neighbour's id
+            good_sensor]  # a sensor packet is not a message an agent sends
 
 
 def test_wire_validation_refuses_garbage():
-    good = {"v": 1, "type": "action", "uav": 1, "seq": 3, "accel": [0.1, -2.0], "latency_ms": 0.3}
-    assert wire.decode(wire.encode(good), wire.AGENT_TO_SIM)["seq"] == 3
-    bad = [b"\xff\xfe", b"not json", b"[1, 2]", b'{"v": 2, "type": "action"}', b'{"v": 1, "type": "launch"}',
-           b'{"v": 1, "type": "action", "uav": 1, "seq": 3, "accel": [NaN, 0], "latency_ms": 0.3}',
-           b'{"v": 1, "type": "action", "uav": true, "seq": 3, "accel": [0, 0], "latency_ms": 0.3}',
-           b'{"v": 1, "type": "action", "uav": 1, "seq": -1, "accel": [0, 0], "latency_ms": 0.3}',
-           b'{"v": 1, "type": "action", "uav": 1, "seq": 3, "accel": [0], "latency_ms": 0.3}',
-           b" " * (wire.MAX_FRAME_BYTES + 1)]
+    v = wire.WIRE_VERSION
+    good = {"v": v, "type": "action", "uav": 1, "seq": 3, "accel": [0.1, -2.0], "latency_ms": 0.3}
+    frame = wire.encode(good)
+    assert frame[:2] == wire.BINARY_MAGIC and len(frame) == 36
+    assert wire.decode(frame, wire.AGENT_TO_SIM) == good
+    as_json = json.dumps(good).encode()  # the same message as JSON is accepted too
+    assert wire.decode(as_json, wire.AGENT_TO_SIM) == good
+    packet = {"v": v, "type": "sensor", "seq": 0, "t": 0.0, "pos": [0.5, 0.0], "vel": [0.0, 0.25], "anchor": [1.0, 1.0],
+              "lidar": [3.0] * 24, "neighbours": [[2, 1.0, 0.0, 0.0, 0.0], [5, -1.0, 2.0, 0.5, 0.0]]}
+    sensor = wire.encode(packet)
+    assert wire.decode(sensor, wire.SIM_TO_AGENT) == packet and len(sensor) == 12 + 8 * (7 + 24 + 10)
+    bad = [b"\xff\xfe", b"not json", b"[1, 2]", b'{"v": 1, "type": "action", "uav": 1, "seq": 3, "accel": [0, 0], "latency_ms": 0.3}',
+           b'{"v": 2, "type": "action"}', b'{"v": 2, "type": "launch"}',
+           b'{"v": 2, "type": "action", "uav": 1, "seq": 3, "accel": [NaN, 0], "latency_ms": 0.3}',
+           b'{"v": 2, "type": "action", "uav": 1, "seq": 3, "accel": [1e999, 0], "latency_ms": 0.3}',
+           b'{"v": 2, "type": "action", "uav": true, "seq": 3, "accel": [0, 0], "latency_ms": 0.3}',
+           b'{"v": 2, "type": "action", "uav": 1, "seq": -1, "accel": [0, 0], "latency_ms": 0.3}',
+           b'{"v": 2, "type": "action", "uav": 1, "seq": 3, "accel": [0], "latency_ms": 0.3}',
+           b" " * (wire.MAX_FRAME_BYTES + 1)] + _binary_garbage(frame, sensor)
     for frame in bad:
         with pytest.raises(wire.WireError):
             wire.decode(frame, wire.AGENT_TO_SIM)
-    packet = {"v": 1, "type": "sensor", "seq": 0, "t": 0.0, "pos": [0, 0], "vel": [0, 0], "anchor": [1, 1],
-              "lidar": [3.0] * 24, "neighbours": [[2, 1, 0, 0, 0], [2, 1, 0, 0, 0]]}
+    with pytest.raises(wire.WireError, match="neighbours id"):
+        wire.decode(_binary_garbage(frame, sensor)[5], wire.SIM_TO_AGENT)
+    with pytest.raises(ValueError):
+        wire.encode({**good, "latency_ms": float("inf")})
+    packet["neighbours"] = [[2, 1, 0, 0, 0], [2, 1, 0, 0, 0]]
     with pytest.raises(wire.WireError):
         wire.check_sensor(wire.decode(wire.encode(packet), wire.SIM_TO_AGENT), 24, 8, 0)
 
@@ -181,10 +195,12 @@ def test_sitl_episode_close_to_lockstep_and_garbage_is_dropped():
     rogue = context.socket(zmq.DEALER)
     rogue.setsockopt(zmq.LINGER, 0)
     rogue.connect(f"tcp://127.0.0.1:{port}")  # frames wait in the queue until the simulator binds
-    garbage = [[b"\xff\xfe"], [b"not json"], [b'{"v": 2, "type": "action"}'], [b'{"v": 1, "type": "launch", "uav": 0}'],
-               [b'{"v": 1, "type": "action", "uav": 0, "seq": 0, "accel": [0, 0], "latency_ms": 1}'],  # not registered
-               [b'{"v": 1, "type": "hello", "uav": 99, "policy": "x", "pid": 1, "host": "h"}'],
-               [b'{"v": 1, "type": "action", "uav": 0, "seq": 0, "accel": [NaN, 0], "latency_ms": 1}'],
+    action = wire.encode({"type": "action", "uav": 0, "seq": 0, "accel": [0.0, 0.0], "latency_ms": 1.0})
+    garbage = [[b"\xff\xfe"], [b"not json"], [b'{"v": 1, "type": "ready", "uav": 0}'], [b'{"v": 2, "type": "launch", "uav": 0}'],
+               [action],  # not registered
+               [action[:2] + b"\x01" + action[3:]], [action[:20]],
+               [b'{"v": 2, "type": "hello", "uav": 99, "policy": "x", "pid": 1, "host": "h"}'],
+               [b'{"v": 2, "type": "action", "uav": 0, "seq": 0, "accel": [NaN, 0], "latency_ms": 1}'],
                [b"two", b"frames"]]
     for frames in garbage:
         rogue.send_multipart(frames)
@@ -338,7 +354,7 @@ def test_remote_agent_exits_when_the_simulator_goes_silent():
         assert router.poll(60000)
         identity, frame = router.recv_multipart()
         assert wire.decode(frame, wire.AGENT_TO_SIM)["type"] == "hello"
-        welcome = {"v": 1, "type": "welcome", "uav": 1, "formation": 3, "heartbeat_timeout_s": 30.0,
+        welcome = {"v": wire.WIRE_VERSION, "type": "welcome", "uav": 1, "formation": 3, "heartbeat_timeout_s": 30.0,
                    "task": EpisodeSpec(formation=3, seed=0).task_config().to_dict()}
         router.send_multipart([identity, wire.encode(welcome)])
         assert router.poll(60000)

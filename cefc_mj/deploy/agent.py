@@ -44,62 +44,17 @@ WARMUP_CALLS = 20
 
 
 def observation_from_packet(cfg, packet: dict) -> np.ndarray:
-    """The agent's observation [D] (float32) from its sensor packet, built by the lock-step code.
+    """The agent's observation [D] (float32) from its sensor packet: row 0 of the lock-step runner's
+    `build_low_level_observation` for a small local swarm [self, neighbours in increasing UAV index]
+    (the lock-step runner's tie order), bit for bit, in one compiled call
+    (`local_observation_kernel`). It is the lock-step runner's row for this agent as long as the same
+    neighbours are in the packet (always with exact sensing; see docs/sitl_m.md)."""
+    from cefc_mj.task.kernels import local_observation_kernel
 
-    The agent itself is row 0 of a small local swarm [1, 1 + k, ...] whose other rows are the
-    neighbours' broadcasts in increasing UAV index (the lock-step runner's tie order). Its row of
-    `build_low_level_observation` is then the lock-step runner's row for this agent, bit for bit, as
-    long as the same neighbours are in the packet (always with exact sensing; see docs/sitl_m.md).
-    """
-    from cefc_mj.task.observation import build_low_level_observation
-
-    rows = sorted(packet["neighbours"])
-    k = len(rows)
-    pos = np.empty((1, 1 + k, 2))
-    vel = np.empty((1, 1 + k, 2))
-    pos[0, 0], vel[0, 0] = packet["pos"], packet["vel"]
-    for s, (_, px, py, vx, vy) in enumerate(rows, start=1):
-        pos[0, s] = (px, py)
-        vel[0, s] = (vx, vy)
-    lidar = np.zeros((1, 1 + k, cfg.n_lidar_rays))
-    lidar[0, 0] = packet["lidar"]
-    anchor = np.asarray(packet["anchor"], dtype=np.float64)[None]
-    return build_low_level_observation(cfg, pos, vel, anchor, lidar)[0, 0]
-
-
-def compile_policy(policy):
-    """The policy's forward pass for one observation [1, 1, D] -> acceleration [1, 1, 2], as a frozen
-    TorchScript trace of the agent's own actor copy: the same operations as `Policy.act` (equal bit
-    for bit on the shipped policies) at about a third of the eager per-call overhead, which is most
-    of a decision's cost for these small networks. Falls back to `Policy.act` if tracing fails."""
-    import warnings
-
-    import torch
-
-    actor = policy.actor
-
-    class _Act(torch.nn.Module):
-        def __init__(self):
-            super().__init__()
-            self.actor = actor
-
-        def forward(self, obs):
-            return self.actor.to_acceleration(self.actor(obs), obs)
-
-    try:
-        for parameter in actor.parameters():
-            parameter.requires_grad_(False)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            traced = torch.jit.freeze(torch.jit.trace(_Act().eval(), torch.zeros(1, 1, policy.obs_dim)))
-    except Exception:  # an exotic actor that does not trace: the eager path is always right
-        return policy.act
-
-    def act(obs: np.ndarray) -> np.ndarray:
-        with torch.inference_mode():
-            return traced(torch.from_numpy(np.ascontiguousarray(obs, dtype=np.float32))).numpy().astype(np.float64)
-
-    return act
+    rows = np.array(sorted(packet["neighbours"]), dtype=np.float64).reshape(-1, 5)
+    own = np.array([*packet["pos"], *packet["vel"]], dtype=np.float64)
+    return local_observation_kernel(own, np.array(packet["anchor"], dtype=np.float64), np.array(packet["lidar"], dtype=np.float64),
+                                    rows, cfg.neighbour_slots, float(cfg.observation_distance))
 
 
 def _die_with_parent(parent_pid: int, sig: int = signal.SIGTERM) -> None:
@@ -162,11 +117,12 @@ class Agent:
     def _receive_all(self) -> list[tuple[dict, float]]:
         """Every queued message (validated) with its wall-clock arrival time; malformed ones counted."""
         out = []
-        while True:
+        events, pollin = self.zmq.EVENTS, self.zmq.POLLIN
+        while self.sock.getsockopt(events) & pollin:  # (cheaper than a NOBLOCK recv that raises Again)
             try:
                 frames = self.sock.recv_multipart(self.zmq.NOBLOCK)
             except self.zmq.Again:
-                return out
+                break
             arrived = time.perf_counter()
             try:
                 if len(frames) != 1:
@@ -179,6 +135,7 @@ class Agent:
                 self.log(f"dropped a malformed message ({e})")
                 continue
             out.append((message, arrived))
+        return out
 
     def _welcome(self, message: dict) -> int | None:
         """Load the policy for the game in `welcome`; an exit code if the agent cannot fly it."""
@@ -200,7 +157,7 @@ class Agent:
         cfg = self.cfg
         probe = {"pos": [0.0, 0.0], "vel": [0.0, 0.0], "anchor": [1.0, 1.0], "lidar": [cfg.lidar_range] * cfg.n_lidar_rays,
                  "neighbours": [[(self.uav + 1) % cfg.n_agents, 1.0, 0.0, 0.0, 0.0]]}
-        self.act = compile_policy(self.policy)
+        self.act = self.policy.actor.inference_weights().actions  # the compiled kernel: the lock-step runner's bits for this row
         for _ in range(WARMUP_CALLS):  # the first calls (numba kernels, torch modules) are slow
             self.act(observation_from_packet(cfg, probe)[None, None])
         self.send({"type": "ready", "uav": self.uav})
@@ -229,21 +186,6 @@ class Agent:
         last_hello = last_heard = time.monotonic()
         while True:
             messages = self._receive_all() if self.sock.poll(200) else []
-            now = time.monotonic()
-            if messages:
-                last_heard = now
-            limit = self.heartbeat_timeout_s if self.cfg is not None else self.wait_s
-            if now - last_heard > limit:
-                print(f"cefc-agent uav {self.uav}: no message from the simulator for {limit:g} s; exiting",
-                      file=sys.stderr, flush=True)
-                return EXIT_LOST
-            if not _parent_alive(self.parent_pid):
-                print(f"cefc-agent uav {self.uav}: parent process {self.parent_pid} is gone; exiting",
-                      file=sys.stderr, flush=True)
-                return EXIT_LOST
-            if self.cfg is None and now - last_hello > HELLO_PERIOD_S:  # the simulator may have (re)started
-                self.send(hello)
-                last_hello = now
             newest = None
             for message, arrived in messages:
                 kind = message["type"]
@@ -257,11 +199,25 @@ class Agent:
                     code = self._welcome(message)
                     if code is not None:
                         return code
-                    last_heard = time.monotonic()  # loading the policy took a while
                 elif kind == "sensor" and self.cfg is not None:
                     newest = (message, arrived)
-            if newest is not None:
+            if newest is not None:  # the reply first, the housekeeping after it
                 self._act(*newest)
+            now = time.monotonic()
+            if messages:
+                last_heard = now  # (after a welcome: after loading the policy, which took a while)
+            limit = self.heartbeat_timeout_s if self.cfg is not None else self.wait_s
+            if now - last_heard > limit:
+                print(f"cefc-agent uav {self.uav}: no message from the simulator for {limit:g} s; exiting",
+                      file=sys.stderr, flush=True)
+                return EXIT_LOST
+            if not _parent_alive(self.parent_pid):
+                print(f"cefc-agent uav {self.uav}: parent process {self.parent_pid} is gone; exiting",
+                      file=sys.stderr, flush=True)
+                return EXIT_LOST
+            if self.cfg is None and now - last_hello > HELLO_PERIOD_S:  # the simulator may have (re)started
+                self.send(hello)
+                last_hello = now
 
     def close(self) -> None:
         self.sock.close(0)

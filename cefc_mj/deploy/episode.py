@@ -227,6 +227,7 @@ def _fly(spec, sitl, env, world, server: SitlServer, fleet: AgentFleet | None, d
             env.remove_agents(0, dropped)
         server.send_sensors(k, t, env.perceived_pos[0], world.agent_vel[0], env.lidar[0], env.anchor[0],
                             world.agent_pos[0], config.observation_distance)
+        server.await_replies()
         try:
             _, _, done, _ = env.step(np.zeros((1, spec.formation, 2)))  # the controller supplies the setpoints
         except SimulationDiverged as e:
@@ -310,8 +311,8 @@ def run_latency_model_episode(spec: EpisodeSpec, latency_ticks: int = 1, control
 
     world.controller = controller
 
-    def decide(obs):  # each agent's policy on its own observation, as in its process
-        commands[step_index] = np.concatenate([policy.act(obs[:, i:i + 1]) for i in range(spec.formation)], axis=1)
+    def decide(obs):  # each agent's policy on its own observation (the kernel gives a row the same bits in any batch)
+        commands[step_index] = policy.act(obs)
         return commands[step_index]
 
     def advance(k: int) -> None:

@@ -27,6 +27,7 @@ decision's wall-clock latency is carried over into simulated time:
 from __future__ import annotations
 
 import collections
+import math
 import os
 import signal
 import subprocess
@@ -477,6 +478,29 @@ class SitlServer:
         for v, packet in zip(flying, packets):
             v.outstanding.append(_Request(step, t, time.perf_counter(), float(delays[v.index].sum())))
             self._send(v, packet)
+
+    def await_replies(self) -> None:
+        """Right after `send_sensors`: read replies to the packets just sent until every flying agent
+        has answered, or until the first of them could be due (the wall-clock budget `_wait_due`
+        would give it). Only when replies are read changes, not when they take effect (that follows
+        from the reported latency): the simulator sleeps while the agents decide instead of
+        competing with them for a core, and a reply is read the moment it arrives."""
+        if self.lockstep or self.realtime:
+            return
+        while True:
+            deadline = None
+            for v in self.flying():
+                for r in v.outstanding:
+                    if r.seq == self.seq:
+                        first_tick = (math.floor((r.t_obs + r.delay_s) / self.tick_s + EPS) + 1) * self.tick_s
+                        due_wall = r.wall_sent + (first_tick - r.t_obs)
+                        deadline = due_wall if deadline is None else min(deadline, due_wall)
+            if deadline is None:
+                return
+            remaining = deadline - time.perf_counter()
+            if remaining <= 0:
+                return
+            self.receive(remaining)
 
     def control(self, tick: int) -> tuple[np.ndarray, np.ndarray]:
         """The setpoints [N, 2] in force at control tick `tick` (simulated time tick * tick_s), and

@@ -180,8 +180,10 @@ def run_episode(spec: EpisodeSpec, policy: Policy | None = None, record: bool = 
                        offboard=spec.offboard if spec.backend == "mujoco" else None)
     env = BatchedCEFCEnv(config, n_envs=1, seed=spec.seed, world=world)
     recorder = _Recorder(env, spec) if record else None
-    # the AT-M actor's own rollout path: Policy.act's numbers bit for bit, without its per-call checks
-    act = getattr(policy.actor, "deterministic_actions", policy.act)
+    # Policy.act's numbers bit for bit without its per-call checks: the compiled kernel on the weights
+    # as they are now (fixed for the episode)
+    weights = getattr(policy.actor, "inference_weights", None)
+    act = weights().actions if weights is not None else policy.act
     diverged, wall_s = fly(env, spec.steps, act, after_step=recorder.capture if recorder is not None else None)
     return EpisodeResult(
         **episode_fields(env, spec, diverged, wall_s),

@@ -27,10 +27,10 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 from torch import nn
 
 from cefc_mj.errors import CheckpointError
+from cefc_mj.nn.inference import InferenceWeights
 from cefc_mj.nn.layers import mlp
 from cefc_mj.task.observation import ObservationLayout, low_level_layout
 
@@ -163,21 +163,23 @@ class ATMActor(nn.Module):
         return cached[1]
 
     def deterministic_actions(self, obs: np.ndarray) -> np.ndarray:
-        """float32 acceleration setpoints [..., act_dim] for float observations [..., obs_dim]:
-        `to_acceleration(self(obs), obs)` without gradients, i.e. exactly what `Policy.act` computes,
-        bit for bit (the same torch kernels on the same tensors). At rollout batch sizes a forward is
-        mostly per-call overhead, so the layers run as functions on plain views of the weights: no
-        nn.Module dispatch or attribute lookups, and no __torch_function__ handling, which every op
-        with an nn.Parameter argument goes through (see `_InferencePlan`)."""
+        """float32 acceleration setpoints [..., act_dim] for float observations [..., obs_dim]: the
+        action mean `to_acceleration(self(obs), obs)` computed by one compiled kernel
+        (`cefc_mj.nn.inference`), in a fixed summation order that does not depend on the CPU or on
+        the batch (a row gets the same bits alone or among others); within float32 rounding of the
+        torch forward. What every evaluator flies (`Policy.act`, run_episode, the hierarchy's low
+        level, SITL-M agents)."""
+        return self.inference_weights().actions(obs)
+
+    def inference_weights(self) -> InferenceWeights:
+        """The kernel's float32 copies of the current weights (`.actions(obs)` = deterministic_actions),
+        rebuilt when a parameter changes (in place, replaced or given new storage; see
+        `_InferencePlan`). A loop that flies fixed weights takes them once and skips the check."""
         plan = self.__dict__.get("_inference_plan")
         if plan is None or not plan.current():
             plan = _InferencePlan(self)
             self.__dict__["_inference_plan"] = plan
-        with torch.no_grad():
-            obs_t = torch.as_tensor(obs, dtype=torch.float32)
-            f = _run_layers(plan.formation, obs_t.index_select(-1, plan.formation_index))
-            a = _run_layers(plan.obstacle, self.lidar_input(obs_t)) - plan.free
-            return self.to_acceleration(_run_layers(plan.output, f + a), obs_t).numpy()
+        return plan.weights
 
     def distribution(self, obs: torch.Tensor) -> torch.distributions.Normal:
         mean = self(obs)
@@ -192,46 +194,19 @@ class ATMActor(nn.Module):
 
 
 class _InferencePlan:
-    """What `ATMActor.deterministic_actions` reads, gathered once: per Linear a plain view of its weight
-    and bias (sharing the parameters' storage, so in-place updates show through), F_a(d_free) and
-    the formation index. `current()` says whether it still describes the actor: no parameter or
-    buffer replaced (load_state_dict(assign=True)) or given new storage (`param.data = ...`), and for
-    F_a(d_free) no obstacle weight changed in place since it was computed."""
+    """The kernel's float32 weight copies for an actor, and what says whether they still describe it:
+    every parameter and buffer the same object, with the same storage and in-place version counter
+    (an optimizer step, load_state_dict with or without assign, or `param.data = ...` rebuilds it)."""
 
     def __init__(self, actor: ATMActor):
-        self.tensors: list[tuple[dict, str, torch.Tensor, torch.Tensor]] = []  # (owner's dict, name, tensor, plain view)
-        self.formation, self.obstacle, self.output = (self._layers(m) for m in (actor.formation, actor.obstacle, actor.output))
-        self.formation_index = self._plain(actor._buffers, "formation_index")
-        free_lidar = self._plain(actor._buffers, "free_lidar")
-        self.obstacle_views = [v for layer in self.obstacle for v in layer[:2]] + [free_lidar]
-        self.versions = [v._version for v in self.obstacle_views]
-        with torch.no_grad():
-            self.free = actor.free_features()
-
-    def _plain(self, owner: dict, name: str) -> torch.Tensor:
-        tensor = owner[name]
-        view = tensor.detach()
-        self.tensors.append((owner, name, tensor, view))
-        return view
-
-    def _layers(self, seq: nn.Sequential) -> list[tuple[torch.Tensor, torch.Tensor, bool]]:
-        mods = list(seq)
-        return [(self._plain(m._parameters, "weight"), self._plain(m._parameters, "bias"),
-                 i + 1 < len(mods) and isinstance(mods[i + 1], nn.Tanh)) for i, m in enumerate(mods) if isinstance(m, nn.Linear)]
+        self.tensors = [(owner, name, tensor, tensor.data_ptr(), tensor._version)
+                        for module in actor.modules() for owner in (module._parameters, module._buffers)
+                        for name, tensor in owner.items() if tensor is not None]
+        self.weights = InferenceWeights.from_actor(actor)
 
     def current(self) -> bool:
-        return (all(owner[name] is tensor and tensor.data_ptr() == view.data_ptr() for owner, name, tensor, view in self.tensors)
-                and all(v._version == version for v, version in zip(self.obstacle_views, self.versions)))
-
-
-def _run_layers(layers: list[tuple[torch.Tensor, torch.Tensor, bool]], x: torch.Tensor) -> torch.Tensor:
-    """An `mlp` forward without gradients, computed as nn.Linear / nn.Tanh compute it (F.linear, tanh)
-    on plain views of its weights."""
-    for weight, bias, tanh in layers:
-        x = F.linear(x, weight, bias)
-        if tanh:
-            x = x.tanh_()  # in place on the fresh output: torch.tanh's kernel, one allocation less
-    return x
+        return all(owner[name] is tensor and tensor.data_ptr() == ptr and tensor._version == version
+                   for owner, name, tensor, ptr, version in self.tensors)
 
 
 def merge_step3(step1: ATMActor, step2: ATMActor) -> ATMActor:

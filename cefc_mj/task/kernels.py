@@ -52,6 +52,40 @@ def neighbours_kernel(pos, vel, slots, radius, feats, mask):
 
 
 @njit
+def local_observation_kernel(own, anchor, lidar, rows, slots, radius):
+    """One agent's low-level observation [D] (float32, the low-level layout) from what it senses (own = [px, py, vx,
+    vy], anchor [2], lidar [M]) and hears (rows [k, 5] = [id, px, py, vx, vy], increasing id): row 0
+    of build_low_level_observation for the swarm [self, rows...], bit for bit (the same kernel picks
+    the neighbours, every number computed in float64 and then rounded to float32)."""
+    k = rows.shape[0]
+    pos = np.empty((1, k + 1, 2))
+    vel = np.empty((1, k + 1, 2))
+    pos[0, 0, 0], pos[0, 0, 1], vel[0, 0, 0], vel[0, 0, 1] = own[0], own[1], own[2], own[3]
+    for s in range(k):
+        pos[0, s + 1, 0], pos[0, s + 1, 1] = rows[s, 1], rows[s, 2]
+        vel[0, s + 1, 0], vel[0, s + 1, 1] = rows[s, 3], rows[s, 4]
+    feats = np.empty((1, k + 1, slots, 4))
+    mask = np.empty((1, k + 1, slots))
+    neighbours_kernel(pos, vel, slots, radius, feats, mask)
+    out = np.empty(4 + 5 * slots + lidar.shape[0], dtype=np.float32)
+    out[0] = np.float32(anchor[0] - own[0])
+    out[1] = np.float32(anchor[1] - own[1])
+    out[2] = np.float32(own[2])
+    out[3] = np.float32(own[3])
+    at = 4
+    for s in range(slots):
+        for c in range(4):
+            out[at] = np.float32(feats[0, 0, s, c])
+            at += 1
+    for s in range(slots):
+        out[at] = np.float32(mask[0, 0, s])
+        at += 1
+    for m in range(lidar.shape[0]):
+        out[at + m] = np.float32(lidar[m])
+    return out
+
+
+@njit
 def groups_kernel(pos, radius, labels):
     """Connected components of "distance < radius"; each labelled by its smallest member."""
     n_envs, n, _ = pos.shape
