@@ -12,12 +12,14 @@ like the torch module, row by row:
   bits the lock-step evaluator gets for it). BLAS (MKL's sgemm, which torch calls) picks its kernel
   by CPU and batch size, which moves the last bits of an action from machine to machine.
 - **Speed.** Small batches are all per-call overhead in torch (about twenty operator dispatches);
-  here one call: ~10 us for one agent and ~50 us for 8 against ~290 and ~430 us (docs/mujoco_world.md).
-- It agrees with the torch forward to float32 rounding (max |difference| about 1e-5 m/s^2 on the
-  shipped policies, `tests/test_inference.py`); training keeps the torch module and its gradients.
+  here one call: ~20 us for one agent and ~100 us for 8 against ~210 and ~330 us (at 256 rows BLAS
+  wins: ~10 against ~8 us a row).
+- It agrees with the torch forward to float32 rounding (max |difference| < 1e-5 m/s^2 on the shipped
+  policies; `tests/test_eval_speed_equivalence.py` also checks the kernel against numpy doing the
+  documented operations one at a time); training keeps the torch module and its gradients.
 
 `InferenceWeights.from_actor` takes float32 copies of the weights, transposed to [in, out]; the
-actor rebuilds them when its parameters change (see `ATMActor.deterministic_actions`).
+actor rebuilds them when its parameters change (see `ATMActor.inference_weights`).
 """
 
 from __future__ import annotations
