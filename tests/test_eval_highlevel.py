@@ -40,7 +40,8 @@ def test_table5_rows_units_seeds_and_missing_methods(policies):
     result = run_table5(episodes=2, seed=3, policies_dir=policies)
     assert list(result["rows"]) == ["MAPPO+AT-M", "CI-HRL"]
     assert result["protocol"]["missing"] == ["TarMAC+AT-M (cihrl_tarmac.pt)", "CI-HRL-DT (cihrl_consmac_a_dt.pt)",
-                                             "CI-HRL-wo-FT (cihrl_consmac_a_wo_ft.pt)"]
+                                             "CI-HRL-wo-FT (cihrl_consmac_a_wo_ft.pt)",
+                                             "CI-HRL (ConsMAC-O) (cihrl_consmac_o.pt)"]
     for row in result["rows"].values():
         per = {k: np.array(v) for k, v in row["per_episode"].items()}
         np.testing.assert_allclose(per["R_H"], per["R_t"] + per["R_n"] + per["R_e"], rtol=1e-12, atol=1e-9)

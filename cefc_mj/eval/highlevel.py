@@ -50,9 +50,12 @@ TABLE5_ROWS = (
     ("CI-HRL-DT", "cihrl_consmac_a_dt", ""),
     ("CI-HRL-wo-FT", "cihrl_consmac_a", "_wo_ft"),
     ("CI-HRL", "cihrl_consmac_a", ""),
+    ("CI-HRL (ConsMAC-O)", "cihrl_consmac_o", ""),
 )
 """(the paper's row, the stem of our policy file, its suffix): seed 0 is <stem><suffix>.pt, seed k
-<stem>_seed<k><suffix>.pt (the names `cefc-train highlevel` writes)."""
+<stem>_seed<k><suffix>.pt (the names `cefc-train highlevel` writes). The last row, ConsMAC trained
+on the other label the paper defines (all agents' relative positions and velocities), has no
+paper figures: the paper's Table V lists ConsMAC-A only."""
 TABLE6_ROWS = (
     ("PPO", "adversary_ppo", None),
     ("R-Largest", "r_largest", None),
