@@ -53,8 +53,9 @@ def observation_from_packet(cfg, packet: dict) -> np.ndarray:
 
     rows = np.array(sorted(packet["neighbours"]), dtype=np.float64).reshape(-1, 5)
     own = np.array([*packet["pos"], *packet["vel"]], dtype=np.float64)
-    return local_observation_kernel(own, np.array(packet["anchor"], dtype=np.float64), np.array(packet["lidar"], dtype=np.float64),
-                                    rows, cfg.neighbour_slots, float(cfg.observation_distance))
+    anchor = np.array(packet["anchor"], dtype=np.float64)
+    lidar = np.array(packet["lidar"], dtype=np.float64)
+    return local_observation_kernel(own, anchor, lidar, rows, cfg.neighbour_slots, float(cfg.observation_distance))
 
 
 def _die_with_parent(parent_pid: int, sig: int = signal.SIGTERM) -> None:
@@ -157,7 +158,7 @@ class Agent:
         cfg = self.cfg
         probe = {"pos": [0.0, 0.0], "vel": [0.0, 0.0], "anchor": [1.0, 1.0], "lidar": [cfg.lidar_range] * cfg.n_lidar_rays,
                  "neighbours": [[(self.uav + 1) % cfg.n_agents, 1.0, 0.0, 0.0, 0.0]]}
-        self.act = self.policy.actor.inference_weights().actions  # the compiled kernel: the lock-step runner's bits for this row
+        self.act = self.policy.actor.inference_weights().actions  # the lock-step runner's bits for this row
         for _ in range(WARMUP_CALLS):  # the first calls (numba kernels, torch modules) are slow
             self.act(observation_from_packet(cfg, probe)[None, None])
         self.send({"type": "ready", "uav": self.uav})
