@@ -10,6 +10,7 @@ os.environ.setdefault("MUJOCO_GL", "egl")  # headless MuJoCo frames; MuJoCo read
 
 import importlib.util
 import shutil
+import signal
 import socket
 import subprocess
 import sys
@@ -180,8 +181,10 @@ def test_human_mode_streams_every_step_to_the_viewer(tmp_path):
     if _port_open(RERUN_VIEWER_PORT):
         pytest.skip("a Rerun viewer listens on its port")
     live = tmp_path / "live.rrd"
+    # its own process group: `rerun` is a Python wrapper around the native viewer, and the SIGINT
+    # below must reach both, as a terminal's Ctrl-C would
     server = subprocess.Popen([rerun_cli, "--port", str(RERUN_VIEWER_PORT), "--save", str(live)],
-                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     try:
         for _ in range(100):
             if _port_open(RERUN_VIEWER_PORT):
@@ -196,8 +199,13 @@ def test_human_mode_streams_every_step_to_the_viewer(tmp_path):
         assert env.render() is None
         env.close()
     finally:
-        server.send_signal(2)  # SIGINT: the listener finishes the file
-        server.wait(timeout=20)
+        os.killpg(server.pid, signal.SIGINT)  # the listener finishes the file
+        try:
+            server.wait(timeout=20)
+        finally:  # never leave a listener behind for later tests
+            if server.poll() is None:
+                os.killpg(server.pid, signal.SIGKILL)
+                server.wait()
     data = read_rrd(live)
     assert sorted(data["/world/uav_2"]["Transform3D:translation"]) == list(range(9))  # reset + 8 steps
     assert {"/world/obstacles", "/world/anchor", "/metrics/F_so_far"} <= set(data)

@@ -183,7 +183,9 @@ def test_table8_on_a_ray_cluster_matches_the_local_pool_and_resumes(ray_head, tm
 def test_ctrl_c_stops_the_local_ray_instance(ray_tmp, tmp_path):
     """Without --address a Ray instance is started here; Ctrl-C (SIGINT to the process group, as a
     terminal sends it) ends the command with 130 and takes every Ray process with it."""
-    argv = ["--protocol", "table8", "--formation", "5", "--episodes", "1", "--steps", "1000", "--executor", "ray",
+    # 35 episodes: far more than can finish between the first task starting and the Ctrl-C, however
+    # fast an episode flies
+    argv = ["--protocol", "table8", "--formation", "5", "--episodes", "5", "--steps", "1000", "--executor", "ray",
             "--report-dir", str(tmp_path / "r")]
     proc = subprocess.Popen([sys.executable, "-m", "cefc_mj.cli.eval", *argv], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True, start_new_session=True)
