@@ -1,8 +1,19 @@
-"""Read a Rerun recording back for the tests (rerun 0.41: `RrdReader`, one Arrow batch per chunk)."""
+"""Rerun helpers for the tests: read a recording back (rerun 0.41: `RrdReader`, one Arrow batch per
+chunk), and a headless `rerun --save` listener standing where a viewer would."""
 
 from __future__ import annotations
 
+import contextlib
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
 from pathlib import Path
+
+import pytest
 
 from rerun.chunk import RrdReader
 
@@ -18,3 +29,38 @@ def read_rrd(path: Path) -> dict[str, dict[str, dict]]:
             if (field.metadata or {}).get(b"rerun:kind") == b"data":
                 entity.setdefault(field.name, {}).update(zip(steps, column.to_pylist()))
     return out
+
+
+def port_open(port: int) -> bool:
+    with socket.socket() as s:
+        return s.connect_ex(("127.0.0.1", port)) == 0
+
+
+@contextlib.contextmanager
+def rerun_listener(port: int, path: Path):
+    """`rerun --port PORT --save PATH` listening while the block runs (skips the test without the
+    rerun CLI or with the port taken); afterwards SIGINT, on which it finishes the file. `rerun` is
+    a Python wrapper around the native binary: both get the signal, as from a terminal's Ctrl-C (its
+    own process group), and whatever does not exit within 20 s is killed, never left behind."""
+    rerun_cli = shutil.which("rerun") or str(Path(sys.executable).with_name("rerun"))
+    if not Path(rerun_cli).exists():
+        pytest.skip("the rerun CLI is not installed")
+    if port_open(port):
+        pytest.skip(f"port {port} is taken (a Rerun viewer is running)")
+    server = subprocess.Popen([rerun_cli, "--port", str(port), "--save", str(path)], stdout=subprocess.DEVNULL,
+                              stderr=subprocess.DEVNULL, start_new_session=True)
+    try:
+        for _ in range(100):
+            if port_open(port):
+                break
+            assert server.poll() is None, "rerun --save exited"
+            time.sleep(0.1)
+        yield server
+    finally:
+        os.killpg(server.pid, signal.SIGINT)
+        try:
+            server.wait(timeout=20)
+        finally:
+            if server.poll() is None:
+                os.killpg(server.pid, signal.SIGKILL)
+                server.wait()

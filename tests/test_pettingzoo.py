@@ -9,19 +9,15 @@ import os
 os.environ.setdefault("MUJOCO_GL", "egl")  # headless MuJoCo frames; MuJoCo reads it when first imported
 
 import importlib.util
-import shutil
-import signal
-import socket
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import gymnasium
 import numpy as np
 import pytest
 from pettingzoo.test.state_test import test_parallel_env as pettingzoo_state_check
-from rrd_reader import read_rrd
+from rrd_reader import port_open, read_rrd, rerun_listener
 
 import cefc_mj
 from cefc_mj.errors import ConfigError
@@ -30,11 +26,6 @@ from cefc_mj.pettingzoo_env import RERUN_VIEWER_PORT, CEFCParallelEnv, RerunReco
 
 REPO = Path(__file__).resolve().parents[1]
 EXAMPLE = REPO / "examples" / "fly_shipped_policy.py"
-
-
-def _port_open(port: int) -> bool:
-    with socket.socket() as s:
-        return s.connect_ex(("127.0.0.1", port)) == 0
 
 
 # ------------------------------------------------------------------------------------ spaces
@@ -164,7 +155,7 @@ def test_mujoco_frames_without_opengl_fail_at_construction():
 
 
 def test_human_mode_without_display_or_viewer_is_a_config_error(monkeypatch):
-    if _port_open(RERUN_VIEWER_PORT):
+    if port_open(RERUN_VIEWER_PORT):
         pytest.skip("a Rerun viewer listens on its port")
     for name in ("DISPLAY", "WAYLAND_DISPLAY", "WAYLAND_SOCKET"):
         monkeypatch.delenv(name, raising=False)
@@ -175,22 +166,8 @@ def test_human_mode_without_display_or_viewer_is_a_config_error(monkeypatch):
 @pytest.mark.filterwarnings("ignore:RRD file has no footer")  # the interrupted listener writes no footer
 def test_human_mode_streams_every_step_to_the_viewer(tmp_path):
     """A headless `rerun --save` listens where the viewer would, so the env connects to it."""
-    rerun_cli = shutil.which("rerun") or str(Path(sys.executable).with_name("rerun"))
-    if not Path(rerun_cli).exists():
-        pytest.skip("the rerun CLI is not installed")
-    if _port_open(RERUN_VIEWER_PORT):
-        pytest.skip("a Rerun viewer listens on its port")
     live = tmp_path / "live.rrd"
-    # its own process group: `rerun` is a Python wrapper around the native viewer, and the SIGINT
-    # below must reach both, as a terminal's Ctrl-C would
-    server = subprocess.Popen([rerun_cli, "--port", str(RERUN_VIEWER_PORT), "--save", str(live)],
-                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
-    try:
-        for _ in range(100):
-            if _port_open(RERUN_VIEWER_PORT):
-                break
-            assert server.poll() is None, "rerun --save exited"
-            time.sleep(0.1)
+    with rerun_listener(RERUN_VIEWER_PORT, live):
         env = cefc_mj.make_env(n_agents=3, mode="formation", obstacle_density=0.03, seed=0, episode_steps=8,
                                render_mode="human")
         env.reset(seed=0)
@@ -198,14 +175,6 @@ def test_human_mode_streams_every_step_to_the_viewer(tmp_path):
             env.step({a: np.array([1.0, 0.0]) for a in env.agents})
         assert env.render() is None
         env.close()
-    finally:
-        os.killpg(server.pid, signal.SIGINT)  # the listener finishes the file
-        try:
-            server.wait(timeout=20)
-        finally:  # never leave a listener behind for later tests
-            if server.poll() is None:
-                os.killpg(server.pid, signal.SIGKILL)
-                server.wait()
     data = read_rrd(live)
     assert sorted(data["/world/uav_2"]["Transform3D:translation"]) == list(range(9))  # reset + 8 steps
     assert {"/world/obstacles", "/world/anchor", "/metrics/F_so_far"} <= set(data)

@@ -6,14 +6,13 @@ import os
 import shutil
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 import rerun as rr
 from rerun.chunk import RrdReader
-from rrd_reader import read_rrd
+from rrd_reader import read_rrd, rerun_listener
 
 from cefc_mj.errors import ConfigError
 from cefc_mj.eval.record import airframe_parts_from_mjcf, synthetic_record
@@ -257,38 +256,15 @@ def test_unreachable_viewer_does_not_hang_close(tmp_path):
     assert len(read_rrd(path)["/world/uav_2"]["Transform3D:translation"]) == 20
 
 
-def _port_open(port: int) -> bool:
-    import socket
-
-    with socket.socket() as s:
-        return s.connect_ex(("127.0.0.1", port)) == 0
-
-
 @pytest.mark.filterwarnings("ignore:RRD file has no footer")  # the interrupted listener writes no footer
 def test_spawn_streams_the_episode_to_a_listening_viewer(tmp_path):
     """`cefc-eval --spawn` end to end without a display: a headless `rerun --save` listens where the
     viewer would (port 9876, so spawn connects instead of starting one) and writes what arrives."""
     from cefc_mj.cli.eval import main
 
-    rerun_cli = shutil.which("rerun") or str(Path(sys.executable).with_name("rerun"))
-    if not Path(rerun_cli).exists():
-        pytest.skip("the rerun CLI is not installed")
-    if _port_open(9876):
-        pytest.skip("port 9876 is taken (a Rerun viewer is running)")
     live = tmp_path / "live.rrd"
-    server = subprocess.Popen([rerun_cli, "--port", "9876", "--save", str(live)],
-                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    try:
-        for _ in range(100):
-            if _port_open(9876):
-                break
-            server.poll()
-            assert server.returncode is None, "rerun --save exited"
-            time.sleep(0.1)
+    with rerun_listener(9876, live):
         assert main(["--backend", "particle", "--formation", "5", "--steps", "20", "--spawn"]) == 0
-    finally:
-        server.send_signal(2)  # SIGINT: the CLI finishes the file
-        server.wait(timeout=20)
     data = read_rrd(live)
     assert len(data["/world/uav_4"]["Transform3D:translation"]) == 20
     assert {"/world/obstacles", "/world/anchor", "/metrics/hd_error"} <= set(data)
