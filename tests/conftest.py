@@ -1,12 +1,20 @@
 """Shared test set-up."""
 
 import os
+import signal
 
 import pytest
 
 # Headless rendering: MuJoCo's offscreen renderer needs a GL backend before mujoco is first imported
 # (the CLIs do the same; .ci/run exports it too).
 os.environ.setdefault("MUJOCO_GL", "egl")
+
+# A test run started in the background of a non-interactive shell (`cmd &` without job control,
+# nohup under a script) inherits SIGINT ignored, and so would every process it starts: the tests
+# that press Ctrl-C on a child would see it shrug. With a handler installed here, children start
+# with the default disposition (exec resets handlers, not "ignored"), as under a terminal.
+if signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 @pytest.fixture
