@@ -159,8 +159,10 @@ class BatchedCEFCEnv:
         pos = self.world.agent_pos
         group_error, group_size, group_centre = self._groups(pos)
         self._observe(np.ones(self.n_envs, dtype=bool))
-        terms, reward = self._rewards(pos, group_error, group_size, group_centre)
-        self._accumulate_metrics(pos)
+        # the swarm centre's distance to the anchor: the low level's R_n and the metric N share it
+        centre_distance = np.linalg.norm(pos.mean(axis=1) - self.anchor, axis=-1)
+        terms, reward = self._rewards(pos, group_error, group_size, group_centre, centre_distance)
+        self._accumulate_metrics(pos, centre_distance)
         done = self.t >= cfg.steps
         info = {"reward_terms": terms, "t": self.t.copy()}
         if done.any():
@@ -170,12 +172,14 @@ class BatchedCEFCEnv:
     # ------------------------------------------------------------------ pieces
     def _groups(self, pos):
         """Group labels, per-group HD error [B,G], sizes [B,G] and centres [B,G,2] from true positions."""
-        if self.config.mode == "formation":
+        formation = self.config.mode == "formation"
+        if formation:
             self.labels = np.zeros((self.n_envs, self.n_agents), dtype=np.int64)
         else:
             self.labels = connected_groups(pos, self.config.observation_distance)
         error, size, centre = group_formation_error(pos, self.labels, self.config.formation_spacing)
-        self.agent_error = agent_group_error(error, self.labels)
+        # formation mode: every agent is in group 0 (the gather below, without its cost)
+        self.agent_error = np.repeat(error[:, :1], self.n_agents, axis=1) if formation else agent_group_error(error, self.labels)
         self.group_size, self.group_centre = size, centre
         return error, size, centre
 
@@ -187,15 +191,15 @@ class BatchedCEFCEnv:
         if self.estimate is None:
             self.perceived_pos = fix
         else:
+            exact = self.env_deviation == 0
             if first:
                 self.estimate.reset(mask, fix)
-            else:
+            elif not exact.all():  # an exact env's estimate is never read until its next reset
                 self.estimate.update(fix, true_pos - self._last_true_pos)
             self._last_true_pos = true_pos.copy()
             # Exact fixes leave the filter at the fix up to rounding: use the fix itself there, so a
             # noise-free episode is bit-identical to the raw agent's.
-            exact = self.env_deviation == 0
-            self.perceived_pos = np.where(exact[:, None, None], fix, self.estimate.position)
+            self.perceived_pos = fix if exact.all() else np.where(exact[:, None, None], fix, self.estimate.position)
         self.lidar = world.lidar(self.perceived_pos)
         # The collision reward scores true clearances (like the metrics), not what the noisy LiDAR shows.
         self.true_lidar = world.lidar(true_pos) if cfg.deviation > 0 else self.lidar
@@ -227,7 +231,7 @@ class BatchedCEFCEnv:
                                      cfg.arena_half_size, cfg.adversary_speed_max,
                                      cfg.obstacle_radius + cfg.uav_radius)
 
-    def _rewards(self, pos, group_error, group_size, group_centre):
+    def _rewards(self, pos, group_error, group_size, group_centre, centre_distance):
         cfg, w = self.config, self.config.rewards
         hd_sum = np.nansum(group_error, axis=-1)
         r_f = R.formation_reward(hd_sum, self.prev_formation_reward, w.formation_lag)
@@ -235,7 +239,7 @@ class BatchedCEFCEnv:
         self.agent_collision_penalty = R.collision_penalty(self.true_lidar.min(axis=-1), w)
         r_c = -self.agent_collision_penalty.sum(axis=-1)  # R_c = -sum_i CR_i (eq. 16)
         if cfg.mode == "formation":
-            r_n = R.anchor_navigation_reward(pos, self.anchor)
+            r_n = -centre_distance  # R.anchor_navigation_reward(pos, self.anchor)
             terms = {"R_f": r_f, "R_n": r_n, "R_c": r_c}
             reward = w.formation_weight * r_f + w.navigation_weight_low * r_n + w.collision_weight * r_c
             return terms, reward
@@ -250,11 +254,11 @@ class BatchedCEFCEnv:
         reward = w.task_weight * r_t + w.navigation_weight_high * r_n + w.evasion_weight * r_e
         return terms, reward
 
-    def _accumulate_metrics(self, pos) -> None:
+    def _accumulate_metrics(self, pos, centre_distance) -> None:
         cfg = self.config
         in_formation = self.agent_error < cfg.formation_tolerance  # NaN (no formation group) compares False
         self.metric_sums["F"] += in_formation.mean(axis=-1)
-        self.metric_sums["N"] += np.linalg.norm(pos.mean(axis=1) - self.anchor, axis=-1) < cfg.navigation_tolerance
+        self.metric_sums["N"] += centre_distance < cfg.navigation_tolerance
         self.metric_sums["C"] += self.world.collisions().sum(axis=-1)
         if cfg.mode == "cefc" and cfg.adversary != "none":
             adv_dist = np.linalg.norm(pos - self.world.adversary_pos[:, None, :], axis=-1)

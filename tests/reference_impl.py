@@ -75,3 +75,19 @@ def neighbour_features_reference(
     return features, mask
 
 
+
+
+def low_level_observation_reference(
+    perceived_pos: np.ndarray, velocity: np.ndarray, anchor: np.ndarray, lidar: np.ndarray, slots: int,
+    observation_distance: float,
+) -> np.ndarray:
+    """The low-level observation [B, N, D] float32 as the concatenation of its parts (anchor [B, 2] or [B, N, 2])."""
+    from cefc_mj.task.observation import neighbour_features
+
+    b, n, _ = perceived_pos.shape
+    if anchor.ndim == 2:
+        anchor = anchor[:, None, :]
+    feats, mask = neighbour_features(perceived_pos, velocity, slots, observation_distance)
+    return np.concatenate(
+        [anchor - perceived_pos, velocity, feats.reshape(b, n, -1), mask, lidar], axis=-1
+    ).astype(np.float32)

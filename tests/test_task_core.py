@@ -231,7 +231,8 @@ def test_deviation_distribution():
 
 # ---------------------------------------------------------------- compiled kernels vs references
 def test_kernels_match_numpy_references():
-    from reference_impl import connected_groups_reference, group_formation_error_reference, neighbour_features_reference
+    from reference_impl import (connected_groups_reference, group_formation_error_reference, low_level_observation_reference,
+                                neighbour_features_reference)
     from cefc_mj.task.observation import neighbour_features
 
     rng = np.random.default_rng(5)
@@ -250,6 +251,13 @@ def test_kernels_match_numpy_references():
             rf, rm = neighbour_features_reference(pos, vel, slots, 3.0)
             np.testing.assert_allclose(f, rf, atol=1e-12)
             np.testing.assert_array_equal(m, rm)
+        # the whole observation, bit for bit, with one anchor per env and one per agent
+        cfg = TaskConfig(n_agents=n)
+        lidar = rng.uniform(0.0, 3.0, (20, n, cfg.n_lidar_rays))
+        for anchor in (rng.uniform(-5, 5, (20, 2)), rng.uniform(-5, 5, (20, n, 2))):
+            obs = build_low_level_observation(cfg, pos, vel, anchor, lidar)
+            ref = low_level_observation_reference(pos, vel, anchor, lidar, cfg.neighbour_slots, cfg.observation_distance)
+            assert obs.dtype == np.float32 and obs.tobytes() == ref.tobytes()
 
 
 @pytest.mark.parametrize("backend", ["particle", "mujoco"])

@@ -573,6 +573,21 @@ def run_physics(tick, n_steps, step_fn, model, data, qpos, qvel, xfrc, ctrl, con
     return n_steps, -1
 
 
+@njit
+def _velocity_command(accel, dt, state, sp):
+    """Px4Cascade.command's velocity interface for every drone: v_sp <- clip_norm(v_sp + a dt, vmax),
+    feed-forward (v_sp_new - v_sp) / dt into the setpoints (the state's v_sp advances at position ticks)."""
+    for b in range(accel.shape[0]):
+        for d in range(accel.shape[1]):
+            vx, vy = state[b, d, S_VSP], state[b, d, S_VSP + 1]
+            tx, ty = vx + accel[b, d, 0] * dt, vy + accel[b, d, 1] * dt
+            speed = math.sqrt(tx * tx + ty * ty)
+            vmax = sp[b, d, SP_VMAX]
+            scale = vmax / max(speed, 1e-300) if speed > vmax else 1.0
+            sp[b, d, SP_AX] = (tx * scale - vx) / dt
+            sp[b, d, SP_AY] = (ty * scale - vy) / dt
+
+
 # ----------------------------------------------------------------------------- wrapper
 @dataclass(frozen=True)
 class CascadeTiming:
@@ -651,16 +666,10 @@ class Px4Cascade:
         is a unless the speed limit clips, and the position loop adds slope x its period to v_sp at
         each of its ticks (decision_dt must be a whole number of position-loop periods).
         """
-        sp = self.setpoint
         if self.offboard == "acceleration":
-            sp[:, :, SP_AX:SP_AY + 1] = accel
+            self.setpoint[:, :, SP_AX:SP_AY + 1] = accel
             return
-        vsp = self.state[:, :, S_VSP:S_VSP + 2]
-        target = vsp + accel * decision_dt
-        speed = np.sqrt((target * target).sum(-1))
-        vmax = sp[:, :, SP_VMAX]
-        scale = np.where(speed > vmax, vmax / np.maximum(speed, 1e-300), 1.0)
-        sp[:, :, SP_AX:SP_AY + 1] = (target * scale[..., None] - vsp) / decision_dt
+        _velocity_command(np.ascontiguousarray(accel, dtype=np.float64), float(decision_dt), self.state, self.setpoint)
 
     # read-only views for tests and visualisation
     def motor_speeds(self, env: int) -> np.ndarray:

@@ -77,11 +77,11 @@ class DropoutCEFCEnv(BatchedCEFCEnv):
         self.group_size, self.group_centre = size, centre
         return error, size, centre
 
-    def _accumulate_metrics(self, pos) -> None:
+    def _accumulate_metrics(self, pos, centre_distance) -> None:
         cfg, active = self.config, self.active
         before = {k: v.copy() for k, v in self.metric_sums.items()}
         if active.all():
-            super()._accumulate_metrics(pos)
+            super()._accumulate_metrics(pos, centre_distance)
         else:
             count = active.sum(axis=-1)
             in_formation = (self.agent_error < cfg.formation_tolerance) & active

@@ -51,6 +51,41 @@ def neighbours_kernel(pos, vel, slots, radius, feats, mask):
                     mask[b, i, s] = 0.0
 
 
+@njit(inline="always")
+def _observation_row(out, ax, ay, vx, vy, feats, mask, lidar):
+    """One low-level observation row (the layout's order: anchor - own position, own velocity, neighbour
+    features, neighbour mask, LiDAR), every number rounded from float64 to float32."""
+    out[0] = np.float32(ax)
+    out[1] = np.float32(ay)
+    out[2] = np.float32(vx)
+    out[3] = np.float32(vy)
+    slots = mask.shape[0]
+    at = 4
+    for s in range(slots):
+        for c in range(4):
+            out[at] = np.float32(feats[s, c])
+            at += 1
+    for s in range(slots):
+        out[at] = np.float32(mask[s])
+        at += 1
+    for m in range(lidar.shape[0]):
+        out[at + m] = np.float32(lidar[m])
+
+
+@njit
+def low_level_observation_kernel(pos, vel, anchor, lidar, slots, radius, out):
+    """Low-level observations out [B, N, D] (float32) of build_low_level_observation, bit for bit:
+    pos, vel [B, N, 2] (perceived positions, velocities), anchor [B, N, 2] (each agent's), lidar [B, N, M]."""
+    n_envs, n, _ = pos.shape
+    feats = np.empty((n_envs, n, slots, 4))
+    mask = np.empty((n_envs, n, slots))
+    neighbours_kernel(pos, vel, slots, radius, feats, mask)
+    for b in range(n_envs):
+        for i in range(n):
+            _observation_row(out[b, i], anchor[b, i, 0] - pos[b, i, 0], anchor[b, i, 1] - pos[b, i, 1], vel[b, i, 0],
+                             vel[b, i, 1], feats[b, i], mask[b, i], lidar[b, i])
+
+
 @njit
 def local_observation_kernel(own, anchor, lidar, rows, slots, radius):
     """One agent's low-level observation [D] (float32, the low-level layout) from what it senses (own = [px, py, vx,
@@ -68,20 +103,7 @@ def local_observation_kernel(own, anchor, lidar, rows, slots, radius):
     mask = np.empty((1, k + 1, slots))
     neighbours_kernel(pos, vel, slots, radius, feats, mask)
     out = np.empty(4 + 5 * slots + lidar.shape[0], dtype=np.float32)
-    out[0] = np.float32(anchor[0] - own[0])
-    out[1] = np.float32(anchor[1] - own[1])
-    out[2] = np.float32(own[2])
-    out[3] = np.float32(own[3])
-    at = 4
-    for s in range(slots):
-        for c in range(4):
-            out[at] = np.float32(feats[0, 0, s, c])
-            at += 1
-    for s in range(slots):
-        out[at] = np.float32(mask[0, 0, s])
-        at += 1
-    for m in range(lidar.shape[0]):
-        out[at + m] = np.float32(lidar[m])
+    _observation_row(out, anchor[0] - own[0], anchor[1] - own[1], own[2], own[3], feats[0, 0], mask[0, 0], lidar)
     return out
 
 

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from cefc_mj.task.config import TaskConfig
-from cefc_mj.task.kernels import neighbours_kernel
+from cefc_mj.task.kernels import low_level_observation_kernel, neighbours_kernel
 
 
 @dataclass(frozen=True)
@@ -93,10 +93,12 @@ def build_low_level_observation(
     b, n, _ = perceived_pos.shape
     if anchor.ndim == 2:
         anchor = anchor[:, None, :]
-    feats, mask = neighbour_features(perceived_pos, velocity, cfg.neighbour_slots, cfg.observation_distance)
-    return np.concatenate(
-        [anchor - perceived_pos, velocity, feats.reshape(b, n, -1), mask, lidar], axis=-1
-    ).astype(np.float32)
+    slots = cfg.neighbour_slots
+    out = np.empty((b, n, 4 + 5 * slots + lidar.shape[-1]), dtype=np.float32)
+    f64 = lambda a: np.ascontiguousarray(a, dtype=np.float64)  # noqa: E731 - one array type per kernel argument
+    low_level_observation_kernel(f64(perceived_pos), f64(velocity), f64(np.broadcast_to(anchor, (b, n, 2))), f64(lidar),
+                                 int(slots), float(cfg.observation_distance), out)
+    return out
 
 
 def build_cefc_observation(
