@@ -1,6 +1,7 @@
 """Training stages end to end with CI-sized budgets, resume, distillation, the CLI and Table III."""
 
 import csv
+import dataclasses
 import json
 from dataclasses import replace
 from pathlib import Path
@@ -53,6 +54,15 @@ def test_budget_and_config_validation():
     assert not cfg.fine_tune
     with pytest.raises(ConfigError, match="velocity_noise"):
         LowLevelConfig(formation=6, step=1, velocity_noise=0.1, budget=Budget(iterations=1))
+    # A collision margin widens both distances of the training reward, nothing else.
+    from cefc_mj.train.lowlevel import task_config_for
+
+    wide = task_config_for(dataclasses.replace(quad, collision_margin=0.125))
+    plain = task_config_for(quad)
+    assert (wide.rewards.safety_distance, wide.rewards.collision_alert_distance) == (0.325, 0.625)
+    assert dataclasses.replace(wide, rewards=plain.rewards) == plain
+    with pytest.raises(ConfigError, match="collision_margin"):
+        LowLevelConfig(formation=6, step=3, collision_margin=-0.1, budget=Budget(iterations=1))
 
 
 def test_pipeline_plan_splits_the_budget():

@@ -87,6 +87,8 @@ ROBUST = ["lowlevel", "--formation", "3", "--step", "3", "--init-from", "atm_c3_
     (ROBUST + ["--deviation", "nan"], "--deviation nan"),
     # Quadrotor-like dynamics only fine-tune Step 3.
     (LOW + ["--velocity-noise", "0.1"], "--response-time/--velocity-noise (0.0, 0.1)"),
+    (LOW + ["--collision-margin", "0.7"], "--collision-margin 0.7: must be in [0, 0.5] m"),
+    (LOW + ["--collision-margin", "nan"], "--collision-margin nan"),
     (["lowlevel-all", "--workers", "0"], "--workers 0"),
     (["lowlevel-all", "--workers", "7"], "--workers 7"),
     (["lowlevel-all", "--seed", "-3"], "--seed -3"),

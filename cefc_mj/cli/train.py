@@ -34,7 +34,7 @@ _FLAG_OF_FIELD = {
     "n_envs": "--envs", "epochs": "--epochs", "minibatches": "--minibatches", "lr": "--lr",
     "update_threads": "--threads", "seed": "--seed", "obstacle_density": "--density", "deviation": "--deviation",
     "deviation_sampling": "--deviation-sampling", "response_time": "--response-time",
-    "velocity_noise": "--velocity-noise", "safe": "--safe", "tuples_per_formation": "--tuples",
+    "velocity_noise": "--velocity-noise", "collision_margin": "--collision-margin", "safe": "--safe", "tuples_per_formation": "--tuples",
     "formations": "--formations", "response_time/velocity_noise": "--response-time/--velocity-noise",
     "curriculum": "--curriculum",
 }
@@ -150,6 +150,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--velocity-noise", type=float, default=0.0, metavar="MPS",
                    help="std (m/s) of per-step velocity kicks in the particle world, a real vehicle's tracking "
                         "error; about 0.1 matches the MuJoCo quadrotor (default 0)")
+    p.add_argument("--collision-margin", type=float, default=0.0, metavar="M",
+                   help="add M metres to both distances of the collision reward (delta_s 0.2, delta_a,c 0.5), so "
+                        "the policy keeps more clearance than the paper's reward asks (default 0)")
     p.add_argument("--density", type=float, default=None, help="training obstacle density per m^2 (default: the step's)")
     p.add_argument("--seeds", default=None, metavar="S1,S2,...",
                    help="a sweep: train the stage once per seed, each in <out>/seed<k>/, its policy named "
@@ -370,7 +373,7 @@ def run(args, command: str | None = None) -> list[dict]:
         sweep = _seed_sweep(args)  # --seeds/--executor/--address checked; None: a single run
         cfg = LowLevelConfig(formation=args.formation, step=args.step, safe=args.safe, deviation=args.deviation,
                              deviation_sampling=args.deviation_sampling, response_time=args.response_time,
-                             velocity_noise=args.velocity_noise,
+                             velocity_noise=args.velocity_noise, collision_margin=args.collision_margin,
                              budget=budget, seed=args.seed,
                              obstacle_density=args.density, ppo=_ppo_from(args))
         policies_dir = check_destinations(args)

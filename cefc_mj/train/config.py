@@ -255,6 +255,10 @@ class LowLevelConfig(BudgetPPODict):
     velocity_noise: float = 0.0
     """Std (m/s) of the particle world's per-step velocity kicks during training
     (TaskConfig.velocity_noise); 0 is the paper's MPE."""
+    collision_margin: float = 0.0
+    """Added (m) to both distances of the collision reward (delta_s and delta_a,c, RewardConfig) during
+    training, so the policy keeps that much more clearance than the paper's reward asks; 0 is the paper's.
+    A quadrotor's tracking lag turns the particle world's near misses into touches (docs/decisions.md)."""
     hidden: int = 128
     """Hidden width of the AT-M modules."""
     critic_hidden: int = 128
@@ -356,6 +360,8 @@ class LowLevelConfig(BudgetPPODict):
             _fail("response_time", self.response_time, "must be in [0, 1] s")
         if not isinstance(self.velocity_noise, (int, float)) or not 0 <= self.velocity_noise <= 1.0:
             _fail("velocity_noise", self.velocity_noise, "must be in [0, 1] m/s")
+        if not isinstance(self.collision_margin, (int, float)) or not 0 <= self.collision_margin <= 0.5:
+            _fail("collision_margin", self.collision_margin, "must be in [0, 0.5] m")
         if (self.response_time > 0 or self.velocity_noise > 0) and (self.step != 3 or self.safe):
             _fail("response_time/velocity_noise", (self.response_time, self.velocity_noise),
                   "quadrotor-like dynamics fine-tune the Step 3 policy: use them with step 3 and without --safe")

@@ -28,6 +28,7 @@ config; `train_lowlevel(..., resume=True)` continues it exactly (see MAPPO).
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 from pathlib import Path
 
@@ -39,7 +40,7 @@ from cefc_mj.fileio import write_atomic
 from cefc_mj.nn.atm import ATMActor, ATMConfig, Critic, merge_step3
 from cefc_mj.nn.policy_io import atomic_torch_save, load_actor, resolve_policy_path, save_policy
 from cefc_mj.provenance import file_sha256
-from cefc_mj.task.config import TaskConfig
+from cefc_mj.task.config import RewardConfig, TaskConfig
 from cefc_mj.train.config import LowLevelConfig
 from cefc_mj.train.logger import RunLogger
 from cefc_mj.train.mappo import MAPPO
@@ -56,9 +57,13 @@ def task_config_for(cfg: LowLevelConfig, density: float | None = None) -> TaskCo
     """The low-level game of a stage: one group of c agents, an anchor, the step's obstacle density
     (or `density`, a curriculum phase's)."""
     density = cfg.density if density is None else density
+    rewards = RewardConfig()
+    if cfg.collision_margin:
+        rewards = dataclasses.replace(rewards, safety_distance=rewards.safety_distance + cfg.collision_margin,
+                                      collision_alert_distance=rewards.collision_alert_distance + cfg.collision_margin)
     return TaskConfig(n_agents=cfg.formation, mode="formation", obstacle_density=density, deviation=cfg.deviation,
                       deviation_sampling=cfg.deviation_sampling, response_time=cfg.response_time,
-                      velocity_noise=cfg.velocity_noise)
+                      velocity_noise=cfg.velocity_noise, rewards=rewards)
 
 
 def stage_name(formation: int, step: int, safe: bool = False) -> str:
