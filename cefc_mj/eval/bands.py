@@ -1,14 +1,15 @@
 """Regression bands on the Table VIII metrics that hold on any machine (docs/reproducibility.md).
 
-A 1000-step closed loop is chaotic: the same seed gives bit-identical metrics on one machine, but the
-last-bit differences between floating-point code paths (MKL picks its matmul kernels by CPU) grow
-into a different trajectory, and N can move by 100+ steps for one seed. So the regression test does
-not check single trajectories. It checks the *mean over a fixed set of seeds* of each metric, per
-cell (c, condition), against a band set from measurements of the same seeds under several
-floating-point paths:
+A 1000-step closed loop is chaotic: the same seed gives bit-identical metrics on one machine, but a
+last-bit difference anywhere (another CPU's libm or SIMD kernels, another MuJoCo build) grows into a
+different trajectory, and N can move by 100+ steps for one seed. So the regression test does not
+check single trajectories. It checks the *mean over a fixed set of seeds* of each metric, per cell
+(c, condition), against a band set from measurements of the same seeds under several arithmetic
+paths: the loop as it is, and the loop with every action moved by one float32 ulp up or down (the
+smallest last-bit difference; the chaotic loop grows it as it grows any other):
 
-    x[p, s]            metric of seed s under floating-point path p (P paths, n seeds)
-    sigma_w^2          within-seed variance across paths, pooled over the seeds: the floating-point
+    x[p, s]            metric of seed s under path p (P paths, n seeds)
+    sigma_w^2          within-seed variance across paths, pooled over the seeds: the last-bit
                        noise of one seed's metric
     reference          mean of x over paths and seeds
     band               reference +- max(K * sigma_w * sqrt((1 + 1/P) / n), floor)
@@ -27,11 +28,10 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import datetime as _dt
+import functools
 import json
 import math
-import os
-import subprocess
-import sys
+from contextlib import closing
 from pathlib import Path
 
 import numpy as np
@@ -52,10 +52,13 @@ K_SIGMA = 4.0
 FLOOR = {"F": 10.0, "N": 10.0, "C": 0.05}
 """Smallest half-width (steps, steps, percentage points): a cell whose metric did not move across the
 measured paths still gets a little room."""
-FP_PATHS = {"default": None, "MKL_CBWR=AVX2": "AVX2", "MKL_CBWR=COMPATIBLE": "COMPATIBLE"}
-"""Floating-point paths measured: MKL's own CPU dispatch, and two pinned MKL code paths. On an
-AVX2 machine MKL_CBWR=SSE4_2 and =AVX give the AVX2 results, and numba (NUMBA_CPU_NAME=generic) and
-numpy's SIMD dispatch (NPY_DISABLE_CPU_FEATURES) change nothing (docs/reproducibility.md)."""
+FP_PATHS = {"exact": 0, "ulp+1": 1, "ulp-1": -1}
+"""Arithmetic paths measured, as float32 ulps every action of the policy is moved by (np.nextafter,
+before the world clips it): 0 is the loop as users run it. The evaluators' policy kernel gives the
+same bits on any CPU (cefc_mj/nn/inference.py), so pinning MKL's code paths (MKL_CBWR), which once
+made the spread, no longer changes a bit; what can still differ between machines is the last bit of
+libm, of numpy's SIMD kernels or of another MuJoCo build, and a one-ulp nudge of the actions is that
+kind of difference (docs/reproducibility.md)."""
 FACTS = ("no-collisions-SITL-S", "no-collisions-Wind-8", "Wind-8-lowers-F+N", "Deviation-0.8-lowers-F+N")
 """The paper's qualitative Table VIII facts checked per formation c."""
 
@@ -73,21 +76,48 @@ def _key(spec: EpisodeSpec) -> str:
     return json.dumps(dataclasses.asdict(spec), sort_keys=True)
 
 
-def fly(specs: list[EpisodeSpec], cell_file: Path, workers: int) -> list[dict]:
-    """Episode rows for `specs` on a local process pool; finished episodes are appended to
-    `cell_file`, so an interrupted `measure` resumes."""
-    from cefc_mj.eval.table8 import fly_episodes, load_cells
+def fly(specs: list[EpisodeSpec], cell_file: Path, workers: int, ulps: int = 0) -> list[dict]:
+    """Episode rows for `specs` on a local process pool, every action moved by `ulps` float32 ulps
+    (0: as `cefc-eval` flies them); finished episodes are appended to `cell_file`, so an interrupted
+    `measure` resumes."""
+    from cefc_mj.eval.table8 import load_cells
+    from cefc_mj.executors import ExecutorConfig, map_unordered
 
     Path(cell_file).parent.mkdir(parents=True, exist_ok=True)
     done = load_cells(cell_file)
     todo = [s for s in specs if _key(s) not in done]
-    with open(cell_file, "a") as sink:
-        for i, result in fly_episodes(todo, workers=workers):
-            row = {"key": _key(todo[i]), **result.to_dict()}
+    with open(cell_file, "a") as sink, closing(map_unordered(functools.partial(_fly_row, ulps=ulps), todo,
+                                                             ExecutorConfig(workers=workers))) as rows:
+        for spec, result in rows:
+            row = {"key": _key(spec), **result}
             done[row["key"]] = row
             sink.write(json.dumps(row) + "\n")
             sink.flush()
     return [done[_key(s)] for s in specs]
+
+
+class _NudgedPolicy:
+    """A policy whose every action is moved by `ulps` float32 ulps (run_episode calls its act)."""
+
+    actor = None
+
+    def __init__(self, policy, ulps: int):
+        self._actions = policy.actor.inference_weights().actions
+        self._towards = np.float32(np.inf if ulps > 0 else -np.inf)
+        self._ulps = abs(ulps)
+
+    def act(self, obs: np.ndarray) -> np.ndarray:
+        actions = self._actions(obs)
+        for _ in range(self._ulps):
+            actions = np.nextafter(actions, self._towards)
+        return actions
+
+
+def _fly_row(spec: EpisodeSpec, ulps: int = 0) -> dict:
+    from cefc_mj.eval.runner import load_policy_for, run_episode
+
+    policy = load_policy_for(spec.policy, spec.formation)
+    return run_episode(spec, policy if ulps == 0 else _NudgedPolicy(policy, ulps)).to_dict()
 
 
 def cell_means(rows: list[dict]) -> dict[str, dict[str, dict[str, float]]]:
@@ -183,9 +213,9 @@ def make_bands(rows: list[dict], formations=FORMATIONS, seeds: int = SEEDS) -> d
             facts[f"{c}/{fact}"] = {"verdict": verdict, "margin": margin, "noise": noise}
     return {
         "how_set": (
-            f"Seeds 0..{seeds - 1}, {STEPS} steps, per cell (c, condition) under {len(path_names)} floating-point "
-            f"paths ({', '.join(path_names)}) on one machine. Band = reference +- max({K_SIGMA:g} x noise_of_mean, "
-            f"floor {FLOOR}); noise_of_mean = fp_std_one_seed x sqrt((1 + 1/P) / n), fp_std_one_seed being the "
+            f"Seeds 0..{seeds - 1}, {STEPS} steps, per cell (c, condition) under {len(path_names)} arithmetic "
+            f"paths ({', '.join(path_names)}: every action moved by that many float32 ulps) on one machine. "
+            f"Band = reference +- max({K_SIGMA:g} x noise_of_mean, floor {FLOOR}); noise_of_mean = fp_std_one_seed x sqrt((1 + 1/P) / n), fp_std_one_seed being the "
             "within-seed standard deviation across the paths, pooled over the seeds. The test flies the same seeds "
             "once and compares each cell's mean. Facts: 'holds' is asserted, 'broken' is a strict xfail (a known gap), "
             "'undecided' (|margin| within the noise) is reported and skipped. See docs/reproducibility.md."
@@ -207,7 +237,7 @@ def make_bands(rows: list[dict], formations=FORMATIONS, seeds: int = SEEDS) -> d
 
 def leave_one_path_out(cells: dict, path_names: list[str], seeds: int) -> dict:
     """For each path p: would p's means pass bands set from the other paths alone? A check that the
-    bands carry to a floating-point path they were not set from."""
+    bands carry to an arithmetic path they were not set from."""
     out = {}
     if len(path_names) < 3:
         return out
@@ -243,23 +273,16 @@ def load_bands(path: Path = BANDS_FILE) -> dict:
 
 # ---------------------------------------------------------------------------- command line
 def _measure(args) -> None:
-    """Fly the grid once per floating-point path, each in its own process (MKL reads MKL_CBWR at start)."""
+    """Fly the grid once per arithmetic path."""
     args.out.mkdir(parents=True, exist_ok=True)
-    for label, cbwr in FP_PATHS.items():
-        env = {k: v for k, v in os.environ.items() if k != "MKL_CBWR"}
-        if cbwr:
-            env["MKL_CBWR"] = cbwr
-        cmd = [sys.executable, "-m", "cefc_mj.eval.bands", "fly", "--label", label, "--out", str(args.out),
-               "--workers", str(args.workers), "--seeds", str(args.seeds), "--conditions", *args.conditions]
-        print(f"[{label}] {' '.join(cmd[1:])}", flush=True)
-        subprocess.run(cmd, env=env, check=True)
-
-
-def _fly(args) -> None:
     specs = cell_specs(FORMATIONS, args.conditions, args.seeds)
-    safe = args.label.replace("=", "-")
-    rows = fly(specs, args.out / f"cells_{safe}.jsonl", args.workers)
-    print(f"[{args.label}] {len(rows)} episodes", flush=True)
+    for label, ulps in FP_PATHS.items():
+        print(f"[{label}] {len(specs)} episodes, actions moved by {ulps} float32 ulp(s)", flush=True)
+        fly(specs, _cell_file(args.out, label), args.workers, ulps)
+
+
+def _cell_file(folder: Path, label: str) -> Path:
+    return folder / f"cells_{label.replace('=', '-')}.jsonl"
 
 
 def _make(args) -> None:
@@ -267,8 +290,7 @@ def _make(args) -> None:
 
     rows = []
     for label in FP_PATHS:
-        cell_file = args.runs / f"cells_{label.replace('=', '-')}.jsonl"
-        rows += [{**r, "fp_path": label} for r in load_cells(cell_file).values()]
+        rows += [{**r, "fp_path": label} for r in load_cells(_cell_file(args.runs, label)).values()]
     bands = make_bands(rows, seeds=args.seeds)
     write_atomic(args.out, json.dumps(bands, indent=2) + "\n")
     print(f"wrote {args.out}")
@@ -282,20 +304,17 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(prog="python -m cefc_mj.eval.bands", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True)
-    for name in ("measure", "fly"):
-        p = sub.add_parser(name)
-        p.add_argument("--out", type=Path, required=True, help="folder of the per-path cell files")
-        p.add_argument("--workers", type=int, default=2)
-        p.add_argument("--seeds", type=int, default=SEEDS)
-        p.add_argument("--conditions", nargs="+", default=list(CONDITIONS), choices=list(CONDITIONS))
-        if name == "fly":
-            p.add_argument("--label", required=True, choices=list(FP_PATHS))
+    p = sub.add_parser("measure")
+    p.add_argument("--out", type=Path, required=True, help="folder of the per-path cell files")
+    p.add_argument("--workers", type=int, default=2)
+    p.add_argument("--seeds", type=int, default=SEEDS)
+    p.add_argument("--conditions", nargs="+", default=list(CONDITIONS), choices=list(CONDITIONS))
     p = sub.add_parser("make")
     p.add_argument("runs", type=Path, help="the folder `measure` wrote")
     p.add_argument("--seeds", type=int, default=SEEDS)
     p.add_argument("--out", type=Path, default=BANDS_FILE)
     args = parser.parse_args(argv)
-    {"measure": _measure, "fly": _fly, "make": _make}[args.command](args)
+    {"measure": _measure, "make": _make}[args.command](args)
 
 
 if __name__ == "__main__":
