@@ -215,8 +215,9 @@ def table8(args, policy: Policy) -> None:
     print(f"  raw mj_step, same model, drones hovering at start:   RTF {raw:7.1f}")
     for variant in variants:
         f, n, c = metrics[variant]
-        print(f"  eval loop ({variant:>6}):     RTF {loop[variant]:7.1f}   loop / raw mj_step = {loop[variant] / replay:.3f}"
-              f" (hovering: {loop[variant] / raw:.3f})   F / N / C = {f:.0f} / {n:.0f} / {c:.2f}")
+        print(f"  eval loop ({variant:>6}):     RTF {loop[variant]:7.1f}   "
+              f"loop / raw mj_step = {loop[variant] / replay:.3f} (hovering: {loop[variant] / raw:.3f})   "
+              f"F / N / C = {f:.0f} / {n:.0f} / {c:.2f}")
     if args.before:
         print(f"  speed-up now / before: x{loop['now'] / loop['before']:.2f}")
     print(f"  ms per decision step (instrumented episode): world.step {ms['world.step']:.3f}, LiDAR {ms['world.lidar']:.3f}, "

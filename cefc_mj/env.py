@@ -178,8 +178,11 @@ class BatchedCEFCEnv:
         else:
             self.labels = connected_groups(pos, self.config.observation_distance)
         error, size, centre = group_formation_error(pos, self.labels, self.config.formation_spacing)
-        # formation mode: every agent is in group 0 (the gather below, without its cost)
-        self.agent_error = np.repeat(error[:, :1], self.n_agents, axis=1) if formation else agent_group_error(error, self.labels)
+        # formation mode: every agent is in group 0 (the gather, without its cost)
+        if formation:
+            self.agent_error = np.repeat(error[:, :1], self.n_agents, axis=1)
+        else:
+            self.agent_error = agent_group_error(error, self.labels)
         self.group_size, self.group_centre = size, centre
         return error, size, centre
 

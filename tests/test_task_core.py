@@ -231,8 +231,8 @@ def test_deviation_distribution():
 
 # ---------------------------------------------------------------- compiled kernels vs references
 def test_kernels_match_numpy_references():
-    from reference_impl import (connected_groups_reference, group_formation_error_reference, low_level_observation_reference,
-                                neighbour_features_reference)
+    from reference_impl import (connected_groups_reference, group_formation_error_reference,
+                                low_level_observation_reference, neighbour_features_reference)
     from cefc_mj.task.observation import neighbour_features
 
     rng = np.random.default_rng(5)
@@ -256,7 +256,8 @@ def test_kernels_match_numpy_references():
         lidar = rng.uniform(0.0, 3.0, (20, n, cfg.n_lidar_rays))
         for anchor in (rng.uniform(-5, 5, (20, 2)), rng.uniform(-5, 5, (20, n, 2))):
             obs = build_low_level_observation(cfg, pos, vel, anchor, lidar)
-            ref = low_level_observation_reference(pos, vel, anchor, lidar, cfg.neighbour_slots, cfg.observation_distance)
+            ref = low_level_observation_reference(pos, vel, anchor, lidar, cfg.neighbour_slots,
+                                                  cfg.observation_distance)
             assert obs.dtype == np.float32 and obs.tobytes() == ref.tobytes()
 
 

@@ -34,7 +34,8 @@ _FLAG_OF_FIELD = {
     "n_envs": "--envs", "epochs": "--epochs", "minibatches": "--minibatches", "lr": "--lr",
     "update_threads": "--threads", "seed": "--seed", "obstacle_density": "--density", "deviation": "--deviation",
     "deviation_sampling": "--deviation-sampling", "response_time": "--response-time",
-    "velocity_noise": "--velocity-noise", "collision_margin": "--collision-margin", "safe": "--safe", "tuples_per_formation": "--tuples",
+    "velocity_noise": "--velocity-noise", "collision_margin": "--collision-margin", "safe": "--safe",
+    "tuples_per_formation": "--tuples",
     "formations": "--formations", "response_time/velocity_noise": "--response-time/--velocity-noise",
     "curriculum": "--curriculum",
 }

@@ -215,7 +215,8 @@ def make_bands(rows: list[dict], formations=FORMATIONS, seeds: int = SEEDS) -> d
         "how_set": (
             f"Seeds 0..{seeds - 1}, {STEPS} steps, per cell (c, condition) under {len(path_names)} arithmetic "
             f"paths ({', '.join(path_names)}: every action moved by that many float32 ulps) on one machine. "
-            f"Band = reference +- max({K_SIGMA:g} x noise_of_mean, floor {FLOOR}); noise_of_mean = fp_std_one_seed x sqrt((1 + 1/P) / n), fp_std_one_seed being the "
+            f"Band = reference +- max({K_SIGMA:g} x noise_of_mean, floor {FLOOR}); "
+            "noise_of_mean = fp_std_one_seed x sqrt((1 + 1/P) / n), fp_std_one_seed being the "
             "within-seed standard deviation across the paths, pooled over the seeds. The test flies the same seeds "
             "once and compares each cell's mean. Facts: 'holds' is asserted, 'broken' is a strict xfail (a known gap), "
             "'undecided' (|margin| within the noise) is reported and skipped. See docs/reproducibility.md."
