@@ -159,8 +159,8 @@ class BatchedCEFCEnv:
         pos = self.world.agent_pos
         group_error, group_size, group_centre = self._groups(pos)
         self._observe(np.ones(self.n_envs, dtype=bool))
-        # the swarm centre's distance to the anchor: the low level's R_n and the metric N share it
-        centre_distance = np.linalg.norm(pos.mean(axis=1) - self.anchor, axis=-1)
+        # the swarm centre's distance to the anchor: the low level's R_n is minus it, the metric N counts it
+        centre_distance = -R.anchor_navigation_reward(pos, self.anchor)
         terms, reward = self._rewards(pos, group_error, group_size, group_centre, centre_distance)
         self._accumulate_metrics(pos, centre_distance)
         done = self.t >= cfg.steps
@@ -242,7 +242,7 @@ class BatchedCEFCEnv:
         self.agent_collision_penalty = R.collision_penalty(self.true_lidar.min(axis=-1), w)
         r_c = -self.agent_collision_penalty.sum(axis=-1)  # R_c = -sum_i CR_i (eq. 16)
         if cfg.mode == "formation":
-            r_n = -centre_distance  # R.anchor_navigation_reward(pos, self.anchor)
+            r_n = -centre_distance  # R.anchor_navigation_reward
             terms = {"R_f": r_f, "R_n": r_n, "R_c": r_c}
             reward = w.formation_weight * r_f + w.navigation_weight_low * r_n + w.collision_weight * r_c
             return terms, reward
