@@ -114,10 +114,14 @@ class _NudgedPolicy:
 
 
 def _fly_row(spec: EpisodeSpec, ulps: int = 0) -> dict:
-    from cefc_mj.eval.runner import load_policy_for, run_episode
+    """One episode's row: with ulps = 0 the grid's own episode (cefc_mj.eval.table8), else the same with
+    the actions nudged; the policy is loaded once per worker process, as the grid loads it."""
+    from cefc_mj.eval import table8
+    from cefc_mj.eval.runner import run_episode
 
-    policy = load_policy_for(spec.policy, spec.formation)
-    return run_episode(spec, policy if ulps == 0 else _NudgedPolicy(policy, ulps)).to_dict()
+    if ulps == 0:
+        return table8._fly_row(spec)
+    return run_episode(spec, _NudgedPolicy(table8.cached_policy(spec.policy, spec.formation), ulps)).to_dict()
 
 
 def cell_means(rows: list[dict]) -> dict[str, dict[str, dict[str, float]]]:
@@ -283,7 +287,7 @@ def _measure(args) -> None:
 
 
 def _cell_file(folder: Path, label: str) -> Path:
-    return folder / f"cells_{label.replace('=', '-')}.jsonl"
+    return folder / f"cells_{label}.jsonl"
 
 
 def _make(args) -> None:
