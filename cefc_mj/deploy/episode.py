@@ -112,8 +112,9 @@ class SitlConfig:
                 raise ConfigError(f"faults: {fault!r} is not an AgentFault with action kill or stop")
 
 
-def _check(spec: EpisodeSpec, sitl: SitlConfig) -> tuple[float, tuple[int, int] | None]:
-    """Everything checked before a process starts; returns (control tick, drop)."""
+def _check(spec: EpisodeSpec, sitl: SitlConfig) -> tuple[float, tuple[int, int] | None, "TaskConfig"]:
+    """Everything checked before a process starts; returns (control tick, drop, the game with the
+    policy's LiDAR)."""
     from cefc_mj.eval.runner import load_policy_for
 
     sitl.validate()
@@ -133,8 +134,8 @@ def _check(spec: EpisodeSpec, sitl: SitlConfig) -> tuple[float, tuple[int, int] 
                               f"step 0..{spec.steps - 1})")
         if fault.uav in sitl.remote_agents:
             raise ConfigError(f"faults: uav {fault.uav}'s agent is remote; only local processes can be signalled")
-    load_policy_for(spec.policy, spec.formation)  # an unknown policy fails here, not in N processes
-    return tick, drop
+    policy = load_policy_for(spec.policy, spec.formation)  # an unknown policy fails here, not in N processes
+    return tick, drop, policy.task_for(config)
 
 
 def run_sitl_episode(spec: EpisodeSpec, sitl: SitlConfig = SitlConfig(), record: bool = False) -> SitlEpisodeResult:
@@ -146,8 +147,7 @@ def run_sitl_episode(spec: EpisodeSpec, sitl: SitlConfig = SitlConfig(), record:
     config and AgentError when the agents cannot start; every agent process is gone when it returns
     or raises (Ctrl-C included).
     """
-    tick, drop = _check(spec, sitl)
-    config = spec.task_config()
+    tick, drop, config = _check(spec, sitl)
     world = make_ticked_world(spec.backend, config, tick, wind=spec.wind, seed=spec.seed,
                               airframe=spec.mujoco_airframe)
     env = DropoutCEFCEnv(config, n_envs=1, seed=spec.seed, world=world)
@@ -290,6 +290,7 @@ def run_latency_model_episode(spec: EpisodeSpec, latency_ticks: int = 1, control
     if not isinstance(latency_ticks, int) or latency_ticks < 0:
         raise ConfigError(f"latency_ticks={latency_ticks!r}: must be an integer >= 0")
     policy = policy if policy is not None else load_policy_for(spec.policy, spec.formation)
+    config = policy.task_for(config)
     world = make_ticked_world(spec.backend, config, tick, wind=spec.wind, seed=spec.seed,
                               airframe=spec.mujoco_airframe)
     env = DropoutCEFCEnv(config, n_envs=1, seed=spec.seed, world=world)

@@ -173,9 +173,9 @@ def episode_fields(env, spec: EpisodeSpec, diverged: str | None, wall_s: float) 
 def run_episode(spec: EpisodeSpec, policy: Policy | None = None, record: bool = False) -> EpisodeResult:
     """Fly one episode. `policy` defaults to loading `spec.policy` for `spec.formation`."""
     torch.set_num_threads(1)
-    config = spec.task_config()
     if policy is None:
         policy = load_policy_for(spec.policy, spec.formation)
+    config = policy.task_for(spec.task_config())
     world = make_world(spec.backend, config, n_envs=1, wind=spec.wind, seed=spec.seed, airframe=spec.mujoco_airframe,
                        offboard=spec.offboard if spec.backend == "mujoco" else None)
     env = BatchedCEFCEnv(config, n_envs=1, seed=spec.seed, world=world)

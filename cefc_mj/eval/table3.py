@@ -75,7 +75,8 @@ def evaluate_lowlevel_episodes(policy: Policy, formation: int, density: float = 
                                episodes: int = TABLE3_EPISODES, seed: int = 0,
                                steps: int = TABLE3_STEPS) -> dict[str, np.ndarray]:
     """Per-episode R_L (per step), F, N, C [episodes] of `policy` for one group of `formation` agents."""
-    task = TaskConfig(n_agents=formation, mode="formation", obstacle_density=density, episode_steps=steps)
+    task = policy.task_for(TaskConfig(n_agents=formation, mode="formation", obstacle_density=density,
+                                      episode_steps=steps))
     env = BatchedCEFCEnv(task, n_envs=episodes, seed=seed)
     if policy.obs_dim != env.layout.size:
         raise ConfigError(f"policy {policy.name}: observation size {policy.obs_dim}, the env gives {env.layout.size}")

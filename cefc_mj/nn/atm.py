@@ -55,6 +55,9 @@ class ATMConfig:
     """Hidden width of every module (128 for AT-M teachers, 256 for the distilled student)."""
     act_dim: int = 2
     """Action size: the horizontal acceleration setpoint [a_x, a_y]."""
+    lidar_sees_agents: bool = True
+    """Whether the LiDAR it was trained with also sees the other UAVs (TaskConfig.lidar_sees_agents);
+    evaluators fly the policy with that LiDAR (`Policy.task_for`)."""
     safe: bool = False
     """AT-M-Safe: report beams that see something `safe_margin` shorter."""
     safe_margin: float = 0.2
@@ -92,6 +95,7 @@ class ATMConfig:
         return cls(
             layout=low_level_layout(task_cfg).parts,
             lidar_range=task_cfg.lidar_range,
+            lidar_sees_agents=task_cfg.lidar_sees_agents,
             accel_max=task_cfg.accel_max,
             **overrides,
         )

@@ -22,6 +22,7 @@ Example (the name is resolved in POLICIES_DIR):
 
 from __future__ import annotations
 
+import dataclasses
 import pickle
 import zipfile
 from collections.abc import Mapping
@@ -165,6 +166,12 @@ class Policy:
     @property
     def safe(self) -> bool:
         return self.actor.cfg.safe
+
+    def task_for(self, task):
+        """`task` (a TaskConfig) with the LiDAR this policy was trained with: every evaluator flies a
+        policy with the sensing it learned on (AT-M Step 1's LiDAR sees obstacles only)."""
+        sees = self.actor.cfg.lidar_sees_agents
+        return task if task.lidar_sees_agents == sees else dataclasses.replace(task, lidar_sees_agents=sees)
 
     def act(self, obs: np.ndarray | Mapping[str, np.ndarray]) -> np.ndarray | dict[str, np.ndarray]:
         """Actions for `[B, N, D]` or `[N, D]` observations (same leading shape, last axis 2), or

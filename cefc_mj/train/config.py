@@ -259,6 +259,12 @@ class LowLevelConfig(BudgetPPODict):
     """Added (m) to both distances of the collision reward (delta_s and delta_a,c, RewardConfig) during
     training, so the policy keeps that much more clearance than the paper's reward asks; 0 is the paper's.
     A quadrotor's tracking lag turns the particle world's near misses into touches (docs/decisions.md)."""
+    lidar_sees_uavs: bool | None = None
+    """Whether the LiDAR beams hit the other UAVs as well as the obstacles (TaskConfig.lidar_sees_agents).
+    None: the stage's default, False for AT-M Step 1 and True for every other stage. Step 1 trains
+    without obstacles, so its LiDAR then reads nothing, as the paper's Step 1 evidently did: with it
+    Step 1 collides in Table III as the paper's does (docs/layouts.md). The choice is saved in the
+    policy file, and the evaluators fly every policy with the LiDAR it was trained with."""
     hidden: int = 128
     """Hidden width of the AT-M modules."""
     critic_hidden: int = 128
@@ -314,6 +320,13 @@ class LowLevelConfig(BudgetPPODict):
         return f"atm_c{self.formation}_quad" if self.quad else f"atm_c{self.formation}_step{self.step}"
 
     @property
+    def sees_uavs(self) -> bool:
+        """The LiDAR this stage trains with (`lidar_sees_uavs`, its None resolved)."""
+        if self.lidar_sees_uavs is not None:
+            return bool(self.lidar_sees_uavs)
+        return not (self.step == 1 and self.curriculum is None)
+
+    @property
     def robust(self) -> bool:
         """AT-M-Robust: a Step 3 fine-tune under sensing deviation."""
         return self.step == 3 and self.deviation > 0
@@ -362,6 +375,8 @@ class LowLevelConfig(BudgetPPODict):
             _fail("velocity_noise", self.velocity_noise, "must be in [0, 1] m/s")
         if not isinstance(self.collision_margin, (int, float)) or not 0 <= self.collision_margin <= 0.5:
             _fail("collision_margin", self.collision_margin, "must be in [0, 0.5] m")
+        if self.lidar_sees_uavs not in (None, True, False):
+            _fail("lidar_sees_uavs", self.lidar_sees_uavs, "must be true, false or null (the stage's default)")
         if (self.response_time > 0 or self.velocity_noise > 0) and (self.step != 3 or self.safe):
             _fail("response_time/velocity_noise", (self.response_time, self.velocity_noise),
                   "quadrotor-like dynamics fine-tune the Step 3 policy: use them with step 3 and without --safe")

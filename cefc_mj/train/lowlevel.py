@@ -63,7 +63,7 @@ def task_config_for(cfg: LowLevelConfig, density: float | None = None) -> TaskCo
                                       collision_alert_distance=rewards.collision_alert_distance + cfg.collision_margin)
     return TaskConfig(n_agents=cfg.formation, mode="formation", obstacle_density=density, deviation=cfg.deviation,
                       deviation_sampling=cfg.deviation_sampling, response_time=cfg.response_time,
-                      velocity_noise=cfg.velocity_noise, rewards=rewards)
+                      velocity_noise=cfg.velocity_noise, rewards=rewards, lidar_sees_agents=cfg.sees_uavs)
 
 
 def stage_name(formation: int, step: int, safe: bool = False) -> str:
