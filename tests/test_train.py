@@ -67,7 +67,7 @@ def test_budget_and_config_validation():
     one = Budget(iterations=1)
     assert [task_config_for(c).lidar_sees_agents for c in (
         LowLevelConfig(formation=6, step=1, budget=one), LowLevelConfig(formation=6, step=2, budget=one),
-        LowLevelConfig(formation=6, step=1, curriculum=(0.0, 0.03), budget=one),
+        LowLevelConfig(formation=6, step=1, curriculum=(0.0, 0.03), budget=Budget(iterations=2)),
         LowLevelConfig(formation=6, step=1, lidar_sees_uavs=True, budget=one),
         LowLevelConfig(formation=6, step=3, lidar_sees_uavs=False, budget=one))] == [False, True, True, True, False]
     with pytest.raises(ConfigError, match="lidar_sees_uavs"):
