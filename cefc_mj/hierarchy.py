@@ -179,7 +179,12 @@ def load_low_level(spec: str, task: TaskConfig, policies_dir: Path | None = None
             policies[c] = (load_policy(path, obs_dim=expected), path)
         return PerGroupPolicies(policies)
     path = resolve_policy_path(spec, policies_dir)
-    return SharedPolicy(load_policy(path, obs_dim=expected), path)
+    policy = load_policy(path, obs_dim=expected)
+    if policy.task_for(task) != task:
+        sees = "obstacles and UAVs" if policy.actor.cfg.lidar_sees_agents else "obstacles only"
+        raise ConfigError(f"low level {spec!r} was trained with a LiDAR that sees {sees}, unlike this game's "
+                          f"(TaskConfig.lidar_sees_agents={task.lidar_sees_agents})")
+    return SharedPolicy(policy, path)
 
 
 class HierarchicalCEFCEnv:
