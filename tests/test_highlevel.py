@@ -117,7 +117,7 @@ def test_reward_is_the_envs_r_h_summed_over_ten_low_level_steps_of_the_student()
 def test_a_low_level_trained_with_another_lidar_is_refused():
     # AT-M Step 1 trained with a LiDAR blind to the other UAVs; the game's LiDAR sees them.
     with pytest.raises(ConfigError, match="LiDAR that sees obstacles only"):
-        load_low_level("atm_c6_step1", TASK)
+        load_low_level("atm_c6_step1_obstacle_lidar", TASK)
     assert load_low_level("atm_c6_step3", TASK).name == "atm_c6_step3"
 
 

@@ -63,15 +63,14 @@ def test_budget_and_config_validation():
     assert dataclasses.replace(wide, rewards=plain.rewards) == plain
     with pytest.raises(ConfigError, match="collision_margin"):
         LowLevelConfig(formation=6, step=3, collision_margin=-0.1, budget=Budget(iterations=1))
-    # The LiDAR: obstacles only for AT-M Step 1 unless asked, obstacles and UAVs elsewhere (CL-M too).
+    # The LiDAR sees obstacles and UAVs unless asked; an obstacles-only stage has its own name.
     one = Budget(iterations=1)
-    assert [task_config_for(c).lidar_sees_agents for c in (
-        LowLevelConfig(formation=6, step=1, budget=one), LowLevelConfig(formation=6, step=2, budget=one),
-        LowLevelConfig(formation=6, step=1, curriculum=(0.0, 0.03), budget=Budget(iterations=2)),
-        LowLevelConfig(formation=6, step=1, lidar_sees_uavs=True, budget=one),
-        LowLevelConfig(formation=6, step=3, lidar_sees_uavs=False, budget=one))] == [False, True, True, True, False]
+    blind = [LowLevelConfig(formation=6, step=1, lidar_sees_uavs=False, budget=one),
+             LowLevelConfig(formation=6, step=3, safe=True, lidar_sees_uavs=False, budget=one)]
+    assert [c.name for c in blind] == ["atm_c6_step1_obstacle_lidar", "atm_c6_safe_obstacle_lidar"]
+    assert [task_config_for(c).lidar_sees_agents for c in (*blind, quad)] == [False, False, True]
     with pytest.raises(ConfigError, match="lidar_sees_uavs"):
-        LowLevelConfig(formation=6, step=1, lidar_sees_uavs="yes", budget=one)
+        LowLevelConfig(formation=6, step=1, lidar_sees_uavs=None, budget=one)
 
 
 def test_pipeline_plan_splits_the_budget():
@@ -89,21 +88,22 @@ def test_pipeline_plan_splits_the_budget():
 
 def test_every_stage_trains_and_exports(tmp_path):
     out, pol = tmp_path / "runs", tmp_path / "policies"
-    # Steps 1 and 2 start from scratch: the return must improve within a few iterations (Step 1's
-    # start is less bad, as its LiDAR sees no neighbours, so no collision term).
-    for step, gain in ((1, 4), (2, 20)):
+    # Steps 1 and 2 start from scratch: the return must improve within a few iterations.
+    for step in (1, 2):
         cfg = LowLevelConfig(formation=3, step=step, budget=Budget(iterations=6), ppo=TINY)
         card = train_lowlevel(cfg, out, pol, show_progress=False, evaluate=False)
         r = [float(row["reward_per_step"]) for row in rows(out / cfg.name)]
         assert len(r) == 6 and card["iterations"] == 6 and card["agent_steps"] == 6 * 8 * 100 * 3
-        assert sum(r[-3:]) / 3 > r[0] + gain, r
+        assert sum(r[-3:]) / 3 > r[0] + 20, r
         assert json.loads((pol / f"{cfg.name}.json").read_text())["config"]["step"] == step
     step1, _ = load_actor(pol / "atm_c3_step1.pt")
     step2, _ = load_actor(pol / "atm_c3_step2.pt")
-    # Step 1's LiDAR sees obstacles only (so reads nothing without them), Step 2's the other UAVs too;
-    # the policy file says which, and the evaluator flies each policy with its own LiDAR.
-    assert (step1.cfg.lidar_sees_agents, step2.cfg.lidar_sees_agents) == (False, True)
-    for name, sees in (("atm_c3_step1", False), ("atm_c3_step2", True)):
+    # A Step 1 whose LiDAR sees obstacles only (so reads nothing without them) has its own name; the
+    # policy file says which LiDAR, and the evaluator flies each policy with its own.
+    blind = LowLevelConfig(formation=3, step=1, lidar_sees_uavs=False, budget=Budget(iterations=1), ppo=TINY)
+    assert train_lowlevel(blind, out, pol, show_progress=False, evaluate=False)["name"] == "atm_c3_step1_obstacle_lidar"
+    assert (step1.cfg.lidar_sees_agents, load_actor(pol / f"{blind.name}.pt")[0].cfg.lidar_sees_agents) == (True, False)
+    for name, sees in (("atm_c3_step1_obstacle_lidar", False), ("atm_c3_step1", True)):
         policy, nearest = load_policy(name, pol), []
         act = policy.act
         policy.act = lambda obs, p=policy, act=act: nearest.append(obs[..., p.actor.lidar_slice].min()) or act(obs)

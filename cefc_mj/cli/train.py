@@ -155,10 +155,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--collision-margin", type=float, default=0.0, metavar="M",
                    help="add M metres to both distances of the collision reward (delta_s 0.2, delta_a,c 0.5), so "
                         "the policy keeps more clearance than the paper's reward asks (default 0)")
-    p.add_argument("--lidar", choices=("obstacles", "obstacles+uavs"), default=None,
-                   help="what the LiDAR beams hit while training (default: obstacles for Step 1, whose LiDAR then "
-                        "reads nothing as it trains without obstacles; obstacles+uavs for every other stage); the "
-                        "policy file records it and the evaluators fly the policy with that LiDAR")
+    p.add_argument("--lidar", choices=("obstacles+uavs", "obstacles"), default="obstacles+uavs",
+                   help="what the LiDAR beams hit while training (default obstacles+uavs). obstacles: the stage "
+                        "is named <stage>_obstacle_lidar; with --step 1 it is the paper's Step 1, whose LiDAR reads "
+                        "nothing as it trains without obstacles. The policy file records it and the evaluators fly "
+                        "the policy with that LiDAR")
     p.add_argument("--density", type=float, default=None, help="training obstacle density per m^2 (default: the step's)")
     p.add_argument("--seeds", default=None, metavar="S1,S2,...",
                    help="a sweep: train the stage once per seed, each in <out>/seed<k>/, its policy named "
@@ -380,7 +381,7 @@ def run(args, command: str | None = None) -> list[dict]:
         cfg = LowLevelConfig(formation=args.formation, step=args.step, safe=args.safe, deviation=args.deviation,
                              deviation_sampling=args.deviation_sampling, response_time=args.response_time,
                              velocity_noise=args.velocity_noise, collision_margin=args.collision_margin,
-                             lidar_sees_uavs=None if args.lidar is None else args.lidar == "obstacles+uavs",
+                             lidar_sees_uavs=args.lidar == "obstacles+uavs",
                              budget=budget, seed=args.seed,
                              obstacle_density=args.density, ppo=_ppo_from(args))
         policies_dir = check_destinations(args)

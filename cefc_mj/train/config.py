@@ -259,12 +259,12 @@ class LowLevelConfig(BudgetPPODict):
     """Added (m) to both distances of the collision reward (delta_s and delta_a,c, RewardConfig) during
     training, so the policy keeps that much more clearance than the paper's reward asks; 0 is the paper's.
     A quadrotor's tracking lag turns the particle world's near misses into touches (docs/decisions.md)."""
-    lidar_sees_uavs: bool | None = None
+    lidar_sees_uavs: bool = True
     """Whether the LiDAR beams hit the other UAVs as well as the obstacles (TaskConfig.lidar_sees_agents).
-    None: the stage's default, False for AT-M Step 1 and True for every other stage. Step 1 trains
-    without obstacles, so its LiDAR then reads nothing, as the paper's Step 1 evidently did: with it
-    Step 1 collides in Table III as the paper's does (docs/layouts.md). The choice is saved in the
-    policy file, and the evaluators fly every policy with the LiDAR it was trained with."""
+    False names the stage <name>_obstacle_lidar (e.g. atm_c6_step1_obstacle_lidar): AT-M Step 1 trained
+    so is the paper's Step 1 of Table III, which collides once obstacles appear because its LiDAR never
+    read anything while training (docs/layouts.md). The choice is saved in the policy file, and the
+    evaluators fly every policy with the LiDAR it was trained with."""
     hidden: int = 128
     """Hidden width of the AT-M modules."""
     critic_hidden: int = 128
@@ -310,21 +310,22 @@ class LowLevelConfig(BudgetPPODict):
     @property
     def name(self) -> str:
         """Stage name, also the policy file stem: atm_c6_step3, atm_c6_safe, atm_c6_robust, atm_c6_quad,
-        clm_c6 (CL-M)."""
+        clm_c6 (CL-M); with an obstacles-only LiDAR e.g. atm_c6_step1_obstacle_lidar."""
         if self.curriculum is not None:
-            return f"clm_c{self.formation}"
-        if self.safe:
-            return f"atm_c{self.formation}_safe"
-        if self.robust:
-            return f"atm_c{self.formation}_robust"
-        return f"atm_c{self.formation}_quad" if self.quad else f"atm_c{self.formation}_step{self.step}"
+            base = f"clm_c{self.formation}"
+        elif self.safe:
+            base = f"atm_c{self.formation}_safe"
+        elif self.robust:
+            base = f"atm_c{self.formation}_robust"
+        else:
+            base = f"atm_c{self.formation}_quad" if self.quad else f"atm_c{self.formation}_step{self.step}"
+        return base + self.name_suffix
 
     @property
-    def sees_uavs(self) -> bool:
-        """The LiDAR this stage trains with (`lidar_sees_uavs`, its None resolved)."""
-        if self.lidar_sees_uavs is not None:
-            return bool(self.lidar_sees_uavs)
-        return not (self.step == 1 and self.curriculum is None)
+    def name_suffix(self) -> str:
+        """"_obstacle_lidar" for a stage whose LiDAR does not see the UAVs, else "" (its earlier stages
+        carry the same suffix)."""
+        return "" if self.lidar_sees_uavs else "_obstacle_lidar"
 
     @property
     def robust(self) -> bool:
@@ -375,8 +376,8 @@ class LowLevelConfig(BudgetPPODict):
             _fail("velocity_noise", self.velocity_noise, "must be in [0, 1] m/s")
         if not isinstance(self.collision_margin, (int, float)) or not 0 <= self.collision_margin <= 0.5:
             _fail("collision_margin", self.collision_margin, "must be in [0, 0.5] m")
-        if self.lidar_sees_uavs not in (None, True, False):
-            _fail("lidar_sees_uavs", self.lidar_sees_uavs, "must be true, false or null (the stage's default)")
+        if self.lidar_sees_uavs not in (True, False):
+            _fail("lidar_sees_uavs", self.lidar_sees_uavs, "must be true or false")
         if (self.response_time > 0 or self.velocity_noise > 0) and (self.step != 3 or self.safe):
             _fail("response_time/velocity_noise", (self.response_time, self.velocity_noise),
                   "quadrotor-like dynamics fine-tune the Step 3 policy: use them with step 3 and without --safe")

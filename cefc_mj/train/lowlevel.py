@@ -63,7 +63,7 @@ def task_config_for(cfg: LowLevelConfig, density: float | None = None) -> TaskCo
                                       collision_alert_distance=rewards.collision_alert_distance + cfg.collision_margin)
     return TaskConfig(n_agents=cfg.formation, mode="formation", obstacle_density=density, deviation=cfg.deviation,
                       deviation_sampling=cfg.deviation_sampling, response_time=cfg.response_time,
-                      velocity_noise=cfg.velocity_noise, rewards=rewards, lidar_sees_agents=cfg.sees_uavs)
+                      velocity_noise=cfg.velocity_noise, rewards=rewards, lidar_sees_agents=cfg.lidar_sees_uavs)
 
 
 def stage_name(formation: int, step: int, safe: bool = False) -> str:
@@ -145,16 +145,17 @@ def initial_networks(cfg: LowLevelConfig, task: TaskConfig, out: Path,
         return actor, critic, value_norm, dict(origin)
     if cfg.step != 3:
         return actor, critic, value_norm, {"actor": "random", "critic": "random"}
+    step1, step2, step3 = (stage_name(cfg.formation, k) + cfg.name_suffix for k in (1, 2, 3))
     if cfg.fine_tune:
-        src, src_actor = _source_state(out, stage_name(cfg.formation, 3), cfg)
+        src, src_actor = _source_state(out, step3, cfg)
         actor.load_state_dict(src_actor.state_dict())
-        origin = {"actor": stage_name(cfg.formation, 3), "critic": stage_name(cfg.formation, 3)}
+        origin = {"actor": step3, "critic": step3}
     else:
-        _, step1 = _source_state(out, stage_name(cfg.formation, 1), cfg)
-        src, step2 = _source_state(out, stage_name(cfg.formation, 2), cfg)
-        actor.load_state_dict(merge_step3(step1, step2).state_dict())
-        origin = {"actor": "formation & output modules, log-std: atm_c{c}_step1; obstacle module: atm_c{c}_step2"
-                  .format(c=cfg.formation), "critic": stage_name(cfg.formation, 2)}
+        _, step1_actor = _source_state(out, step1, cfg)
+        src, step2_actor = _source_state(out, step2, cfg)
+        actor.load_state_dict(merge_step3(step1_actor, step2_actor).state_dict())
+        origin = {"actor": f"formation & output modules, log-std: {step1}; obstacle module: {step2}",
+                  "critic": step2}
     critic.load_state_dict(src["trainer"]["critic"])
     value_norm.load_state_dict(src["trainer"]["value_norm"])
     origin["source_iterations"] = int(src["trainer"]["counters"]["iteration"])

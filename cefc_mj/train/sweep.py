@@ -105,7 +105,7 @@ def plan_seeds(cfg: LowLevelConfig, seeds, out: Path, policies_dir: Path, resume
         raise ConfigError(f"{seed_folder(out, started[0]) / cfg.name} already holds a run; pass --resume to continue "
                           "the sweep, or choose another --out")
     if cfg.step == 3 and init_from is None:
-        sources = [stage_name(cfg.formation, k) for k in ((3,) if cfg.fine_tune else (1, 2))]
+        sources = [stage_name(cfg.formation, k) + cfg.name_suffix for k in ((3,) if cfg.fine_tune else (1, 2))]
         for s in seeds:
             missing = [n for n in sources if s not in started and not _has_run(seed_folder(out, s), n)]
             if missing:
