@@ -218,7 +218,11 @@ def test_cli_lowlevel_runs_and_reports(tmp_path, capsys):
 def test_table3_rows_keyed_like_the_paper(tmp_path):
     torch.manual_seed(0)
     save_policy(ATMActor(ATMConfig.from_task(TaskConfig(n_agents=6, mode="formation"))), tmp_path / "atm_c6_step3.pt")
+    blind = TaskConfig(n_agents=6, mode="formation", lidar_sees_agents=False)
+    save_policy(ATMActor(ATMConfig.from_task(blind)), tmp_path / "atm_c6_step1_obstacle_lidar.pt")
     result = run_table3([6], episodes=3, seed=0, policies_dir=tmp_path, json_path=tmp_path / "t3.json")
+    # the obstacles-only Step 1 stands beside the paper's Step 1 row
+    assert result["6"]["AT-M-Step1 (obstacle LiDAR)"]["paper"] == PAPER_TABLE3["6"]["AT-M-Step1"]
     row = result["6"]["AT-M-Step3"]
     assert set(row) >= {"R_L", "F", "N", "C", "paper"} and 0 <= row["F"] <= 100 and 0 <= row["C"] <= 100
     assert row["paper"] == {"R_L": -96.0, "F": 49.72, "N": 36.66, "C": 0.78}

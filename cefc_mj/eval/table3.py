@@ -35,11 +35,16 @@ TABLE3_DENSITY = 0.05
 TABLE3_EPISODES = 50
 TABLE3_STEPS = 100
 TABLE3_FORMATIONS = (6, 7, 8)
-METHODS = ("ORCA-F", "CL-M", "AT-M-Step1", "AT-M-Step2", "AT-M-Step3", "AT-M-Safe", "AT-M-Robust", "AT-M-Quad",
-           "Student")
+OBSTACLE_LIDAR_STEP1 = "AT-M-Step1 (obstacle LiDAR)"
+METHODS = ("ORCA-F", "CL-M", OBSTACLE_LIDAR_STEP1, "AT-M-Step1", "AT-M-Step2", "AT-M-Step3", "AT-M-Safe",
+           "AT-M-Robust", "AT-M-Quad", "Student")
 """Row names as the paper writes them (AT-M-Robust, AT-M-Quad and the student are this project's additions;
 ORCA-F is the baseline of cefc_mj/baselines/orca.py, CL-M the curriculum baseline trained by `cefc-train clm`,
-docs/baselines.md)."""
+docs/baselines.md). AT-M-Step1 is the Step 1 that Step 3 starts from, its LiDAR seeing obstacles and
+UAVs; the obstacle-LiDAR row is Step 1 trained with a LiDAR that sees obstacles only, as the paper's
+Step 1 evidently was (docs/layouts.md): both stand beside the paper's Step 1 row."""
+PAPER_ROW = {OBSTACLE_LIDAR_STEP1: "AT-M-Step1"}
+"""Our rows compared with a paper row of another name."""
 COLUMNS = ("R_L", "F", "N", "C")
 
 
@@ -67,6 +72,8 @@ def policy_file_for(method: str, formation: int) -> str | None:
         return f"atm_c{formation}_robust"
     if method == "AT-M-Quad":
         return f"atm_c{formation}_quad"
+    if method == OBSTACLE_LIDAR_STEP1:
+        return f"atm_c{formation}_step1_obstacle_lidar"
     return f"atm_c{formation}_step{method[-1]}"
 
 
@@ -121,7 +128,7 @@ def _row(per_episode: dict[str, np.ndarray], c: int, method: str) -> dict:
     """Means, sample std and per-episode values of each metric, with the paper's row."""
     from cefc_mj.eval.runner import episode_stats
 
-    return {**episode_stats(per_episode), "paper": PAPER_TABLE3.get(str(c), {}).get(method)}
+    return {**episode_stats(per_episode), "paper": PAPER_TABLE3.get(str(c), {}).get(PAPER_ROW.get(method, method))}
 
 
 def _orca_row(c: int, episodes: int, seed: int, steps: int, required: bool) -> dict | None:

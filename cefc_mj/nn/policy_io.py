@@ -169,7 +169,7 @@ class Policy:
 
     def task_for(self, task):
         """`task` (a TaskConfig) with the LiDAR this policy was trained with: every evaluator flies a
-        policy with the sensing it learned on (AT-M Step 1's LiDAR sees obstacles only)."""
+        policy with the sensing it learned on (an `_obstacle_lidar` stage's LiDAR sees obstacles only)."""
         sees = self.actor.cfg.lidar_sees_agents
         return task if task.lidar_sees_agents == sees else dataclasses.replace(task, lidar_sees_agents=sees)
 
