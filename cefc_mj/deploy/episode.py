@@ -8,6 +8,7 @@ in control ticks (0.01 s on MuJoCo), applying at each tick the newest setpoint t
 (zero-order hold; timing model in `cefc_mj.deploy.sim_server` and docs/sitl_m.md).
 
 >>> from cefc_mj.eval.runner import EpisodeSpec
+from cefc_mj.task.config import TaskConfig
 >>> result = run_sitl_episode(EpisodeSpec(formation=5, seed=0, steps=50), SitlConfig())  # doctest: +SKIP
 >>> result.F, result.N, result.C, result.sitl.summary()["round_trip_ms"]["all"]["p50"]  # doctest: +SKIP
 """
@@ -112,7 +113,7 @@ class SitlConfig:
                 raise ConfigError(f"faults: {fault!r} is not an AgentFault with action kill or stop")
 
 
-def _check(spec: EpisodeSpec, sitl: SitlConfig) -> tuple[float, tuple[int, int] | None, "TaskConfig"]:
+def _check(spec: EpisodeSpec, sitl: SitlConfig) -> tuple[float, tuple[int, int] | None, TaskConfig]:
     """Everything checked before a process starts; returns (control tick, drop, the game with the
     policy's LiDAR)."""
     from cefc_mj.eval.runner import load_policy_for
