@@ -180,8 +180,8 @@ def load_low_level(spec: str, task: TaskConfig, policies_dir: Path | None = None
         return PerGroupPolicies(policies)
     path = resolve_policy_path(spec, policies_dir)
     policy = load_policy(path, obs_dim=expected)
-    if policy.actor.cfg.lidar_sees_agents != task.lidar_sees_agents:
-        sees = "obstacles and UAVs" if policy.actor.cfg.lidar_sees_agents else "obstacles only"
+    if policy.lidar_sees_agents != task.lidar_sees_agents:
+        sees = "obstacles and UAVs" if policy.lidar_sees_agents else "obstacles only"
         raise ConfigError(f"low level {spec!r} was trained with a LiDAR that sees {sees}, unlike this game's "
                           f"(TaskConfig.lidar_sees_agents={task.lidar_sees_agents})")
     return SharedPolicy(policy, path)

@@ -167,10 +167,15 @@ class Policy:
     def safe(self) -> bool:
         return self.actor.cfg.safe
 
+    @property
+    def lidar_sees_agents(self) -> bool:
+        """Whether the LiDAR this policy was trained with also sees the other UAVs."""
+        return self.actor.cfg.lidar_sees_agents
+
     def task_for(self, task):
         """`task` (a TaskConfig) with the LiDAR this policy was trained with: every evaluator flies a
         policy with the sensing it learned on (an `_obstacle_lidar` stage's LiDAR sees obstacles only)."""
-        sees = self.actor.cfg.lidar_sees_agents
+        sees = self.lidar_sees_agents
         return task if task.lidar_sees_agents == sees else dataclasses.replace(task, lidar_sees_agents=sees)
 
     def act(self, obs: np.ndarray | Mapping[str, np.ndarray]) -> np.ndarray | dict[str, np.ndarray]:

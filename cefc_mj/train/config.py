@@ -328,6 +328,12 @@ class LowLevelConfig(BudgetPPODict):
         return "" if self.lidar_sees_uavs else "_obstacle_lidar"
 
     @property
+    def source_stages(self) -> tuple[str, ...]:
+        """The stages whose runs a Step 3 stage starts from (without `init_from`): Step 3 for a fine-tune
+        (Safe, Robust, Quad), else Steps 1 and 2; each with this stage's LiDAR suffix."""
+        return tuple(f"atm_c{self.formation}_step{k}{self.name_suffix}" for k in ((3,) if self.fine_tune else (1, 2)))
+
+    @property
     def robust(self) -> bool:
         """AT-M-Robust: a Step 3 fine-tune under sensing deviation."""
         return self.step == 3 and self.deviation > 0

@@ -145,12 +145,13 @@ def initial_networks(cfg: LowLevelConfig, task: TaskConfig, out: Path,
         return actor, critic, value_norm, dict(origin)
     if cfg.step != 3:
         return actor, critic, value_norm, {"actor": "random", "critic": "random"}
-    step1, step2, step3 = (stage_name(cfg.formation, k) + cfg.name_suffix for k in (1, 2, 3))
     if cfg.fine_tune:
+        (step3,) = cfg.source_stages
         src, src_actor = _source_state(out, step3, cfg)
         actor.load_state_dict(src_actor.state_dict())
         origin = {"actor": step3, "critic": step3}
     else:
+        step1, step2 = cfg.source_stages
         _, step1_actor = _source_state(out, step1, cfg)
         src, step2_actor = _source_state(out, step2, cfg)
         actor.load_state_dict(merge_step3(step1_actor, step2_actor).state_dict())

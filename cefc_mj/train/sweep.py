@@ -92,7 +92,7 @@ def plan_seeds(cfg: LowLevelConfig, seeds, out: Path, policies_dir: Path, resume
     Without `resume` no seed may have a run of this stage yet; with it at least one must, and the
     seeds without one start fresh. A Step 3 stage that starts from earlier stages (no `init_from`)
     needs their runs in every starting seed's folder; an `init_from` policy is loaded and checked here."""
-    from cefc_mj.train.lowlevel import load_init_policy, stage_name
+    from cefc_mj.train.lowlevel import load_init_policy
 
     if init_from is not None:
         load_init_policy(init_from, cfg)
@@ -105,7 +105,7 @@ def plan_seeds(cfg: LowLevelConfig, seeds, out: Path, policies_dir: Path, resume
         raise ConfigError(f"{seed_folder(out, started[0]) / cfg.name} already holds a run; pass --resume to continue "
                           "the sweep, or choose another --out")
     if cfg.step == 3 and init_from is None:
-        sources = [stage_name(cfg.formation, k) + cfg.name_suffix for k in ((3,) if cfg.fine_tune else (1, 2))]
+        sources = cfg.source_stages
         for s in seeds:
             missing = [n for n in sources if s not in started and not _has_run(seed_folder(out, s), n)]
             if missing:
