@@ -36,6 +36,18 @@ def port_open(port: int) -> bool:
         return s.connect_ex(("127.0.0.1", port)) == 0
 
 
+def _wait_until_file_settles(path: Path, quiet_s: float = 1.0, limit_s: float = 15.0) -> None:
+    """Return once `path`'s size has not changed for `quiet_s` (or after `limit_s` in all)."""
+    deadline, last, quiet_since = time.monotonic() + limit_s, -1, time.monotonic()
+    while time.monotonic() < deadline:
+        size = path.stat().st_size if path.exists() else -1
+        if size != last:
+            last, quiet_since = size, time.monotonic()
+        elif time.monotonic() - quiet_since >= quiet_s:
+            return
+        time.sleep(0.1)
+
+
 @contextlib.contextmanager
 def rerun_listener(port: int, path: Path):
     """`rerun --port PORT --save PATH` listening while the block runs (skips the test without the
@@ -61,6 +73,9 @@ def rerun_listener(port: int, path: Path):
         # (static) entity of a recording sent at once. A moment's grace, then the block runs.
         time.sleep(1.0)
         yield server
+        # The sender's flush returns once the data is sent, not once the server has stored it: one CI
+        # run in about twenty lost the last step to the SIGINT below. Wait until the file stops growing.
+        _wait_until_file_settles(path)
     finally:
         os.killpg(server.pid, signal.SIGINT)
         try:
