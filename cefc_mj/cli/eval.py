@@ -125,6 +125,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="the agents' position estimate: fused (default; an onboard filter of the noisy fixes with the "
                         "agent's own velocity) or raw (each fix as it is, the paper's memoryless agent); "
                         "docs/design.md")
+    p.add_argument("--guard", choices=("on", "off"), default=None,
+                   help="the agents' separation guard: off (default; the policy's actions as they are) or on (each "
+                        "agent limits its closing speed towards neighbours and LiDAR hits so that a lagging quadrotor "
+                        "stops in time; docs/decisions.md); single and table8")
     p.add_argument("--offboard", choices=("velocity", "acceleration"), default=None,
                    help="MuJoCo: what the PX4-like offboard interface makes of the policy's acceleration setpoint: "
                         "velocity (default; integrated into a velocity setpoint) or acceleration (sent as PX4 "
@@ -266,6 +270,9 @@ def validate(args: argparse.Namespace) -> None:
     if args.estimator is not None and proto == "table3":
         usage_error("--estimator: Table III is flown with exact sensing, where the estimate is the fix")
     args.estimator = args.estimator or "fused"
+    if args.guard is not None and proto == "table3":
+        usage_error("--guard: Table III compares the policies themselves, without the guard")
+    args.guard = args.guard == "on"
     if args.policy == "orca" and proto != "table3":
         usage_error("--policy orca: the ORCA-F baseline is a Table III row (--backend particle --protocol table3)")
     if args.drop is not None and proto != "single":
@@ -379,7 +386,7 @@ def _validate_highlevel(args: argparse.Namespace) -> None:
         ("--formation", args.formation is not None), ("--steps", args.steps is not None),
         ("--sitl-m", args.sitl_m), ("--drop", args.drop is not None), ("--airframe", args.airframe is not None),
         ("--estimator", args.estimator is not None), ("--offboard", args.offboard is not None),
-        ("--fresh", args.fresh)) if on]
+        ("--guard", args.guard is not None), ("--fresh", args.fresh)) if on]
     if given:
         usage_error(f"{given[0]}: --protocol {proto} plays the paper's game as it is (8 UAVs, 400 steps, the fused "
                     "estimate); docs/high_level.md")
@@ -512,7 +519,8 @@ def _single(args: argparse.Namespace) -> int:
     conditions = [(args.wind, args.deviation)] + ([(0.0, 0.0)] if condition != "SITL-S" else [])
     seeds = list(range(args.seed, args.seed + episodes))
     specs = [EpisodeSpec(formation=c, seed=seed, backend=args.backend, wind=wind, deviation=dev, steps=steps,
-                         policy=args.policy, airframe=args.airframe, estimator=args.estimator, offboard=args.offboard)
+                         policy=args.policy, airframe=args.airframe, estimator=args.estimator, offboard=args.offboard,
+                         guard=args.guard)
              for wind, dev in conditions for c in formations for seed in seeds]
     asked = list(range(len(formations) * len(seeds)))  # the first condition's episodes
     calm = list(range(len(asked), len(specs)))
@@ -558,7 +566,7 @@ def _single(args: argparse.Namespace) -> int:
     summary = {
         "schema": "cefc-eval/single", "schema_version": 2, "protocol": "single", "command": args.command,
         "complete": not interrupted, "backend": args.backend, "policy": args.policy, "estimator": args.estimator,
-        "offboard": args.offboard,
+        "offboard": args.offboard, "guard": args.guard,
         "condition": condition,
         "wind": args.wind, "deviation": args.deviation, "steps": steps, "seeds": seeds,
         "comparable_to_paper": steps == PAPER_STEPS, "provenance": args.provenance, "rows": table,
@@ -634,6 +642,7 @@ def single_table(summary: dict) -> str:
         "  C = % of agent-steps in collision, retention = (F+N) / (F+N of the calm row above it: same c, same seeds).",
         f"  ours: {summary['backend']}, policy {summary['policy']}, "
         f"{summary.get('estimator', 'raw')} position estimate"
+        + (", separation guard" if summary.get("guard") else "")
         + (f", {summary.get('offboard', 'velocity')} offboard setpoints, " if summary['backend'] == "mujoco" else ", ")
         + (f"mean ± sample std over {k} seeds" if k > 1 else "1 seed (no spread; --episodes K gives mean ± std)")
         + "; paper: its Table VIII (Gazebo + PX4 SITL, 1000 steps).",
@@ -698,7 +707,7 @@ def _table8(args: argparse.Namespace) -> int:
     prov = args.provenance
     out: Path = args.report_dir
     specs = table8_specs(args.formation, args.episodes, args.seed, args.steps, args.backend, args.policy,
-                         args.airframe, args.estimator, args.offboard)
+                         args.airframe, args.estimator, args.offboard, args.guard)
     policy_sha256 = {c: prov["policies"][str(c)]["sha256"] for c in args.formation}
     cells = plan_cells(specs, policy_sha256, prov["code_version"])
     if args.sitl is not None:  # the SITL-M row: the calm specs again, one process per UAV
@@ -710,7 +719,7 @@ def _table8(args: argparse.Namespace) -> int:
     rows_desc = "7 conditions" + (" + SITL-M" if args.sitl is not None else "")
     print(f"{PROG} table8: {len(cells)} episodes ({len(args.formation)} c x {rows_desc} x {args.episodes} seeds, "
           f"{args.steps} steps), policy {args.policy}, {args.estimator} position estimate, "
-          f"{args.executor.describe()}"
+          f"{'separation guard, ' if args.guard else ''}{args.executor.describe()}"
           + ("; SITL-M episodes fly one at a time" if args.sitl is not None else ""))
     print(f"reports go to {out}" + ("  (the shipped reports folder, as --report-dir asks)"
                                     if is_shipped_reports(out) else ""))
@@ -731,7 +740,7 @@ def _table8(args: argparse.Namespace) -> int:
         return EXIT_INTERRUPTED
     table = aggregate(rows)
     meta = {"command": args.command, "backend": args.backend, "policy": args.policy, "estimator": args.estimator,
-            "offboard": args.offboard,
+            "offboard": args.offboard, "guard": args.guard,
             "episodes": args.episodes,
             "seed": args.seed, "steps": args.steps, "report_dir": str(out), "cell_file": str(cell_file),
             "cells_reused": reused, "cells_total": len(cells), "provenance": prov}

@@ -158,7 +158,10 @@ class Agent:
         cfg = self.cfg
         probe = {"pos": [0.0, 0.0], "vel": [0.0, 0.0], "anchor": [1.0, 1.0], "lidar": [cfg.lidar_range] * cfg.n_lidar_rays,
                  "neighbours": [[(self.uav + 1) % cfg.n_agents, 1.0, 0.0, 0.0, 0.0]]}
-        self.act = self.policy.actor.inference_weights().actions  # the lock-step runner's bits for this row
+        from cefc_mj.task.guard import guarded
+
+        # the lock-step runner's bits for this row (the guard, when the game asks for it, reads the row alone)
+        self.act = guarded(self.policy.actor.inference_weights().actions, cfg)
         for _ in range(WARMUP_CALLS):  # the first calls (numba kernels, torch modules) are slow
             self.act(observation_from_packet(cfg, probe)[None, None])
         self.send({"type": "ready", "uav": self.uav})

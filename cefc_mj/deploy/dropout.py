@@ -21,6 +21,7 @@ import numpy as np
 from cefc_mj.env import BatchedCEFCEnv
 from cefc_mj.errors import ConfigError
 from cefc_mj.task.formation import connected_groups
+from cefc_mj.task.guard import guarded
 
 DROP_SEED_SALT = 0xD0
 """Mixed into the episode seed to choose which UAVs drop out (np.random.default_rng([seed, salt]))."""
@@ -188,8 +189,10 @@ def run_dropout_episode(spec, drop: tuple[int, int], policy=None):
         if t == step:
             env.remove_agents(0, dropped)
 
+    policy_act = guarded(policy.act, config)
+
     def act(obs):
-        actions = policy.act(obs)
+        actions = policy_act(obs)
         gone = ~env.active
         if gone.any():  # parked UAVs brake to a stop (their policy no longer runs)
             actions[gone] = world.brake_accel(config.accel_max)[gone]

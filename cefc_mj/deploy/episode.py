@@ -8,7 +8,6 @@ in control ticks (0.01 s on MuJoCo), applying at each tick the newest setpoint t
 (zero-order hold; timing model in `cefc_mj.deploy.sim_server` and docs/sitl_m.md).
 
 >>> from cefc_mj.eval.runner import EpisodeSpec
-from cefc_mj.task.config import TaskConfig
 >>> result = run_sitl_episode(EpisodeSpec(formation=5, seed=0, steps=50), SitlConfig())  # doctest: +SKIP
 >>> result.F, result.N, result.C, result.sitl.summary()["round_trip_ms"]["all"]["p50"]  # doctest: +SKIP
 """
@@ -30,6 +29,8 @@ from cefc_mj.deploy.sim_server import (  # noqa: F401
 from cefc_mj.deploy.tick_world import make_ticked_world
 from cefc_mj.errors import ConfigError, SimulationDiverged
 from cefc_mj.eval.runner import EpisodeSpec
+from cefc_mj.task.config import TaskConfig
+from cefc_mj.task.guard import guarded
 
 FAULT_ACTIONS = ("kill", "stop")
 
@@ -313,8 +314,10 @@ def run_latency_model_episode(spec: EpisodeSpec, latency_ticks: int = 1, control
 
     world.controller = controller
 
+    policy_act = guarded(policy.act, config)
+
     def decide(obs):  # each agent's policy on its own observation (the kernel gives a row the same bits in any batch)
-        commands[step_index] = policy.act(obs)
+        commands[step_index] = policy_act(obs)
         return commands[step_index]
 
     def advance(k: int) -> None:

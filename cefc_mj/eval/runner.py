@@ -23,6 +23,7 @@ from cefc_mj.nn.policy_io import Policy, load_policy
 from cefc_mj.paths import MJCF_DIR
 from cefc_mj.task.config import TaskConfig
 from cefc_mj.task.formation import formation_template
+from cefc_mj.task.guard import guarded
 from cefc_mj.task.observation import layout_for
 
 TABLE8_DENSITY = 0.03
@@ -101,6 +102,9 @@ class EpisodeSpec:
     """The agents' position estimate (cefc_mj/task/estimator.py): "fused" (onboard filter of the
     noisy fixes with the agent's own velocity) or "raw" (the paper's memoryless agent); bit-identical
     without sensing deviation."""
+    guard: bool = False
+    """The agents pass their actions through the separation guard (cefc_mj/task/guard.py); False
+    flies the policy's actions as they are."""
     offboard: str = "velocity"
     """MuJoCo's offboard interface (docs/mujoco_world.md): "velocity" (the setpoint is integrated
     into a velocity setpoint, the default) or "acceleration" (sent as PX4 acceleration setpoints, as
@@ -119,6 +123,7 @@ class EpisodeSpec:
         return TaskConfig(
             n_agents=self.formation, mode="formation", obstacle_density=TABLE8_DENSITY, episode_steps=self.steps,
             anchor_redraw_steps=TABLE8_ANCHOR_REDRAW, deviation=self.deviation, position_estimator=self.estimator,
+            separation_guard=self.guard,
         )
 
 
@@ -183,7 +188,7 @@ def run_episode(spec: EpisodeSpec, policy: Policy | None = None, record: bool = 
     # Policy.act's numbers bit for bit without its per-call checks: the compiled kernel on the weights
     # as they are now (fixed for the episode)
     weights = getattr(policy.actor, "inference_weights", None)
-    act = weights().actions if weights is not None else policy.act
+    act = guarded(weights().actions if weights is not None else policy.act, config)
     diverged, wall_s = fly(env, spec.steps, act, after_step=recorder.capture if recorder is not None else None)
     return EpisodeResult(
         **episode_fields(env, spec, diverged, wall_s),

@@ -145,6 +145,11 @@ class TaskConfig:
     """How an agent turns its noisy position fixes into the position it acts on (task/estimator.py):
     "raw" uses each fix as it is (the paper's memoryless agent); "fused" is an onboard Kalman filter
     that fuses the fixes with the agent's own measured velocity, as a drone's EKF does."""
+    separation_guard: bool = False
+    """Each agent passes its policy's action through the separation guard (task/guard.py), a rule on
+    its own observation that limits the closing speed towards neighbours and LiDAR hits so that a
+    lagging vehicle still stops in time; False is the paper's agent (the policy's action as it is).
+    Part of the agent: the env never reads it, the evaluators' agents do (`guarded`)."""
     deviation_sampling: str = "fixed"
     """"fixed": every episode uses `deviation`. "uniform": each env draws its episode's d uniformly
     from [0, deviation] at reset (training under a range of sensing quality)."""
@@ -223,6 +228,8 @@ class TaskConfig:
             fail("n_targets", self.n_targets, "must be an integer in 0..4")
         if self.position_estimator not in POSITION_ESTIMATORS:
             fail("position_estimator", self.position_estimator, f"must be one of {', '.join(POSITION_ESTIMATORS)}")
+        if not isinstance(self.separation_guard, bool):
+            fail("separation_guard", self.separation_guard, "must be True or False")
         if self.deviation_sampling not in ("fixed", "uniform"):
             fail("deviation_sampling", self.deviation_sampling, "must be 'fixed' or 'uniform'")
         if self.obstacle_layout not in OBSTACLE_LAYOUTS:
