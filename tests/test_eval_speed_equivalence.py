@@ -202,7 +202,7 @@ def test_tanh32_is_within_4e7_of_tanh():
 
 def test_table8_episode_is_bit_identical_with_either_lidar():
     """300 decision steps, c = 8: drone positions after every step, compiled LiDAR vs per-drone mj_multiRay."""
-    spec = EpisodeSpec(formation=8, seed=0, steps=300)
+    spec = EpisodeSpec(formation=8, seed=0, steps=300, guard=False)  # the policy alone, as flown by hand below
     config = spec.task_config()
     policy = load_policy_for("atm", 8)
     torch.set_num_threads(1)

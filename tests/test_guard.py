@@ -107,9 +107,9 @@ def test_the_episode_runner_flies_the_guard_when_the_spec_asks(monkeypatch):
     calls = []
     real = guard_module.guard_actions
     monkeypatch.setattr(guard_module, "guard_actions", lambda *a, **k: calls.append(1) or real(*a, **k))
-    run_episode(EpisodeSpec(formation=5, seed=0, steps=20))
+    run_episode(EpisodeSpec(formation=5, seed=0, steps=20, guard=False))
     assert calls == []
-    assert run_episode(EpisodeSpec(formation=5, seed=0, steps=20, guard=True)).steps == 20
+    assert run_episode(EpisodeSpec(formation=5, seed=0, steps=20)).steps == 20  # on by default
     assert len(calls) == 20
 
 

@@ -32,7 +32,8 @@ from cefc_mj.executors import RAY_MISSING  # noqa: E402
 
 RAY_ENV = ("RAY_TMPDIR", "RAY_AUTH_TOKEN", "RAY_AUTH_MODE", "RAY_USAGE_STATS_ENABLED", "RAY_ADDRESS")
 # one c, the 7 conditions, one seed; 150 steps give non-zero F and C to compare
-TABLE8 = ["--protocol", "table8", "--formation", "5", "--episodes", "1", "--steps", "150"]
+# without the separation guard, so that some cells collide and C travels through the cache too
+TABLE8 = ["--protocol", "table8", "--formation", "5", "--episodes", "1", "--steps", "150", "--guard", "off"]
 SWEEP = ["lowlevel", "--formation", "3", "--step", "1", "--budget", "2it", "--envs", "2", "--threads", "1",
          "--no-progress"]
 

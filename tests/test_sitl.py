@@ -187,8 +187,9 @@ def test_dropout_env_without_dropout_is_the_task_core():
 def test_sitl_episode_close_to_lockstep_and_garbage_is_dropped():
     """c = 5 on MuJoCo, 50 steps: five agent processes fly it asynchronously with F, N, C close to
     the lock-step run. Meanwhile a raw socket throws garbage at the simulator: every frame is
-    dropped and counted, the run is unaffected."""
-    spec = EpisodeSpec(formation=5, seed=0, steps=50)
+    dropped and counted, the run is unaffected. (The policy alone: the closeness bound was measured
+    for it; the agents' guard has its own test in tests/test_guard.py.)"""
+    spec = EpisodeSpec(formation=5, seed=0, steps=50, guard=False)
     lockstep = run_episode(spec)
     port = _free_port()
     context = zmq.Context()

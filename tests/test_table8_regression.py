@@ -18,7 +18,7 @@ import torch
 
 from cefc_mj.eval.bands import (BANDS_FILE, FORMATIONS, cell_means, cell_specs, fact_statistic, fly, load_bands,
                                 policy_checksums, violations)
-from cefc_mj.eval.runner import CONDITIONS, policy_name_for
+from cefc_mj.eval.runner import CONDITIONS, EpisodeSpec, policy_name_for
 
 BANDS = load_bands()
 SEEDS = BANDS["seeds"]
@@ -53,6 +53,11 @@ def test_bands_were_set_for_the_shipped_policy():
     assert now == BANDS["policy_sha256"], (
         f"the shipped {BANDS['policy']!r} policies changed since {BANDS_FILE.name} was set; re-measure the bands "
         "(python -m cefc_mj.eval.bands measure ... && ... make, docs/reproducibility.md)")
+
+
+def test_bands_were_set_with_the_agent_the_evaluators_fly():
+    assert BANDS.get("guard", False) == EpisodeSpec.guard, (
+        "the bands were measured with another separation-guard setting than cefc-eval's default; re-measure them")
 
 
 @pytest.mark.parametrize("c", FORMATIONS)

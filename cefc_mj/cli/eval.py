@@ -126,9 +126,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "agent's own velocity) or raw (each fix as it is, the paper's memoryless agent); "
                         "docs/design.md")
     p.add_argument("--guard", choices=("on", "off"), default=None,
-                   help="the agents' separation guard: off (default; the policy's actions as they are) or on (each "
-                        "agent limits its closing speed towards neighbours and LiDAR hits so that a lagging quadrotor "
-                        "stops in time; docs/decisions.md); single and table8")
+                   help="the agents' separation guard: on (default; each agent limits its closing speed towards "
+                        "neighbours and LiDAR hits so that a lagging quadrotor stops in time; docs/decisions.md) or "
+                        "off (the policy's actions as they are, the paper's agent); single and table8")
     p.add_argument("--offboard", choices=("velocity", "acceleration"), default=None,
                    help="MuJoCo: what the PX4-like offboard interface makes of the policy's acceleration setpoint: "
                         "velocity (default; integrated into a velocity setpoint) or acceleration (sent as PX4 "
@@ -272,7 +272,7 @@ def validate(args: argparse.Namespace) -> None:
     args.estimator = args.estimator or "fused"
     if args.guard is not None and proto == "table3":
         usage_error("--guard: Table III compares the policies themselves, without the guard")
-    args.guard = args.guard == "on"
+    args.guard = args.guard != "off"
     if args.policy == "orca" and proto != "table3":
         usage_error("--policy orca: the ORCA-F baseline is a Table III row (--backend particle --protocol table3)")
     if args.drop is not None and proto != "single":
@@ -642,7 +642,7 @@ def single_table(summary: dict) -> str:
         "  C = % of agent-steps in collision, retention = (F+N) / (F+N of the calm row above it: same c, same seeds).",
         f"  ours: {summary['backend']}, policy {summary['policy']}, "
         f"{summary.get('estimator', 'raw')} position estimate"
-        + (", separation guard" if summary.get("guard") else "")
+        + (", separation guard" if summary.get("guard") else ", no separation guard" if "guard" in summary else "")
         + (f", {summary.get('offboard', 'velocity')} offboard setpoints, " if summary['backend'] == "mujoco" else ", ")
         + (f"mean ± sample std over {k} seeds" if k > 1 else "1 seed (no spread; --episodes K gives mean ± std)")
         + "; paper: its Table VIII (Gazebo + PX4 SITL, 1000 steps).",
@@ -719,7 +719,7 @@ def _table8(args: argparse.Namespace) -> int:
     rows_desc = "7 conditions" + (" + SITL-M" if args.sitl is not None else "")
     print(f"{PROG} table8: {len(cells)} episodes ({len(args.formation)} c x {rows_desc} x {args.episodes} seeds, "
           f"{args.steps} steps), policy {args.policy}, {args.estimator} position estimate, "
-          f"{'separation guard, ' if args.guard else ''}{args.executor.describe()}"
+          f"{'separation guard' if args.guard else 'no separation guard'}, {args.executor.describe()}"
           + ("; SITL-M episodes fly one at a time" if args.sitl is not None else ""))
     print(f"reports go to {out}" + ("  (the shipped reports folder, as --report-dir asks)"
                                     if is_shipped_reports(out) else ""))

@@ -228,6 +228,7 @@ def make_bands(rows: list[dict], formations=FORMATIONS, seeds: int = SEEDS) -> d
         "created_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
         "versions": _versions(),
         "policy": rows[0]["policy"],
+        "guard": rows[0]["guard"],
         "policy_sha256": policy_checksums(rows[0]["policy"], formations),
         "seeds": seeds,
         "steps": STEPS,

@@ -102,9 +102,9 @@ class EpisodeSpec:
     """The agents' position estimate (cefc_mj/task/estimator.py): "fused" (onboard filter of the
     noisy fixes with the agent's own velocity) or "raw" (the paper's memoryless agent); bit-identical
     without sensing deviation."""
-    guard: bool = False
-    """The agents pass their actions through the separation guard (cefc_mj/task/guard.py); False
-    flies the policy's actions as they are."""
+    guard: bool = True
+    """The agents pass their actions through the separation guard (cefc_mj/task/guard.py), the
+    evaluators' default; False flies the policy's actions as they are (the paper's agent)."""
     offboard: str = "velocity"
     """MuJoCo's offboard interface (docs/mujoco_world.md): "velocity" (the setpoint is integrated
     into a velocity setpoint, the default) or "acceleration" (sent as PX4 acceleration setpoints, as

@@ -52,7 +52,7 @@ def paper_table8() -> dict[str, dict[str, dict[str, float]]]:
 
 def table8_specs(formations, episodes: int, seed: int, steps: int, backend: str, policy: str,
                  airframe: str = "iris", estimator: str = "fused", offboard: str = "velocity",
-                 guard: bool = False) -> list[EpisodeSpec]:
+                 guard: bool = True) -> list[EpisodeSpec]:
     """The grid, seeds seed .. seed+K-1 for every cell (the same layouts under every condition)."""
     return [
         EpisodeSpec(formation=c, seed=seed + k, backend=backend, wind=wind, deviation=dev, steps=steps, policy=policy,
@@ -295,7 +295,7 @@ def report_markdown(table: dict, meta: dict) -> str:
     lines = [
         f"# Table VIII: policy `{meta['policy']}` on the {meta['backend']} backend, "
         f"{meta.get('estimator', 'raw')} position estimate, {meta.get('offboard', 'velocity')} offboard setpoints"
-        + (", separation guard" if meta.get("guard") else ""),
+        + (", separation guard" if meta.get("guard") else ", no separation guard" if "guard" in meta else ""),
         "",
         f"Command: `{meta['command']}`  ",
         f"{k} seed(s) per cell ({meta['seed']}..{meta['seed'] + k - 1}, the same layouts under every condition), "
