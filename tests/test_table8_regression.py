@@ -55,6 +55,16 @@ def test_bands_were_set_for_the_shipped_policy():
         "(python -m cefc_mj.eval.bands measure ... && ... make, docs/reproducibility.md)")
 
 
+def test_a_nudged_path_moves_the_actions_by_one_ulp(tmp_path):
+    """`measure`'s other arithmetic paths fly (with the guard, as the grid does) and differ from the
+    exact one only by the nudge: after 30 steps the metrics are still those of the exact path or close."""
+    specs = cell_specs((5,), ["SITL-S"], 1, 30)
+    exact = fly(specs, tmp_path / "exact.jsonl", 1)[0]
+    nudged = fly(specs, tmp_path / "up.jsonl", 1, ulps=1)[0]
+    assert nudged["steps"] == exact["steps"] == 30 and nudged["guard"] is True
+    assert abs(nudged["F"] - exact["F"]) <= 5 and abs(nudged["N"] - exact["N"]) <= 5
+
+
 def test_bands_were_set_with_the_agent_the_evaluators_fly():
     assert BANDS.get("guard", False) == EpisodeSpec.guard, (
         "the bands were measured with another separation-guard setting than cefc-eval's default; re-measure them")

@@ -102,6 +102,7 @@ class _NudgedPolicy:
     actor = None
 
     def __init__(self, policy, ulps: int):
+        self.task_for = policy.task_for  # the policy's own LiDAR (run_episode asks)
         self._actions = policy.actor.inference_weights().actions
         self._towards = np.float32(np.inf if ulps > 0 else -np.inf)
         self._ulps = abs(ulps)
