@@ -77,28 +77,31 @@ def test_guarded_is_the_policy_itself_unless_asked():
         TaskConfig(n_agents=2, separation_guard="yes")
 
 
-def _head_on(guard: bool) -> float:
-    """Two MuJoCo quadrotors 4 m apart, each commanded at full acceleration towards the other for 3 s;
-    returns the closest centre distance (the contacts end the flight early)."""
+def _fly_at_a_hovering_one(guard: bool) -> tuple[float, bool]:
+    """Two MuJoCo quadrotors 4 m apart: UAV 0 is commanded at full acceleration towards UAV 1, whose
+    policy asks to hover, for 6 s. Returns (closest centre distance, whether they touched)."""
     cfg = TaskConfig(n_agents=2, obstacle_density=0.0, separation_guard=guard)
     world = make_world("mujoco", cfg, n_envs=1, seed=0)
     world.reset(np.ones(1, bool), np.array([[[-2.0, 0.0], [2.0, 0.0]]]), np.zeros((1, 2)),
                 np.zeros((1, world.n_obstacles, 2)))
-    act = guarded(lambda obs: np.array([[[2.0, 0.0], [-2.0, 0.0]]], np.float32), cfg)
-    closest = np.inf
-    for _ in range(30):
+    act = guarded(lambda obs: np.array([[[2.0, 0.0], [0.0, 0.0]]], np.float32), cfg)
+    closest, touched = np.inf, False
+    for _ in range(60):
         pos, vel = world.agent_pos, world.agent_vel
         obs = build_low_level_observation(cfg, pos, vel, np.zeros((1, 2)), world.lidar(pos))
         world.step(act(obs), np.zeros((1, 2)))
         closest = min(closest, float(np.linalg.norm(world.agent_pos[0, 0] - world.agent_pos[0, 1])))
-        if world.collisions().any():
-            break
-    return closest
+        touched |= bool(world.collisions().any())
+    return closest, touched
 
 
-def test_two_quadrotors_head_on_touch_without_the_guard_and_stop_short_with_it():
-    assert _head_on(guard=False) < 2 * CFG.uav_radius + 0.05  # they meet (rotor discs touch at about 0.5 m)
-    assert _head_on(guard=True) > NEIGHBOUR_DISTANCE - 0.1
+def test_a_quadrotor_flown_at_a_hovering_one_touches_it_without_the_guard_and_stops_short_with_it():
+    """Closing at the speed limit (1 m/s). (Two UAVs head-on at full speed, 2 m/s closing, need more
+    room to stop than the guard's 1.6 m range: the guard does not claim to separate them.)"""
+    closest, touched = _fly_at_a_hovering_one(guard=False)
+    assert touched and closest < 2 * CFG.uav_radius + 0.02  # the rotor discs touch at about 0.5 m
+    closest, touched = _fly_at_a_hovering_one(guard=True)
+    assert not touched and closest > NEIGHBOUR_DISTANCE
 
 
 def test_the_episode_runner_flies_the_guard_when_the_spec_asks(monkeypatch):
