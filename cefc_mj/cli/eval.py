@@ -629,7 +629,7 @@ def single_table(summary: dict) -> str:
     """The single protocol's table: per c, our condition and calm rows, then the paper's rows, every
     column labelled; mean ± std over seeds; '-' with its reason where a value is undefined."""
     from cefc_mj.eval.runner import format_mean_std
-    from cefc_mj.eval.table8 import paper_cell
+    from cefc_mj.eval.table8 import guard_text, paper_cell
 
     cond, steps = summary["condition"], summary["steps"]
     k = len(summary["seeds"])
@@ -642,7 +642,7 @@ def single_table(summary: dict) -> str:
         "  C = % of agent-steps in collision, retention = (F+N) / (F+N of the calm row above it: same c, same seeds).",
         f"  ours: {summary['backend']}, policy {summary['policy']}, "
         f"{summary.get('estimator', 'raw')} position estimate"
-        + (", separation guard" if summary.get("guard") else ", no separation guard" if "guard" in summary else "")
+        + guard_text(summary)
         + (f", {summary.get('offboard', 'velocity')} offboard setpoints, " if summary['backend'] == "mujoco" else ", ")
         + (f"mean ± sample std over {k} seeds" if k > 1 else "1 seed (no spread; --episodes K gives mean ± std)")
         + "; paper: its Table VIII (Gazebo + PX4 SITL, 1000 steps).",

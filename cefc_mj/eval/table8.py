@@ -289,13 +289,21 @@ def _pct(value: float | None) -> str:
     return "-" if value is None else f"{value:.1%}"
 
 
+def guard_text(record: dict) -> str:
+    """How a run record's agents flew: ", separation guard", ", no separation guard", or "" for a
+    record older than the guard (which flew without one)."""
+    if "guard" not in record:
+        return ""
+    return ", separation guard" if record["guard"] else ", no separation guard"
+
+
 def report_markdown(table: dict, meta: dict) -> str:
     """The Markdown report: ours (mean ± std over seeds) beside the paper, then provenance."""
     k = meta["episodes"]
     lines = [
         f"# Table VIII: policy `{meta['policy']}` on the {meta['backend']} backend, "
         f"{meta.get('estimator', 'raw')} position estimate, {meta.get('offboard', 'velocity')} offboard setpoints"
-        + (", separation guard" if meta.get("guard") else ", no separation guard" if "guard" in meta else ""),
+        + guard_text(meta),
         "",
         f"Command: `{meta['command']}`  ",
         f"{k} seed(s) per cell ({meta['seed']}..{meta['seed'] + k - 1}, the same layouts under every condition), "
