@@ -101,7 +101,7 @@ def test_wind_drag_matches_the_rotor_drag_formula():
     # one physics step from a level hover at rest: the relative airspeed is exactly -wind (a single
     # physics step is not a whole position-loop period, which only the open-loop interface allows)
     wind = WindConfig(mean_speed=8.0, speed_sigma=0.0, direction=0.3)
-    world = single_drone(wind=wind, decision_dt=0.002, offboard="acceleration")
+    world = single_drone(wind=wind, decision_dt=0.002, offboard="acceleration", wind_settle_s=0.0)
     w = world.wind_vector[0]
     assert np.linalg.norm(w) == pytest.approx(8.0) and math.atan2(w[1], w[0]) == pytest.approx(0.3)
     omega = world.motor_speeds[0, 0].copy()
@@ -230,7 +230,7 @@ def test_strong_wind_is_rejected_by_the_velocity_loop():
     # offboard "velocity", zero setpoint, Wind-8 (push ~3 m/s^2): the drone drifts downwind until the
     # velocity integral (MPC_XY_VEL_I_ACC 0.4) has taken the push, push / I ~ 7.5 m, then holds
     direction = 0.3
-    world = single_drone(wind=WindConfig(mean_speed=8.0, direction=direction))
+    world = single_drone(wind=WindConfig(mean_speed=8.0, direction=direction), wind_settle_s=0.0)  # a cold start
     downwind = np.array([math.cos(direction), math.sin(direction)])
     positions, tilts = fly(world, (0.0, 0.0), 300)  # 30 s
     along = positions[:, :2] @ downwind
@@ -246,7 +246,7 @@ def test_strong_wind_is_rejected_by_the_velocity_loop():
 
 def test_strong_wind_drifts_the_drone_downwind_with_the_open_loop_interface():
     direction = 0.3
-    world = single_drone(wind=WindConfig(mean_speed=8.0, direction=direction), offboard="acceleration")
+    world = single_drone(wind=WindConfig(mean_speed=8.0, direction=direction), offboard="acceleration", wind_settle_s=0.0)
     downwind = np.array([math.cos(direction), math.sin(direction)])
     positions, speeds, tilts = [], [], []
     for _ in range(50):  # 5 s, zero setpoint
@@ -263,6 +263,56 @@ def test_strong_wind_drifts_the_drone_downwind_with_the_open_loop_interface():
     # wind (a step of up to ~2 m/s^2 in push) overshoots it for a few tenths of a second
     assert np.mean(speeds[25:]) < 1.15
     assert max(tilts) < 45.0
+
+
+def _hold_station(world, start, steps):
+    """PX4-style position hold of every UAV at `start` [1, N, 2] for `steps` decision steps; the largest
+    distance from it (m)."""
+    from cefc_mj.sim.mujoco_world import SETTLE_POSITION_GAIN
+
+    worst = 0.0
+    n = world.n_agents
+    for _ in range(steps):
+        target = SETTLE_POSITION_GAIN * (start - world.agent_pos)
+        world.step(np.clip((target - world.velocity_setpoints[:, :n]) / world.dt, -2.0, 2.0), np.zeros((1, 2)))
+        worst = max(worst, float(np.linalg.norm(world.agent_pos - start, axis=-1).max()))
+    return worst
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_an_episode_starts_from_drones_settled_in_the_wind(seed):
+    """Wind-8: a cold start (level, empty integrators) is blown 1.6-1.9 m off station in its first 4 s of
+    position hold; after `wind_settle_s` the drones start at the sampled positions, already tilted into
+    the wind, at episode time 0, and hold station within a few tenths of a metre."""
+    start = np.array([[[-1.0, 0.0], [0.0, 0.0], [1.0, 0.0]]])
+    worst = {}
+    for settle in (0.0, 5.0):
+        world = MujocoWorld(MujocoWorldConfig(wind_settle_s=settle), n_envs=1, n_agents=3, n_obstacles=0,
+                            with_adversary=False, wind=WindConfig(mean_speed=8.0), seed=seed)
+        world.reset(ALL, start, np.zeros((1, 2)), np.zeros((1, 0, 2)))
+        assert np.array_equal(world.agent_pos, start) and world.sim_time[0] == 0.0
+        tilted = world.tilt_deg()[0] > 5.0
+        assert tilted.all() if settle else not tilted.any()
+        worst[settle] = _hold_station(world, start, 40)
+    assert worst[0.0] > 1.2 and worst[5.0] < 0.6, worst
+
+
+def test_calm_air_starts_are_the_same_with_or_without_settling():
+    start = np.array([[[-1.0, 0.0], [0.0, 0.0], [1.0, 0.0]]])
+    states = []
+    for settle in (0.0, 5.0):
+        world = MujocoWorld(MujocoWorldConfig(wind_settle_s=settle), n_envs=1, n_agents=3, n_obstacles=0,
+                            with_adversary=False, seed=0)
+        world.reset(ALL, start, np.zeros((1, 2)), np.zeros((1, 0, 2)))
+        fly(world, (1.0, -0.5), 20)
+        states.append(world.drone_positions.copy())
+    assert np.array_equal(states[0], states[1])
+
+
+@pytest.mark.parametrize("bad", [-1.0, 0.05, float("nan")])
+def test_wind_settle_must_be_whole_decision_steps(bad):
+    with pytest.raises(ConfigError, match="wind_settle_s"):
+        MujocoWorldConfig(wind_settle_s=bad).validate()
 
 
 def smooth_actions(rng, steps, n, tau=0.5, scale=2.0, dt=0.1):

@@ -671,6 +671,14 @@ class Px4Cascade:
             return
         _velocity_command(np.ascontiguousarray(accel, dtype=np.float64), float(decision_dt), self.state, self.setpoint)
 
+    def command_env(self, env: int, accel: np.ndarray, decision_dt: float) -> None:
+        """`command` for env alone (accel [D, 2]); the other envs' setpoints are left as they are."""
+        if self.offboard == "acceleration":
+            self.setpoint[env, :, SP_AX:SP_AY + 1] = accel
+            return
+        _velocity_command(np.ascontiguousarray(accel[None], dtype=np.float64), float(decision_dt),
+                          self.state[env:env + 1], self.setpoint[env:env + 1])
+
     # read-only views for tests and visualisation
     def motor_speeds(self, env: int) -> np.ndarray:
         """[D, 4] rotor speeds (rad/s)."""

@@ -86,6 +86,10 @@ def _mj_step_address() -> int | None:
 _MJ_STEP = _mj_step_address()
 
 
+SETTLE_POSITION_GAIN = 0.95
+"""Position-hold gain (1/s) while a drone settles in the wind: PX4's MPC_XY_P default."""
+
+
 @dataclass(frozen=True)
 class MujocoWorldConfig:
     """Physics, controller and scene settings of the MuJoCo backend (validated at construction)."""
@@ -126,6 +130,12 @@ class MujocoWorldConfig:
     speed limiter cancels."""
     flip_tilt_deg: float = 90.0
     """A drone tilted past this angle counts as flipped: SimulationDiverged."""
+    wind_settle_s: float = 5.0
+    """In wind, every drone first holds its start position for this long (PX4's position hold,
+    velocity setpoint MPC_XY_P x position error) before the episode begins at its sampled position
+    with the attitude, rotor speeds and controller integrals it settled into, as a PX4 vehicle
+    hovers in its wind after take-off before the offboard mission starts; 0 starts from a level
+    hover with empty integrators in full wind. Without wind nothing is flown."""
     obstacle_height: float = 4.0
     """Height of the cylinder obstacles (m), from the floor."""
     gravity: float = 9.81
@@ -164,6 +174,10 @@ class MujocoWorldConfig:
         for name in ("rate_loop_hz", "position_loop_hz"):
             if _ratio(1.0 / getattr(self, name), self.physics_dt) is None:
                 raise ConfigError(f"mujoco.{name} = {getattr(self, name)} must divide the physics rate {1 / self.physics_dt:g} Hz")
+        if not (isinstance(self.wind_settle_s, (int, float)) and math.isfinite(self.wind_settle_s)
+                and self.wind_settle_s >= 0 and _ratio(self.wind_settle_s + self.decision_dt, self.decision_dt) is not None):
+            raise ConfigError(f"mujoco.wind_settle_s must be a whole number (>= 0) of decision steps "
+                              f"({self.decision_dt} s), got {self.wind_settle_s!r}")
         if not 0 < self.flip_tilt_deg <= 180:
             raise ConfigError(f"mujoco.flip_tilt_deg must be in (0, 180], got {self.flip_tilt_deg}")
         if self.obstacle_height <= self.flight_altitude:
@@ -425,6 +439,25 @@ class MujocoWorld:
             self._collided[e] = False
             self.wind.reset(e)
             mujoco.mj_forward(model, data)
+            if self.wind_config.mean_speed > 0 and self.config.wind_settle_s > 0:
+                self._settle(e)
+
+    def _settle(self, e: int) -> None:
+        """Env e's drones hold their start positions in the wind for `wind_settle_s` (see there), then
+        the episode's clock starts at 0 with them back at the start positions, in the state they settled
+        into (attitude, rotor speeds, integrators, the wind's own state)."""
+        qpos, qvel = self._views[e][0], self._views[e][1]
+        start = qpos[:, :2].copy()
+        velocity_interface = self.cascade.offboard == "velocity"
+        for _ in range(_ratio(self.config.wind_settle_s + self.dt, self.dt) - 1):
+            target = SETTLE_POSITION_GAIN * (start - qpos[:, :2])
+            now = self.cascade.velocity_setpoints(e) if velocity_interface else qvel[:, :2]
+            self.cascade.command_env(e, np.clip((target - now) / self.dt, -self.accel_max, self.accel_max), self.dt)
+            self._advance(e, self.n_substeps)
+        qpos[:, :2] = start
+        self._tick[e] = 0
+        self._collided[e] = False
+        mujoco.mj_forward(self.models[e], self.datas[e])
 
     def step(self, agent_accel: np.ndarray, adversary_accel: np.ndarray) -> None:
         """One decision step: hand the (per-axis clipped) setpoints to the offboard interface and run
