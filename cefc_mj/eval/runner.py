@@ -175,8 +175,9 @@ def episode_fields(env, spec: EpisodeSpec, diverged: str | None, wall_s: float) 
             "steps": int(env.t[0]), "wall_s": wall_s, "diverged": diverged}
 
 
-def run_episode(spec: EpisodeSpec, policy: Policy | None = None, record: bool = False) -> EpisodeResult:
-    """Fly one episode. `policy` defaults to loading `spec.policy` for `spec.formation`."""
+def episode_env(spec: EpisodeSpec, policy: Policy | None = None) -> tuple[BatchedCEFCEnv, object]:
+    """The one-env episode of `spec` and the agents' act function (the policy, guarded as the spec
+    says). `policy` defaults to loading `spec.policy` for `spec.formation`."""
     torch.set_num_threads(1)
     if policy is None:
         policy = load_policy_for(spec.policy, spec.formation)
@@ -184,11 +185,16 @@ def run_episode(spec: EpisodeSpec, policy: Policy | None = None, record: bool = 
     world = make_world(spec.backend, config, n_envs=1, wind=spec.wind, seed=spec.seed, airframe=spec.mujoco_airframe,
                        offboard=spec.offboard if spec.backend == "mujoco" else None)
     env = BatchedCEFCEnv(config, n_envs=1, seed=spec.seed, world=world)
-    recorder = _Recorder(env, spec) if record else None
     # Policy.act's numbers bit for bit without its per-call checks: the compiled kernel on the weights
     # as they are now (fixed for the episode)
     weights = getattr(policy.actor, "inference_weights", None)
-    act = guarded(weights().actions if weights is not None else policy.act, config)
+    return env, guarded(weights().actions if weights is not None else policy.act, config)
+
+
+def run_episode(spec: EpisodeSpec, policy: Policy | None = None, record: bool = False) -> EpisodeResult:
+    """Fly one episode. `policy` defaults to loading `spec.policy` for `spec.formation`."""
+    env, act = episode_env(spec, policy)
+    recorder = _Recorder(env, spec) if record else None
     diverged, wall_s = fly(env, spec.steps, act, after_step=recorder.capture if recorder is not None else None)
     return EpisodeResult(
         **episode_fields(env, spec, diverged, wall_s),
