@@ -657,8 +657,9 @@ class Px4Cascade:
         s[:, S_THRUST_N:S_THRUST_N + 4] = hover_u * self.airframe.max_thrust
         self.setpoint[env, :, SP_AX:SP_AY + 1] = 0.0
 
-    def command(self, accel: np.ndarray, decision_dt: float) -> None:
-        """Hand the offboard interface one decision step's horizontal acceleration setpoints [B, D, 2].
+    def command(self, accel: np.ndarray, decision_dt: float, envs: slice = slice(None)) -> None:
+        """Hand the offboard interface one decision step's horizontal acceleration setpoints [B, D, 2]
+        (B: the envs selected by `envs`, default all; the others' setpoints are left as they are).
 
         "acceleration": the setpoint itself. "velocity": the velocity setpoint is integrated as the
         particle world integrates velocity, v_sp <- clip_norm(v_sp + a dt, vmax), and reached by a
@@ -667,17 +668,10 @@ class Px4Cascade:
         each of its ticks (decision_dt must be a whole number of position-loop periods).
         """
         if self.offboard == "acceleration":
-            self.setpoint[:, :, SP_AX:SP_AY + 1] = accel
+            self.setpoint[envs, :, SP_AX:SP_AY + 1] = accel
             return
-        _velocity_command(np.ascontiguousarray(accel, dtype=np.float64), float(decision_dt), self.state, self.setpoint)
-
-    def command_env(self, env: int, accel: np.ndarray, decision_dt: float) -> None:
-        """`command` for env alone (accel [D, 2]); the other envs' setpoints are left as they are."""
-        if self.offboard == "acceleration":
-            self.setpoint[env, :, SP_AX:SP_AY + 1] = accel
-            return
-        _velocity_command(np.ascontiguousarray(accel[None], dtype=np.float64), float(decision_dt),
-                          self.state[env:env + 1], self.setpoint[env:env + 1])
+        _velocity_command(np.ascontiguousarray(accel, dtype=np.float64), float(decision_dt), self.state[envs],
+                          self.setpoint[envs])
 
     # read-only views for tests and visualisation
     def motor_speeds(self, env: int) -> np.ndarray:

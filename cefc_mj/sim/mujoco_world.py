@@ -452,7 +452,8 @@ class MujocoWorld:
         for _ in range(_ratio(self.config.wind_settle_s + self.dt, self.dt) - 1):
             target = SETTLE_POSITION_GAIN * (start - qpos[:, :2])
             now = self.cascade.velocity_setpoints(e) if velocity_interface else qvel[:, :2]
-            self.cascade.command_env(e, np.clip((target - now) / self.dt, -self.accel_max, self.accel_max), self.dt)
+            self.cascade.command(np.clip((target - now) / self.dt, -self.accel_max, self.accel_max)[None], self.dt,
+                                 envs=slice(e, e + 1))
             self._advance(e, self.n_substeps)
         qpos[:, :2] = start
         self._tick[e] = 0
