@@ -34,7 +34,8 @@ _FLAG_OF_FIELD = {
     "n_envs": "--envs", "epochs": "--epochs", "minibatches": "--minibatches", "lr": "--lr",
     "update_threads": "--threads", "seed": "--seed", "obstacle_density": "--density", "deviation": "--deviation",
     "deviation_sampling": "--deviation-sampling", "response_time": "--response-time",
-    "velocity_noise": "--velocity-noise", "collision_margin": "--collision-margin", "safe": "--safe",
+    "velocity_noise": "--velocity-noise", "collision_margin": "--collision-margin",
+    "navigation_weight": "--navigation-weight", "safe": "--safe",
     "lidar_sees_uavs": "--lidar",
     "tuples_per_formation": "--tuples",
     "formations": "--formations", "response_time/velocity_noise": "--response-time/--velocity-noise",
@@ -155,6 +156,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--collision-margin", type=float, default=0.0, metavar="M",
                    help="add M metres to both distances of the collision reward (delta_s 0.2, delta_a,c 0.5), so "
                         "the policy keeps more clearance than the paper's reward asks (default 0)")
+    p.add_argument("--navigation-weight", type=float, default=None, metavar="W",
+                   help="omega_n of the low-level reward (the paper's 4). With --step 3 and no other fine-tune "
+                        "flag this is AT-M-Nav, fine-tuned from the Step 3 policy and written as atm_c<C>_nav, "
+                        "which keeps more of N on quadrotors (default: the paper's)")
     p.add_argument("--lidar", choices=("obstacles+uavs", "obstacles"), default="obstacles+uavs",
                    help="what the LiDAR beams hit while training (default obstacles+uavs). obstacles: the stage "
                         "is named <stage>_obstacle_lidar; with --step 1 it is the paper's Step 1, whose LiDAR reads "
@@ -381,7 +386,7 @@ def run(args, command: str | None = None) -> list[dict]:
         cfg = LowLevelConfig(formation=args.formation, step=args.step, safe=args.safe, deviation=args.deviation,
                              deviation_sampling=args.deviation_sampling, response_time=args.response_time,
                              velocity_noise=args.velocity_noise, collision_margin=args.collision_margin,
-                             lidar_sees_uavs=args.lidar == "obstacles+uavs",
+                             navigation_weight=args.navigation_weight, lidar_sees_uavs=args.lidar == "obstacles+uavs",
                              budget=budget, seed=args.seed,
                              obstacle_density=args.density, ppo=_ppo_from(args))
         policies_dir = check_destinations(args)

@@ -259,6 +259,11 @@ class LowLevelConfig(BudgetPPODict):
     """Added (m) to both distances of the collision reward (delta_s and delta_a,c, RewardConfig) during
     training, so the policy keeps that much more clearance than the paper's reward asks; 0 is the paper's.
     A quadrotor's tracking lag turns the particle world's near misses into touches (docs/decisions.md)."""
+    navigation_weight: float | None = None
+    """omega_n of R_L during training (RewardConfig.navigation_weight_low); None keeps the paper's 4.
+    Only for Step 3 fine-tunes (not Safe). On an otherwise plain Step 3 fine-tune this is AT-M-Nav
+    (this project's), named atm_c{c}_nav: the Step 3 policy fine-tuned to weigh reaching the anchor
+    more, as a quadrotor keeps less of the particle world's N (docs/decisions.md)."""
     lidar_sees_uavs: bool = True
     """Whether the LiDAR beams hit the other UAVs as well as the obstacles (TaskConfig.lidar_sees_agents).
     False names the stage <name>_obstacle_lidar (e.g. atm_c6_step1_obstacle_lidar): AT-M Step 1 trained
@@ -310,13 +315,15 @@ class LowLevelConfig(BudgetPPODict):
     @property
     def name(self) -> str:
         """Stage name, also the policy file stem: atm_c6_step3, atm_c6_safe, atm_c6_robust, atm_c6_quad,
-        clm_c6 (CL-M); with an obstacles-only LiDAR e.g. atm_c6_step1_obstacle_lidar."""
+        atm_c6_nav, clm_c6 (CL-M); with an obstacles-only LiDAR e.g. atm_c6_step1_obstacle_lidar."""
         if self.curriculum is not None:
             base = f"clm_c{self.formation}"
         elif self.safe:
             base = f"atm_c{self.formation}_safe"
         elif self.robust:
             base = f"atm_c{self.formation}_robust"
+        elif self.nav:
+            base = f"atm_c{self.formation}_nav"
         else:
             base = f"atm_c{self.formation}_quad" if self.quad else f"atm_c{self.formation}_step{self.step}"
         return base + self.name_suffix
@@ -344,19 +351,49 @@ class LowLevelConfig(BudgetPPODict):
         return self.step == 3 and self.deviation == 0 and (self.response_time > 0 or self.velocity_noise > 0)
 
     @property
+    def nav(self) -> bool:
+        """AT-M-Nav: a Step 3 fine-tune with another navigation weight, exact sensing, particle dynamics.
+        (A navigation weight on a Robust or Quad fine-tune keeps that stage's name; its card records it.)"""
+        return self.step == 3 and self.navigation_weight is not None and not (self.safe or self.robust or self.quad)
+
+    @property
     def fine_tune(self) -> bool:
-        """Starts from the Step 3 result (Safe, Robust, Quad) rather than from Steps 1 and 2."""
-        return self.safe or self.robust or self.quad
+        """Starts from the Step 3 result (Safe, Robust, Quad, Nav) rather than from Steps 1 and 2."""
+        return self.safe or self.robust or self.quad or self.nav
+
+    def paper_differences(self) -> list[str]:
+        """What this stage's training changes from the paper's AT-M (Algorithm 1, Table IX), one line
+        each; empty for the paper's Steps 1-3."""
+        out = []
+        if self.curriculum is not None:
+            out.append(f"CL-M curriculum over densities {list(self.curriculum)}")
+        if self.safe:
+            out.append("AT-M-Safe: LiDAR reported 0.2 m shorter where it sees something")
+        if self.deviation:
+            out.append(f"sensing deviation up to {self.deviation:g} m ({self.deviation_sampling})")
+        if self.response_time:
+            out.append(f"velocity lag {self.response_time:g} s in the particle world")
+        if self.velocity_noise:
+            out.append(f"velocity kicks of std {self.velocity_noise:g} m/s in the particle world")
+        if self.collision_margin:
+            out.append(f"collision reward distances widened by {self.collision_margin:g} m")
+        if self.navigation_weight is not None:
+            out.append(f"navigation weight omega_n = {self.navigation_weight:g} (paper 4)")
+        if not self.lidar_sees_uavs:
+            out.append("LiDAR beams blind to the other UAVs")
+        return out
 
     @property
     def method(self) -> str:
-        """The method name as the paper's Table III writes it (Robust and Quad are this project's)."""
+        """The method name as the paper's Table III writes it (Robust, Quad and Nav are this project's)."""
         if self.curriculum is not None:
             return "CL-M"
         if self.safe:
             return "AT-M-Safe"
         if self.robust:
             return "AT-M-Robust"
+        if self.nav:
+            return "AT-M-Nav"
         return "AT-M-Quad" if self.quad else f"AT-M-Step{self.step}"
 
     def validate(self) -> None:
@@ -382,6 +419,13 @@ class LowLevelConfig(BudgetPPODict):
             _fail("velocity_noise", self.velocity_noise, "must be in [0, 1] m/s")
         if not isinstance(self.collision_margin, (int, float)) or not 0 <= self.collision_margin <= 0.5:
             _fail("collision_margin", self.collision_margin, "must be in [0, 0.5] m")
+        if self.navigation_weight is not None:
+            w = self.navigation_weight
+            if isinstance(w, bool) or not isinstance(w, (int, float)) or not 0 < w <= 50:
+                _fail("navigation_weight", w, "must be in (0, 50]")
+            if self.step != 3 or self.safe:
+                _fail("navigation_weight", w, "another navigation weight fine-tunes the Step 3 policy: use it "
+                      "with step 3 and without --safe")
         if self.lidar_sees_uavs not in (True, False):
             _fail("lidar_sees_uavs", self.lidar_sees_uavs, "must be true or false")
         if (self.response_time > 0 or self.velocity_noise > 0) and (self.step != 3 or self.safe):

@@ -61,6 +61,8 @@ def task_config_for(cfg: LowLevelConfig, density: float | None = None) -> TaskCo
     if cfg.collision_margin:
         rewards = dataclasses.replace(rewards, safety_distance=rewards.safety_distance + cfg.collision_margin,
                                       collision_alert_distance=rewards.collision_alert_distance + cfg.collision_margin)
+    if cfg.navigation_weight is not None:
+        rewards = dataclasses.replace(rewards, navigation_weight_low=float(cfg.navigation_weight))
     return TaskConfig(n_agents=cfg.formation, mode="formation", obstacle_density=density, deviation=cfg.deviation,
                       deviation_sampling=cfg.deviation_sampling, response_time=cfg.response_time,
                       velocity_noise=cfg.velocity_noise, rewards=rewards, lidar_sees_agents=cfg.lidar_sees_uavs)
@@ -266,6 +268,7 @@ def train_lowlevel(cfg: LowLevelConfig, out: Path, policies_dir: Path, resume: b
         "method": cfg.method,
         "formation": cfg.formation,
         "seed": cfg.seed,
+        "differs_from_paper": cfg.paper_differences(),
         "config": cfg.to_dict(),
         "task": task.to_dict(),
         "network": actor.cfg.to_dict(),
