@@ -63,6 +63,19 @@ def test_budget_and_config_validation():
     assert dataclasses.replace(wide, rewards=plain.rewards) == plain
     with pytest.raises(ConfigError, match="collision_margin"):
         LowLevelConfig(formation=6, step=3, collision_margin=-0.1, budget=Budget(iterations=1))
+    # A navigation weight changes omega_n of R_L only; alone on Step 3 it is AT-M-Nav, from Step 3.
+    nav = LowLevelConfig(formation=6, step=3, navigation_weight=10.0, budget=Budget(iterations=1))
+    assert (nav.name, nav.method, nav.source_stages) == ("atm_c6_nav", "AT-M-Nav", ("atm_c6_step3",))
+    assert task_config_for(nav).rewards.navigation_weight_low == 10.0
+    assert dataclasses.replace(task_config_for(nav), rewards=task_config_for(cfg).rewards) == task_config_for(cfg)
+    assert nav.paper_differences() == ["navigation weight omega_n = 10 (paper 4)"] and cfg.paper_differences() == []
+    quad_nav = dataclasses.replace(quad, navigation_weight=6.0)
+    assert (quad_nav.name, len(quad_nav.paper_differences())) == ("atm_c6_quad", 3)
+    for bad in (0.0, -1.0, float("nan"), 51.0, True):
+        with pytest.raises(ConfigError, match="navigation_weight"):
+            LowLevelConfig(formation=6, step=3, navigation_weight=bad, budget=Budget(iterations=1))
+    with pytest.raises(ConfigError, match="navigation_weight"):
+        LowLevelConfig(formation=6, step=3, safe=True, navigation_weight=8.0, budget=Budget(iterations=1))
     # The LiDAR sees obstacles and UAVs unless asked; an obstacles-only stage has its own name.
     one = Budget(iterations=1)
     blind = [LowLevelConfig(formation=6, step=1, lidar_sees_uavs=False, budget=one),

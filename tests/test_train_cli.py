@@ -89,6 +89,9 @@ ROBUST = ["lowlevel", "--formation", "3", "--step", "3", "--init-from", "atm_c3_
     (LOW + ["--velocity-noise", "0.1"], "--response-time/--velocity-noise (0.0, 0.1)"),
     (LOW + ["--collision-margin", "0.7"], "--collision-margin 0.7: must be in [0, 0.5] m"),
     (LOW + ["--collision-margin", "nan"], "--collision-margin nan"),
+    (LOW + ["--navigation-weight", "8"], "--navigation-weight 8.0: another navigation weight fine-tunes the Step 3"),
+    (ROBUST + ["--navigation-weight", "0"], "--navigation-weight 0.0: must be in (0, 50]"),
+    (ROBUST + ["--navigation-weight", "inf"], "--navigation-weight inf"),
     (["lowlevel-all", "--workers", "0"], "--workers 0"),
     (["lowlevel-all", "--workers", "7"], "--workers 7"),
     (["lowlevel-all", "--seed", "-3"], "--seed -3"),
@@ -184,6 +187,7 @@ def test_init_from_shipped_policy_then_resume(tmp_path, capsys):
     assert card["init_from"] == {"path": "policies/atm_c3_step3.pt", "sha256": sha256(shipped),
                                  "name": "atm_c3_step3", "iterations": card["init_from"]["iterations"]}
     assert card["init"]["critic"].startswith("fresh") and card["method"] == "AT-M-Robust"
+    assert card["differs_from_paper"] == ["sensing deviation up to 0.5 m (fixed)"]
     assert {"numpy", "numba", "mujoco", "torch", "python", "cpu", "code_version"} <= set(card["versions"])
     assert card["git_commit"] == git_commit() and card["command"].startswith("cefc-train lowlevel --formation 3")
     run_config = json.loads((out / "atm_c3_robust" / "config.json").read_text())
@@ -201,6 +205,12 @@ def test_init_from_shipped_policy_then_resume(tmp_path, capsys):
     assert "resume it without --init-from" in usage_error(argv + ["--resume"] + other, capsys)
     assert main(ROBUST[:-2] + ["--deviation", "0.5", "--resume"] + TINY[2:] + ["--budget", "2"]) == 0
     assert json.loads((out / "policies" / "atm_c3_robust.json").read_text())["iterations"] == 2
+
+    # AT-M-Nav: the same fine-tune with another omega_n, trained with it and saying so on its card.
+    assert main(ROBUST + ["--navigation-weight", "10"] + TINY) == 0
+    card = json.loads((out / "policies" / "atm_c3_nav.json").read_text())
+    assert (card["method"], card["task"]["rewards"]["navigation_weight_low"]) == ("AT-M-Nav", 10.0)
+    assert card["differs_from_paper"] == ["navigation weight omega_n = 10 (paper 4)"]
 
 
 def test_interrupted_before_the_first_checkpoint_resumes_exactly(tmp_path, monkeypatch, capsys):
