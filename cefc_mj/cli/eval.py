@@ -98,7 +98,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, metavar="S", help="first seed (>= 0); episode k uses S+k (default 0)")
     p.add_argument("--policy", default=None, metavar="NAME|PATH",
                    help="atm (AT-M Step 3 of each c, default), safe, robust (AT-M-Robust, c = 5..8), quad "
-                        "(AT-M-Quad, c = 5..8), clm (the CL-M baseline, where trained), student, orca (the ORCA-F baseline, table3 "
+                        "(AT-M-Quad, c = 5..8), nav (AT-M-Nav, c = 5..8), clm (the CL-M baseline, where trained), student, orca (the ORCA-F baseline, table3 "
                         "only), a name in policies/, or a .pt path; "
                         "table3 without it evaluates every method; table5: one high-level policy (default every "
                         "method); table6, table7: the high-level policy to play (default cihrl_consmac_a)")

@@ -57,11 +57,11 @@ def condition_name(wind: float, deviation: float) -> str:
 
 def policy_name_for(policy: str, formation: int) -> str:
     """Resolve a policy choice for formation c: "atm" -> the AT-M Step 3 policy of c, "safe" ->
-    AT-M-Safe of c, "robust" -> AT-M-Robust of c, "quad" -> AT-M-Quad of c, "clm" -> the CL-M baseline
-    of c, "student" -> the distilled student; anything else is a name or path."""
+    AT-M-Safe of c, "robust" -> AT-M-Robust of c, "quad" -> AT-M-Quad of c, "nav" -> AT-M-Nav of c,
+    "clm" -> the CL-M baseline of c, "student" -> the distilled student; anything else is a name or path."""
     aliases = {"atm": f"atm_c{formation}_step3", "safe": f"atm_c{formation}_safe",
                "robust": f"atm_c{formation}_robust", "quad": f"atm_c{formation}_quad",
-               "clm": f"clm_c{formation}", "student": "atm_student"}
+               "nav": f"atm_c{formation}_nav", "clm": f"clm_c{formation}", "student": "atm_student"}
     return aliases.get(policy, policy)
 
 

@@ -37,8 +37,8 @@ TABLE3_STEPS = 100
 TABLE3_FORMATIONS = (6, 7, 8)
 OBSTACLE_LIDAR_STEP1 = "AT-M-Step1 (obstacle LiDAR)"
 METHODS = ("ORCA-F", "CL-M", OBSTACLE_LIDAR_STEP1, "AT-M-Step1", "AT-M-Step2", "AT-M-Step3", "AT-M-Safe",
-           "AT-M-Robust", "AT-M-Quad", "Student")
-"""Row names as the paper writes them (AT-M-Robust, AT-M-Quad and the student are this project's additions;
+           "AT-M-Robust", "AT-M-Quad", "AT-M-Nav", "Student")
+"""Row names as the paper writes them (AT-M-Robust, AT-M-Quad, AT-M-Nav and the student are this project's additions;
 ORCA-F is the baseline of cefc_mj/baselines/orca.py, CL-M the curriculum baseline trained by `cefc-train clm`,
 docs/baselines.md). AT-M-Step1 is the Step 1 that Step 3 starts from, its LiDAR seeing obstacles and
 UAVs; the obstacle-LiDAR row is Step 1 trained with a LiDAR that sees obstacles only, as the paper's
@@ -72,6 +72,8 @@ def policy_file_for(method: str, formation: int) -> str | None:
         return f"atm_c{formation}_robust"
     if method == "AT-M-Quad":
         return f"atm_c{formation}_quad"
+    if method == "AT-M-Nav":
+        return f"atm_c{formation}_nav"
     if method == OBSTACLE_LIDAR_STEP1:
         return f"atm_c{formation}_step1_obstacle_lidar"
     return f"atm_c{formation}_step{method[-1]}"
@@ -120,7 +122,7 @@ def evaluate_lowlevel(policy: Policy, formation: int, density: float = TABLE3_DE
 
 
 POLICY_CHOICES = {"atm": "AT-M-Step3", "safe": "AT-M-Safe", "robust": "AT-M-Robust", "quad": "AT-M-Quad",
-                  "student": "Student", "orca": "ORCA-F", "clm": "CL-M"}
+                  "nav": "AT-M-Nav", "student": "Student", "orca": "ORCA-F", "clm": "CL-M"}
 """cefc-eval's --policy aliases and the Table III row each one is."""
 
 
