@@ -24,6 +24,7 @@ import time
 from pathlib import Path
 
 from cefc_mj.errors import CefcError
+from cefc_mj.eval import DEFAULT_POLICY
 from cefc_mj.sim.wind import MAX_WIND_SPEED
 
 EXIT_USAGE = 2
@@ -97,8 +98,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "comparable to the paper only at the default")
     p.add_argument("--seed", type=int, default=0, metavar="S", help="first seed (>= 0); episode k uses S+k (default 0)")
     p.add_argument("--policy", default=None, metavar="NAME|PATH",
-                   help="atm (AT-M Step 3 of each c, default), safe, robust (AT-M-Robust, c = 5..8), quad "
-                        "(AT-M-Quad, c = 5..8), nav (AT-M-Nav, c = 5..8), clm (the CL-M baseline, where trained), student, orca (the ORCA-F baseline, table3 "
+                   help="nav (AT-M-Nav of each c, the default), atm (AT-M Step 3 of each c, the paper's), safe, robust "
+                        "(AT-M-Robust, c = 5..8), quad (AT-M-Quad, c = 5..8), clm (the CL-M baseline, where trained), student, orca (the ORCA-F baseline, table3 "
                         "only), a name in policies/, or a .pt path; "
                         "table3 without it evaluates every method; table5: one high-level policy (default every "
                         "method); table6, table7: the high-level policy to play (default cihrl_consmac_a)")
@@ -363,7 +364,7 @@ def validate(args: argparse.Namespace) -> None:
         except CefcError as e:
             usage_error(str(e))
     if proto == "table8" and args.report_dir is None:
-        args.report_dir = default_report_dir(args.policy or "atm", args.backend)
+        args.report_dir = default_report_dir(args.policy or DEFAULT_POLICY, args.backend)
 
     if args.json is not None:
         check_output("--json", args.json)
@@ -447,7 +448,7 @@ def load_policies(args: argparse.Namespace) -> dict:
             if name is not None:  # ORCA-F has no policy file
                 cached_policy(name, c)
         return provenance("atm", [])  # table3 records each row's file and sha256 itself
-    args.policy = args.policy or "atm"
+    args.policy = args.policy or DEFAULT_POLICY
     prov = provenance(args.policy, args.formation)
     for c in args.formation:
         cached_policy(args.policy, c)

@@ -34,6 +34,7 @@ import time
 import numpy as np
 
 from cefc_mj.deploy import wire
+from cefc_mj.eval import DEFAULT_POLICY
 
 EXIT_USAGE = 2
 EXIT_LOST = 3
@@ -240,8 +241,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--uav", required=True, type=int, nargs="+", metavar="I",
                    help="this agent's UAV index (0-based); several indices fork one agent process per UAV "
                         "after the shared imports")
-    p.add_argument("--policy", default="atm", metavar="NAME|PATH",
-                   help="atm, safe, robust, quad, student, a name in policies/ or a .pt path (default atm)")
+    p.add_argument("--policy", default=DEFAULT_POLICY, metavar="NAME|PATH",
+                   help=f"nav, atm, safe, robust, quad, student, a name in policies/ or a .pt path (default {DEFAULT_POLICY})")
     p.add_argument("--parent-pid", type=int, metavar="PID", help="exit when this process (the simulator) is gone")
     p.add_argument("--wait", type=float, default=DEFAULT_WAIT_S, metavar="S",
                    help=f"how long to wait for the simulator's welcome (default {DEFAULT_WAIT_S:g} s)")

@@ -17,6 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
+from cefc_mj.eval import DEFAULT_POLICY
+
 
 def _fmt(values) -> str:
     return "/".join(f"{v:.2f}" for v in values)
@@ -28,7 +30,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--formation", type=int, nargs="+", default=[5, 6, 7, 8], metavar="C")
     p.add_argument("--seeds", type=int, nargs="+", default=[0], metavar="S")
     p.add_argument("--steps", type=int, default=1000, metavar="T")
-    p.add_argument("--policy", default="atm")
+    p.add_argument("--policy", default=DEFAULT_POLICY)
     p.add_argument("--backend", default="mujoco", choices=["mujoco", "particle"])
     p.add_argument("--link-delay", type=float, default=0.0, metavar="MS")
     p.add_argument("--jitter", type=float, default=0.0, metavar="MS")

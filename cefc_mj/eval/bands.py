@@ -37,6 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from cefc_mj import paths
+from cefc_mj.eval import DEFAULT_POLICY
 from cefc_mj.eval.runner import CONDITIONS, EpisodeSpec, policy_files
 from cefc_mj.fileio import write_atomic
 
@@ -64,7 +65,7 @@ FACTS = ("no-collisions-SITL-S", "no-collisions-Wind-8", "Wind-8-lowers-F+N", "D
 
 
 # ---------------------------------------------------------------------------- flying
-def cell_specs(formations, conditions, seeds: int, steps: int = STEPS, policy: str = "atm") -> list[EpisodeSpec]:
+def cell_specs(formations, conditions, seeds: int, steps: int = STEPS, policy: str = DEFAULT_POLICY) -> list[EpisodeSpec]:
     return [
         EpisodeSpec(formation=c, seed=s, wind=CONDITIONS[cond][0], deviation=CONDITIONS[cond][1], steps=steps,
                     policy=policy)

@@ -18,6 +18,7 @@ import torch
 from cefc_mj import make_world
 from cefc_mj.env import BatchedCEFCEnv
 from cefc_mj.errors import ConfigError, SimulationDiverged
+from cefc_mj.eval import DEFAULT_POLICY
 from cefc_mj.eval.record import EpisodeRecord, airframe_parts_from_mjcf
 from cefc_mj.nn.policy_io import Policy, load_policy
 from cefc_mj.paths import MJCF_DIR
@@ -93,7 +94,7 @@ class EpisodeSpec:
     """Sensing deviation d (m)."""
     steps: int = TABLE8_STEPS
     """Decision steps (0.1 s each)."""
-    policy: str = "atm"
+    policy: str = DEFAULT_POLICY
     """Policy choice (see policy_name_for)."""
     airframe: str = "iris"
     """MuJoCo airframe: a shipped name ("iris", "crazyflie") or an MJCF path (docs/mujoco_world.md);
