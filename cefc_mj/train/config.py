@@ -362,13 +362,10 @@ class LowLevelConfig(BudgetPPODict):
         return self.safe or self.robust or self.quad or self.nav
 
     def paper_differences(self) -> list[str]:
-        """What this stage's training changes from the paper's AT-M (Algorithm 1, Table IX), one line
-        each; empty for the paper's Steps 1-3."""
+        """What this stage's training changes from the paper's recipe (Algorithm 1, Table IX), one line
+        each: this project's training perturbations and reward changes. Empty for the paper's own stages
+        (Steps 1-3, Safe, CL-M)."""
         out = []
-        if self.curriculum is not None:
-            out.append(f"CL-M curriculum over densities {list(self.curriculum)}")
-        if self.safe:
-            out.append("AT-M-Safe: LiDAR reported 0.2 m shorter where it sees something")
         if self.deviation:
             out.append(f"sensing deviation up to {self.deviation:g} m ({self.deviation_sampling})")
         if self.response_time:
@@ -379,8 +376,6 @@ class LowLevelConfig(BudgetPPODict):
             out.append(f"collision reward distances widened by {self.collision_margin:g} m")
         if self.navigation_weight is not None:
             out.append(f"navigation weight omega_n = {self.navigation_weight:g} (paper 4)")
-        if not self.lidar_sees_uavs:
-            out.append("LiDAR beams blind to the other UAVs")
         return out
 
     @property
