@@ -207,3 +207,19 @@ def test_interrupted_table8_says_how_to_resume(tmp_path, capsys, monkeypatch):
     err = capsys.readouterr().err
     assert list(tmp_path.iterdir()) == []  # the report folder is made by run_grid, right before its first write
     assert "resume with:" in err and "--report-dir" in err and "table8-atm-mujoco-" in err
+
+
+def test_default_policy_is_shipped_for_every_formation_and_says_how_it_differs():
+    """The evaluators' default low level (AT-M-Nav) exists for every c the CLI accepts, reads that
+    game's observations, and each model card states its change from the paper (the navigation weight)."""
+    from cefc_mj.eval import DEFAULT_POLICY
+    from cefc_mj.eval.runner import EpisodeSpec, load_policy_for, policy_name_for
+    from cefc_mj.nn.policy_io import resolve_policy_path
+
+    assert EpisodeSpec(formation=5, seed=0).policy == DEFAULT_POLICY == "nav"
+    for c in range(3, 9):
+        assert load_policy_for(DEFAULT_POLICY, c).name == f"atm_c{c}_nav"
+        card = json.loads(resolve_policy_path(policy_name_for(DEFAULT_POLICY, c)).with_suffix(".json").read_text())
+        assert card["method"] == "AT-M-Nav" and card["config"]["navigation_weight"] in (7.0, 10.0)
+        assert card["differs_from_paper"] == [f"navigation weight omega_n = {card['config']['navigation_weight']:g} (paper 4)"]
+        assert card["task"]["rewards"]["navigation_weight_low"] == card["config"]["navigation_weight"]
