@@ -9,6 +9,7 @@ import pytest
 import torch
 
 import cefc_mj.eval.table8 as table8
+from cefc_mj.eval import DEFAULT_POLICY
 from cefc_mj.cli.eval import main
 from cefc_mj.nn.atm import ATMActor, ATMConfig
 from cefc_mj.nn.policy_io import save_policy
@@ -206,13 +207,12 @@ def test_interrupted_table8_says_how_to_resume(tmp_path, capsys, monkeypatch):
     assert main(["--protocol", "table8", "--formation", "5", "--episodes", "1", "--steps", "10"]) == 130
     err = capsys.readouterr().err
     assert list(tmp_path.iterdir()) == []  # the report folder is made by run_grid, right before its first write
-    assert "resume with:" in err and "--report-dir" in err and "table8-atm-mujoco-" in err
+    assert "resume with:" in err and "--report-dir" in err and f"table8-{DEFAULT_POLICY}-mujoco-" in err
 
 
 def test_default_policy_is_shipped_for_every_formation_and_says_how_it_differs():
     """The evaluators' default low level (AT-M-Nav) exists for every c the CLI accepts, reads that
     game's observations, and each model card states its change from the paper (the navigation weight)."""
-    from cefc_mj.eval import DEFAULT_POLICY
     from cefc_mj.eval.runner import EpisodeSpec, load_policy_for, policy_name_for
     from cefc_mj.nn.policy_io import resolve_policy_path
 

@@ -18,6 +18,7 @@ import torch
 import cefc_mj.eval.table8 as table8
 from cefc_mj import paths
 from cefc_mj.cli.eval import main, single_table
+from cefc_mj.eval import DEFAULT_POLICY
 from cefc_mj.eval.runner import EpisodeSpec, policy_files, summarize
 from cefc_mj.eval.table8 import aggregate, load_cells, plan_cells, report_csv, report_json, report_markdown, run_grid
 from cefc_mj.fileio import write_atomic
@@ -127,12 +128,12 @@ def test_table8_default_run_leaves_shipped_reports_alone(tmp_path):
     assert proc.returncode == 0, proc.stderr
     assert shipped_reports_digest() == before
     (out,) = (tmp_path / "cefc-eval-reports").iterdir()
-    assert out.name.startswith("table8-atm-mujoco-") and f"reports go to {out}" in proc.stdout
+    assert out.name.startswith(f"table8-{DEFAULT_POLICY}-mujoco-") and f"reports go to {out}" in proc.stdout
     assert {p.name for p in out.iterdir()} == {"table8.md", "table8.csv", "table8.json", "table8.png",
                                                "table8_cells_mujoco.jsonl"}
     assert f"0 of 7 cells reused from {out / 'table8_cells_mujoco.jsonl'}" in proc.stdout
     data = json.loads((out / "table8.json").read_text())
-    assert data["provenance"]["policies"]["5"]["name"] == "atm_c5_step3" and data["comparable_to_paper"] is False
+    assert data["provenance"]["policies"]["5"]["name"] == "atm_c5_nav" and data["comparable_to_paper"] is False
     assert len(data["rows"]["5"]) == 7 and not NAN.search((out / "table8.md").read_text())
 
 

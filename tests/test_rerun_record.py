@@ -60,7 +60,7 @@ def test_runner_fills_policy_condition_and_wind():
     from cefc_mj.nn.policy_io import resolve_policy_path
 
     record = run_episode(EpisodeSpec(formation=5, seed=0, steps=3, wind=8.0, deviation=0.3), record=True).record
-    path = resolve_policy_path(policy_name_for("atm", 5))
+    path = resolve_policy_path(policy_name_for(EpisodeSpec.policy, 5))  # the default low level
     assert (record.policy, record.policy_sha256) == (path.stem, hashlib.sha256(path.read_bytes()).hexdigest())
     assert (record.wind, record.deviation) == (8.0, 0.3)
     assert record.wind_vector.shape == (3, 2) and np.all(np.linalg.norm(record.wind_vector, axis=1) > 1.0)
