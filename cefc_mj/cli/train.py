@@ -35,7 +35,7 @@ _FLAG_OF_FIELD = {
     "update_threads": "--threads", "seed": "--seed", "obstacle_density": "--density", "deviation": "--deviation",
     "deviation_sampling": "--deviation-sampling", "response_time": "--response-time",
     "velocity_noise": "--velocity-noise", "collision_margin": "--collision-margin",
-    "navigation_weight": "--navigation-weight", "safe": "--safe",
+    "navigation_weight": "--navigation-weight", "anchor_periods": "--anchor-periods", "safe": "--safe",
     "lidar_sees_uavs": "--lidar",
     "tuples_per_formation": "--tuples",
     "formations": "--formations", "response_time/velocity_noise": "--response-time/--velocity-noise",
@@ -160,6 +160,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="omega_n of the low-level reward (the paper's 4). With --step 3 and no other fine-tune "
                         "flag this is AT-M-Nav, fine-tuned from the Step 3 policy and written as atm_c<C>_nav, "
                         "which keeps more of N on quadrotors (default: the paper's)")
+    p.add_argument("--anchor-periods", type=int, default=1, metavar="K",
+                   help="Step 3 fine-tunes: training episodes of K x 100 steps, the anchor redrawn every 100 steps "
+                        "(as Table VIII redraws it every 250), so the policy learns to leave a reached anchor for a "
+                        "far one (default 1, the paper's)")
     p.add_argument("--lidar", choices=("obstacles+uavs", "obstacles"), default="obstacles+uavs",
                    help="what the LiDAR beams hit while training (default obstacles+uavs). obstacles: the stage "
                         "is named <stage>_obstacle_lidar; with --step 1 it is the paper's Step 1, whose LiDAR reads "
@@ -386,7 +390,8 @@ def run(args, command: str | None = None) -> list[dict]:
         cfg = LowLevelConfig(formation=args.formation, step=args.step, safe=args.safe, deviation=args.deviation,
                              deviation_sampling=args.deviation_sampling, response_time=args.response_time,
                              velocity_noise=args.velocity_noise, collision_margin=args.collision_margin,
-                             navigation_weight=args.navigation_weight, lidar_sees_uavs=args.lidar == "obstacles+uavs",
+                             navigation_weight=args.navigation_weight, anchor_periods=args.anchor_periods,
+                             lidar_sees_uavs=args.lidar == "obstacles+uavs",
                              budget=budget, seed=args.seed,
                              obstacle_density=args.density, ppo=_ppo_from(args))
         policies_dir = check_destinations(args)

@@ -19,6 +19,10 @@ Mode = Literal["formation", "cefc"]
 AdversaryRule = Literal["nearest_group", "r_nearest", "r_largest", "none", "learned"]
 ObstacleLayout = Literal["clear-start", "paper"]
 
+FORMATION_EPISODE_STEPS = 100
+"""Decision steps of a low-level ("formation") episode, the paper's."""
+CEFC_EPISODE_STEPS = 400
+"""Decision steps of a full-game ("cefc") episode, the paper's."""
 DEFAULT_NEIGHBOUR_SLOTS = 7
 """K when TaskConfig.max_neighbours is None: N - 1 for the paper's 8 UAVs."""
 ADVERSARY_RULES = ("nearest_group", "r_nearest", "r_largest", "none")
@@ -171,7 +175,7 @@ class TaskConfig:
         """Episode length in decision steps."""
         if self.episode_steps is not None:
             return self.episode_steps
-        return 100 if self.mode == "formation" else 400
+        return FORMATION_EPISODE_STEPS if self.mode == "formation" else CEFC_EPISODE_STEPS
 
     @property
     def neighbour_slots(self) -> int:

@@ -14,6 +14,7 @@ import re
 from dataclasses import dataclass, field
 
 from cefc_mj.errors import ConfigError
+from cefc_mj.task.config import FORMATION_EPISODE_STEPS
 
 FORMATIONS = (3, 4, 5, 6, 7, 8)
 """The paper's formation sizes c (Fig. 3)."""
@@ -43,6 +44,8 @@ MAX_DENSITY = 0.2
 """Largest training obstacle density (per m^2)."""
 MAX_CURRICULUM_PHASES = 20
 """Most phases (densities) of a CL-M curriculum."""
+MAX_ANCHOR_PERIODS = 20
+"""Most anchor periods of one training episode."""
 CLM_CURRICULUM = (0.0, 0.01, 0.02, 0.03)
 """The default CL-M curriculum: from AT-M Step 1's free space to Step 2's density 0.03 in equal steps."""
 LOWLEVEL_EPISODE_STEPS = 100
@@ -264,6 +267,11 @@ class LowLevelConfig(BudgetPPODict):
     Only for Step 3 fine-tunes (not Safe). On an otherwise plain Step 3 fine-tune this is AT-M-Nav
     (this project's), named atm_c{c}_nav: the Step 3 policy fine-tuned to weigh reaching the anchor
     more, as a quadrotor keeps less of the particle world's N (docs/decisions.md)."""
+    anchor_periods: int = 1
+    """Anchor periods per training episode: the episode lasts this many times the paper's 100 steps and
+    the anchor is redrawn at the start of each period, as Table VIII's protocol redraws it every 250
+    steps, so the policy also learns to leave a reached anchor for a far one, obstacles in between and
+    the group spread out. 1 is the paper's (one anchor per episode). Only for Step 3 fine-tunes."""
     lidar_sees_uavs: bool = True
     """Whether the LiDAR beams hit the other UAVs as well as the obstacles (TaskConfig.lidar_sees_agents).
     False names the stage <name>_obstacle_lidar (e.g. atm_c6_step1_obstacle_lidar): AT-M Step 1 trained
@@ -376,6 +384,9 @@ class LowLevelConfig(BudgetPPODict):
             out.append(f"collision reward distances widened by {self.collision_margin:g} m")
         if self.navigation_weight is not None:
             out.append(f"navigation weight omega_n = {self.navigation_weight:g} (paper 4)")
+        if self.anchor_periods > 1:
+            out.append(f"episodes of {self.anchor_periods} anchor periods of {FORMATION_EPISODE_STEPS} steps, the anchor "
+                       "redrawn at each (paper: one anchor per episode)")
         return out
 
     @property
@@ -421,6 +432,10 @@ class LowLevelConfig(BudgetPPODict):
             if self.step != 3 or self.safe:
                 _fail("navigation_weight", w, "another navigation weight fine-tunes the Step 3 policy: use it "
                       "with step 3 and without --safe")
+        _check_int("anchor_periods", self.anchor_periods, 1, MAX_ANCHOR_PERIODS)
+        if self.anchor_periods > 1 and not self.fine_tune:
+            _fail("anchor_periods", self.anchor_periods, "longer episodes with anchor redraws fine-tune the Step 3 "
+                  "policy: use them with --step 3 and a fine-tune flag such as --navigation-weight")
         if self.lidar_sees_uavs not in (True, False):
             _fail("lidar_sees_uavs", self.lidar_sees_uavs, "must be true or false")
         if (self.response_time > 0 or self.velocity_noise > 0) and (self.step != 3 or self.safe):

@@ -40,7 +40,7 @@ from cefc_mj.fileio import write_atomic
 from cefc_mj.nn.atm import ATMActor, ATMConfig, Critic, merge_step3
 from cefc_mj.nn.policy_io import atomic_torch_save, load_actor, resolve_policy_path, save_policy
 from cefc_mj.provenance import file_sha256
-from cefc_mj.task.config import RewardConfig, TaskConfig
+from cefc_mj.task.config import FORMATION_EPISODE_STEPS, RewardConfig, TaskConfig
 from cefc_mj.train.config import LowLevelConfig
 from cefc_mj.train.logger import RunLogger
 from cefc_mj.train.mappo import MAPPO
@@ -65,7 +65,9 @@ def task_config_for(cfg: LowLevelConfig, density: float | None = None) -> TaskCo
         rewards = dataclasses.replace(rewards, navigation_weight_low=float(cfg.navigation_weight))
     return TaskConfig(n_agents=cfg.formation, mode="formation", obstacle_density=density, deviation=cfg.deviation,
                       deviation_sampling=cfg.deviation_sampling, response_time=cfg.response_time,
-                      velocity_noise=cfg.velocity_noise, rewards=rewards, lidar_sees_agents=cfg.lidar_sees_uavs)
+                      velocity_noise=cfg.velocity_noise, rewards=rewards, lidar_sees_agents=cfg.lidar_sees_uavs,
+                      episode_steps=cfg.anchor_periods * FORMATION_EPISODE_STEPS,
+                      anchor_redraw_steps=FORMATION_EPISODE_STEPS if cfg.anchor_periods > 1 else None)
 
 
 def stage_name(formation: int, step: int, safe: bool = False) -> str:
