@@ -212,7 +212,8 @@ def test_interrupted_table8_says_how_to_resume(tmp_path, capsys, monkeypatch):
 
 def test_default_policy_is_shipped_for_every_formation_and_says_how_it_differs():
     """The evaluators' default low level (AT-M-Nav) exists for every c the CLI accepts, reads that
-    game's observations, and each model card states its change from the paper (the navigation weight)."""
+    game's observations, and each model card states its changes from the paper (the navigation weight,
+    and for some c training episodes of several anchor periods)."""
     from cefc_mj.eval.runner import EpisodeSpec, load_policy_for, policy_name_for
     from cefc_mj.nn.policy_io import resolve_policy_path
 
@@ -221,5 +222,8 @@ def test_default_policy_is_shipped_for_every_formation_and_says_how_it_differs()
         assert load_policy_for(DEFAULT_POLICY, c).name == f"atm_c{c}_nav"
         card = json.loads(resolve_policy_path(policy_name_for(DEFAULT_POLICY, c)).with_suffix(".json").read_text())
         assert card["method"] == "AT-M-Nav" and card["config"]["navigation_weight"] in (7.0, 10.0)
-        assert card["differs_from_paper"] == [f"navigation weight omega_n = {card['config']['navigation_weight']:g} (paper 4)"]
+        periods = card["config"].get("anchor_periods", 1)
+        assert card["differs_from_paper"][0] == f"navigation weight omega_n = {card['config']['navigation_weight']:g} (paper 4)"
+        assert len(card["differs_from_paper"]) == (1 if periods == 1 else 2)
         assert card["task"]["rewards"]["navigation_weight_low"] == card["config"]["navigation_weight"]
+        assert card["task"]["anchor_redraw_steps"] == (None if periods == 1 else 100)

@@ -76,6 +76,18 @@ def test_budget_and_config_validation():
             LowLevelConfig(formation=6, step=3, navigation_weight=bad, budget=Budget(iterations=1))
     with pytest.raises(ConfigError, match="navigation_weight"):
         LowLevelConfig(formation=6, step=3, safe=True, navigation_weight=8.0, budget=Budget(iterations=1))
+    # Anchor periods lengthen the episode and redraw the anchor every 100 steps; only on a fine-tune.
+    periods = dataclasses.replace(nav, anchor_periods=3)
+    task = task_config_for(periods)
+    assert (task.steps, task.anchor_redraw_steps, periods.name) == (300, 100, "atm_c6_nav")
+    assert dataclasses.replace(task, episode_steps=None, anchor_redraw_steps=None) == task_config_for(nav)
+    assert task_config_for(nav).anchor_redraw_steps is None
+    assert periods.paper_differences()[1].startswith("episodes of 3 anchor periods of 100 steps")
+    for bad in (0, 21, 2.0, True):
+        with pytest.raises(ConfigError, match="anchor_periods"):
+            dataclasses.replace(nav, anchor_periods=bad)
+    with pytest.raises(ConfigError, match="anchor_periods=2: .*fine-tune"):
+        LowLevelConfig(formation=6, step=3, anchor_periods=2, budget=Budget(iterations=1))
     # The LiDAR sees obstacles and UAVs unless asked; an obstacles-only stage has its own name.
     one = Budget(iterations=1)
     blind = [LowLevelConfig(formation=6, step=1, lidar_sees_uavs=False, budget=one),

@@ -92,6 +92,8 @@ ROBUST = ["lowlevel", "--formation", "3", "--step", "3", "--init-from", "atm_c3_
     (LOW + ["--navigation-weight", "8"], "--navigation-weight 8.0: another navigation weight fine-tunes the Step 3"),
     (ROBUST + ["--navigation-weight", "0"], "--navigation-weight 0.0: must be in (0, 50]"),
     (ROBUST + ["--navigation-weight", "inf"], "--navigation-weight inf"),
+    (LOW + ["--anchor-periods", "2"], "--anchor-periods 2: longer episodes with anchor redraws fine-tune"),
+    (ROBUST + ["--anchor-periods", "0"], "--anchor-periods 0: must be an integer >= 1"),
     (["lowlevel-all", "--workers", "0"], "--workers 0"),
     (["lowlevel-all", "--workers", "7"], "--workers 7"),
     (["lowlevel-all", "--seed", "-3"], "--seed -3"),
@@ -206,11 +208,14 @@ def test_init_from_shipped_policy_then_resume(tmp_path, capsys):
     assert main(ROBUST[:-2] + ["--deviation", "0.5", "--resume"] + TINY[2:] + ["--budget", "2"]) == 0
     assert json.loads((out / "policies" / "atm_c3_robust.json").read_text())["iterations"] == 2
 
-    # AT-M-Nav: the same fine-tune with another omega_n, trained with it and saying so on its card.
-    assert main(ROBUST + ["--navigation-weight", "10"] + TINY) == 0
+    # AT-M-Nav: the same fine-tune with another omega_n, here on episodes of two anchor periods, trained
+    # with both and saying so on its card.
+    assert main(ROBUST + ["--navigation-weight", "10", "--anchor-periods", "2"] + TINY) == 0
     card = json.loads((out / "policies" / "atm_c3_nav.json").read_text())
     assert (card["method"], card["task"]["rewards"]["navigation_weight_low"]) == ("AT-M-Nav", 10.0)
-    assert card["differs_from_paper"] == ["navigation weight omega_n = 10 (paper 4)"]
+    assert (card["task"]["episode_steps"], card["task"]["anchor_redraw_steps"]) == (200, 100)
+    assert card["differs_from_paper"] == ["navigation weight omega_n = 10 (paper 4)", "episodes of 2 anchor periods "
+                                          "of 100 steps, the anchor redrawn at each (paper: one anchor per episode)"]
 
 
 def test_interrupted_before_the_first_checkpoint_resumes_exactly(tmp_path, monkeypatch, capsys):

@@ -435,7 +435,7 @@ class LowLevelConfig(BudgetPPODict):
         _check_int("anchor_periods", self.anchor_periods, 1, MAX_ANCHOR_PERIODS)
         if self.anchor_periods > 1 and not self.fine_tune:
             _fail("anchor_periods", self.anchor_periods, "longer episodes with anchor redraws fine-tune the Step 3 "
-                  "policy: use them with --step 3 and a fine-tune flag such as --navigation-weight")
+                  "policy: use them with step 3 and a fine-tune such as a navigation weight")
         if self.lidar_sees_uavs not in (True, False):
             _fail("lidar_sees_uavs", self.lidar_sees_uavs, "must be true or false")
         if (self.response_time > 0 or self.velocity_noise > 0) and (self.step != 3 or self.safe):

@@ -66,8 +66,14 @@ def task_config_for(cfg: LowLevelConfig, density: float | None = None) -> TaskCo
     return TaskConfig(n_agents=cfg.formation, mode="formation", obstacle_density=density, deviation=cfg.deviation,
                       deviation_sampling=cfg.deviation_sampling, response_time=cfg.response_time,
                       velocity_noise=cfg.velocity_noise, rewards=rewards, lidar_sees_agents=cfg.lidar_sees_uavs,
-                      episode_steps=cfg.anchor_periods * FORMATION_EPISODE_STEPS,
-                      anchor_redraw_steps=FORMATION_EPISODE_STEPS if cfg.anchor_periods > 1 else None)
+                      **_anchor_periods(cfg.anchor_periods))
+
+
+def _anchor_periods(periods: int) -> dict:
+    """TaskConfig fields of training episodes of `periods` anchor periods (none for the paper's one)."""
+    if periods == 1:
+        return {}
+    return {"episode_steps": periods * FORMATION_EPISODE_STEPS, "anchor_redraw_steps": FORMATION_EPISODE_STEPS}
 
 
 def stage_name(formation: int, step: int, safe: bool = False) -> str:
