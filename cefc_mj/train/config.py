@@ -48,8 +48,6 @@ MAX_ANCHOR_PERIODS = 20
 """Most anchor periods of one training episode."""
 CLM_CURRICULUM = (0.0, 0.01, 0.02, 0.03)
 """The default CL-M curriculum: from AT-M Step 1's free space to Step 2's density 0.03 in equal steps."""
-LOWLEVEL_EPISODE_STEPS = 100
-"""Decision steps of a low-level (formation-mode) episode, TaskConfig's default."""
 
 
 def _fail(name: str, value: object, why: str) -> None:
@@ -169,10 +167,10 @@ class PPOConfig:
                            ("minibatches", None), ("rollout_threads", MAX_THREADS), ("update_threads", MAX_THREADS)):
             _check_int(name, getattr(self, name), 1, most)
         # A minibatch is a set of env-steps; more minibatches than env-steps would leave some empty.
-        env_steps = self.n_envs * self.episodes_per_iteration * LOWLEVEL_EPISODE_STEPS
+        env_steps = self.n_envs * self.episodes_per_iteration * FORMATION_EPISODE_STEPS
         if self.minibatches > env_steps:
             _fail("minibatches", self.minibatches, f"must be at most the {env_steps} env-steps of an iteration "
-                  f"(n_envs x episodes x {LOWLEVEL_EPISODE_STEPS} steps)")
+                  f"(n_envs x episodes x {FORMATION_EPISODE_STEPS} steps)")
         for name in ("lr", "clip_eps", "max_grad_norm"):
             v = getattr(self, name)
             if not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
