@@ -42,7 +42,7 @@ def anchor_periods(formation: int, seed: int, backend: str, policy,
                    trace: dict | None = None) -> tuple[list[dict], float]:
     """One Table VIII episode flown by `policy` (a loaded Policy): per anchor period its reach, start,
     approach, stays and bound; and the env's N. A `trace` dict receives the paths (positions [T, c, 2]
-    after each step), the period of each step's anchor (anchors [T, 2]) and the obstacles [M, 2]."""
+    after each step), each step's anchor (anchors [T, 2]) and the obstacles [M, 2]."""
     from cefc_mj.eval.runner import TABLE8_ANCHOR_REDRAW, EpisodeSpec, episode_env, fly
     from cefc_mj.task.rewards import anchor_navigation_reward
 
@@ -112,14 +112,6 @@ def parse(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--png", type=Path, default=None, metavar="DIR",
                         help="also draw each episode's paths per anchor period into DIR/c<C>_seed<S>.png")
     args = parser.parse_args(argv)
-    if args.png is not None:
-        try:
-            args.png.mkdir(parents=True, exist_ok=True)
-            probe = args.png / ".write-test"
-            probe.write_bytes(b"")
-            probe.unlink()
-        except OSError as e:
-            parser.exit(2, f"{PROG}: --png {args.png}: cannot write there ({e.strerror or e})\n")
     if any(c not in (3, 4, 5, 6, 7, 8) for c in args.formations):
         parser.exit(2, f"{PROG}: --formations {args.formations}: each c must be one of 3..8\n")
     if args.seeds < 1:
@@ -132,6 +124,14 @@ def parse(argv: list[str] | None) -> argparse.Namespace:
         args.loaded = {c: load_policy_for(args.policy, c) for c in args.formations}
     except CefcError as e:
         parser.exit(2, f"{PROG}: --policy {args.policy}: {e}\n")
+    if args.png is not None:
+        try:
+            args.png.mkdir(parents=True, exist_ok=True)
+            probe = args.png / ".write-test"
+            probe.write_bytes(b"")
+            probe.unlink()
+        except OSError as e:
+            parser.exit(2, f"{PROG}: --png {args.png}: cannot write there ({e.strerror or e})\n")
     return args
 
 
