@@ -29,7 +29,7 @@ from cefc_mj.task.deviation import sample_deviation
 from cefc_mj.task.estimator import FusedPositionEstimate
 from cefc_mj.task.formation import agent_group_error, connected_groups, group_formation_error
 from cefc_mj.task.observation import build_cefc_observation, build_low_level_observation, layout_for
-from cefc_mj.task.scenario import sample_anchor, sample_scenario
+from cefc_mj.task.scenario import Scenario, check_scenario, sample_anchor, sample_scenario
 
 METRIC_NAMES = ("F", "N", "C", "E")
 
@@ -90,8 +90,10 @@ class BatchedCEFCEnv:
         self._obs = np.zeros((b, n, self.layout.size), dtype=np.float32)
 
     # ------------------------------------------------------------------ reset
-    def reset(self, mask: np.ndarray | None = None, seed: int | None = None) -> np.ndarray:
-        """Start new episodes in the masked envs (all by default); returns obs [B, N, D] of all envs."""
+    def reset(self, mask: np.ndarray | None = None, seed: int | None = None,
+              scenario: Scenario | None = None) -> np.ndarray:
+        """Start new episodes in the masked envs (all by default); returns obs [B, N, D] of all envs.
+        `scenario` (one layout per masked env) replaces the sampled one, e.g. a hand-built situation."""
         if seed is not None:
             self.rng = np.random.default_rng(seed)
             if isinstance(self.world, ParticleWorld):  # its velocity noise belongs to the episode too
@@ -102,7 +104,10 @@ class BatchedCEFCEnv:
         count = int(mask.sum())
         if count == 0:
             return self._obs
-        scenario = sample_scenario(self.config, self.rng, count)
+        if scenario is None:
+            scenario = sample_scenario(self.config, self.rng, count)
+        else:
+            check_scenario(self.config, scenario, count)
         full = lambda arr, like: _scatter(mask, arr, like)  # noqa: E731 - expand masked rows to [B, ...]
         self.world.reset(
             mask, full(scenario.agent_pos, self.world.agent_pos), full(scenario.adversary_pos, self.world.adversary_pos),

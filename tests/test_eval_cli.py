@@ -213,7 +213,7 @@ def test_interrupted_table8_says_how_to_resume(tmp_path, capsys, monkeypatch):
 def test_default_policy_is_shipped_for_every_formation_and_says_how_it_differs():
     """The evaluators' default low level (AT-M-Nav) exists for every c the CLI accepts, reads that
     game's observations, and each model card states its changes from the paper (the navigation weight,
-    and for some c training episodes of several anchor periods)."""
+    and for some c training episodes of several anchor periods, some with stragglers)."""
     from cefc_mj.eval.runner import EpisodeSpec, load_policy_for, policy_name_for
     from cefc_mj.nn.policy_io import resolve_policy_path
 
@@ -223,7 +223,9 @@ def test_default_policy_is_shipped_for_every_formation_and_says_how_it_differs()
         card = json.loads(resolve_policy_path(policy_name_for(DEFAULT_POLICY, c)).with_suffix(".json").read_text())
         assert card["method"] == "AT-M-Nav" and card["config"]["navigation_weight"] in (7.0, 10.0)
         periods = card["config"].get("anchor_periods", 1)
+        stragglers = card["config"].get("straggler_fraction", 0.0)
         assert card["differs_from_paper"][0] == f"navigation weight omega_n = {card['config']['navigation_weight']:g} (paper 4)"
-        assert len(card["differs_from_paper"]) == (1 if periods == 1 else 2)
+        assert len(card["differs_from_paper"]) == 1 + (periods > 1) + (stragglers > 0)
+        assert card["task"].get("straggler_fraction", 0.0) == stragglers
         assert card["task"]["rewards"]["navigation_weight_low"] == card["config"]["navigation_weight"]
         assert card["task"]["anchor_redraw_steps"] == (None if periods == 1 else 100)

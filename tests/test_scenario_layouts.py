@@ -144,3 +144,31 @@ def test_paper_layout_obstructs_the_path_tens_of_percent(density, clear_band, pa
 def test_near_path_fraction_rejects_bad_count():
     with pytest.raises(ConfigError, match="n_layouts"):
         near_path_fraction(TaskConfig(), 0)
+
+
+# ---------------------------------------------------------------- stragglers (a training scenario)
+def test_stragglers_start_out_of_sight_and_leave_the_default_stream_alone():
+    base = dict(n_agents=5, mode="formation", obstacle_density=0.03)
+    plain = sample_scenario(TaskConfig(**base), np.random.default_rng(7), 400)
+    none = sample_scenario(TaskConfig(**base, straggler_fraction=0.0), np.random.default_rng(7), 400)
+    assert _digest(plain) == _digest(none)  # 0 draws nothing: the paper's starts keep their stream
+    cfg = TaskConfig(**base, straggler_fraction=0.5)
+    sc = sample_scenario(cfg, np.random.default_rng(7), 400)
+    gap = np.linalg.norm(sc.agent_pos[:, -1:] - sc.agent_pos[:, :-1], axis=-1).min(-1)  # [B]
+    radius = np.linalg.norm(sc.agent_pos[:, -1], axis=-1)
+    moved = (np.abs(sc.agent_pos[:, -1]) > cfg.start_half_size).any(-1)  # outside the start square
+    assert 0.4 < moved.mean() < 0.6
+    assert (gap[moved] >= cfg.observation_distance).all()
+    assert (radius[moved] >= 3.0).all() and (radius[moved] <= 7.0).all()
+    assert (np.abs(sc.agent_pos[~moved]) <= cfg.start_half_size).all()  # the others start as before
+    # obstacles keep clear of the straggler's start disc too
+    clearance = np.linalg.norm(sc.obstacles - sc.agent_pos[:, -1:], axis=-1).min(-1)
+    assert clearance.min() >= cfg.obstacle_radius + cfg.uav_radius + START_DISC_MARGIN - 1e-9
+    all_moved = sample_scenario(TaskConfig(**base, straggler_fraction=1.0), np.random.default_rng(0), 50)
+    assert (np.linalg.norm(all_moved.agent_pos[:, -1:] - all_moved.agent_pos[:, :-1], axis=-1) >= 3.0).all()
+
+
+@pytest.mark.parametrize("bad", [-0.1, 1.5, float("nan")])
+def test_straggler_fraction_is_validated(bad):
+    with pytest.raises(ConfigError, match="straggler_fraction"):
+        TaskConfig(n_agents=5, mode="formation", straggler_fraction=bad)

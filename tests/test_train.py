@@ -88,6 +88,16 @@ def test_budget_and_config_validation():
             dataclasses.replace(nav, anchor_periods=bad)
     with pytest.raises(ConfigError, match="anchor_periods=2: .*fine-tune"):
         LowLevelConfig(formation=6, step=3, anchor_periods=2, budget=Budget(iterations=1))
+    # Stragglers: one agent starts away from the others in a share of the episodes; only on a fine-tune.
+    straggling = dataclasses.replace(periods, straggler_fraction=0.3)
+    assert (task_config_for(straggling).straggler_fraction, straggling.name) == (0.3, "atm_c6_nav")
+    assert task_config_for(periods).straggler_fraction == 0.0
+    assert straggling.paper_differences()[2].startswith("in 30% of the episodes one agent starts 3-7 m")
+    for bad in (-0.1, 1.1, True, "0.3"):
+        with pytest.raises(ConfigError, match="straggler_fraction"):
+            dataclasses.replace(nav, straggler_fraction=bad)
+    with pytest.raises(ConfigError, match="straggler_fraction=0.2: .*fine-tune"):
+        LowLevelConfig(formation=6, step=3, straggler_fraction=0.2, budget=Budget(iterations=1))
     # The LiDAR sees obstacles and UAVs unless asked; an obstacles-only stage has its own name.
     one = Budget(iterations=1)
     blind = [LowLevelConfig(formation=6, step=1, lidar_sees_uavs=False, budget=one),

@@ -94,6 +94,9 @@ ROBUST = ["lowlevel", "--formation", "3", "--step", "3", "--init-from", "atm_c3_
     (ROBUST + ["--navigation-weight", "inf"], "--navigation-weight inf"),
     (LOW + ["--anchor-periods", "2"], "--anchor-periods 2: longer episodes with anchor redraws fine-tune"),
     (ROBUST + ["--anchor-periods", "0"], "--anchor-periods 0: must be an integer >= 1"),
+    (LOW + ["--straggler-fraction", "0.3"], "--straggler-fraction 0.3: starts away from the group fine-tune"),
+    (ROBUST + ["--straggler-fraction", "1.5"], "--straggler-fraction 1.5: must be in [0, 1]"),
+    (ROBUST + ["--straggler-fraction", "nan"], "--straggler-fraction nan"),
     (["lowlevel-all", "--workers", "0"], "--workers 0"),
     (["lowlevel-all", "--workers", "7"], "--workers 7"),
     (["lowlevel-all", "--seed", "-3"], "--seed -3"),
@@ -210,12 +213,16 @@ def test_init_from_shipped_policy_then_resume(tmp_path, capsys):
 
     # AT-M-Nav: the same fine-tune with another omega_n, here on episodes of two anchor periods, trained
     # with both and saying so on its card.
-    assert main(ROBUST + ["--navigation-weight", "10", "--anchor-periods", "2"] + TINY) == 0
+    assert main(ROBUST + ["--navigation-weight", "10", "--anchor-periods", "2", "--straggler-fraction", "0.5"]
+                + TINY) == 0
     card = json.loads((out / "policies" / "atm_c3_nav.json").read_text())
     assert (card["method"], card["task"]["rewards"]["navigation_weight_low"]) == ("AT-M-Nav", 10.0)
     assert (card["task"]["episode_steps"], card["task"]["anchor_redraw_steps"]) == (200, 100)
+    assert (card["task"]["straggler_fraction"], card["config"]["straggler_fraction"]) == (0.5, 0.5)
     assert card["differs_from_paper"] == ["navigation weight omega_n = 10 (paper 4)", "episodes of 2 anchor periods "
-                                          "of 100 steps, the anchor redrawn at each (paper: one anchor per episode)"]
+                                          "of 100 steps, the anchor redrawn at each (paper: one anchor per episode)",
+                                          "in 50% of the episodes one agent starts 3-7 m from the others (paper: "
+                                          "every agent in the start square)"]
 
 
 def test_interrupted_before_the_first_checkpoint_resumes_exactly(tmp_path, monkeypatch, capsys):

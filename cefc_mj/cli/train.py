@@ -35,7 +35,8 @@ _FLAG_OF_FIELD = {
     "update_threads": "--threads", "seed": "--seed", "obstacle_density": "--density", "deviation": "--deviation",
     "deviation_sampling": "--deviation-sampling", "response_time": "--response-time",
     "velocity_noise": "--velocity-noise", "collision_margin": "--collision-margin",
-    "navigation_weight": "--navigation-weight", "anchor_periods": "--anchor-periods", "safe": "--safe",
+    "navigation_weight": "--navigation-weight", "anchor_periods": "--anchor-periods",
+    "straggler_fraction": "--straggler-fraction", "safe": "--safe",
     "lidar_sees_uavs": "--lidar",
     "tuples_per_formation": "--tuples",
     "formations": "--formations", "response_time/velocity_noise": "--response-time/--velocity-noise",
@@ -164,6 +165,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="Step 3 fine-tunes: training episodes of K x 100 steps, the anchor redrawn every 100 steps "
                         "(as Table VIII redraws it every 250), so the policy learns to leave a reached anchor for a "
                         "far one (default 1, the paper's)")
+    p.add_argument("--straggler-fraction", type=float, default=0.0, metavar="P",
+                   help="Step 3 fine-tunes: in this fraction of the training episodes one agent starts 3-7 m from "
+                        "the others, out of their sight, so the policy learns to rejoin the group around obstacles "
+                        "(default 0, the paper's starts)")
     p.add_argument("--lidar", choices=("obstacles+uavs", "obstacles"), default="obstacles+uavs",
                    help="what the LiDAR beams hit while training (default obstacles+uavs). obstacles: the stage "
                         "is named <stage>_obstacle_lidar; with --step 1 it is the paper's Step 1, whose LiDAR reads "
@@ -391,7 +396,7 @@ def run(args, command: str | None = None) -> list[dict]:
                              deviation_sampling=args.deviation_sampling, response_time=args.response_time,
                              velocity_noise=args.velocity_noise, collision_margin=args.collision_margin,
                              navigation_weight=args.navigation_weight, anchor_periods=args.anchor_periods,
-                             lidar_sees_uavs=args.lidar == "obstacles+uavs",
+                             straggler_fraction=args.straggler_fraction, lidar_sees_uavs=args.lidar == "obstacles+uavs",
                              budget=budget, seed=args.seed,
                              obstacle_density=args.density, ppo=_ppo_from(args))
         policies_dir = check_destinations(args)

@@ -25,6 +25,8 @@ CEFC_EPISODE_STEPS = 400
 """Decision steps of a full-game ("cefc") episode, the paper's."""
 DEFAULT_NEIGHBOUR_SLOTS = 7
 """K when TaskConfig.max_neighbours is None: N - 1 for the paper's 8 UAVs."""
+STRAGGLER_MIN_DISTANCE, STRAGGLER_MAX_DISTANCE = 3.0, 7.0
+"""A straggler (TaskConfig.straggler_fraction) starts this far (m) from the start square's centre."""
 ADVERSARY_RULES = ("nearest_group", "r_nearest", "r_largest", "none")
 LEARNED_ADVERSARY = "learned"
 """TaskConfig.adversary of a trained adversary: the env asks its `adversary_policy` for the acceleration."""
@@ -82,6 +84,11 @@ class TaskConfig:
     """Agents start uniformly in [-s, s]^2 m."""
     start_min_spacing: float = 0.5
     """Minimum distance between two start positions (m)."""
+    straggler_fraction: float = 0.0
+    """Fraction of episodes (drawn per env at reset) in which the last agent starts away from the
+    others: 3-7 m from the start square's centre and at least observation_distance from every other
+    start, so it sees no neighbour and must rejoin the group, often around obstacles. A training
+    scenario (`cefc-train lowlevel --straggler-fraction`); 0 is the paper's starts, and draws nothing."""
     obstacle_density: float = 0.0
     """Obstacles per m^2 over the arena (paper: 0 and 0.03 for training, 0.05 for Table III)."""
     obstacle_radius: float = 0.4
@@ -236,6 +243,14 @@ class TaskConfig:
             fail("separation_guard", self.separation_guard, "must be True or False")
         if self.deviation_sampling not in ("fixed", "uniform"):
             fail("deviation_sampling", self.deviation_sampling, "must be 'fixed' or 'uniform'")
+        finite("straggler_fraction", self.straggler_fraction)
+        if not 0 <= self.straggler_fraction <= 1:
+            fail("straggler_fraction", self.straggler_fraction, "must be in [0, 1]")
+        if self.straggler_fraction > 0 and (self.n_agents < 2 or self.observation_distance >= STRAGGLER_MAX_DISTANCE
+                                            - self.start_half_size * math.sqrt(2)):
+            fail("straggler_fraction", self.straggler_fraction,
+                 f"needs at least 2 agents and observation_distance + the start square's half-diagonal below "
+                 f"{STRAGGLER_MAX_DISTANCE} m")
         if self.obstacle_layout not in OBSTACLE_LAYOUTS:
             fail("obstacle_layout", self.obstacle_layout, f"must be one of {', '.join(OBSTACLE_LAYOUTS)}")
         if self.adversary not in ADVERSARIES:

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from cefc_mj.errors import ConfigError
-from cefc_mj.task.config import TaskConfig
+from cefc_mj.task.config import STRAGGLER_MAX_DISTANCE, STRAGGLER_MIN_DISTANCE, TaskConfig
 
 MAX_TRIES = 2000
 TARGET_CORNER_SIGNS = np.array([[-1.0, -1.0], [-1.0, 1.0], [1.0, -1.0], [1.0, 1.0]])
@@ -34,15 +34,16 @@ class Scenario:
     """[B, 2] anchor point of the low-level game."""
 
 
-def _place(rng, count_envs, low, high, ok, what, arg):
-    """Draw one point per env in [low, high]^2 until ok(points, active) holds for every env."""
+def _place(rng, count_envs, low, high, ok, what, arg, draw=None):
+    """Draw one point per env in [low, high]^2 (or `draw(count)` points [count, 2]) until
+    ok(points, active) holds for every env."""
     points = np.empty((count_envs, 2))
     pending = np.ones(count_envs, dtype=bool)
     for _ in range(MAX_TRIES):
         idx = np.flatnonzero(pending)
         if idx.size == 0:
             return points
-        candidate = rng.uniform(low, high, size=(idx.size, 2))
+        candidate = rng.uniform(low, high, size=(idx.size, 2)) if draw is None else draw(idx.size)
         good = ok(candidate, idx)
         points[idx[good]] = candidate[good]
         pending[idx[good]] = False
@@ -63,7 +64,27 @@ def sample_starts(cfg: TaskConfig, rng: np.random.Generator, n_envs: int) -> np.
             return (d >= cfg.start_min_spacing).all(axis=-1)
 
         pos[:, i] = _place(rng, n_envs, -s, s, ok, f"start position of agent {i}", "n_agents")
+    if cfg.straggler_fraction > 0:  # nothing drawn otherwise: the paper's starts keep their random stream
+        move_straggler(cfg, rng, pos)
     return pos
+
+
+def move_straggler(cfg: TaskConfig, rng: np.random.Generator, pos: np.ndarray) -> None:
+    """In a straggler_fraction of the envs, move the last agent of the starts pos [B, N, 2] (in place)
+    to a point STRAGGLER_MIN_DISTANCE..STRAGGLER_MAX_DISTANCE m from the centre, uniform in angle and
+    radius, at least observation_distance from every other start: it sees no neighbour."""
+    chosen = np.flatnonzero(rng.random(pos.shape[0]) < cfg.straggler_fraction)
+    others = pos[chosen, :-1]
+
+    def ok(candidate, idx):
+        return (np.linalg.norm(others[idx] - candidate[:, None, :], axis=-1) >= cfg.observation_distance).all(-1)
+
+    def draw(count):
+        angle = rng.uniform(0.0, 2 * np.pi, count)
+        radius = rng.uniform(STRAGGLER_MIN_DISTANCE, STRAGGLER_MAX_DISTANCE, count)
+        return radius[:, None] * np.stack([np.cos(angle), np.sin(angle)], axis=-1)
+
+    pos[chosen, -1] = _place(rng, chosen.size, 0.0, 0.0, ok, "a straggler", "straggler_fraction", draw)
 
 
 START_DISC_MARGIN = 0.1
@@ -136,6 +157,20 @@ def sample_scenario(cfg: TaskConfig, rng: np.random.Generator, n_envs: int) -> S
     adversary_pos = np.broadcast_to(np.asarray(cfg.adversary_start, dtype=float), (n_envs, 2)).copy()
     adversary_pos[:, 0] += rng.uniform(-cfg.start_half_size, cfg.start_half_size, size=n_envs)
     return Scenario(agent_pos=agent_pos, adversary_pos=adversary_pos, obstacles=obstacles, targets=targets, anchor=anchor)
+
+
+def check_scenario(cfg: TaskConfig, scenario: Scenario, n_envs: int) -> None:
+    """Raise ConfigError naming the first array of a hand-built `scenario` whose shape does not fit
+    `n_envs` layouts of `cfg`, or that is not finite."""
+    shapes = {"agent_pos": (n_envs, cfg.n_agents, 2), "adversary_pos": (n_envs, 2),
+              "obstacles": (n_envs, cfg.n_obstacles, 2), "anchor": (n_envs, 2),
+              "targets": (n_envs, cfg.n_targets if cfg.mode == "cefc" else 0, 2)}
+    for name, shape in shapes.items():
+        value = np.asarray(getattr(scenario, name))
+        if value.shape != shape:
+            raise ConfigError(f"scenario.{name}: expected shape {shape}, got {value.shape}")
+        if not np.isfinite(value).all():
+            raise ConfigError(f"scenario.{name}: contains NaN or inf")
 
 
 def obstacle_near_path(scenario: Scenario, obstacle_radius: float, margin: float = 1.0) -> np.ndarray:

@@ -270,6 +270,11 @@ class LowLevelConfig(BudgetPPODict):
     the anchor is redrawn at the start of each period, as Table VIII's protocol redraws it every 250
     steps, so the policy also learns to leave a reached anchor for a far one, obstacles in between and
     the group spread out. 1 is the paper's (one anchor per episode). Only for Step 3 fine-tunes."""
+    straggler_fraction: float = 0.0
+    """Fraction of training episodes in which one agent starts 3-7 m away from the others, out of their
+    sight (TaskConfig.straggler_fraction), so the policy learns to rejoin the group around obstacles
+    when it sees no neighbour; a lone UAV behind an obstacle otherwise tends to stop. 0 is the paper's
+    starts. Only for Step 3 fine-tunes."""
     lidar_sees_uavs: bool = True
     """Whether the LiDAR beams hit the other UAVs as well as the obstacles (TaskConfig.lidar_sees_agents).
     False names the stage <name>_obstacle_lidar (e.g. atm_c6_step1_obstacle_lidar): AT-M Step 1 trained
@@ -385,6 +390,9 @@ class LowLevelConfig(BudgetPPODict):
         if self.anchor_periods > 1:
             out.append(f"episodes of {self.anchor_periods} anchor periods of {FORMATION_EPISODE_STEPS} steps, the anchor "
                        "redrawn at each (paper: one anchor per episode)")
+        if self.straggler_fraction:
+            out.append(f"in {self.straggler_fraction:.0%} of the episodes one agent starts 3-7 m from the others "
+                       "(paper: every agent in the start square)")
         return out
 
     @property
@@ -433,6 +441,12 @@ class LowLevelConfig(BudgetPPODict):
         _check_int("anchor_periods", self.anchor_periods, 1, MAX_ANCHOR_PERIODS)
         if self.anchor_periods > 1 and not self.fine_tune:
             _fail("anchor_periods", self.anchor_periods, "longer episodes with anchor redraws fine-tune the Step 3 "
+                  "policy: use them with step 3 and a fine-tune such as a navigation weight")
+        if (isinstance(self.straggler_fraction, bool) or not isinstance(self.straggler_fraction, (int, float))
+                or not 0 <= self.straggler_fraction <= 1):
+            _fail("straggler_fraction", self.straggler_fraction, "must be in [0, 1]")
+        if self.straggler_fraction > 0 and not self.fine_tune:
+            _fail("straggler_fraction", self.straggler_fraction, "starts away from the group fine-tune the Step 3 "
                   "policy: use them with step 3 and a fine-tune such as a navigation weight")
         if self.lidar_sees_uavs not in (True, False):
             _fail("lidar_sees_uavs", self.lidar_sees_uavs, "must be true or false")

@@ -66,7 +66,7 @@ def task_config_for(cfg: LowLevelConfig, density: float | None = None) -> TaskCo
     return TaskConfig(n_agents=cfg.formation, mode="formation", obstacle_density=density, deviation=cfg.deviation,
                       deviation_sampling=cfg.deviation_sampling, response_time=cfg.response_time,
                       velocity_noise=cfg.velocity_noise, rewards=rewards, lidar_sees_agents=cfg.lidar_sees_uavs,
-                      **_anchor_periods(cfg.anchor_periods))
+                      straggler_fraction=float(cfg.straggler_fraction), **_anchor_periods(cfg.anchor_periods))
 
 
 def _anchor_periods(periods: int) -> dict:
