@@ -49,6 +49,18 @@ def atomic_write(path: Path, write: Callable[[BinaryIO], object]) -> None:
         raise
 
 
+def make_writable_folder(path: Path) -> None:
+    """Create the folder `path` (and its parents) and write and remove a probe file in it; a
+    ConfigError says why not (root passes every permission check, yet cannot write into /proc)."""
+    try:
+        Path(path).mkdir(parents=True, exist_ok=True)
+        fd, probe = tempfile.mkstemp(dir=path, prefix=".write-probe-")
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as e:
+        raise ConfigError(f"cannot write there ({e.strerror or e})") from None
+
+
 def write_atomic(path: Path, data: bytes | str) -> None:
     """Write bytes or text to `path` atomically, creating its folder if needed."""
     path = Path(path)

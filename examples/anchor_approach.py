@@ -79,6 +79,7 @@ def draw_episode(trace: dict, title: str, path: Path) -> None:
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from cefc_mj.fileio import atomic_write
     from cefc_mj.eval.runner import TABLE8_ANCHOR_REDRAW
 
     positions, anchors = trace["positions"], trace["anchors"]
@@ -95,10 +96,8 @@ def draw_episode(trace: dict, title: str, path: Path) -> None:
         ax.set(xlim=(-10, 10), ylim=(-10, 10), aspect="equal", title=f"anchor period {k + 1}")
     fig.suptitle(title)
     fig.tight_layout()
-    tmp = path.with_name(path.name + ".tmp.png")
-    fig.savefig(tmp, dpi=80)
+    atomic_write(path, lambda fh: fig.savefig(fh, format="png", dpi=80))  # a picture is complete or absent
     plt.close(fig)
-    tmp.replace(path)  # a picture is complete or absent
 
 
 def parse(argv: list[str] | None) -> argparse.Namespace:
@@ -125,13 +124,12 @@ def parse(argv: list[str] | None) -> argparse.Namespace:
     except CefcError as e:
         parser.exit(2, f"{PROG}: --policy {args.policy}: {e}\n")
     if args.png is not None:
+        from cefc_mj.errors import ConfigError
+        from cefc_mj.fileio import make_writable_folder
         try:
-            args.png.mkdir(parents=True, exist_ok=True)
-            probe = args.png / ".write-test"
-            probe.write_bytes(b"")
-            probe.unlink()
-        except OSError as e:
-            parser.exit(2, f"{PROG}: --png {args.png}: cannot write there ({e.strerror or e})\n")
+            make_writable_folder(args.png)
+        except ConfigError as e:
+            parser.exit(2, f"{PROG}: --png {args.png}: {e}\n")
     return args
 
 

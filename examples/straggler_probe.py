@@ -83,6 +83,7 @@ def draw_failures(traces: list[dict], title: str, path: Path) -> None:
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from cefc_mj.fileio import atomic_write
 
     fig, axes = plt.subplots(1, len(traces), figsize=(3.6 * len(traces), 3.9), squeeze=False)
     for ax, trace in zip(axes[0], traces):
@@ -96,10 +97,8 @@ def draw_failures(traces: list[dict], title: str, path: Path) -> None:
         ax.set(aspect="equal", title=trace["title"])
     fig.suptitle(title)
     fig.tight_layout()
-    tmp = path.with_name(path.name + ".tmp.png")
-    fig.savefig(tmp, dpi=80)
+    atomic_write(path, lambda fh: fig.savefig(fh, format="png", dpi=80))  # a picture is complete or absent
     plt.close(fig)
-    tmp.replace(path)  # a picture is complete or absent
 
 
 def parse(argv: list[str] | None) -> argparse.Namespace:
@@ -120,13 +119,12 @@ def parse(argv: list[str] | None) -> argparse.Namespace:
     if args.seed < 0:
         parser.exit(2, f"{PROG}: --seed {args.seed}: must be at least 0\n")
     if args.png is not None:
+        from cefc_mj.errors import ConfigError
+        from cefc_mj.fileio import make_writable_folder
         try:
-            args.png.mkdir(parents=True, exist_ok=True)
-            probe = args.png / ".write-test"
-            probe.write_bytes(b"")
-            probe.unlink()
-        except OSError as e:
-            parser.exit(2, f"{PROG}: --png {args.png}: cannot write there ({e.strerror or e})\n")
+            make_writable_folder(args.png)
+        except ConfigError as e:
+            parser.exit(2, f"{PROG}: --png {args.png}: {e}\n")
     from cefc_mj.errors import CefcError
     from cefc_mj.eval.runner import load_policy_for
     try:

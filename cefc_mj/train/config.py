@@ -14,7 +14,7 @@ import re
 from dataclasses import dataclass, field
 
 from cefc_mj.errors import ConfigError
-from cefc_mj.task.config import FORMATION_EPISODE_STEPS
+from cefc_mj.task.config import FORMATION_EPISODE_STEPS, STRAGGLER_MAX_DISTANCE, STRAGGLER_MIN_DISTANCE
 
 FORMATIONS = (3, 4, 5, 6, 7, 8)
 """The paper's formation sizes c (Fig. 3)."""
@@ -391,8 +391,8 @@ class LowLevelConfig(BudgetPPODict):
             out.append(f"episodes of {self.anchor_periods} anchor periods of {FORMATION_EPISODE_STEPS} steps, the anchor "
                        "redrawn at each (paper: one anchor per episode)")
         if self.straggler_fraction:
-            out.append(f"in {self.straggler_fraction:.0%} of the episodes one agent starts 3-7 m from the others "
-                       "(paper: every agent in the start square)")
+            out.append(f"in {self.straggler_fraction:.0%} of the episodes one agent starts {STRAGGLER_MIN_DISTANCE:g}-"
+                       f"{STRAGGLER_MAX_DISTANCE:g} m from the others (paper: every agent in the start square)")
         return out
 
     @property
