@@ -104,6 +104,11 @@ def test_policy_file_round_trip_and_name_resolution(tmp_path):
         policy.act(obs[..., :10])
     with pytest.raises(CheckpointError, match="no policy"):
         load_policy("atm_c9_step3", policies_dir=tmp_path)
+    # a bare name is looked up in the policies folder; a missing path is never replaced by a policy
+    # of the same file name there
+    assert load_policy("atm_c6_safe", policies_dir=tmp_path).name == "atm_c6_safe"
+    with pytest.raises(CheckpointError, match="no policy file 'elsewhere/atm_c6_safe.pt'"):
+        load_policy("elsewhere/atm_c6_safe.pt", policies_dir=tmp_path)
 
 
 class Evil:

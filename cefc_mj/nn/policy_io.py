@@ -131,11 +131,14 @@ class _ParametersOnMeta(TorchFunctionMode):
 
 
 def resolve_policy_path(path_or_name: str | Path, policies_dir: Path | None = None) -> Path:
-    """A path to an existing file, or a name looked up as `<policies_dir>/<name>.pt`
-    (policies_dir defaults to `cefc_mj.paths.POLICIES_DIR`)."""
+    """A path to an existing file, or a bare name looked up as `<policies_dir>/<name>.pt`
+    (policies_dir defaults to `cefc_mj.paths.POLICIES_DIR`). A path with a folder part that is not
+    a file is an error, never replaced by a shipped policy of the same file name."""
     candidate = Path(path_or_name)
     if candidate.is_file():
         return candidate
+    if len(candidate.parts) > 1:
+        raise CheckpointError(f"no policy file {str(path_or_name)!r}")
     base = Path(policies_dir) if policies_dir is not None else paths.POLICIES_DIR
     for name in (candidate.name, candidate.name + ".pt"):
         if (base / name).is_file():
