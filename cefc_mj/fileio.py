@@ -49,16 +49,29 @@ def atomic_write(path: Path, write: Callable[[BinaryIO], object]) -> None:
         raise
 
 
+def can_write_in(folder: Path) -> bool:
+    """Whether a file can be created in the existing `folder`: permissions, then a real probe (root
+    passes every permission check, yet cannot write into /proc or a read-only mount)."""
+    if not os.access(folder, os.W_OK | os.X_OK):
+        return False
+    try:
+        fd, probe = tempfile.mkstemp(dir=folder, prefix=".write-probe-")
+    except OSError:
+        return False
+    os.close(fd)
+    os.unlink(probe)
+    return True
+
+
 def make_writable_folder(path: Path) -> None:
-    """Create the folder `path` (and its parents) and write and remove a probe file in it; a
-    ConfigError says why not (root passes every permission check, yet cannot write into /proc)."""
+    """Create the folder `path` (and its parents) and check that a file can be written in it
+    (`can_write_in`); a ConfigError says why not."""
     try:
         Path(path).mkdir(parents=True, exist_ok=True)
-        fd, probe = tempfile.mkstemp(dir=path, prefix=".write-probe-")
-        os.close(fd)
-        os.unlink(probe)
     except OSError as e:
         raise ConfigError(f"cannot write there ({e.strerror or e})") from None
+    if not can_write_in(path):
+        raise ConfigError("cannot write there (a probe file could not be created)")
 
 
 def write_atomic(path: Path, data: bytes | str) -> None:

@@ -19,12 +19,12 @@ import os
 import re
 import shlex
 import sys
-import tempfile
 import time
 from pathlib import Path
 
 from cefc_mj.errors import CefcError
 from cefc_mj.eval import DEFAULT_POLICY
+from cefc_mj.fileio import can_write_in
 from cefc_mj.sim.wind import MAX_WIND_SPEED
 
 EXIT_USAGE = 2
@@ -166,20 +166,6 @@ def usage_error(message: str):
 
 
 # ---------------------------------------------------------------------------- output paths
-def _can_write_in(folder: Path) -> bool:
-    """Whether a file can be created in `folder`: permissions, then a real probe (root passes every
-    permission check, yet cannot write into /proc or a read-only mount)."""
-    if not os.access(folder, os.W_OK | os.X_OK):
-        return False
-    try:
-        fd, probe = tempfile.mkstemp(dir=folder, prefix=".cefc-eval-probe-")
-    except OSError:
-        return False
-    os.close(fd)
-    os.unlink(probe)
-    return True
-
-
 def check_output(flag: str, path: Path, is_dir: bool = False) -> None:
     """Refuse (one line, exit 2) an output path that cannot be written, before any work.
 
@@ -201,7 +187,7 @@ def check_output(flag: str, path: Path, is_dir: bool = False) -> None:
         usage_error(f"{flag} {path}: {ancestor} is a file, not a folder")
     if missing and (str(ancestor) in SYSTEM_FOLDERS or ancestor == Path(ancestor.anchor)):
         usage_error(f"{flag} {path}: will not create {missing[-1]} inside the system folder {ancestor}")
-    if not _can_write_in(ancestor):
+    if not can_write_in(ancestor):
         usage_error(f"{flag} {path}: {ancestor} is not writable")
 
 
