@@ -120,6 +120,9 @@ def test_bad_output_folders(tmp_path, capsys):
         (LOW + ["--policies-dir", str(a_file / "pol")], "--policies-dir"),
         (LOW + ["--policies-dir", str(paths.POLICIES_DIR)], "written only with --install"),
         (LOW + ["--out", str(paths.POLICIES_DIR / "runs")], "inside the shipped policies folder"),
+        # /proc passes os.access for root; only a real probe file shows that nothing can be written there
+        (LOW + ["--out", "/proc/forbidden/runs"], "/proc is not writable"),
+        (LOW + ["--policies-dir", "/proc"], "/proc is not writable"),
     ):
         assert needle in usage_error(argv, capsys)
     assert files_under(tmp_path) == ["a_file"]

@@ -19,13 +19,13 @@ checkpoint. Invalid input prints one line and exits with status 2 before anythin
 from __future__ import annotations
 
 import argparse
-import os
 import shlex
 import sys
 from pathlib import Path
 
 from cefc_mj import paths
 from cefc_mj.errors import CefcError, ConfigError
+from cefc_mj.fileio import can_write_in
 from cefc_mj.train.config import CLM_CURRICULUM, FORMATIONS, Budget, DistillConfig, LowLevelConfig, PPOConfig
 
 EXIT_USAGE = 2
@@ -301,7 +301,7 @@ def _check_folder(flag: str, folder: Path) -> None:
         probe = probe.parent
     if not probe.is_dir():
         raise ConfigError(f"{flag} {folder}: {probe} is a file, not a folder")
-    if not os.access(probe, os.W_OK | os.X_OK):
+    if not can_write_in(probe):
         raise ConfigError(f"{flag} {folder}: {probe} is not writable")
 
 
