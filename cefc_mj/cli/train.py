@@ -275,7 +275,7 @@ def _highlevel_parser(sub) -> None:
     p.add_argument("--consmac-steps", type=int, default=None, metavar="N",
                    help="Adam steps per ConsMAC round (default 200; the paper's 5000)")
     p.add_argument("--consmac-batch", type=int, default=None, metavar="N", help="ConsMAC batch (default 2048)")
-    p.add_argument("--consmac-lr", type=float, default=None, metavar="LR", help="ConsMAC learning rate (default 1e-3)")
+    p.add_argument("--consmac-lr", type=float, default=None, metavar="LR", help="ConsMAC learning rate (default 1e-4, the paper's)")
     p.add_argument("--replay", type=int, default=None, metavar="N", dest="replay_capacity",
                    help="ConsMAC replay capacity in agent-decisions (default 50000)")
     p.add_argument("--eval-episodes", type=int, default=None, metavar="N",

@@ -96,7 +96,7 @@ def _check_int(name: str, value: object, least: int, most: int | None = None) ->
 @dataclass(frozen=True)
 class HighLevelConfig(BudgetPPODict):
     """One high-level training run (Algorithm 2). Defaults are the paper's where it gives a value
-    (Sec. V-A); `consmac_steps` and `consmac_lr` are scaled to a 2-core budget (docs/high_level.md)."""
+    (Sec. V-A); `consmac_steps` is scaled to a 2-core budget (docs/high_level.md)."""
 
     budget: Budget
     """Iterations (each: n_envs x episodes_per_iteration episodes, then the updates) and/or
@@ -133,8 +133,10 @@ class HighLevelConfig(BudgetPPODict):
     2-core CPU, so 5000 would be 98 % of a run)."""
     consmac_batch: int = 2048
     """Tuples per ConsMAC step (paper: 2048), drawn uniformly with replacement from the replay."""
-    consmac_lr: float = 1e-3
-    """ConsMAC's Adam learning rate (the paper's 1e-4 was chosen for 25x more steps per round)."""
+    consmac_lr: float = 1e-4
+    """ConsMAC's Adam learning rate (paper: 1e-4). The selector reads ConsMAC's messages, so every
+    round moves its input; at 1e-3 the messages drifted 10x faster and the selector learned to evade
+    worse (docs/decisions.md)."""
     replay_capacity: int = 50_000
     """Tuples (agent-decisions) the replay B_C keeps, newest first out last (about 8 iterations of
     20 envs; 2.5 KB each)."""
