@@ -135,7 +135,7 @@ class HighLevelConfig(BudgetPPODict):
     """Tuples per ConsMAC step (paper: 2048), drawn uniformly with replacement from the replay."""
     consmac_lr: float = 1e-4
     """ConsMAC's Adam learning rate (paper: 1e-4). The selector reads ConsMAC's messages, so every
-    round moves its input; at 1e-3 the messages drifted 10x faster and the selector learned to evade
+    round moves its input; at 1e-3 (Adam's steps scale with the rate) the selector learned to evade
     worse (docs/decisions.md)."""
     replay_capacity: int = 50_000
     """Tuples (agent-decisions) the replay B_C keeps, newest first out last (about 8 iterations of
