@@ -2,21 +2,21 @@
 shipped student, the PPO adversary).
 
 Closed-loop figures are chaotic: the same seed repeats bit for bit on one machine, not across CPUs
-or library builds. And one training seed is not the method: the three shipped CI-HRL seeds differ by
-more than the episodes' noise (E 1.8-8.9 s each). So the test pools the three seeds, 20 episodes
+or library builds. And one training seed is not the method: the three shipped CI-HRL seeds differ
+(E 2.9-5.2 s each, below). So the test pools the three seeds, 20 episodes
 each, and asserts the pooled means against bands set from the measured spread. Measured (particle
 world, seconds scale, pooled over the seeds; per seed in brackets):
 
     20 episodes per seed, seed 100 / 200   R_t                       E (s)
-    CI-HRL (seeds 0, 1, 2)                 140.2 / 116.8             5.21 / 5.87
-                                           (146, 185, 89 / 144, 127, 80)  (4.9, 1.8, 8.9 / 5.3, 3.7, 8.6)
+    CI-HRL (seeds 0, 1, 2), 150 it         180.0 / 138.6             4.79 / 3.56
+                                           (174, 168, 198 / 118, 132, 166)  (5.2, 3.9, 5.2 / 3.3, 2.9, 4.5)
     CI-HRL-wo-FT (pre-training only)       136.4 / 110.0             3.62 / 4.22
     untrained networks (build seeds 0-2)    35.3 /  25.2            26.27 / 28.01
 
-The standard error of a pooled 60-episode mean is about 13 for R_t and 0.6 s for E; the bands sit
-about 3 of them from the shipped policies' means at seed 100: R_t >= 100 and E <= 7.5 s. Untrained
-networks fail both by far (the pre-trained weights without fine-tuning pass both; they are not
-asserted).
+The standard error of a pooled 60-episode mean is about 13 for R_t and 0.6 s for E, and the two
+draws of episodes differ by 41 in R_t: the bands sit about 3 standard errors beyond the worse of the
+two draws, R_t >= 100 and E <= 6.5 s. Untrained networks fail both by far (the pre-trained weights
+without fine-tuning pass both; they are not asserted).
 """
 
 import numpy as np
@@ -31,7 +31,7 @@ pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 EPISODES, SEED = 20, 100
 R_T_FLOOR = 100.0
-E_CEILING_S = 7.5
+E_CEILING_S = 6.5
 CI_HRL_SEEDS = ("cihrl_consmac_a", "cihrl_consmac_a_seed1", "cihrl_consmac_a_seed2")
 
 
