@@ -100,7 +100,8 @@ class HighLevelConfig(BudgetPPODict):
 
     budget: Budget
     """Iterations (each: n_envs x episodes_per_iteration episodes, then the updates) and/or
-    wall-clock time, counted across resumes. The paper's 1000 + 500 episodes are 75 iterations of 20."""
+    wall-clock time, counted across resumes. The paper's 1000 + 500 episodes are 75 iterations of 20;
+    the shipped high levels ran those 75 and were continued with --resume to 150 (docs/decisions.md)."""
     variant: str = "consmac-a"
     """consmac-a / consmac-o: ConsMAC with the anchors / the observations of all agents as labels;
     mappo: no communication; tarmac: the communication module trained end to end by the RL loss."""
