@@ -26,12 +26,25 @@ from cefc_mj.task.config import TaskConfig
 from cefc_mj.task.formation import formation_template
 
 
+PYRVO_MISSING = "ORCA-F needs the RVO2 binding pyrvo, an optional extra: pip install -e '.[baselines]'"
+"""The one line that says how to get the ORCA-F baseline's optional dependency."""
+
+
+def pyrvo_available() -> bool:
+    """Whether the optional RVO2 binding `pyrvo` imports (checked before any ORCA-F work starts)."""
+    try:
+        import pyrvo  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
 def _pyrvo():
     """The pyrvo module (RVO2 bindings), or ImportError saying how to get it."""
     try:
         import pyrvo
     except ImportError as exc:  # pragma: no cover - depends on the install
-        raise ImportError("ORCA-F needs the RVO2 binding pyrvo: pip install 'pyrvo>=0.4.3'") from exc
+        raise ImportError(PYRVO_MISSING) from exc
     return pyrvo
 
 

@@ -87,6 +87,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "--wind and --deviation)")
     p.add_argument("--wind", type=float, default=None, metavar="MPS",
                    help=f"mean wind speed in m/s, 0..{MAX_WIND_SPEED:g} (single, table5-7; MuJoCo; default 0)")
+    p.add_argument("--wind-direction", type=float, default=None, metavar="DEG",
+                   help="the direction the wind blows towards, degrees, ENU (0 = +x, east; 90 = +y, north); default: "
+                        "drawn per episode from the seed (single and table5-7 with --wind; table8's Wind rows; MuJoCo)")
     p.add_argument("--deviation", type=float, default=None, metavar="M",
                    help=f"sensing deviation in m, 0..{MAX_DEVIATION:g} (single, table5-7; default 0)")
     p.add_argument("--formation", type=int, nargs="+", metavar="C",
@@ -289,6 +292,19 @@ def validate(args: argparse.Namespace) -> None:
 
     if args.backend == "particle" and args.wind:
         usage_error("--wind: the particle backend has no wind model; use --backend mujoco")
+    if args.wind_direction is not None:
+        from cefc_mj.sim.wind import wind_config_direction
+
+        if args.backend != "mujoco":
+            usage_error("--wind-direction: the particle backend has no wind model; use --backend mujoco")
+        if proto not in ("table8", "table3") and not args.wind:
+            usage_error("--wind-direction: there is no wind to point; add --wind MPS")
+        if proto == "table3":
+            usage_error("--wind-direction: Table III is flown in the particle world, without wind")
+        try:
+            wind_config_direction(args.wind_direction)
+        except CefcError:
+            usage_error(f"--wind-direction {args.wind_direction:g}: must be a finite angle in degrees")
     recording = [flag for flag, on in (("--rrd", args.rrd), ("--png", args.png), ("--spawn", args.spawn)) if on]
     if proto not in ("table8", *HIGHLEVEL_PROTOCOLS) and args.report_dir is not None:
         usage_error(f"--report-dir: only --protocol table8, table5, table6 and table7 write a report folder "
@@ -425,9 +441,14 @@ def load_policies(args: argparse.Namespace) -> dict:
             resolve_adversary(args.adversary or GAME_ADVERSARY)
         return provenance("atm", [])  # the tables record each row's file and sha256 themselves
     if args.protocol == "table3":
+        from cefc_mj.baselines.orca import PYRVO_MISSING, pyrvo_available
         from cefc_mj.eval.table3 import POLICY_CHOICES, policy_file_for
 
+        if args.policy == "orca" and not pyrvo_available():
+            usage_error(f"--policy orca: {PYRVO_MISSING}")
         if args.policy is None:  # every method: missing files are listed, not fatal (run_table3)
+            if not pyrvo_available():
+                print(f"note: ORCA-F skipped: {PYRVO_MISSING}", file=sys.stderr)
             return provenance("atm", [])
         for c in args.formation:
             name = policy_file_for(POLICY_CHOICES[args.policy], c) if args.policy in POLICY_CHOICES else args.policy
@@ -507,7 +528,7 @@ def _single(args: argparse.Namespace) -> int:
     seeds = list(range(args.seed, args.seed + episodes))
     specs = [EpisodeSpec(formation=c, seed=seed, backend=args.backend, wind=wind, deviation=dev, steps=steps,
                          policy=args.policy, airframe=args.airframe, estimator=args.estimator, offboard=args.offboard,
-                         guard=args.guard)
+                         guard=args.guard, wind_direction=args.wind_direction if wind else None)
              for wind, dev in conditions for c in formations for seed in seeds]
     asked = list(range(len(formations) * len(seeds)))  # the first condition's episodes
     calm = list(range(len(asked), len(specs)))
@@ -515,7 +536,9 @@ def _single(args: argparse.Namespace) -> int:
     batches = [(asked, {"sitl": args.sitl, "drop": None if args.sitl is not None else args.drop}), (calm, {})]
     recording = bool(args.rrd or args.spawn or args.png)
     vs = " vs calm air (SITL-S)" if condition != "SITL-S" else ""
-    print(f"{PROG}: {condition}{vs}; policy {args.policy}; {args.backend}; c = {', '.join(map(str, formations))}; "
+    world = (f"mujoco ({args.airframe} airframe{wind_direction_text(vars(args))})" if args.backend == "mujoco"
+             else args.backend)
+    print(f"{PROG}: {condition}{vs}; policy {args.policy}; {world}; c = {', '.join(map(str, formations))}; "
           f"seeds {_seed_range(seeds)} ({episodes} per cell); {steps} steps per episode; {len(specs)} episodes"
           + (f" on {args.workers} workers" if args.workers > 1 else ""))
     finished: dict[int, dict] = {}
@@ -553,7 +576,8 @@ def _single(args: argparse.Namespace) -> int:
     summary = {
         "schema": "cefc-eval/single", "schema_version": 2, "protocol": "single", "command": args.command,
         "complete": not interrupted, "backend": args.backend, "policy": args.policy, "estimator": args.estimator,
-        "offboard": args.offboard, "guard": args.guard,
+        "offboard": args.offboard, "guard": args.guard, "airframe": args.airframe,
+        "wind_direction": args.wind_direction if args.wind else None,
         "condition": condition,
         "wind": args.wind, "deviation": args.deviation, "steps": steps, "seeds": seeds,
         "comparable_to_paper": steps == PAPER_STEPS, "provenance": args.provenance, "rows": table,
@@ -612,6 +636,14 @@ def _render(rows: list[list[str]], right: set[int]) -> list[str]:
             for row in rows]
 
 
+def wind_direction_text(summary: dict) -> str:
+    """", wind towards 90°" or ", wind direction drawn per episode" where the run has wind; "" otherwise."""
+    if not summary.get("wind"):
+        return ""
+    given = summary.get("wind_direction")
+    return ", wind direction drawn per episode from the seed" if given is None else f", wind towards {given:g}° (ENU)"
+
+
 def single_table(summary: dict) -> str:
     """The single protocol's table: per c, our condition and calm rows, then the paper's rows, every
     column labelled; mean ± std over seeds; '-' with its reason where a value is undefined."""
@@ -627,7 +659,9 @@ def single_table(summary: dict) -> str:
         f"  F = decision steps in formation, N = decision steps with the swarm centre within 1 m of the anchor "
         f"(each out of {steps}),",
         "  C = % of agent-steps in collision, retention = (F+N) / (F+N of the calm row above it: same c, same seeds).",
-        f"  ours: {summary['backend']}, policy {summary['policy']}, "
+        f"  ours: {summary['backend']}"
+        + (f" ({summary.get('airframe', 'iris')} airframe{wind_direction_text(summary)})" if summary['backend'] == "mujoco" else "")
+        + f", policy {summary['policy']}, "
         f"{summary.get('estimator', 'raw')} position estimate"
         + guard_text(summary)
         + (f", {summary.get('offboard', 'velocity')} offboard setpoints, " if summary['backend'] == "mujoco" else ", ")
@@ -694,7 +728,7 @@ def _table8(args: argparse.Namespace) -> int:
     prov = args.provenance
     out: Path = args.report_dir
     specs = table8_specs(args.formation, args.episodes, args.seed, args.steps, args.backend, args.policy,
-                         args.airframe, args.estimator, args.offboard, args.guard)
+                         args.airframe, args.estimator, args.offboard, args.guard, args.wind_direction)
     policy_sha256 = {c: prov["policies"][str(c)]["sha256"] for c in args.formation}
     cells = plan_cells(specs, policy_sha256, prov["code_version"])
     if args.sitl is not None:  # the SITL-M row: the calm specs again, one process per UAV
@@ -704,8 +738,10 @@ def _table8(args: argparse.Namespace) -> int:
     known = {} if args.fresh else load_cells(cell_file)
     reused = sum(cell.key in known for cell in cells)
     rows_desc = "7 conditions" + (" + SITL-M" if args.sitl is not None else "")
+    wind_towards = "drawn per episode" if args.wind_direction is None else f"towards {args.wind_direction:g}° (ENU)"
     print(f"{PROG} table8: {len(cells)} episodes ({len(args.formation)} c x {rows_desc} x {args.episodes} seeds, "
-          f"{args.steps} steps), policy {args.policy}, {args.estimator} position estimate, "
+          f"{args.steps} steps), {args.airframe} airframe, Wind rows' direction {wind_towards}, "
+          f"policy {args.policy}, {args.estimator} position estimate, "
           f"{'separation guard' if args.guard else 'no separation guard'}, {args.executor.describe()}"
           + ("; SITL-M episodes fly one at a time" if args.sitl is not None else ""))
     print(f"reports go to {out}" + ("  (the shipped reports folder, as --report-dir asks)"
@@ -727,8 +763,8 @@ def _table8(args: argparse.Namespace) -> int:
         return EXIT_INTERRUPTED
     table = aggregate(rows)
     meta = {"command": args.command, "backend": args.backend, "policy": args.policy, "estimator": args.estimator,
-            "offboard": args.offboard, "guard": args.guard,
-            "episodes": args.episodes,
+            "offboard": args.offboard, "guard": args.guard, "airframe": args.airframe,
+            "wind_direction": args.wind_direction, "episodes": args.episodes,
             "seed": args.seed, "steps": args.steps, "report_dir": str(out), "cell_file": str(cell_file),
             "cells_reused": reused, "cells_total": len(cells), "provenance": prov}
     markdown = report_markdown(table, meta)
@@ -771,10 +807,11 @@ def _highlevel_table(args: argparse.Namespace) -> int:
     proto = args.protocol
     playing = f"policy {args.policy}" if args.policy else "every method" if proto == "table5" else "cihrl_consmac_a"
     uavs = "N = " + ", ".join(map(str, TABLE7_SIZES)) if proto == "table7" else "8"
-    print(f"{PROG} {proto}: {args.backend}, wind {args.wind:g} m/s, deviation {args.deviation:g} m, {uavs} UAVs, "
+    world = f"mujoco (iris airframe{wind_direction_text(vars(args))})" if args.backend == "mujoco" else args.backend
+    print(f"{PROG} {proto}: {world}, wind {args.wind:g} m/s, deviation {args.deviation:g} m, {uavs} UAVs, "
           f"{args.episodes} episodes x 400 steps, seed {args.seed}, {playing}")
     prov = {k: v for k, v in args.provenance.items() if k != "policies"}
-    where = Conditions(args.backend, args.wind, args.deviation)
+    where = Conditions(args.backend, args.wind, args.deviation, args.wind_direction)
     if proto == "table5":
         result = run_table5(episodes=args.episodes, seed=args.seed, policy=args.policy, provenance=prov, where=where,
                             adversary=args.adversary or GAME_ADVERSARY)

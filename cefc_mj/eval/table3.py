@@ -28,7 +28,7 @@ from cefc_mj.env import BatchedCEFCEnv
 from cefc_mj.errors import CheckpointError, ConfigError
 from cefc_mj.fileio import write_atomic
 from cefc_mj.nn.policy_io import Policy, load_policy
-from cefc_mj.provenance import file_sha256
+from cefc_mj.provenance import display_path, file_sha256
 from cefc_mj.task.config import TaskConfig
 
 TABLE3_DENSITY = 0.05
@@ -135,11 +135,11 @@ def _row(per_episode: dict[str, np.ndarray], c: int, method: str) -> dict:
 
 def _orca_row(c: int, episodes: int, seed: int, steps: int, required: bool) -> dict | None:
     """ORCA-F's row (same episodes as the policies'), or None when pyrvo is missing and not required."""
-    try:
-        from cefc_mj.baselines.orca import evaluate_orca_episodes
-    except ImportError:
+    from cefc_mj.baselines.orca import PYRVO_MISSING, evaluate_orca_episodes, pyrvo_available
+
+    if not pyrvo_available():  # pyrvo is imported only when the simulators are built: check before any work
         if required:
-            raise ConfigError("--policy orca: the ORCA-F baseline needs pyrvo (pip install 'cefc-mj[baselines]')")
+            raise ConfigError(f"--policy orca: {PYRVO_MISSING}")
         return None
     per_episode = evaluate_orca_episodes(c, episodes=episodes, seed=seed, steps=steps)
     return {**_row(per_episode, c, "ORCA-F"), "policy": "ORCA-F (pyrvo, RVO2)", "sha256": None}
@@ -172,7 +172,7 @@ def run_table3(formations=TABLE3_FORMATIONS, episodes: int = TABLE3_EPISODES, se
     result: dict = {
         "schema": "cefc-eval/table3", "schema_version": 2,
         "protocol": {"backend": "particle", "density": TABLE3_DENSITY, "episodes": episodes, "steps": steps,
-                     "seed": seed, "policies_dir": str(policies_dir), "policy": policy,
+                     "seed": seed, "policies_dir": display_path(policies_dir), "policy": policy,
                      "comparable_to_paper": steps == TABLE3_STEPS, "missing": []},
     }
     if provenance is not None:
@@ -190,7 +190,7 @@ def run_table3(formations=TABLE3_FORMATIONS, episodes: int = TABLE3_EPISODES, se
             if method == "ORCA-F":
                 row = _orca_row(c, episodes, seed, steps, required=policy is not None)
                 if row is None:
-                    result["protocol"]["missing"].append(f"{c}/ORCA-F (pyrvo not installed: pip install 'cefc-mj[baselines]')")
+                    result["protocol"]["missing"].append(f"{c}/ORCA-F (pyrvo not installed: pip install -e '.[baselines]')")
                 else:
                     rows[method] = row
                 continue
