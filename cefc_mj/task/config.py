@@ -27,6 +27,12 @@ DEFAULT_NEIGHBOUR_SLOTS = 7
 """K when TaskConfig.max_neighbours is None: N - 1 for the paper's 8 UAVs."""
 STRAGGLER_MIN_DISTANCE, STRAGGLER_MAX_DISTANCE = 3.0, 7.0
 """A straggler (TaskConfig.straggler_fraction) starts this far (m) from the start square's centre."""
+START_SPACING_MARGIN = 0.1
+"""Room (m) beyond two UAV radii between any two start positions (TaskConfig.start_min_spacing = 0.5 +
+0.1): a pair starting at rest closes by at most 2 sqrt(2) a_max dt^2 = 0.057 m in its first decision
+step (both at a_max per axis towards each other), and a quadrotor's footprint disc tilted towards a
+neighbour reaches sqrt(0.25^2 + 0.05^2) = 0.255 m from its centre; 0.6 m is also the centre distance
+the separation guard holds (task/guard.py)."""
 ADVERSARY_RULES = ("nearest_group", "r_nearest", "r_largest", "none")
 LEARNED_ADVERSARY = "learned"
 """TaskConfig.adversary of a trained adversary: the env asks its `adversary_policy` for the acceleration."""
@@ -82,8 +88,9 @@ class TaskConfig:
     """The arena is [-a, a]^2 m (20 m x 20 m); obstacles are placed inside it."""
     start_half_size: float = 2.0
     """Agents start uniformly in [-s, s]^2 m."""
-    start_min_spacing: float = 0.5
-    """Minimum distance between two start positions (m)."""
+    start_min_spacing: float = 0.6
+    """Minimum distance between two start positions (m): two UAV radii (0.5) plus START_SPACING_MARGIN, so no
+    pair is in contact at the start or after its first decision step (docs/decisions.md, "Start spacing")."""
     straggler_fraction: float = 0.0
     """Fraction of episodes (drawn per env at reset) in which the last agent starts away from the
     others: 3-7 m from the start square's centre and at least observation_distance from every other
@@ -261,6 +268,9 @@ class TaskConfig:
             fail("start_half_size", self.start_half_size, "must be smaller than arena_half_size")
         if self.anchor_half_size > self.arena_half_size:
             fail("anchor_half_size", self.anchor_half_size, "must be at most arena_half_size")
+        if self.start_min_spacing < 2 * self.uav_radius:
+            fail("start_min_spacing", self.start_min_spacing,
+                 f"must be at least 2 x uav_radius = {2 * self.uav_radius:g} m, or two UAVs start in contact")
         # Start positions: the square must hold N points at min spacing (hexagonal packing bound).
         side = 2 * self.start_half_size
         if self.start_min_spacing > 0:
