@@ -40,7 +40,7 @@ from cefc_mj.env import BatchedCEFCEnv
 from cefc_mj.errors import ConfigError
 from cefc_mj.nn.policy_io import Policy, load_policy, resolve_policy_path
 from cefc_mj.nn.selector import ANCHOR_VALUES, anchor_grid
-from cefc_mj.provenance import file_sha256
+from cefc_mj.provenance import display_path, file_sha256
 from cefc_mj.sim.world import World
 from cefc_mj.task.config import TaskConfig
 from cefc_mj.task.observation import ObservationLayout, build_low_level_observation, low_level_layout
@@ -160,7 +160,7 @@ class PerGroupPolicies:
 
 def _file_record(path: Path) -> dict:
     path = Path(path).resolve()
-    return {"path": str(path), "sha256": file_sha256(path)}
+    return {"path": display_path(path), "sha256": file_sha256(path)}
 
 
 def load_low_level(spec: str, task: TaskConfig, policies_dir: Path | None = None) -> LowLevel:

@@ -39,6 +39,19 @@ def code_version() -> str:
     return digest.hexdigest()[:16]
 
 
+def display_path(path: str | os.PathLike) -> str:
+    """A path as reports and model cards record it: relative to the project root when inside it
+    ('policies/atm_c6_step3.pt'), else relative to the working folder when inside that ('runs/x'), else
+    absolute (a folder of the user's that no relative path names)."""
+    path = Path(path).resolve()
+    for base in (paths.PROJECT_ROOT, Path.cwd()):
+        try:
+            return path.relative_to(base.resolve()).as_posix()
+        except ValueError:
+            continue
+    return str(path)
+
+
 def file_sha256(path: Path) -> str:
     """The SHA-256 of a file's bytes (hex); memoized on (path, size, mtime), so a replaced file is re-read."""
     st = os.stat(path)

@@ -364,7 +364,7 @@ def train_adversary(cfg: AdversaryConfig, out: Path, policies_dir: Path, resume:
         "episodes": trainer.episodes,
         "steps": trainer.episodes * trainer.task.steps,
         "train_wall_clock_s": round(trainer.elapsed, 1),
-        "run_dir": str(run_dir),
+        "run_dir": display_path(run_dir),
         "command": command,
         "last_iteration": {k: v for k, v in last_row.items() if isinstance(v, (int, float))},
     }

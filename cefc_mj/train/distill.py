@@ -210,7 +210,7 @@ def train_student(cfg: DistillConfig, policies_dir: Path, out: Path, resume: boo
         "samples": step * per_teacher * len(replay),
         "train_wall_clock_s": round(elapsed, 1),
         "held_out_error": errors,
-        "run_dir": str(run_dir),
+        "run_dir": display_path(run_dir),
         "command": command,  # with config and teachers: the run's config.json
     }
     if evaluate:

@@ -59,7 +59,7 @@ from cefc_mj.task.messages import MessageChannel
 from cefc_mj.train.config import MAX_DENSITY, MAX_SEED, Budget, BudgetPPODict, PPOConfig, config_from_flags
 from cefc_mj.train.logger import RunLogger
 from cefc_mj.train.mappo import iteration_seed
-from cefc_mj.train.model_card import display_paths, write_model_card
+from cefc_mj.train.model_card import display_path, display_paths, write_model_card
 from cefc_mj.train import run_state
 from cefc_mj.train.ppo import ValueNorm, advantages_and_targets, ppo_epochs
 from cefc_mj.train.run_state import STATE_FILE
@@ -647,7 +647,7 @@ def export_policy(policy: HighLevelPolicy, cfg: HighLevelConfig, task: TaskConfi
         "episodes": episodes,
         "decisions": episodes * cfg.decision_steps * cfg.n_agents,
         "train_wall_clock_s": round(trainer.elapsed, 1),
-        "run_dir": str(run_dir),
+        "run_dir": display_path(run_dir),
         "command": command,
     }
     if wo_ft:

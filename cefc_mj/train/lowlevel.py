@@ -288,7 +288,7 @@ def train_lowlevel(cfg: LowLevelConfig, out: Path, policies_dir: Path, resume: b
         "env_steps": trainer.agent_steps // cfg.formation,
         "train_wall_clock_s": round(trainer.elapsed, 1),
         "last_iteration": {k: v for k, v in last_row.items() if isinstance(v, (int, float))},
-        "run_dir": str(run_dir),
+        "run_dir": display_path(run_dir),
         "command": command,  # with config, task and init: the run's config.json
     }
     if evaluate:

@@ -13,7 +13,7 @@ from cefc_mj import paths
 from cefc_mj.eval.table3 import PAPER_TABLE3, TABLE3_DENSITY, TABLE3_EPISODES, TABLE3_STEPS, evaluate_lowlevel
 from cefc_mj.fileio import write_atomic
 from cefc_mj.nn.policy_io import load_policy
-from cefc_mj.provenance import git_commit, library_versions
+from cefc_mj.provenance import display_path, git_commit, library_versions
 
 
 def table3_figures(policy_path: Path, formation: int, method: str | None, seed: int = 0) -> dict:
@@ -25,16 +25,6 @@ def table3_figures(policy_path: Path, formation: int, method: str | None, seed: 
         "ours": row,
         "paper": PAPER_TABLE3.get(str(formation), {}).get(method) if method else None,
     }
-
-
-def display_path(path: Path) -> str:
-    """A file's path as cards record it: relative to the project root when inside it
-    ('policies/atm_c6_step3.pt'), else absolute."""
-    path = Path(path).resolve()
-    try:
-        return path.relative_to(paths.PROJECT_ROOT.resolve()).as_posix()
-    except ValueError:
-        return str(path)
 
 
 def display_paths(record):
