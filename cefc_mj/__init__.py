@@ -30,11 +30,12 @@ def make_task_config(n_agents: int = 8, **task_options) -> TaskConfig:
 
 
 def make_world(backend: str, config: TaskConfig, n_envs: int = 1, wind: float = 0.0, seed: int | None = None,
-               airframe: str | None = None, offboard: str | None = None):
-    """The physics world for `backend` ("particle" or "mujoco"); wind (m/s mean speed), airframe (a
-    shipped name such as "iris" or "crazyflie", or an MJCF path; docs/mujoco_world.md) and offboard
-    (what the PX4-like interface makes of a setpoint: "velocity", the default, or "acceleration") are
-    MuJoCo's."""
+               airframe: str | None = None, offboard: str | None = None, wind_direction: float | None = None):
+    """The physics world for `backend` ("particle" or "mujoco"); wind (m/s mean speed), wind_direction
+    (degrees the air moves towards, ENU: 0 = +x, 90 = +y; None = drawn per episode from the seed),
+    airframe (a shipped name such as "iris" or "crazyflie", or an MJCF path; docs/mujoco_world.md) and
+    offboard (what the PX4-like interface makes of a setpoint: "velocity", the default, or
+    "acceleration") are MuJoCo's."""
     if backend not in BACKENDS:
         raise ConfigError(f"backend={backend!r}: must be one of {', '.join(BACKENDS)}")
     if not isinstance(wind, (int, float)) or not wind == wind or wind < 0:
@@ -42,6 +43,8 @@ def make_world(backend: str, config: TaskConfig, n_envs: int = 1, wind: float = 
     if backend == "particle":
         if wind:
             raise ConfigError("wind: the particle backend has no wind model; use backend='mujoco'")
+        if wind_direction is not None:
+            raise ConfigError("wind_direction: the particle backend has no wind model; use backend='mujoco'")
         if airframe is not None:
             raise ConfigError("airframe: the particle backend has no airframe; use backend='mujoco'")
         if offboard is not None:
@@ -52,7 +55,8 @@ def make_world(backend: str, config: TaskConfig, n_envs: int = 1, wind: float = 
     from cefc_mj.sim.mujoco_world import MujocoWorldConfig, make_mujoco_world
 
     world_config = MujocoWorldConfig(offboard=offboard) if offboard is not None else None
-    return make_mujoco_world(config, n_envs=n_envs, wind=wind, seed=seed, airframe=airframe, config=world_config)
+    return make_mujoco_world(config, n_envs=n_envs, wind=wind, seed=seed, airframe=airframe, config=world_config,
+                             wind_direction=wind_direction)
 
 
 def make_env(
@@ -60,6 +64,7 @@ def make_env(
     n_agents: int = 8,
     *,
     wind: float = 0.0,
+    wind_direction: float | None = None,
     deviation: float = 0.0,
     seed: int | None = None,
     render_mode: str | None = None,
@@ -73,6 +78,8 @@ def make_env(
             controller).
         n_agents: N, number of UAVs (>= 1; formation mode needs >= 3).
         wind: mean wind speed (m/s), MuJoCo backend only.
+        wind_direction: the direction the wind blows towards, degrees (ENU: 0 = +x, 90 = +y); None (the
+            default) draws it uniformly per episode from the seed. Needs wind > 0.
         deviation: sensing deviation d (m), both backends.
         seed: seeds the scenario, sensing noise and wind; the same seed gives the same rollout.
         render_mode: None, "rgb_array" (`env.render()` returns an [H, W, 3] uint8 frame; MuJoCo
@@ -94,7 +101,8 @@ def make_env(
     config = make_task_config(n_agents=n_agents, deviation=deviation, **task_options)
     if backend == "mujoco" and render_mode == "rgb_array":
         prefer_headless_gl()  # before the world imports mujoco, which reads MUJOCO_GL once
-    world = make_world(backend, config, n_envs=1, wind=wind, seed=seed, airframe=airframe)
+    world = make_world(backend, config, n_envs=1, wind=wind, seed=seed, airframe=airframe,
+                       wind_direction=wind_direction)
     return CEFCParallelEnv(BatchedCEFCEnv(config, n_envs=1, seed=seed, world=world), render_mode=render_mode)
 
 

@@ -32,7 +32,8 @@ PARK_SPACING = 10.0
 
 
 def make_ticked_world(backend: str, config: TaskConfig, control_tick_s: float, wind: float = 0.0,
-                      seed: int | None = None, airframe: str | None = None) -> "TickedWorld":
+                      seed: int | None = None, airframe: str | None = None,
+                      wind_direction: float | None = None) -> "TickedWorld":
     """The world of `backend` for one env, stepped at `control_tick_s` inside each decision step."""
     from cefc_mj import make_world
 
@@ -43,13 +44,14 @@ def make_ticked_world(backend: str, config: TaskConfig, control_tick_s: float, w
         if n_ticks != 1:
             raise ConfigError(f"control_tick_s={control_tick_s}: the particle world steps only at the decision step "
                               f"({config.dt} s)")
-        return TickedWorld(make_world("particle", config, n_envs=1, seed=seed), 1, config.dt)
+        return TickedWorld(make_world("particle", config, n_envs=1, seed=seed, wind_direction=wind_direction), 1,
+                           config.dt)
     if backend != "mujoco":
         return TickedWorld(make_world(backend, config, n_envs=1, seed=seed), 1, config.dt)  # make_world names the error
     from cefc_mj.sim.mujoco_world import MujocoWorldConfig, make_mujoco_world
 
     inner = make_mujoco_world(config, n_envs=1, wind=wind, seed=seed, airframe=airframe,
-                              config=MujocoWorldConfig(decision_dt=config.dt / n_ticks))
+                              config=MujocoWorldConfig(decision_dt=config.dt / n_ticks), wind_direction=wind_direction)
     return TickedWorld(inner, n_ticks, config.dt)
 
 

@@ -31,7 +31,7 @@ from cefc_mj.errors import CheckpointError, ConfigError
 from cefc_mj.hierarchy import DECISION_INTERVAL, HierarchicalCEFCEnv, LowLevel, load_low_level
 from cefc_mj.nn.highlevel_policy import HighLevelPolicy, load_highlevel_policy
 from cefc_mj.nn.policy_io import resolve_policy_path
-from cefc_mj.provenance import file_sha256
+from cefc_mj.provenance import display_path, file_sha256
 from cefc_mj.task.config import ADVERSARIES, ADVERSARY_RULES, LEARNED_ADVERSARY, TaskConfig
 from cefc_mj.task.messages import MessageChannel
 
@@ -101,14 +101,19 @@ def resolve_adversary(spec: str, policies_dir: Path | None = None) -> tuple[str,
 
 class Conditions:
     """Where Tables V and VI are played: the backend ("particle", the paper's MPE, or "mujoco", the
-    quadrotors), the mean wind speed (m/s, MuJoCo) and the sensing deviation (m)."""
+    quadrotors), the mean wind speed (m/s, MuJoCo), the direction it blows towards (degrees, ENU; None
+    = drawn per episode from the seed) and the sensing deviation (m)."""
 
-    def __init__(self, backend: str = "particle", wind: float = 0.0, deviation: float = 0.0):
+    def __init__(self, backend: str = "particle", wind: float = 0.0, deviation: float = 0.0,
+                 wind_direction: float | None = None):
         if backend not in ("particle", "mujoco"):
             raise ConfigError(f"backend={backend!r}: must be particle or mujoco")
         if wind and backend != "mujoco":
             raise ConfigError("wind: the particle backend has no wind model; use backend='mujoco'")
+        if wind_direction is not None and not wind:
+            raise ConfigError(f"wind_direction={wind_direction!r}: there is no wind to point (wind = 0)")
         self.backend, self.wind, self.deviation = backend, float(wind), float(deviation)
+        self.wind_direction = wind_direction
 
     @property
     def paper_like(self) -> bool:
@@ -121,10 +126,13 @@ class Conditions:
             return None
         from cefc_mj import make_world
 
-        return make_world("mujoco", task, episodes, wind=self.wind, seed=seed)
+        return make_world("mujoco", task, episodes, wind=self.wind, seed=seed, wind_direction=self.wind_direction)
 
     def to_dict(self) -> dict:
-        return {"backend": self.backend, "wind": self.wind, "deviation": self.deviation}
+        out = {"backend": self.backend, "wind": self.wind, "deviation": self.deviation}
+        if self.wind_direction is not None:  # absent: drawn per episode (and reports flown before it existed)
+            out["wind_direction"] = self.wind_direction
+        return out
 
 
 # ---------------------------------------------------------------------------- episodes
@@ -249,7 +257,7 @@ def _protocol(episodes: int, seed: int, low_level: LowLevel, policies_dir: Path,
         raise ConfigError(f"seed={seed!r}: must be an integer >= 0")
     return {**where.to_dict(), "n_agents": GAME_AGENTS, "density": GAME_DENSITY, "steps": GAME_STEPS,
             "decision_interval": DECISION_INTERVAL, "episodes": episodes, "seed": seed, "adversary": adversary,
-            "low_level": low_level.describe() | {"name": low_level.name}, "policies_dir": str(policies_dir),
+            "low_level": low_level.describe() | {"name": low_level.name}, "policies_dir": display_path(policies_dir),
             "anchors": "mode of the selector", "dt": DT,
             "comparable_to_paper": episodes == EPISODES and where.paper_like,
             "units": "per-episode sums over 400 low-level steps; 'seconds' = x dt, the scale of the paper's values",

@@ -169,6 +169,9 @@ class EpisodeRecord:
     """SHA-256 of the policy file's bytes (`cefc_mj.eval.runner.policy_files`); "" when none did."""
     wind: float = 0.0
     """Mean wind speed of the condition (m/s)."""
+    wind_direction: float | None = None
+    """The episode's mean wind direction (degrees the air moves towards, ENU: 0 = +x), given or drawn
+    from the seed; None without wind."""
     deviation: float = 0.0
     """Sensing deviation of the condition (m)."""
     provenance: dict[str, str] | None = None
@@ -186,6 +189,7 @@ class EpisodeRecord:
         self.wind_vector = f64(self.wind_vector)
         self.policy, self.policy_sha256 = str(self.policy), str(self.policy_sha256)
         self.wind, self.deviation = float(self.wind), float(self.deviation)
+        self.wind_direction = None if self.wind_direction is None else float(self.wind_direction)
         if self.provenance is None:
             self.provenance = code_provenance()
         self.provenance = {str(k): str(v) for k, v in self.provenance.items()}

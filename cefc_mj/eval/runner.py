@@ -90,6 +90,9 @@ class EpisodeSpec:
     """"mujoco" (quadrotors) or "particle"."""
     wind: float = 0.0
     """Mean wind speed (m/s), MuJoCo only."""
+    wind_direction: float | None = None
+    """Direction the wind blows towards (degrees, ENU: 0 = +x, 90 = +y); None draws it per episode from
+    the seed. Needs wind > 0."""
     deviation: float = 0.0
     """Sensing deviation d (m)."""
     steps: int = TABLE8_STEPS
@@ -140,6 +143,8 @@ class EpisodeResult:
     wall_s: float
     diverged: str | None = None
     """The cause, if the simulation diverged and the episode was stopped early."""
+    wind_direction_flown: float | None = None
+    """The episode's mean wind direction (degrees, ENU), as given or drawn from the seed; None in calm air."""
     record: EpisodeRecord | None = field(default=None, repr=False)
 
     def to_dict(self) -> dict:
@@ -173,7 +178,18 @@ def episode_fields(env, spec: EpisodeSpec, diverged: str | None, wall_s: float) 
     """The fields every episode result shares: spec, F, N, C of env 0, steps flown, wall-clock, divergence."""
     metrics = env.episode_metrics()
     return {"spec": spec, "F": float(metrics["F"][0]), "N": float(metrics["N"][0]), "C": float(metrics["C"][0]),
-            "steps": int(env.t[0]), "wall_s": wall_s, "diverged": diverged}
+            "steps": int(env.t[0]), "wall_s": wall_s, "diverged": diverged,
+            "wind_direction_flown": wind_direction_flown(env.world)}
+
+
+def wind_direction_flown(world) -> float | None:
+    """Env 0's mean wind direction (degrees in [0, 360), ENU) of a MuJoCo world in wind (SITL-M's ticked
+    world included); None in calm air or on particles."""
+    inner = getattr(world, "inner", world)
+    wind = getattr(inner, "wind", None)
+    if wind is None or not wind.config.mean_speed:
+        return None
+    return round(math.degrees(float(wind.mean_direction[0])) % 360.0, 6)
 
 
 def episode_env(spec: EpisodeSpec, policy: Policy | None = None) -> tuple[BatchedCEFCEnv, object]:
@@ -184,7 +200,7 @@ def episode_env(spec: EpisodeSpec, policy: Policy | None = None) -> tuple[Batche
         policy = load_policy_for(spec.policy, spec.formation)
     config = policy.task_for(spec.task_config())
     world = make_world(spec.backend, config, n_envs=1, wind=spec.wind, seed=spec.seed, airframe=spec.mujoco_airframe,
-                       offboard=spec.offboard if spec.backend == "mujoco" else None)
+                       offboard=spec.offboard if spec.backend == "mujoco" else None, wind_direction=spec.wind_direction)
     env = BatchedCEFCEnv(config, n_envs=1, seed=spec.seed, world=world)
     # Policy.act's numbers bit for bit without its per-call checks: the compiled kernel on the weights
     # as they are now (fixed for the episode)
@@ -251,6 +267,7 @@ class _Recorder:
             deviation=self.spec.deviation,
             backend=self.spec.backend, condition=self.spec.condition, formation=self.spec.formation,
             seed=self.spec.seed, dt=env.config.dt, flight_altitude=FLIGHT_ALTITUDE,
+            wind_direction=wind_direction_flown(env.world),
             agent_pos=arr["agent_pos"], agent_quat=arr["agent_quat"], agent_vel=arr["agent_vel"],
             obstacles=env.obstacles[0], obstacle_radius=env.config.obstacle_radius, obstacle_height=OBSTACLE_HEIGHT,
             anchor=arr["anchor"], targets=np.zeros((0, 2)), lidar_origins=arr["lidar_origins"],
@@ -331,12 +348,12 @@ def policy_files(choice: str, formations) -> dict[str, dict[str, str]]:
     """{"5": {"name", "file", "sha256"}} of the policy file `choice` resolves to for each c (provenance,
     cache keys). Raises CheckpointError (one line) if a file is missing."""
     from cefc_mj.nn.policy_io import resolve_policy_path
-    from cefc_mj.provenance import file_sha256
+    from cefc_mj.provenance import display_path, file_sha256
 
     out = {}
     for c in formations:
         path = resolve_policy_path(policy_name_for(choice, c)).resolve()
-        out[str(c)] = {"name": path.stem, "file": str(path), "sha256": file_sha256(path)}
+        out[str(c)] = {"name": path.stem, "file": display_path(path), "sha256": file_sha256(path)}
     return out
 
 

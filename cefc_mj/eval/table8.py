@@ -52,11 +52,13 @@ def paper_table8() -> dict[str, dict[str, dict[str, float]]]:
 
 def table8_specs(formations, episodes: int, seed: int, steps: int, backend: str, policy: str,
                  airframe: str = "iris", estimator: str = "fused", offboard: str = "velocity",
-                 guard: bool = True) -> list[EpisodeSpec]:
-    """The grid, seeds seed .. seed+K-1 for every cell (the same layouts under every condition)."""
+                 guard: bool = True, wind_direction: float | None = None) -> list[EpisodeSpec]:
+    """The grid, seeds seed .. seed+K-1 for every cell (the same layouts under every condition);
+    `wind_direction` (degrees) points the Wind rows' wind (None: drawn per episode from the seed)."""
     return [
         EpisodeSpec(formation=c, seed=seed + k, backend=backend, wind=wind, deviation=dev, steps=steps, policy=policy,
-                    airframe=airframe, estimator=estimator, offboard=offboard, guard=guard)
+                    airframe=airframe, estimator=estimator, offboard=offboard, guard=guard,
+                    wind_direction=wind_direction if wind else None)
         for c in formations
         for name, (wind, dev) in CONDITIONS.items()
         for k in range(episodes)
@@ -301,13 +303,16 @@ def report_markdown(table: dict, meta: dict) -> str:
     """The Markdown report: ours (mean ± std over seeds) beside the paper, then provenance."""
     k = meta["episodes"]
     lines = [
-        f"# Table VIII: policy `{meta['policy']}` on the {meta['backend']} backend, "
+        f"# Table VIII: policy `{meta['policy']}` on the {meta['backend']} backend"
+        + (f" ({meta['airframe']} airframe)" if meta.get("airframe") else "") + ", "
         f"{meta.get('estimator', 'raw')} position estimate, {meta.get('offboard', 'velocity')} offboard setpoints"
         + guard_text(meta),
         "",
         f"Command: `{meta['command']}`  ",
         f"{k} seed(s) per cell ({meta['seed']}..{meta['seed'] + k - 1}, the same layouts under every condition), "
-        f"{meta['steps']} decision steps per episode. F, N: decision steps in formation / with the swarm centre "
+        + ("the Wind rows' direction drawn per episode from the seed, " if meta.get("wind_direction") is None
+           else f"the Wind rows' wind blowing towards {meta['wind_direction']:g}° (ENU), ")
+        + f"{meta['steps']} decision steps per episode. F, N: decision steps in formation / with the swarm centre "
         "within 1 m of the anchor; C: % of agent-steps in collision; retention = (F+N) / (F+N at SITL-S, same c). "
         + ("Ours: mean ± sample std over seeds." if k > 1 else "Ours: one seed per cell, no spread."),
         "",

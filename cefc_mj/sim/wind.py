@@ -28,6 +28,16 @@ MAX_WIND_SPEED = 20.0
 """Default upper clip of a wind speed draw (m/s): a mean above it would be clipped, not flown."""
 
 
+def wind_config_direction(degrees: float | None) -> float | None:
+    """WindConfig.direction (rad in [0, 2 pi)) for a user's direction in degrees (None stays None: the
+    seeded random draw); ConfigError for anything but a finite number or None."""
+    if degrees is None:
+        return None
+    if isinstance(degrees, bool) or not isinstance(degrees, (int, float)) or not math.isfinite(degrees):
+        raise ConfigError(f"wind_direction={degrees!r}: must be a finite angle in degrees or None (random per episode)")
+    return math.radians(float(degrees) % 360.0)
+
+
 @dataclass(frozen=True)
 class WindConfig:
     """Wind field parameters (Gazebo wind-plugin names in brackets). Speeds in m/s, angles in rad."""

@@ -307,6 +307,7 @@ def provenance_fields(record: EpisodeRecord) -> dict[str, str | int | float]:
         "policy": record.policy, "policy_sha256": record.policy_sha256,
         "backend": record.backend, "condition": record.condition, "formation": record.formation,
         "seed": record.seed, "wind": record.wind, "deviation": record.deviation, "steps": record.n_steps,
+        "wind_direction_deg": "n/a" if record.wind_direction is None else round(record.wind_direction, 3),
         "dt": record.dt, **record.final_metrics, **record.provenance,
     }
     return {k: "n/a" if v == "" else v for k, v in fields.items()}
