@@ -26,7 +26,7 @@ from pathlib import Path
 from cefc_mj import paths
 from cefc_mj.errors import CefcError, ConfigError
 from cefc_mj.fileio import can_write_in
-from cefc_mj.train.config import CLM_CURRICULUM, FORMATIONS, Budget, DistillConfig, LowLevelConfig, PPOConfig
+from cefc_mj.train.config import CLM_CURRICULUM, DISTILL_TEACHERS, FORMATIONS, Budget, DistillConfig, LowLevelConfig, PPOConfig
 
 EXIT_USAGE = 2
 
@@ -187,11 +187,15 @@ def build_parser() -> argparse.ArgumentParser:
     _ppo_args(p)
     p.set_defaults(seed=None)  # to tell an explicit --seed from none next to --seeds (_seed_sweep makes it 0)
 
-    p = sub.add_parser("distill", help="distill one student from the Step 3 teachers",
-                       description="Collect (observation, action) replay from each atm_c{c}_step3 teacher in "
-                                   "--teachers-dir and train one student (hidden 256, MSE, Adam 1e-4, batch 600).")
+    p = sub.add_parser("distill", help="distill one student from the Step 3 (or Nav) teachers",
+                       description="Collect (observation, action) replay from each atm_c{c}_step3 (or, with "
+                                   "--teacher nav, atm_c{c}_nav) teacher in --teachers-dir and train one student "
+                                   "(hidden 256, MSE, Adam 1e-4, batch 600).")
     p.add_argument("--formations", type=_formations, default=FORMATIONS, help="teachers' sizes (default 3,4,5,6,7,8)")
     p.add_argument("--tuples", type=int, default=60_000, help="replay tuples per teacher (default 60000)")
+    p.add_argument("--teacher", choices=DISTILL_TEACHERS, default="step3",
+                   help="the teacher of each c: step3 (atm_c<C>_step3, the paper's AT-M; default) or nav "
+                        "(atm_c<C>_nav, AT-M-Nav, the evaluators' default low level)")
     p.add_argument("--teachers-dir", type=Path, default=paths.POLICIES_DIR, metavar="DIR",
                    help=f"folder of the atm_c<C>_step3 teachers (default the shipped {paths.POLICIES_DIR})")
     _common(p, "distill", "20000it")
@@ -440,7 +444,8 @@ def run(args, command: str | None = None) -> list[dict]:
                 print(f"installed {name} -> {target}")
         return [card]
     elif args.command == "distill":
-        cfg = DistillConfig(budget=budget, formations=args.formations, tuples_per_formation=args.tuples, seed=args.seed)
+        cfg = DistillConfig(budget=budget, formations=args.formations, tuples_per_formation=args.tuples, seed=args.seed,
+                            teacher=args.teacher)
         policies_dir = check_destinations(args)
         from cefc_mj.train.distill import train_student
 

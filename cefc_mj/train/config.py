@@ -488,6 +488,10 @@ class LowLevelConfig(BudgetPPODict):
                  f"got {self.budget.iterations}")
 
 
+DISTILL_TEACHERS = ("step3", "nav")
+"""The low levels a student can be distilled from (DistillConfig.teacher)."""
+
+
 @dataclass(frozen=True)
 class DistillConfig:
     """Policy distillation (paper Sec. IV-B3): one student imitates every teacher's actions."""
@@ -496,6 +500,9 @@ class DistillConfig:
     """Gradient steps (iterations) and/or wall-clock time of the student's training."""
     formations: tuple[int, ...] = FORMATIONS
     """The teachers' formation sizes c."""
+    teacher: str = "step3"
+    """Which low level of each c teaches: "step3" (atm_c<c>_step3, the paper's AT-M) or "nav"
+    (atm_c<c>_nav, AT-M-Nav, the evaluators' default low level)."""
     tuples_per_formation: int = 60_000
     """Replay capacity Lambda per teacher: (observation, action) tuples, one per agent-step."""
     collect_density: float = 0.03
@@ -521,6 +528,8 @@ class DistillConfig:
     def validate(self) -> None:
         if not self.formations or any(c not in FORMATIONS for c in self.formations):
             _fail("formations", self.formations, f"must be a non-empty subset of {FORMATIONS}")
+        if self.teacher not in DISTILL_TEACHERS:
+            _fail("teacher", self.teacher, f"must be one of {', '.join(DISTILL_TEACHERS)}")
         if not isinstance(self.budget, Budget):
             _fail("budget", self.budget, "must be a Budget")
         _check_int("seed", self.seed, 0, MAX_SEED)

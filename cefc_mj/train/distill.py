@@ -82,8 +82,9 @@ def collect_replay(teacher: Policy, formation: int, tuples: int, density: float,
     }
 
 
-def teacher_name(formation: int) -> str:
-    return f"atm_c{formation}_step3"
+def teacher_name(formation: int, teacher: str = "step3") -> str:
+    """The policy name of c's teacher (DistillConfig.teacher: "step3" or "nav")."""
+    return f"atm_c{formation}_{teacher}"
 
 
 @torch.no_grad()
@@ -105,7 +106,7 @@ def train_student(cfg: DistillConfig, policies_dir: Path, out: Path, resume: boo
                   command: str | None = None) -> dict:
     """Collect (or reload) the replay, train the student under cfg.budget, export it with a card.
 
-    Teachers are `<teachers_dir>/atm_c{c}_step3.pt` (teachers_dir defaults to policies_dir).
+    Teachers are `<teachers_dir>/atm_c{c}_<cfg.teacher>.pt` (teachers_dir defaults to policies_dir).
     resume: continue the run in <out>/atm_student/ (ConfigError if there is none). command: the
     command line, recorded in config.json and the card. The inputs (run folder, teachers) are
     checked before the run folder is made."""
@@ -114,7 +115,7 @@ def train_student(cfg: DistillConfig, policies_dir: Path, out: Path, resume: boo
     run_dir = out / STUDENT_NAME
     state_path, replay_path = run_dir / STATE_FILE, run_dir / "replay.pt"
     run_state_path(run_dir, resume)
-    teacher_paths = {c: resolve_policy_path(teacher_name(c), teachers_dir) for c in cfg.formations}
+    teacher_paths = {c: resolve_policy_path(teacher_name(c, cfg.teacher), teachers_dir) for c in cfg.formations}
     teachers = {c: load_policy(path) for c, path in teacher_paths.items()}
     heads = {(t.actor.cfg.layout, t.actor.cfg.action, t.actor.cfg.velocity_gain) for t in teachers.values()}
     if len(heads) != 1:

@@ -29,14 +29,18 @@ import torch
 
 from cefc_mj.env import BatchedCEFCEnv
 from cefc_mj.nn.atm import ATMActor, Critic
+from cefc_mj.seeds import TRAINING
 from cefc_mj.task.config import TaskConfig
 from cefc_mj.train.config import PPOConfig
 from cefc_mj.train.ppo import ValueNorm, advantages_and_targets, learner_state, load_learner_state, ppo_epochs
 
 
 def iteration_seed(seed: int, iteration: int) -> int:
-    """The env seed of one iteration's episodes: independent streams per (run seed, iteration)."""
-    return int(np.random.SeedSequence([seed, iteration]).generate_state(1)[0])
+    """The env seed of one iteration's episodes: independent streams per (run seed, iteration), inside
+    the training block of game seeds (cefc_mj.seeds.TRAINING), so no training game is a validation or
+    test game."""
+    drawn = int(np.random.SeedSequence([seed, iteration]).generate_state(1)[0])
+    return TRAINING.start + drawn % TRAINING.size
 
 
 @dataclass
