@@ -12,29 +12,43 @@ talks to it as to PX4.
 - Sends HEARTBEAT (1 Hz: MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_PX4, base_mode with SAFETY_ARMED when
   armed, custom_mode PX4's main/sub mode), LOCAL_POSITION_NED and ATTITUDE (`--telemetry-hz`, 50 Hz
   of simulated time), COMMAND_ACK and STATUSTEXT.
-- Accepts SET_POSITION_TARGET_LOCAL_NED in MAV_FRAME_LOCAL_NED with the acceleration fields in use
-  (afx, afy: the acceleration setpoint; position and velocity fields are then ignored, as MAVROS'
-  acceleration offboard does) or, without them, the velocity fields (vx, vy). z, afz and yaw are
-  ignored: the testbed flies at a fixed altitude.
+- Accepts SET_POSITION_TARGET_LOCAL_NED (`VehicleLink._setpoint`) in MAV_FRAME_LOCAL_NED,
+  MAV_FRAME_LOCAL_OFFSET_NED, MAV_FRAME_BODY_NED and MAV_FRAME_BODY_OFFSET_NED. The type mask picks
+  the horizontal setpoint, first of: a position (x, y in use; PX4's position mask 0b110111111000 =
+  3576), flown by PX4's position loop, velocity = MPC_XY_P * (target - position) plus the velocity
+  fields as feed-forward when they are in use too, limited to the speed limit; an acceleration (afx,
+  afy: MAVROS' acceleration offboard); a velocity (vx, vy). z, vz, afz, yaw and yaw rate are not
+  flown (the testbed holds its altitude and heading): a z more than ALTITUDE_TOLERANCE_M from the
+  held altitude, or a vz, afz, yaw or yaw rate that asks for a change, draws a STATUSTEXT warning, as
+  do horizontal fields in use beside the flown ones. A setpoint that cannot be flown (another frame,
+  a force, x without y, no horizontal field, a non-finite value) is refused at once with a
+  STATUSTEXT warning naming the cause; while only refused setpoints arrive, OFFBOARD (and arming in
+  it) is answered MAV_RESULT_DENIED with that cause. Warnings are rate-limited per cause
+  (STATUSTEXT_REPEAT_S).
 - Accepts COMMAND_LONG MAV_CMD_COMPONENT_ARM_DISARM and MAV_CMD_DO_SET_MODE (and the SET_MODE
   message) for PX4's OFFBOARD (main mode 6) and AUTO.LOITER (hold, main 4 / sub 3). As in PX4,
   OFFBOARD is refused (TEMPORARILY_REJECTED) unless setpoints are streaming, and a vehicle in OFFBOARD
   that gets no setpoint for COM_OF_LOSS_T (`OFFBOARD_LOSS_TIMEOUT_S`, SITL-M's failsafe) switches to
   hold. Everything else is ignored and counted by reason (a bad frame, an unknown message id, an
   unsupported message, a setpoint for another system, ...); an unsupported command gets
-  MAV_RESULT_UNSUPPORTED.
+  MAV_RESULT_UNSUPPORTED and a warning, and so do messages a script would fly with
+  (`FLIGHT_MESSAGES`, e.g. SET_ATTITUDE_TARGET).
 
 Frames: the testbed's world frame is ENU (x east, y north, z up; body FLU); MAVLink's local frame is
 NED (x north, y east, z down; body FRD). Position (x, y, z)_NED = (y, x, -z)_ENU relative to a local
 origin on the ground (z = 0) below the drone's spawn point (PX4's home; `--origin world` uses the
 world's origin instead), velocity and acceleration alike, roll_NED = roll_ENU,
-pitch_NED = -pitch_ENU, yaw_NED = pi/2 - yaw_ENU.
+pitch_NED = -pitch_ENU, yaw_NED = pi/2 - yaw_ENU. Setpoint frames are converted to the local NED
+frame at receipt: LOCAL_NED as is; LOCAL_OFFSET_NED positions relative to the vehicle's position then
+(NED axes); BODY_NED and BODY_OFFSET_NED (the same here) positions relative to the vehicle and every
+vector in axes turned by its yaw (x forward, y right), as PX4 turns BODY_NED velocities.
 
 Flying: the vehicle's setpoint goes to the MuJoCo offboard interface exactly as an agent's action
 does in SITL-M, at the 0.01 s control tick (`cefc_mj.deploy.tick_world`): an acceleration setpoint is
 clipped per axis to the task's accel_max and integrated into the interface's velocity setpoint
-(speed limit speed_max); a velocity setpoint is reached by the acceleration that drives the
-interface's velocity setpoint to it within the same limit, and hold is that with zero velocity
+(speed limit speed_max); a velocity setpoint (and the position loop's, evaluated at every tick) is
+reached by the acceleration that drives the interface's velocity setpoint to it within the same
+limit, and hold is that with zero velocity
 (`TickedWorld.brake_accel`, SITL-M's failsafe). While disarmed or in hold the drone holds. The
 testbed has no ground phase: the drones are spawned hovering at the flight altitude.
 
@@ -47,13 +61,14 @@ from __future__ import annotations
 
 import argparse
 import collections
+import functools
 import math
 import signal
 import socket
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 
@@ -80,6 +95,27 @@ MODE_HOLD = (PX4_MAIN_MODE_AUTO, PX4_SUB_MODE_AUTO_LOITER)
 MODE_OFFBOARD = (PX4_MAIN_MODE_OFFBOARD, 0)
 MODE_NAMES = {MODE_HOLD: "AUTO.LOITER", MODE_OFFBOARD: "OFFBOARD"}
 ORIGINS = ("spawn", "world")
+
+MPC_XY_P = 0.95
+"""Horizontal position gain (1/s), PX4's MPC_XY_P at its default (0.95): a position setpoint is flown
+as the velocity setpoint MPC_XY_P * (position setpoint - position), plus the message's velocity
+feed-forward, limited to the horizontal speed limit (PX4's MPC_XY_VEL_MAX; here the task's
+speed_max). The controller parameter files (controllers/*.params) have no MPC_XY_P: the testbed's
+cascade starts at the velocity loop, so the gain of the link's position loop lives here."""
+ALTITUDE_TOLERANCE_M = 0.25
+"""A position setpoint's z that differs from the held altitude by more than this draws a warning (it
+is ignored either way): five times the altitude loop's error in flight (< 0.05 m), so a script that
+sends back the z it reads in LOCAL_POSITION_NED never trips it, and half of the smallest altitude
+change a script would mean (PX4's default take-off altitude is 2.5 m, the testbed flies at 2 m)."""
+IGNORED_FIELD_TOLERANCES = {"vz": 0.1, "afz": 0.5, "yaw": 0.1, "yaw_rate": 0.05}
+"""Vertical and heading fields in use are ignored (fixed altitude, held heading); beyond these
+magnitudes (m/s, m/s^2, rad from the current heading, rad/s) a warning says so."""
+STATUSTEXT_REPEAT_S = 10.0
+"""A warning for the same cause (a refused frame, an ignored field, ...) is sent at most once per this
+many simulated seconds, however often the cause recurs (each occurrence is counted)."""
+FLIGHT_MESSAGES = ("SET_POSITION_TARGET_GLOBAL_INT", "SET_ATTITUDE_TARGET", "SET_ACTUATOR_CONTROL_TARGET",
+                   "MANUAL_CONTROL", "COMMAND_INT")
+"""Messages a script may fly with that the link does not handle: ignored with a warning, not silently."""
 
 
 def _mavlink():
@@ -140,7 +176,8 @@ class MavlinkLinkConfig:
         if not isinstance(n, int) or isinstance(n, bool) or not 1 <= n <= 64:
             raise ConfigError(f"n_drones={n!r}: must be an integer in 1..64")
         if not isinstance(self.system_id, int) or not 1 <= self.system_id <= 256 - n:
-            raise ConfigError(f"system_id={self.system_id!r}: must be in 1..{256 - n} (drone i has system id + i <= 255)")
+            raise ConfigError(f"system_id={self.system_id!r}: must be in 1..{256 - n} "
+                              f"(drone i has system id + i <= 255)")
         for name, low in (("ports", 0), ("remote_ports", 1)):
             ports = getattr(self, name)
             if not isinstance(ports, tuple) or len(ports) not in (1, n):
@@ -233,6 +270,30 @@ def ned_to_enu_xy(north: float, east: float) -> np.ndarray:
     return np.array([east, north], dtype=np.float64)
 
 
+def rotate_yaw(yaw: float, x: float, y: float) -> np.ndarray:
+    """A horizontal vector given in axes turned by `yaw` (NED heading, rad, from north toward east:
+    x forward, y right, as PX4's MAV_FRAME_BODY_NED) in the local (north, east) axes."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    return np.array([c * x - s * y, s * x + c * y])
+
+
+def constrain_xy(v0: np.ndarray, v1: np.ndarray, v_max: float) -> np.ndarray:
+    """v0 + v1 limited to norm v_max, v0 first (PX4's ControlMath::constrainXY): v0 is the position
+    loop's demand, v1 the velocity feed-forward, which only fills what the limit leaves."""
+    total = v0 + v1
+    if np.hypot(*total) <= v_max:
+        return total
+    n0 = float(np.hypot(*v0))
+    if n0 >= v_max:
+        return v0 * (v_max / n0)
+    n1 = float(np.hypot(*v1))
+    if n0 < 1e-6:
+        return v1 * (v_max / n1)
+    u1 = v1 / n1  # v0 + s u1 on the circle |v| = v_max, s >= 0
+    m = float(u1 @ v0)
+    return v0 + u1 * (-m + math.sqrt(m * m - (n0 * n0 - v_max * v_max)))
+
+
 _ENU_TO_NED = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
 _FLU_TO_FRD = np.diag([1.0, -1.0, -1.0])
 
@@ -254,10 +315,19 @@ def attitude_ned(quat_wxyz: np.ndarray) -> tuple[float, float, float]:
 
 
 # ====================================================================== one vehicle
+SETPOINT_FRAMES = {1: "LOCAL_NED", 7: "LOCAL_OFFSET_NED", 8: "BODY_NED", 9: "BODY_OFFSET_NED"}
+"""The MAV_FRAME values a SET_POSITION_TARGET_LOCAL_NED may use (module docstring, "Frames")."""
+TYPE_MASK_BITS = {"x": 1, "y": 2, "z": 4, "vx": 8, "vy": 16, "vz": 32, "afx": 64, "afy": 128, "afz": 256,
+                  "yaw": 1024, "yaw_rate": 2048}
+"""POSITION_TARGET_TYPEMASK: a set bit means the field is ignored. Bit 512 (FORCE_SET) is not a field:
+it says afx, afy, afz are a force."""
+TYPE_MASK_FORCE_SET = 512
+
+
 class _UdpWriter:
     """The file pymavlink writes a vehicle's frames to: every destination of the vehicle."""
 
-    def __init__(self, link: "VehicleLink"):
+    def __init__(self, link: VehicleLink):
         self.link = link
 
     def write(self, data: bytes) -> None:
@@ -272,15 +342,21 @@ class VehicleLink:
     """One drone's MAVLink endpoint: its UDP socket, PX4's arming and mode logic, the setpoint it flies.
 
     `poll(t)` reads and handles every datagram waiting in the socket; `command(t)` then says what the
-    drone flies at simulated time t: ("accel", a) or ("velocity", v) with a horizontal ENU vector, or
-    None (hold). `send_heartbeat` and `send_telemetry` write to the configured script address and to
-    whoever last sent a valid frame. Nothing a peer sends can raise: what is not acted on is counted
-    in `ignored` by reason.
+    drone flies at simulated time t: ("accel", a) or ("velocity", v) with a horizontal ENU vector (a
+    position setpoint becomes the velocity of the position loop, `MPC_XY_P`), or None (hold).
+    `send_heartbeat` and `send_telemetry` write to the configured script address and to whoever last
+    sent a valid frame. Nothing a peer sends can raise: what is not acted on is counted in `ignored`
+    by reason, and a setpoint that cannot be flown is refused with a STATUSTEXT warning at once.
+
+    `state`, set by the simulation, returns the drone's position in the local NED frame and its NED
+    yaw (the vehicle's estimate, which position setpoints and the offset and body frames need; None:
+    no estimate, such setpoints are refused); `speed_max` is the horizontal speed limit.
     """
 
     def __init__(self, uav: int, system_id: int, sock: socket.socket, remote: tuple[str, int],
                  offboard_loss_timeout_s: float = OFFBOARD_LOSS_TIMEOUT_S, log: Callable[[str], None] | None = None,
-                 verbose: bool = False):
+                 verbose: bool = False, state: Callable[[], tuple[np.ndarray, float]] | None = None,
+                 speed_max: float = math.inf):
         self.mavlink = _mavlink()
         self.uav, self.system_id, self.sock = uav, system_id, sock
         self.remote = (resolve(remote[0]), int(remote[1]))
@@ -293,11 +369,21 @@ class VehicleLink:
         self.parser = self._new_parser()
         self.armed = False
         self.mode = MODE_HOLD
+        self.state = state
+        self.speed_max = speed_max
         self.setpoint_kind: str | None = None
-        """"accel" or "velocity" once a setpoint has arrived."""
+        """"accel", "velocity" or "position" once a setpoint has arrived."""
         self.setpoint = np.zeros(2)
-        """The newest setpoint, horizontal ENU (m/s^2 or m/s)."""
+        """The newest setpoint, horizontal ENU (m/s^2 or m/s; "position": the velocity feed-forward)."""
+        self.position_target = np.zeros(2)
+        """"position": the target (north, east) in the local NED frame (m)."""
         self.last_setpoint_t = -math.inf
+        self.last_refusal: tuple[float, str] = (-math.inf, "")
+        """(simulated time, cause) of the newest setpoint refused."""
+        self.warned: dict[str, float] = {}
+        """Warning cause -> simulated time of its last STATUSTEXT (`STATUSTEXT_REPEAT_S`)."""
+        self.warnings: collections.Counter = collections.Counter()
+        """Setpoint fields in use but not flown, by cause, counted every time (announced by `_warn`)."""
         self.t = 0.0
         self.handled: collections.Counter = collections.Counter()
         """Messages acted on, by type."""
@@ -325,6 +411,34 @@ class VehicleLink:
         if self.verbose:
             self.log(f"t={self.t:.2f} s uav {self.uav}: ignored ({reason})")
 
+    def _warn(self, cause: str, text: str) -> None:
+        """STATUSTEXT `text` (severity WARNING) and a logged event, at most once per STATUSTEXT_REPEAT_S
+        of simulated time for the same `cause`."""
+        last = self.warned.get(cause)
+        if last is not None and self.t - last < STATUSTEXT_REPEAT_S:
+            return
+        self.warned[cause] = self.t
+        self.status_text(text, self.mavlink.MAV_SEVERITY_WARNING)
+        self.event("warning", text)
+
+    def _field_ignored(self, cause: str, text: str) -> None:
+        """A setpoint is flown but a field of it in use is not: counted in `warnings`, announced (`_warn`)."""
+        self.warnings[cause] += 1
+        self._warn(f"ignored: {cause}", text)
+
+    def _refuse(self, cause: str) -> bool:
+        """Refuse the setpoint being handled for `cause`: counted, remembered (an OFFBOARD request that
+        fails for want of a stream names it) and announced (`_warn`). Returns False (not acted on)."""
+        self._ignore(f"setpoint refused: {cause}")
+        self.last_refusal = (self.t, cause)
+        self._warn(f"refused: {cause}", f"Setpoint refused: {cause}")
+        return False
+
+    def _recent_refusal(self) -> str | None:
+        """Why the newest setpoints were refused, if one was within the offboard-loss timeout."""
+        t, text = self.last_refusal
+        return text if not offboard_lost(self.t, t, self.offboard_loss_timeout_s) else None
+
     # ------------------------------------------------------------------ state
     @property
     def streaming(self) -> bool:
@@ -350,9 +464,15 @@ class VehicleLink:
             self.mode = MODE_HOLD
             self.event("offboard_loss_hold", f"no setpoint for {self.offboard_loss_timeout_s:g} s: AUTO.LOITER (hold)")
             self.status_text("Failsafe: offboard signal lost, holding", self.mavlink.MAV_SEVERITY_WARNING)
-        if self.armed and self.mode == MODE_OFFBOARD and self.setpoint_kind is not None:
-            return self.setpoint_kind, self.setpoint
-        return None
+        if not (self.armed and self.mode == MODE_OFFBOARD and self.setpoint_kind is not None):
+            return None
+        if self.setpoint_kind == "position":
+            if self.state is None:  # cannot happen: position setpoints are refused without an estimate
+                return None
+            position, _ = self.state()
+            demand = ned_to_enu_xy(*(MPC_XY_P * (self.position_target - np.asarray(position)[:2])))
+            return "velocity", constrain_xy(demand, self.setpoint, self.speed_max)
+        return self.setpoint_kind, self.setpoint
 
     # ------------------------------------------------------------------ receiving
     def poll(self, t: float) -> int:
@@ -377,7 +497,7 @@ class VehicleLink:
         m = self.mavlink
         try:
             messages = self.parser.parse_buffer(data) or []
-        except Exception:  # pymavlink raises on some malformed input even when parsing robustly
+        except Exception:  # noqa: BLE001 (pymavlink raises on some malformed input even when parsing robustly)
             messages, self.parser = [None], self._new_parser()
         if self.parser.buf_len() > 0:  # a truncated frame at the end of the datagram
             self._ignore("truncated frame")
@@ -399,6 +519,8 @@ class VehicleLink:
                    "COMMAND_LONG": self._command_long, "SET_MODE": self._set_mode_message}.get(kind, False)
         if handler is False:
             self._ignore(f"unsupported message {kind}")
+            if kind in FLIGHT_MESSAGES and getattr(message, "target_system", 0) in (0, self.system_id):
+                self._warn(f"message {kind}", f"{kind} unsupported")
             return
         if handler is not None and getattr(message, "target_system", 0) not in (0, self.system_id):
             self._ignore("addressed to another system")
@@ -411,29 +533,73 @@ class VehicleLink:
         self.handled[kind] += 1
 
     def _setpoint(self, msg) -> bool:
+        """SET_POSITION_TARGET_LOCAL_NED: the horizontal position, acceleration or velocity setpoint it
+        carries (in that order of precedence) becomes the vehicle's setpoint, converted from its frame
+        to the local NED frame at receipt as PX4 does; what cannot be flown is refused, fields in use
+        that the testbed ignores (altitude, heading, ...) draw a warning. See the module docstring."""
         m = self.mavlink
-        if msg.coordinate_frame != m.MAV_FRAME_LOCAL_NED:
-            self._ignore("setpoint frame is not MAV_FRAME_LOCAL_NED")
-            return False
+        frame = msg.coordinate_frame
+        if frame not in SETPOINT_FRAMES:
+            entry = m.enums["MAV_FRAME"].get(frame)
+            name = entry.name.removeprefix("MAV_FRAME_") if entry is not None else "unknown"
+            return self._refuse(f"frame {frame} unsupported ({name})")
         mask = msg.type_mask
-        if mask & m.POSITION_TARGET_TYPEMASK_FORCE_SET:
-            self._ignore("force setpoint")
-            return False
-        accel_bits = m.POSITION_TARGET_TYPEMASK_AX_IGNORE | m.POSITION_TARGET_TYPEMASK_AY_IGNORE
-        velocity_bits = m.POSITION_TARGET_TYPEMASK_VX_IGNORE | m.POSITION_TARGET_TYPEMASK_VY_IGNORE
-        if not mask & accel_bits:  # afx, afy in use: the acceleration setpoint; position/velocity ignored
-            kind, north, east = "accel", msg.afx, msg.afy
-        elif not mask & velocity_bits:
-            kind, north, east = "velocity", msg.vx, msg.vy
+        used = {field: not mask & bit for field, bit in TYPE_MASK_BITS.items()}
+        if mask & TYPE_MASK_FORCE_SET and (used["afx"] or used["afy"] or used["afz"]):  # as PX4
+            return self._refuse("force setpoints unsupported")
+        pairs = {"position": ("x", "y"), "accel": ("afx", "afy"), "velocity": ("vx", "vy")}
+        kind = next((k for k in ("position", "accel", "velocity") if used[pairs[k][0]] and used[pairs[k][1]]), None)
+        if kind is None:
+            half = next(((a, b) if used[a] else (b, a) for a, b in pairs.values() if used[a] or used[b]), None)
+            return self._refuse(f"{half[0]} without {half[1]}" if half else "no x/y, vx/vy or afx/afy in use")
+        if not (math.isfinite(getattr(msg, pairs[kind][0])) and math.isfinite(getattr(msg, pairs[kind][1]))):
+            return self._refuse("non-finite value")
+        body = frame in (m.MAV_FRAME_BODY_NED, m.MAV_FRAME_BODY_OFFSET_NED)
+        if self.state is None and (kind == "position" or frame != m.MAV_FRAME_LOCAL_NED):
+            return self._refuse("no position estimate")
+        position, yaw = self.state() if self.state is not None else (None, None)
+
+        def horizontal(a: str, b: str) -> np.ndarray:  # (north, east) of a field pair, at receipt
+            xy = (getattr(msg, a), getattr(msg, b))
+            return rotate_yaw(yaw, *xy) if body else np.array(xy, dtype=np.float64)
+
+        flown = {kind}
+        if kind == "position":
+            target = horizontal("x", "y")
+            if frame != m.MAV_FRAME_LOCAL_NED:  # offset and body frames: relative to the vehicle, now
+                target = target + np.asarray(position)[:2]
+            feed_forward = np.zeros(2)
+            if used["vx"] and used["vy"] and math.isfinite(msg.vx) and math.isfinite(msg.vy):
+                feed_forward, flown = horizontal("vx", "vy"), {"position", "velocity"}  # PX4's feed-forward
+            self.setpoint_kind, self.position_target, self.setpoint = kind, target, ned_to_enu_xy(*feed_forward)
         else:
-            self._ignore("setpoint without horizontal acceleration or velocity (position setpoints unsupported)")
-            return False
-        if not (math.isfinite(north) and math.isfinite(east)):
-            self._ignore("setpoint not finite")
-            return False
-        self.setpoint_kind, self.setpoint = kind, ned_to_enu_xy(north, east)
+            self.setpoint_kind, self.setpoint = kind, ned_to_enu_xy(*horizontal(*pairs[kind]))
+        for other, fields in pairs.items():  # horizontal fields in use that are not flown
+            names = "/".join(f for f in fields if used[f])
+            if other not in flown and names:
+                self._field_ignored(f"{other} with {kind}", f"{names} ignored: {kind} setpoint flown")
+        self._check_ignored_fields(msg, used, frame, position, yaw)
         self.last_setpoint_t = self.t
         return True
+
+    def _check_ignored_fields(self, msg, used: dict, frame: int, position, yaw) -> None:
+        """Warn about vertical and heading fields in use that the testbed cannot follow (it holds its
+        altitude and heading): z beyond ALTITUDE_TOLERANCE_M of the held altitude, vz, afz, yaw and yaw
+        rate beyond IGNORED_FIELD_TOLERANCES. Needs the vehicle's estimate (`state`) for z and yaw."""
+        tol = IGNORED_FIELD_TOLERANCES
+        if used["z"] and position is not None:
+            held = float(position[2])
+            z = msg.z + (held if frame != self.mavlink.MAV_FRAME_LOCAL_NED else 0.0)
+            if abs(z - held) > ALTITUDE_TOLERANCE_M:
+                self._field_ignored("z", f"z={z:.2f} ignored: altitude held at z={held:.2f}")
+        if used["vz"] and abs(msg.vz) > tol["vz"]:
+            self._field_ignored("vz", "vz ignored: the altitude is held")
+        if used["afz"] and abs(msg.afz) > tol["afz"]:
+            self._field_ignored("afz", "afz ignored: the altitude is held")
+        if used["yaw"] and yaw is not None and abs(math.remainder(msg.yaw - yaw, math.tau)) > tol["yaw"]:
+            self._field_ignored("yaw", f"yaw ignored: heading held at {math.degrees(yaw):.0f} deg")
+        if used["yaw_rate"] and abs(msg.yaw_rate) > tol["yaw_rate"]:
+            self._field_ignored("yaw_rate", "yaw rate ignored: the heading is held")
 
     def _command_long(self, msg) -> bool:
         m = self.mavlink
@@ -443,6 +609,9 @@ class VehicleLink:
             result = self._set_mode(msg.param1, msg.param2, msg.param3)
         else:
             self._ignore(f"unsupported command {msg.command}")
+            entry = m.enums["MAV_CMD"].get(msg.command)
+            name = entry.name.removeprefix("MAV_CMD_") if entry is not None else "unknown"
+            self._warn(f"command {msg.command}", f"Command {msg.command} unsupported ({name})")
             self._ack(msg, m.MAV_RESULT_UNSUPPORTED)
             return False
         self._ack(msg, result)
@@ -466,6 +635,10 @@ class VehicleLink:
             self.status_text(f"Unsupported ARM_DISARM param: {param1:.3f}", m.MAV_SEVERITY_CRITICAL)
             return m.MAV_RESULT_DENIED
         if action == 1 and self.mode == MODE_OFFBOARD and not self.streaming:
+            refusal = self._recent_refusal()
+            if refusal is not None:  # setpoints arrive but cannot be flown: retrying will not help
+                self.status_text(f"Arming denied: {refusal}", m.MAV_SEVERITY_WARNING)
+                return m.MAV_RESULT_DENIED
             self.status_text("Arming denied: no offboard setpoints", m.MAV_SEVERITY_CRITICAL)
             return m.MAV_RESULT_TEMPORARILY_REJECTED
         if bool(action) != self.armed:
@@ -487,6 +660,10 @@ class VehicleLink:
                              m.MAV_SEVERITY_WARNING)
             return m.MAV_RESULT_UNSUPPORTED
         if wanted == MODE_OFFBOARD and not self.streaming:  # PX4: stream setpoints before switching
+            refusal = self._recent_refusal()
+            if refusal is not None:  # setpoints arrive but cannot be flown: retrying will not help
+                self.status_text(f"OFFBOARD denied: {refusal}", m.MAV_SEVERITY_WARNING)
+                return m.MAV_RESULT_DENIED
             self.status_text("Switching to OFFBOARD denied: no setpoint stream", m.MAV_SEVERITY_CRITICAL)
             return m.MAV_RESULT_TEMPORARILY_REJECTED
         if wanted != self.mode:
@@ -496,6 +673,10 @@ class VehicleLink:
 
     # ------------------------------------------------------------------ sending
     def status_text(self, text: str, severity: int) -> None:
+        """One STATUSTEXT (50 characters): a name in parentheses at the end that would not fit is dropped
+        (e.g. a long frame or command name: its number stays), the rest cut at 50."""
+        if len(text) > 50 and text.endswith(")") and " (" in text:
+            text = text[:text.rindex(" (")]
         self.mav.statustext_send(severity, text[:50].encode())
 
     def send_heartbeat(self) -> None:
@@ -506,7 +687,7 @@ class VehicleLink:
     def send_telemetry(self, t: float, position_ned: np.ndarray, velocity_ned: np.ndarray,
                        attitude: tuple[float, float, float], rates_frd: np.ndarray) -> None:
         """LOCAL_POSITION_NED and ATTITUDE at simulated time t (time_boot_ms = simulated ms)."""
-        boot_ms = int(round(t * 1e3)) & 0xFFFFFFFF
+        boot_ms = round(t * 1e3) & 0xFFFFFFFF
         x, y, z = (float(c) for c in position_ned)
         vx, vy, vz = (float(c) for c in velocity_ned)
         self.mav.local_position_ned_send(boot_ms, x, y, z, vx, vy, vz)
@@ -528,12 +709,14 @@ class LinkReport:
     """How often the simulation fell more than OVERRUN_S behind the wall clock (and stopped catching up)."""
 
     def summary(self) -> str:
-        lines = [f"{self.sim_s:.1f} s simulated in {self.wall_s:.1f} s wall ({self.sim_s / max(self.wall_s, 1e-9):.2f}x), "
-                 f"{self.overruns} overruns"]
+        rate = self.sim_s / max(self.wall_s, 1e-9)
+        lines = [f"{self.sim_s:.1f} s simulated in {self.wall_s:.1f} s wall ({rate:.2f}x), {self.overruns} overruns"]
         for v in self.vehicles:
             ignored = ", ".join(f"{k}: {n}" for k, n in sorted(v["ignored"].items())) or "none"
+            warned = ", ".join(f"{k}: {n}" for k, n in sorted(v.get("warnings", {}).items()))
             lines.append(f"uav {v['uav']} (sysid {v['system_id']}): handled {sum(v['handled'].values())}, "
-                         f"ignored {sum(v['ignored'].values())} ({ignored})")
+                         f"ignored {sum(v['ignored'].values())} ({ignored})"
+                         + (f"; warnings ({warned})" if warned else ""))
         return "\n".join(lines)
 
 
@@ -587,6 +770,15 @@ class MavlinkLink:
             origin_enu[:, :2] = self.spawn
         self.origin_ned = enu_to_ned(origin_enu)
         self.accel_max = task.accel_max
+        for i, v in enumerate(self.vehicles):  # the estimate position setpoints and body frames use
+            v.state = functools.partial(self._vehicle_state, i)
+            v.speed_max = task.speed_max
+
+    def _vehicle_state(self, i: int) -> tuple[np.ndarray, float]:
+        """Drone i's position in its local NED frame (m) and its NED yaw (rad), now."""
+        world = self.world
+        position = enu_to_ned(world.drone_positions[0, i]) - self.origin_ned[i]
+        return position, attitude_ned(world.drone_quaternions[0, i])[2]
 
     def _setpoints(self, t: float) -> np.ndarray:
         """[1, N, 2] the acceleration setpoints every drone flies in the control tick at time t."""
@@ -658,7 +850,8 @@ class MavlinkLink:
         return LinkReport(sim_s=clock["step"] * world.dt, wall_s=time.perf_counter() - start,
                           overruns=clock["overruns"],
                           vehicles=[{"uav": v.uav, "system_id": v.system_id, "handled": dict(v.handled),
-                                     "ignored": dict(v.ignored), "events": list(v.events)} for v in self.vehicles])
+                                     "ignored": dict(v.ignored), "warnings": dict(v.warnings),
+                                     "events": list(v.events)} for v in self.vehicles])
 
     def close(self) -> None:
         for v in self.vehicles:
@@ -676,8 +869,9 @@ def build_parser() -> argparse.ArgumentParser:
     d = MavlinkLinkConfig()
     p = _Parser(prog="cefc-mavlink",
                 description="Serve testbed drones as MAVLink 2 vehicles (PX4 SITL's offboard interface over UDP): "
-                            "HEARTBEAT, LOCAL_POSITION_NED and ATTITUDE out; acceleration or velocity "
-                            "SET_POSITION_TARGET_LOCAL_NED, ARM_DISARM and DO_SET_MODE (OFFBOARD) in.")
+                            "HEARTBEAT, LOCAL_POSITION_NED and ATTITUDE out; position, velocity or "
+                            "acceleration SET_POSITION_TARGET_LOCAL_NED, ARM_DISARM and DO_SET_MODE "
+                            "(OFFBOARD) in.")
     p.add_argument("--drones", type=int, default=d.n_drones, metavar="N", help="how many drones (default 1)")
     p.add_argument("--sysid", type=int, default=d.system_id, metavar="ID",
                    help="MAVLink system id of drone 0; drone i has ID + i (default 1)")
@@ -707,7 +901,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--airframe", metavar="NAME|PATH", help="airframe: iris (default), crazyflie or an MJCF path")
     p.add_argument("--wind", type=float, default=d.wind, metavar="M/S", help="mean wind speed (default 0)")
     p.add_argument("--speed-max", type=float, metavar="M/S", help="horizontal speed limit (default: the task's, 1)")
-    p.add_argument("--accel-max", type=float, metavar="M/S2", help="per-axis acceleration limit (default: the task's, 2)")
+    p.add_argument("--accel-max", type=float, metavar="M/S2",
+                   help="per-axis acceleration limit (default: the task's, 2)")
     p.add_argument("--seed", type=int, default=d.seed, help="seeds the wind (default 0)")
     p.add_argument("--verbose", action="store_true", help="log every ignored message to stderr")
     return p
