@@ -2,9 +2,10 @@
 
 Spaces: each observation is a float32 `Box` with finite per-part bounds derived from the layout
 (`observation_bounds`), the centralized state a `Box` too (`state_bounds`). Rendering:
-`render_mode="rgb_array"` returns frames (MuJoCo's offscreen renderer for quadrotors, a numpy
-top-down drawing for particles); `"human"` streams every step to a live Rerun viewer through the
-project's episode logging (`cefc_mj.viz.rerun_log`), as `RerunRecorder` does for `.rrd` files.
+`render_mode="rgb_array"` returns frames (`cefc_mj.viz.frames`: MuJoCo's offscreen renderer for
+quadrotors, a numpy top-down drawing for particles); `"human"` streams every step to a live Rerun
+viewer through the project's episode logging (`cefc_mj.viz.rerun_log`), as
+`cefc_mj.viz.recorder.RerunRecorder` does for `.rrd` files.
 User guide: docs/pettingzoo.md.
 
 >>> import cefc_mj
@@ -18,14 +19,10 @@ True
 
 from __future__ import annotations
 
-import atexit
 import math
 import os
-import socket
 import sys
-import weakref
 from collections.abc import Mapping
-from pathlib import Path
 
 import gymnasium
 import numpy as np
@@ -37,13 +34,12 @@ from cefc_mj.errors import CefcError, ConfigError, SimulationDiverged
 from cefc_mj.sim.particle import ParticleWorld
 from cefc_mj.task.config import TaskConfig
 from cefc_mj.task.observation import layout_for
+from cefc_mj.viz.frames import frame_renderer
+from cefc_mj.viz.recorder import RerunRecorder, has_display, spawn_viewer
 
 RENDER_MODES = ("rgb_array", "human")
 RENDER_SIZE = (480, 480)
 """Default (height, width) of rgb_array frames in pixels."""
-RERUN_VIEWER_PORT = 9876  # where rr.spawn starts (or finds) the viewer, and where rr.GrpcSink() sends
-FLIGHT_ALTITUDE = 2.0  # the particle world is 2D; Rerun draws it at the quadrotors' altitude (m)
-OBSTACLE_HEIGHT = 4.0  # likewise, the height of the drawn obstacle cylinders (m)
 _DEVIATION_SIGMAS = 8.0  # |Normal(d, d/4)| exceeds d + 8 d/4 with probability ~1e-15
 _NOISE_SIGMAS = 8.0  # the same margin for the particle world's Gaussian velocity kicks
 
@@ -180,7 +176,7 @@ def prefer_headless_gl() -> None:
 
     MuJoCo reads MUJOCO_GL once, when it is first imported; later this has no effect.
     """
-    if sys.platform.startswith("linux") and not _has_display() and "mujoco" not in sys.modules:
+    if sys.platform.startswith("linux") and not has_display() and "mujoco" not in sys.modules:
         os.environ.setdefault("MUJOCO_GL", "egl")
 
 
@@ -230,9 +226,9 @@ class CEFCParallelEnv(ParallelEnv):
         self._frames = None
         self._recorder = None
         if render_mode == "rgb_array":
-            self._frames = _frame_renderer(batched, render_size)
+            self._frames = frame_renderer(batched, render_size)
         elif render_mode == "human":
-            _spawn_viewer()
+            spawn_viewer()
             self._recorder = RerunRecorder(self, spawn=True)
 
     def observation_space(self, agent: str) -> spaces.Box:
@@ -336,361 +332,3 @@ class CEFCParallelEnv(ParallelEnv):
             if metrics is not None:
                 infos[a]["metrics"] = {k: float(v[0]) for k, v in metrics.items()}
         return infos
-
-
-# ---------------------------------------------------------------------------------------- frames
-def _frame_renderer(batched: BatchedCEFCEnv, size: tuple[int, int]):
-    try:
-        height, width = (int(v) for v in size)
-    except (TypeError, ValueError):
-        raise ConfigError(f"render_size={size!r}: must be (height, width) in pixels") from None
-    if height < 16 or width < 16:
-        raise ConfigError(f"render_size={size!r}: must be at least 16 x 16 pixels")
-    if isinstance(batched.world, ParticleWorld):
-        return TopDownFrames(batched.config, height, width)
-    if hasattr(batched.world, "models") and hasattr(batched.world, "datas"):
-        return MujocoFrames(batched.world, batched.config, height, width)
-    raise ConfigError(f"render_mode='rgb_array': no renderer for a {type(batched.world).__name__}")
-
-
-def _agent_colors(n: int) -> np.ndarray:
-    """[n, 3] uint8: UAV i in tab10 colour i, as the top-down plots draw them."""
-    import matplotlib
-
-    return (np.asarray(matplotlib.colormaps["tab10"].colors)[np.arange(n) % 10] * 255).round().astype(np.uint8)
-
-
-class TopDownFrames:
-    """Particle-world frames: the arena from above, drawn with numpy (no GL, no figure).
-
-    1 m grid, the arena's border, obstacles (grey), in formation mode the anchor and its 1 m zone
-    (green), in cefc mode the target areas (gold) and the adversary (red), and each UAV as its
-    footprint disc in its tab10 colour (cefc_mj.viz.plots' colours). The view spans the arena plus
-    1 m; a UAV outside it is not drawn. x grows to the right, y upwards.
-    """
-
-    def __init__(self, config: TaskConfig, height: int, width: int):
-        self.config = config
-        half = config.arena_half_size + 1.0
-        self.scale = min(height, width) / (2.0 * half)  # pixels per metre
-        # world coordinates of the pixel centres
-        self.x = (np.arange(width) + 0.5 - width / 2) / self.scale
-        self.y = (height / 2 - np.arange(height) - 0.5) / self.scale
-        self.colors = _agent_colors(config.n_agents)
-        xx, yy = np.meshgrid(self.x, self.y)
-        background = np.full((height, width, 3), 250, dtype=np.uint8)
-        on_grid = (np.abs(xx - np.round(xx)) < 0.5 / self.scale) | (np.abs(yy - np.round(yy)) < 0.5 / self.scale)
-        background[on_grid] = 225
-        a = config.arena_half_size
-        box_distance = np.maximum(np.abs(xx), np.abs(yy))
-        background[(box_distance >= a) & (box_distance <= a + 1.0 / self.scale)] = 90  # the arena's border
-        self.background = background
-
-    def frame(self, batched: BatchedCEFCEnv) -> np.ndarray:
-        cfg, world = self.config, batched.world
-        img = self.background.copy()
-        for centre in batched.obstacles[0]:
-            self._disc(img, centre, cfg.obstacle_radius, (140, 140, 140))
-        if cfg.mode == "formation":
-            self._disc(img, batched.anchor[0], cfg.navigation_tolerance, (44, 160, 44), alpha=0.15)
-            self._ring(img, batched.anchor[0], cfg.navigation_tolerance, (44, 160, 44))
-            self._disc(img, batched.anchor[0], 0.15, (44, 160, 44))
-        else:
-            for target in batched.targets[0]:
-                self._disc(img, target, cfg.target_radius, (230, 180, 0), alpha=0.2)
-                self._ring(img, target, cfg.target_radius, (230, 180, 0))
-            if cfg.adversary != "none":
-                self._disc(img, world.adversary_pos[0], cfg.uav_radius * 1.2, (200, 0, 0))
-        for i, pos in enumerate(world.agent_pos[0]):
-            self._disc(img, pos, cfg.uav_radius + 1.0 / self.scale, (0, 0, 0))  # outline
-            self._disc(img, pos, cfg.uav_radius, self.colors[i])
-        return img
-
-    def close(self) -> None:
-        pass
-
-    def _window(self, centre, radius):
-        """Row and column index ranges of the pixels within `radius` of `centre` (maybe empty)."""
-        cols = np.flatnonzero(np.abs(self.x - centre[0]) <= radius)
-        rows = np.flatnonzero(np.abs(self.y - centre[1]) <= radius)
-        return rows, cols
-
-    def _distance(self, centre, radius):
-        rows, cols = self._window(centre, radius)
-        if not len(rows) or not len(cols):
-            return None, None
-        box = np.s_[rows[0]:rows[-1] + 1, cols[0]:cols[-1] + 1]
-        d = np.hypot(self.x[cols][None, :] - centre[0], self.y[rows][:, None] - centre[1])
-        return box, d
-
-    def _disc(self, img, centre, radius, color, alpha: float = 1.0) -> None:
-        box, d = self._distance(centre, radius)
-        if box is None:
-            return
-        inside = d <= radius
-        patch = img[box]
-        patch[inside] = (1 - alpha) * patch[inside] + alpha * np.asarray(color, dtype=np.float64)
-
-    def _ring(self, img, centre, radius, color) -> None:
-        box, d = self._distance(centre, radius)
-        if box is None:
-            return
-        img[box][np.abs(d - radius) <= 1.0 / self.scale] = color
-
-
-class MujocoFrames:
-    """MuJoCo-world frames from `mujoco.Renderer` on env 0's model and data.
-
-    An oblique view of the whole arena; on top of the MuJoCo scene each UAV gets a marker ball in
-    its tab10 colour, the anchor zone (formation mode) or the target areas (cefc mode) a flat disc.
-    Needs OpenGL: headless, MUJOCO_GL=egl (`prefer_headless_gl`). The renderer is created here, so
-    a missing GL fails at construction with ConfigError.
-    """
-
-    def __init__(self, world, config: TaskConfig, height: int, width: int):
-        import mujoco
-
-        self.mujoco = mujoco
-        self.world = world
-        self.config = config
-        model = world.models[0]
-        limit = (model.vis.global_.offheight, model.vis.global_.offwidth)
-        if height > limit[0] or width > limit[1]:
-            raise ConfigError(f"render_size=({height}, {width}): the MuJoCo scene renders at most "
-                              f"{limit[0]} x {limit[1]}")
-        try:
-            self.renderer = mujoco.Renderer(model, height, width)
-        except Exception as e:  # a missing GL surfaces as FatalError, GLError, ImportError, ... depending on MUJOCO_GL
-            hint = str(e).strip().splitlines()[0][:160] if str(e).strip() else type(e).__name__
-            raise ConfigError(
-                f"render_mode='rgb_array' on MuJoCo needs OpenGL offscreen rendering ({hint}); headless, set "
-                f"MUJOCO_GL=egl (or osmesa) before mujoco is imported, or use backend='particle'"
-            ) from None
-        atexit.register(_close_if_alive, weakref.ref(self))  # before EGL's own exit hook tears the display down
-        for flag in (mujoco.mjtRndFlag.mjRND_SHADOW, mujoco.mjtRndFlag.mjRND_REFLECTION):
-            self.renderer.scene.flags[flag] = 0  # a third of the time per frame on a software GL
-        self.camera = mujoco.MjvCamera()
-        self.camera.type = mujoco.mjtCamera.mjCAMERA_FREE
-        self.camera.lookat[:] = (0.0, -1.0, 0.0)
-        self.camera.distance = 2.6 * config.arena_half_size + 2.0
-        self.camera.elevation = -65.0
-        self.camera.azimuth = 90.0  # looking along +y: x to the right, as in the top-down frames
-        self.colors = np.concatenate([_agent_colors(config.n_agents) / 255.0, np.ones((config.n_agents, 1))], axis=1)
-
-    def frame(self, batched: BatchedCEFCEnv) -> np.ndarray:
-        mujoco, cfg = self.mujoco, self.config
-        self.renderer.update_scene(self.world.datas[0], camera=self.camera)
-        scene = self.renderer.scene
-        drones = self.world.drone_positions[0, :cfg.n_agents]
-        for i, pos in enumerate(drones):
-            self._add(scene, mujoco.mjtGeom.mjGEOM_SPHERE, [0.25, 0, 0], pos + (0.0, 0.0, 0.15), self.colors[i])
-        if cfg.mode == "formation":
-            anchor = np.append(batched.anchor[0], 0.02)
-            self._add(scene, mujoco.mjtGeom.mjGEOM_CYLINDER, [cfg.navigation_tolerance, 0.01, 0], anchor,
-                      [0.17, 0.63, 0.17, 0.5])
-        else:
-            for target in batched.targets[0]:
-                self._add(scene, mujoco.mjtGeom.mjGEOM_CYLINDER, [cfg.target_radius, 0.01, 0], np.append(target, 0.02),
-                          [0.9, 0.7, 0.0, 0.35])
-        return self.renderer.render()
-
-    def _add(self, scene, geom_type, size, pos, rgba) -> None:
-        if scene.ngeom >= scene.maxgeom:
-            return
-        self.mujoco.mjv_initGeom(scene.geoms[scene.ngeom], geom_type, np.asarray(size, dtype=np.float64),
-                                 np.asarray(pos, dtype=np.float64), np.eye(3).ravel(),
-                                 np.asarray(rgba, dtype=np.float32))
-        scene.ngeom += 1
-
-    def close(self) -> None:
-        renderer, self.renderer = getattr(self, "renderer", None), None
-        if renderer is not None:
-            renderer.close()
-
-
-def _close_if_alive(ref) -> None:
-    frames = ref()
-    if frames is not None:
-        frames.close()
-
-
-# ---------------------------------------------------------------------------------------- Rerun
-def _has_display() -> bool:
-    return any(os.environ.get(k) for k in ("DISPLAY", "WAYLAND_DISPLAY", "WAYLAND_SOCKET"))
-
-
-def _viewer_listening(port: int = RERUN_VIEWER_PORT) -> bool:
-    with socket.socket() as s:
-        s.settimeout(0.5)
-        return s.connect_ex(("127.0.0.1", port)) == 0
-
-
-def _spawn_viewer() -> None:
-    """Start a Rerun viewer (or find one listening); ConfigError when none can show up."""
-    if _viewer_listening():
-        return
-    if sys.platform.startswith("linux") and not _has_display():
-        raise ConfigError("render_mode='human': no display for a Rerun viewer (DISPLAY is unset) and none listening "
-                          f"on port {RERUN_VIEWER_PORT}; use render_mode='rgb_array'")
-    import rerun as rr
-
-    try:
-        rr.spawn(port=RERUN_VIEWER_PORT, connect=False)
-    except Exception as e:  # the viewer executable is missing or cannot start
-        raise ConfigError(f"render_mode='human': cannot start the Rerun viewer ({e}); "
-                          "use render_mode='rgb_array'") from None
-
-
-_SCALARS = ("hd_error", "anchor_distance", "wind_speed", "F_so_far", "N_so_far", "C_so_far")
-"""The per-step series RerunRecorder logs under metrics/ (the names cefc-eval's recordings use)."""
-
-
-class RerunRecorder:
-    """Logs a `CEFCParallelEnv`'s episodes to Rerun step by step, with `cefc_mj.viz.rerun_log`
-    (the same entities, timelines and blueprint as `cefc-eval --rrd/--spawn`).
-
-    Call `capture()` after `reset()` and after every `step()` (render_mode="human" does it itself).
-    Each episode is its own recording: sent to the viewer (`spawn=True`) and/or written to
-    `rrd_path` for the first episode and `<stem>_<k><suffix>` for episode k >= 1.
-
-    >>> import cefc_mj, tempfile, pathlib                       # doctest: +SKIP
-    >>> env = cefc_mj.make_env(n_agents=3, mode="formation")    # doctest: +SKIP
-    >>> with RerunRecorder(env, rrd_path=pathlib.Path(tempfile.mkdtemp()) / "ep.rrd") as rec:  # doctest: +SKIP
-    ...     env.reset(seed=0); rec.capture()
-    ...     while env.agents:
-    ...         env.step({a: env.action_space(a).sample() for a in env.agents}); rec.capture()
-    """
-
-    def __init__(self, env: CEFCParallelEnv, rrd_path: str | os.PathLike | None = None, spawn: bool = False):
-        if rrd_path is None and not spawn:
-            raise ConfigError("RerunRecorder: give rrd_path, spawn=True, or both")
-        self.env = env
-        self.rrd_path = None if rrd_path is None else Path(rrd_path)
-        self.spawn = spawn
-        self.episodes = 0
-        self.recording = None
-        self._rows: dict[str, np.ndarray] = {}
-        self._static: dict = {}
-        self._airframe_parts = None  # the drone body for the 3D view, read once
-
-    def __enter__(self) -> RerunRecorder:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
-    def capture(self) -> None:
-        """Log the env's current state as step t = env.batched.t (t = 0 starts a new episode)."""
-        from cefc_mj.viz.rerun_log import log_static, log_steps
-
-        t = int(self.env.batched.t[0])
-        if t == 0:
-            self._start_episode()
-            self._fill(0)
-            log_static(self._record(1), self.recording)
-            log_steps(self._record(1), self.recording, 0, 1)
-            return
-        if self.recording is None or t >= len(self._rows["agent_pos"]):
-            raise ConfigError("RerunRecorder.capture: capture right after reset() and after every step()")
-        self._fill(t)
-        log_steps(self._record(t + 1), self.recording, t, t + 1)
-        if t == self.env.config.steps:
-            self._finish_recording()
-
-    def close(self) -> None:
-        self._finish_recording()
-
-    # ------------------------------------------------------------------ internals
-    def _episode_path(self) -> Path | None:
-        if self.rrd_path is None or self.episodes == 0:
-            return self.rrd_path
-        return self.rrd_path.with_name(f"{self.rrd_path.stem}_{self.episodes}{self.rrd_path.suffix}")
-
-    def _start_episode(self) -> None:
-        from cefc_mj.eval.record import airframe_parts_from_mjcf
-        from cefc_mj.paths import MJCF_DIR
-        from cefc_mj.task.formation import formation_template
-        from cefc_mj.viz.rerun_log import open_recording
-
-        self._finish_recording()
-        self.recording = open_recording(rrd_path=self._episode_path(), spawn=self.spawn)
-        self.episodes += 1
-        env, cfg = self.env.batched, self.env.config
-        world = env.world
-        rows, n, m = cfg.steps + 1, cfg.n_agents, cfg.n_lidar_rays
-        self._rows = {
-            "agent_pos": np.zeros((rows, n, 3)), "agent_quat": np.zeros((rows, n, 4)),
-            "agent_vel": np.zeros((rows, n, 2)), "anchor": np.zeros((rows, 2)),
-            "lidar_origins": np.zeros((rows, n, 2)), "lidar_ranges": np.zeros((rows, n, m)),
-            "group_id": np.zeros((rows, n), dtype=np.int64), "template_world": np.full((rows, n, 2), np.nan),
-            "collision": np.zeros((rows, n), dtype=bool), "adversary_pos": np.zeros((rows, 3)),
-            **{name: np.zeros(rows) for name in _SCALARS},
-        }
-        wind = getattr(world, "wind_config", None)
-        mujoco_config = None if isinstance(world, ParticleWorld) else getattr(world, "config", None)
-        condition = []  # the paper's names, as cefc-eval writes them
-        if wind is not None and wind.mean_speed:
-            condition.append(f"Wind-{wind.mean_speed:g}")
-        if cfg.deviation:
-            condition.append(f"Deviation-{cfg.deviation:g}")
-        if self._airframe_parts is None:
-            airframe = MJCF_DIR / "iris.xml"
-            self._airframe_parts = airframe_parts_from_mjcf(airframe) if airframe.is_file() else []
-        seed = self.env.episode_seed
-        self._static = dict(
-            backend="particle" if isinstance(world, ParticleWorld) else "mujoco",
-            condition="+".join(condition) or "SITL-S", formation=n, seed=-1 if seed is None else int(seed), dt=cfg.dt,
-            flight_altitude=getattr(mujoco_config, "flight_altitude", FLIGHT_ALTITUDE),
-            obstacles=env.obstacles[0].copy(), obstacle_radius=cfg.obstacle_radius,
-            obstacle_height=getattr(mujoco_config, "obstacle_height", OBSTACLE_HEIGHT),
-            targets=env.targets[0].copy(), lidar_range=cfg.lidar_range,
-            airframe_parts=self._airframe_parts,
-        )
-        self._template = formation_template(n, cfg.formation_spacing) if cfg.mode == "formation" else None
-        self._has_adversary = cfg.mode == "cefc" and cfg.adversary != "none"
-
-    def _fill(self, t: int) -> None:
-        """Row t of the episode buffers from the env's current state."""
-        env, world, rows = self.env.batched, self.env.batched.world, self._rows
-        n, alt = env.n_agents, self._static["flight_altitude"]
-        if hasattr(world, "drone_positions"):  # quadrotors: 3D poses (UAVs first, then the adversary)
-            rows["agent_pos"][t] = world.drone_positions[0, :n]
-            rows["agent_quat"][t] = world.drone_quaternions[0, :n]
-        else:
-            rows["agent_pos"][t, :, :2] = world.agent_pos[0]
-            rows["agent_pos"][t, :, 2] = alt
-            rows["agent_quat"][t] = (1.0, 0.0, 0.0, 0.0)
-        rows["agent_vel"][t] = world.agent_vel[0]
-        rows["anchor"][t] = env.anchor[0]
-        rows["lidar_origins"][t] = env.perceived_pos[0]
-        rows["lidar_ranges"][t] = env.lidar[0]
-        rows["group_id"][t] = env.labels[0]
-        centre = world.agent_pos[0].mean(axis=0)
-        if self._template is not None:
-            rows["template_world"][t] = centre + self._template
-        rows["collision"][t] = world.collisions()[0]
-        rows["adversary_pos"][t] = (*world.adversary_pos[0], alt)
-        rows["hd_error"][t] = np.nanmin(env.agent_error[0]) if np.isfinite(env.agent_error[0]).any() else np.nan
-        rows["anchor_distance"][t] = np.linalg.norm(centre - env.anchor[0])
-        rows["wind_speed"][t] = np.linalg.norm(world.wind_vector[0, :2]) if hasattr(world, "wind_vector") else 0.0
-        metrics = env.episode_metrics()
-        for key in ("F", "N", "C"):
-            rows[f"{key}_so_far"][t] = metrics[key][0]
-
-    def _record(self, length: int):
-        """The episode's first `length` rows as an EpisodeRecord (views, no copies)."""
-        from cefc_mj.eval.record import EpisodeRecord
-
-        rows = self._rows
-        scalars = {k: rows[k][:length] for k in _SCALARS}
-        arrays = {k: rows[k][:length] for k in ("agent_pos", "agent_quat", "agent_vel", "anchor", "lidar_origins",
-                                               "lidar_ranges", "group_id", "template_world", "collision")}
-        adversary = rows["adversary_pos"][:length] if self._has_adversary else None
-        return EpisodeRecord(**self._static, **arrays, scalars=scalars, adversary_pos=adversary)
-
-    def _finish_recording(self) -> None:
-        from cefc_mj.viz.rerun_log import close_recording
-
-        recording, self.recording = self.recording, None
-        if recording is not None:
-            close_recording(recording)

@@ -90,7 +90,7 @@ def fly(args) -> int:
 
     import cefc_mj
     from cefc_mj.nn.policy_io import load_policy
-    from cefc_mj.pettingzoo_env import RerunRecorder
+    from cefc_mj.viz.recorder import RerunRecorder
 
     torch.set_num_threads(1)  # a small network: intra-op threads only cost time
     as_gif = args.out.suffix == ".gif"

@@ -22,7 +22,8 @@ from rrd_reader import port_open, read_rrd, rerun_listener
 import cefc_mj
 from cefc_mj.errors import ConfigError
 from cefc_mj.nn.policy_io import load_policy
-from cefc_mj.pettingzoo_env import RERUN_VIEWER_PORT, CEFCParallelEnv, RerunRecorder, ResetNeeded
+from cefc_mj.pettingzoo_env import CEFCParallelEnv, ResetNeeded
+from cefc_mj.viz.recorder import RERUN_VIEWER_PORT, RerunRecorder
 
 REPO = Path(__file__).resolve().parents[1]
 EXAMPLE = REPO / "examples" / "fly_shipped_policy.py"
