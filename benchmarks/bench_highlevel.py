@@ -13,6 +13,9 @@ autograd.
 
     .venv/bin/python benchmarks/bench_highlevel.py
     .venv/bin/python benchmarks/bench_highlevel.py --policy cihrl_mappo --rounds 9
+    .venv/bin/python benchmarks/bench_highlevel.py --smoke   # decision 2, 1 round of 5 calls (tests/test_benchmarks.py)
+
+The low level is the one the hierarchical evaluators fly (`cefc_mj.eval.highlevel.LOW_LEVEL`).
 """
 
 from __future__ import annotations
@@ -58,7 +61,11 @@ def main() -> None:
     parser.add_argument("--repeat", type=int, default=300, help="calls per round (default 300)")
     parser.add_argument("--rounds", type=int, default=5, help="rounds, best taken (default 5)")
     parser.add_argument("--eager", action="store_true", help="also time the eager paths (decide, Policy.act)")
+    parser.add_argument("--smoke", action="store_true",
+                        help="decision 2, one round of 5 calls: the same code path in seconds")
     args = parser.parse_args()
+    if args.smoke:
+        args.decision, args.repeat, args.rounds = 2, 5, 1
     torch.set_num_threads(1)
 
     path = highlevel_policy_path(args.policy)
@@ -82,7 +89,7 @@ def main() -> None:
     one_inbox = agent_inbox(inbox, 0, agent) if inbox is not None else None
     low_obs = env.low_level_observation()[:, agent:agent + 1]
     decider = policy.agent_decider()
-    student = load_policy(resolve_policy_path(LOW_LEVEL))
+    student = load_policy(resolve_policy_path(LOW_LEVEL))  # the game's low level, as the evaluators fly it
     low_act = student.actor.deterministic_actions
     index, message = decider(agent_obs, one_inbox)
     reference = policy.decide(agent_obs, one_inbox)

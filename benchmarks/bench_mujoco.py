@@ -1,37 +1,44 @@
 """Speed of the MuJoCo evaluation loop as users run it, against raw mj_step, measured in one run.
 
-(i) Table VIII: `cefc_mj.eval.runner.run_episode` flies the shipped AT-M policy (atm_c<c>_step3) through
-the Table VIII scene (c UAVs, obstacles at 0.03 per m^2, anchor redraws), called exactly as `cefc-eval`
-calls it (the benchmark only keeps a reference to the world `runner.make_world` returns): task core,
-observations, the policy, MujocoWorld.step (the compiled PX4-like cascade + mj_step, 50 physics steps
-per decision step), LiDAR, metrics. Its wall time is the episode's own (`EpisodeResult.wall_s`: reset
-to the last step; world construction and policy loading excluded). Against it, raw
-`mujoco.mj_step(model, data, nstep)` (nstep in C, no Python per step) on the very MjModel that episode
-flew, two ways: from each decision step's physics state of that same episode (recorded in a separate,
-untimed run of the same seed; the 50 physics steps that follow, thrusts held: the physics work the
-episode itself asked of MuJoCo), and with the drones hovering open loop at their start positions for
+(i) Table VIII: `cefc_mj.eval.runner.run_episode` flies the evaluator's default policy
+(`cefc_mj.eval.DEFAULT_POLICY` of c) through the Table VIII scene (c UAVs, obstacles at 0.03 per m^2,
+anchor redraws), called exactly as `cefc-eval` calls it (the benchmark only keeps a reference to the world
+`runner.make_world` returns): task core, observations, the policy, MujocoWorld.step (the compiled PX4-like
+cascade + mj_step, 50 physics steps per decision step), LiDAR, metrics. Its wall time is the episode's own
+(`EpisodeResult.wall_s`: reset to the last step; world construction and policy loading excluded). Against
+it, raw `mujoco.mj_step(model, data, nstep)` (nstep in C, no Python per step) on the very MjModel that
+episode flew, two ways: from each decision step's physics state of that same episode (recorded in a
+separate, untimed run of the same seed; the 50 physics steps that follow, thrusts held: the physics work
+the episode itself asked of MuJoCo), and with the drones hovering open loop at their start positions for
 the same simulated time (MuJoCo steps a drone at rest about 20 % faster than one in flight, so this
 baseline is the faster one). Episodes and raw runs alternate, best of `--rounds` each; the ratio loop
 RTF / raw RTF over the episode's own states is what to read (1.0 would be a loop that costs nothing
-beside the physics). A breakdown (world.step, LiDAR,
-policy, the rest: task core and observations) comes from one more, instrumented, episode.
-`--before` adds, in the same run, the loop as it was before the speed-ups: LiDAR by `mj_multiRay` drone
-by drone, the policy through torch's nn.Module forward with the free-space pass recomputed (the
-compiled kernel agrees with it to float32 rounding, so the two episodes part ways after a while and
-their F / N / C differ as two seeds' would).
+beside the physics). A breakdown (world.step, LiDAR, policy, the rest: task core and observations) comes
+from one more, instrumented, episode. `--before` adds, in the same run, the loop as it was before the
+speed-ups: LiDAR by `mj_multiRay` drone by drone, the policy through torch's nn.Module forward with the
+free-space pass recomputed (the compiled kernel agrees with it to float32 rounding, so the two episodes
+part ways after a while and their F / N / C differ as two seeds' would).
 
 (ii) `--sweep 8,16,...,256`: one world of N drones (formation mode, obstacles at the Table VIII density
 in an arena grown with N), the same per-step loop as run_episode for `--sweep-steps` decision steps,
-the shipped c = 8 policy reading each drone's 7 nearest neighbour slots (the env's observation has
-N - 1, nearest first). Per N: RTF
-(x real time), cost per drone (wall us per drone per simulated second), that cost relative to the
-first N of the sweep (1.00 = flat), and raw mj_step RTF of the same model. `--sweep-rotors` picks
-MujocoWorldConfig.rotor_actuation ("external" by default: MuJoCo's site-actuator transmission costs
-O(actuators x dofs) per mj_step, i.e. quadratic in the drone count, so "actuators" cannot be flat).
+the default policy of c = 8 reading each drone's 7 nearest neighbour slots (the env's observation has
+N - 1, nearest first). Per N: RTF (x real time), cost per drone (wall us per drone per simulated second),
+that cost relative to the first N of the sweep (1.00 = flat), and raw mj_step RTF of the same model.
+`--sweep-rotors` picks MujocoWorldConfig.rotor_actuation ("external" by default: MuJoCo's site-actuator
+transmission costs O(actuators x dofs) per mj_step, i.e. quadratic in the drone count, so "actuators"
+cannot be flat).
+
+(iii) `--scaling [8,64,256]`: the swarm loop of (ii) for each N with both rotor paths, "actuators" and
+"external", interleaved round by round in one process (best of `--rounds`), plus raw mj_step of each
+model (drones hovering); prints loop RTF of each path, external / actuators, and what the default
+rotor_actuation = "auto" resolves to at that N (docs/mujoco_world.md, Performance).
+
+`--smoke`: every mode at tiny sizes, one round (a few seconds; tests/test_benchmarks.py runs it).
 
     .venv/bin/python benchmarks/bench_mujoco.py                          # (i): c = 8, calm, 1000 steps, 3 rounds
     .venv/bin/python benchmarks/bench_mujoco.py --before --rounds 5
     .venv/bin/python benchmarks/bench_mujoco.py --steps 0 --sweep 8,16,32,64,128,256
+    .venv/bin/python benchmarks/bench_mujoco.py --steps 0 --scaling 8,64,256 --scaling-steps 50
 
 RTF = simulated seconds / wall seconds. Absolute figures move with the load of a shared machine; the
 ratios measured in one run are what to compare.
@@ -50,9 +57,11 @@ import torch
 
 import cefc_mj.eval.runner as runner
 from cefc_mj.env import BatchedCEFCEnv
+from cefc_mj.eval import DEFAULT_POLICY
 from cefc_mj.eval.runner import TABLE8_DENSITY, EpisodeSpec, load_policy_for, run_episode
 from cefc_mj.nn.policy_io import Policy
-from cefc_mj.sim.mujoco_world import MujocoWorld, MujocoWorldConfig, make_mujoco_world
+from cefc_mj.sim.mujoco_world import (AUTO_ACTUATORS_MAX_DRONES, MujocoWorld, MujocoWorldConfig, make_mujoco_world,
+                                      resolve_rotor_actuation)
 from cefc_mj.task.config import TaskConfig
 from cefc_mj.task.observation import low_level_layout
 
@@ -117,6 +126,7 @@ class _PolicyLike:
     def __init__(self, policy: Policy, actions):
         self.actor = SimpleNamespace(deterministic_actions=actions)
         self.act, self.name, self.obs_dim = actions, policy.name, policy.obs_dim
+        self.task_for = policy.task_for  # the policy's own LiDAR (run_episode asks)
 
 
 def raw_rtf(model: mujoco.MjModel, qpos: np.ndarray, n_drones: int, seconds: float) -> float:
@@ -210,7 +220,8 @@ def table8(args, policy: Policy) -> None:
     rest = result.wall_s / result.steps * 1e3 - sum(ms.values())
 
     print(f"Table VIII episode: c = {spec.formation}, {spec.condition}, {spec.steps} decision steps, seed {spec.seed}, "
-          f"policy {policy.name}, rotor actuators live; best of {args.rounds}")
+          f"policy {policy.name}, rotor_actuation {replay_world.config.rotor_actuation!r} -> "
+          f"{replay_world.rotor_actuation_used!r}; best of {args.rounds}")
     print(f"  raw mj_step, same model, the episode's own states:  RTF {replay:7.1f}")
     print(f"  raw mj_step, same model, drones hovering at start:   RTF {raw:7.1f}")
     for variant in variants:
@@ -235,10 +246,34 @@ def sweep_config(n: int) -> TaskConfig:
 def nearest_slots(config: TaskConfig, slots: int = 7) -> np.ndarray:
     """Observation columns that make the K = `slots` observation out of the env's K = N - 1 one (neighbours
     come nearest first): what a c = 8 policy reads."""
-    layout, k = low_level_layout(config), config.neighbour_slots
+    layout = low_level_layout(config)
     cols = np.arange(layout.size)
     return np.concatenate([cols[layout["anchor"]], cols[layout["own_velocity"]], cols[layout["neighbours"]][:4 * slots],
                            cols[layout["neighbour_mask"]][:slots], cols[layout["lidar"]]])
+
+
+def swarm_loop(n: int, mode: str, policy: Policy, steps: int, seed: int) -> tuple[float, dict, MujocoWorld]:
+    """One world of n drones (sweep_config) flown for `steps` decision steps by `policy` on the 7 nearest
+    neighbour slots, rotor_actuation = mode: (loop RTF, parts in us per drone per decision step, the world).
+    World construction and the first (warm-up) step are not timed."""
+    config = policy.task_for(sweep_config(n))
+    cols = nearest_slots(config)
+    world = make_mujoco_world(config, seed=seed, config=MujocoWorldConfig(rotor_actuation=mode))
+    env = BatchedCEFCEnv(config, n_envs=1, seed=seed, world=world)
+    timers: dict[str, float] = {}
+    world.step = _timed(world.step, timers, "world.step")
+    world.lidar = _timed(world.lidar, timers, "lidar")
+    act = _timed(lambda obs: policy.actor.deterministic_actions(obs[..., cols]), timers, "policy")
+    obs = env.reset()
+    env.step(act(obs))  # warm
+    timers.update({k: 0.0 for k in timers})
+    start = time.perf_counter()
+    for _ in range(steps):
+        obs, _, _, _ = env.step(act(obs))
+    wall = time.perf_counter() - start
+    parts = {k: v / steps / n * 1e6 for k, v in timers.items()}
+    parts["task"] = wall / steps / n * 1e6 - sum(parts.values())
+    return steps * config.dt / wall, parts, world
 
 
 def sweep(args, policy: Policy) -> None:
@@ -252,33 +287,49 @@ def sweep(args, policy: Policy) -> None:
               f"   {'world.step':>10} {'LiDAR':>6} {'policy':>7} {'task':>6}")
         reference = None
         for n in drones:
-            config = sweep_config(n)
-            cols = nearest_slots(config)
             best, best_raw, parts = 0.0, 0.0, {}
             for _ in range(args.rounds):
-                world = make_mujoco_world(config, seed=args.seed, config=MujocoWorldConfig(rotor_actuation=mode))
-                env = BatchedCEFCEnv(config, n_envs=1, seed=args.seed, world=world)
-                timers: dict[str, float] = {}
-                world.step = _timed(world.step, timers, "world.step")
-                world.lidar = _timed(world.lidar, timers, "lidar")
-                act = _timed(lambda obs: policy.actor.deterministic_actions(obs[..., cols]), timers, "policy")
-                obs = env.reset()
-                env.step(act(obs))  # warm
-                timers.update({k: 0.0 for k in timers})
-                start = time.perf_counter()
-                for _ in range(args.sweep_steps):
-                    obs, _, _, _ = env.step(act(obs))
-                wall = time.perf_counter() - start
-                if args.sweep_steps * config.dt / wall > best:
-                    best = args.sweep_steps * config.dt / wall
-                    parts = {k: v / args.sweep_steps / n * 1e6 for k, v in timers.items()}
-                    parts["task"] = wall / args.sweep_steps / n * 1e6 - sum(parts.values())
+                rtf, round_parts, world = swarm_loop(n, mode, policy, args.sweep_steps, args.seed)
+                if rtf > best:
+                    best, parts = rtf, round_parts
                 best_raw = max(best_raw, raw_rtf(world.models[0], world.datas[0].qpos, world.n_drones,
-                                                 args.sweep_steps * config.dt))
+                                                 args.sweep_steps * world.dt))
             cost = 1e6 / (best * n)
             reference = reference or cost
             print(f"{n:>7} {best:>9.1f} {best_raw:>8.1f} {best / best_raw:>9.3f} {cost:>11.1f} {cost / reference:>7.2f}"
                   f"   {parts['world.step']:>10.1f} {parts['lidar']:>6.1f} {parts['policy']:>7.1f} {parts['task']:>6.1f}")
+
+
+ROTOR_PATHS = ("actuators", "external")
+
+
+def scaling(args, policy: Policy) -> None:
+    """(iii): both rotor paths per N, interleaved round by round, best of args.rounds."""
+    drones = [int(x) for x in args.scaling.split(",")]
+    print(f"\nRotor paths by swarm size: one world, formation mode, policy {policy.name} on the 7 nearest "
+          f"neighbour slots, {args.scaling_steps} decision steps, both paths interleaved, best of {args.rounds}; "
+          f"RTF = x real time (full loop; raw: mj_step alone, drones hovering)")
+    for n in drones:
+        loop = {m: 0.0 for m in ROTOR_PATHS}
+        raw = {m: 0.0 for m in ROTOR_PATHS}
+        for _ in range(args.rounds):
+            for mode in ROTOR_PATHS:
+                rtf, _, world = swarm_loop(n, mode, policy, args.scaling_steps, args.seed)
+                assert world.rotor_actuation_used == mode
+                loop[mode] = max(loop[mode], rtf)
+                raw[mode] = max(raw[mode], raw_rtf(world.models[0], world.datas[0].qpos, world.n_drones,
+                                                   args.scaling_steps * world.dt))
+        print(f"{n:>5} drones   actuators: loop RTF {loop['actuators']:7.2f} (raw {raw['actuators']:7.2f})   "
+              f"external: loop RTF {loop['external']:7.2f} (raw {raw['external']:7.2f})   "
+              f"external / actuators x{loop['external'] / loop['actuators']:.2f} "
+              f"(raw x{raw['external'] / raw['actuators']:.2f})   auto -> {resolve_rotor_actuation('auto', n)}",
+              flush=True)
+
+
+SMOKE = dict(steps=10, rounds=1, sweep_steps=3, scaling_steps=3)
+"""--smoke: tiny sizes, one round; the sweep and scaling sizes become 8 and AUTO_ACTUATORS_MAX_DRONES + 1
+drones (either side of the "auto" cross-over) where they were asked for."""
+SMOKE_DRONES = f"8,{AUTO_ACTUATORS_MAX_DRONES + 1}"
 
 
 def main() -> None:
@@ -292,13 +343,28 @@ def main() -> None:
     parser.add_argument("--sweep", default="", help="comma-separated drone counts for the scaling sweep (ii)")
     parser.add_argument("--sweep-steps", type=int, default=100, help="decision steps per sweep run")
     parser.add_argument("--sweep-rotors", default="external", help="rotor_actuation modes for the sweep, comma-separated")
+    parser.add_argument("--scaling", nargs="?", const="8,64,256", default="",
+                        help="(iii): comma-separated drone counts flown with both rotor paths (default 8,64,256)")
+    parser.add_argument("--scaling-steps", type=int, default=50, help="decision steps per scaling run")
+    parser.add_argument("--smoke", action="store_true",
+                        help="tiny sizes, one round: every asked-for mode runs in seconds (tests/test_benchmarks.py)")
     args = parser.parse_args()
+    if args.smoke:
+        for name, value in SMOKE.items():
+            if name != "steps" or args.steps > 0:
+                setattr(args, name, value)
+        args.sweep = SMOKE_DRONES if args.sweep else ""
+        args.scaling = SMOKE_DRONES if args.scaling else ""
     torch.set_num_threads(1)
-    policy = load_policy_for("atm", args.formation)
+    policy = load_policy_for(DEFAULT_POLICY, args.formation)
     if args.steps > 0:
         table8(args, policy)
-    if args.sweep:
-        sweep(args, load_policy_for("atm", 8))
+    if args.sweep or args.scaling:
+        swarm_policy = load_policy_for(DEFAULT_POLICY, 8)
+        if args.sweep:
+            sweep(args, swarm_policy)
+        if args.scaling:
+            scaling(args, swarm_policy)
 
 
 if __name__ == "__main__":

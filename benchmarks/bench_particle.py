@@ -3,6 +3,7 @@ rewards, observations) for B in {1, 64, 256}, N = 8, 24 beams, obstacles at dens
 20 m x 20 m arena, beside a per-env Python loop over B single-env instances measured in the same run.
 
     python benchmarks/bench_particle.py [--steps 200] [--mode cefc|formation]
+    python benchmarks/bench_particle.py --smoke     # B in {1, 4}, 3 steps: seconds (tests/test_benchmarks.py)
 """
 
 from __future__ import annotations
@@ -39,14 +40,18 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--steps", type=int, default=200, help="decision steps timed per configuration")
     parser.add_argument("--mode", choices=["cefc", "formation"], default="cefc")
+    parser.add_argument("--smoke", action="store_true", help="B in {1, 4}, 3 steps: the same code path in seconds")
     args = parser.parse_args()
+    sizes = (1, 64, 256)
+    if args.smoke:
+        sizes, args.steps = (1, 4), 3
     cfg = TaskConfig(n_agents=8, mode=args.mode, obstacle_density=0.05, n_lidar_rays=24)
     rng = np.random.default_rng(0)
     print(f"mode={args.mode} N=8 M=24 obstacles={cfg.n_obstacles} (density 0.05), {args.steps} steps each, 1 thread")
     print(f"{'B':>5} {'batched agent-steps/s':>22} {'per-env loop agent-steps/s':>27} {'ratio':>7}")
-    for b in (1, 64, 256):
+    for b in sizes:
         batched = time_steps([BatchedCEFCEnv(cfg, n_envs=b, seed=0)], args.steps, rng)
-        loop_steps = max(args.steps // max(b // 8, 1), 10)
+        loop_steps = max(args.steps // max(b // 8, 1), 3 if args.smoke else 10)
         singles = [BatchedCEFCEnv(cfg, n_envs=1, seed=s) for s in range(b)]
         looped = time_steps(singles, loop_steps, rng)
         fast, slow = b * 8 / batched, b * 8 / looped

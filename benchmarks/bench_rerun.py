@@ -5,6 +5,7 @@ Logs a synthetic episode (default 1000 steps, 8 UAVs, 24 LiDAR beams, the test a
 wall time of a 1000-step MuJoCo episode from docs/design.md §10 (100 s simulated at 30x-110x real time).
 
     .venv/bin/python benchmarks/bench_rerun.py [--steps 1000] [--agents 8] [--beams 24] [--repeats 5]
+    .venv/bin/python benchmarks/bench_rerun.py --smoke   # 20 steps, one repeat (tests/test_benchmarks.py)
 """
 
 from __future__ import annotations
@@ -28,7 +29,10 @@ def main() -> None:
     parser.add_argument("--agents", type=int, default=8)
     parser.add_argument("--beams", type=int, default=24)
     parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--smoke", action="store_true", help="20 steps, one repeat: the same code path in seconds")
     args = parser.parse_args()
+    if args.smoke:
+        args.steps, args.repeats = 20, 1
 
     airframe = MJCF_DIR / "iris.xml" if (MJCF_DIR / "iris.xml").is_file() else TEST_AIRFRAME
     record = synthetic_record(n_steps=args.steps, n_agents=args.agents, n_beams=args.beams,

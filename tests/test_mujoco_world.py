@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from cefc_mj.errors import ConfigError, SimulationDiverged
-from cefc_mj.sim.mujoco_world import MujocoWorld, MujocoWorldConfig
+from cefc_mj.sim.mujoco_world import AUTO_ACTUATORS_MAX_DRONES, MujocoWorld, MujocoWorldConfig, resolve_rotor_actuation
 from cefc_mj.sim.wind import WindConfig
 from cefc_mj.sim.world import World
 from cefc_mj.task.lidar import lidar_ranges
@@ -214,16 +214,62 @@ def test_actuators_and_external_rotor_forces_are_the_same_forces():
 
 def test_actuators_and_external_fly_the_same_trajectory():
     """2 s of hover then an acceleration step, 3 drones + adversary in Wind-5: live actuators and the
-    external wrench agree to 1e-6 (measured: ~1e-14; only the summation order differs)."""
+    external wrench agree to 1e-9 at every decision step (measured: ~1e-15; only the summation order differs)."""
     live, external = twin_worlds()
+    assert (live.rotor_actuation_used, external.rotor_actuation_used) == ("actuators", "external")
     actions = np.zeros((20, 1, 3, 2))
     actions[5:] = [1.0, -0.5]
     for a in actions:
         for world in (live, external):
             world.step(a, np.array([[0.5, 0.5]]))
-    np.testing.assert_allclose(live.datas[0].qpos, external.datas[0].qpos, rtol=0, atol=1e-6)
-    np.testing.assert_allclose(live.datas[0].qvel, external.datas[0].qvel, rtol=0, atol=1e-6)
+        np.testing.assert_allclose(live.datas[0].qpos, external.datas[0].qpos, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(live.datas[0].qvel, external.datas[0].qvel, rtol=0, atol=1e-9)
     assert np.abs(live.agent_vel[0]).max() > 0.5  # it moved
+
+
+def test_auto_rotor_actuation_is_actuators_up_to_the_cross_over_then_external():
+    """The default "auto": live actuators up to AUTO_ACTUATORS_MAX_DRONES drones per env (UAVs + adversary;
+    every shipped scene: Table VIII 5-8, Tables V/VI 9, Table VII up to 16), the external wrench above."""
+    assert MujocoWorldConfig().rotor_actuation == "auto"
+    assert AUTO_ACTUATORS_MAX_DRONES >= 16
+    assert resolve_rotor_actuation("auto", 1) == "actuators"
+    assert resolve_rotor_actuation("auto", AUTO_ACTUATORS_MAX_DRONES) == "actuators"
+    assert resolve_rotor_actuation("auto", AUTO_ACTUATORS_MAX_DRONES + 1) == "external"
+    for mode in ("actuators", "external"):  # explicit choices are kept at any size
+        assert resolve_rotor_actuation(mode, 1) == resolve_rotor_actuation(mode, 1000) == mode
+    for n_agents, with_adversary, used in ((8, False, "actuators"), (AUTO_ACTUATORS_MAX_DRONES - 1, True, "actuators"),
+                                           (AUTO_ACTUATORS_MAX_DRONES, True, "external")):
+        world = MujocoWorld(MujocoWorldConfig(), 1, n_agents, 0, with_adversary=with_adversary)
+        assert world.rotor_actuation_used == used, (n_agents, with_adversary)
+        assert world.models[0].nu == (4 * world.n_drones if used == "actuators" else 0)
+
+
+def fly_modes(modes, n_agents, steps=10, wind=5.0):
+    """qpos [steps, nq] per rotor_actuation mode: the same scene, seed and random actions."""
+    out = {}
+    for mode in modes:
+        world = MujocoWorld(MujocoWorldConfig(rotor_actuation=mode), 1, n_agents, 2, wind=WindConfig(mean_speed=wind),
+                            seed=7)
+        rng = np.random.default_rng(1)
+        start = np.stack([np.arange(n_agents) % 6 * 1.5, np.arange(n_agents) // 6 * 1.5], 1)[None]
+        world.reset(ALL, start, np.array([[0.0, -4.0]]), np.array([[[12.0, 0.0], [0.0, 12.0]]]))
+        qpos = []
+        for _ in range(steps):
+            world.step(rng.uniform(-2, 2, (1, n_agents, 2)), rng.uniform(-2, 2, (1, 2)))
+            qpos.append(world.datas[0].qpos.copy())
+        out[mode] = (world.rotor_actuation_used, np.array(qpos))
+    return out
+
+
+def test_auto_flies_bit_for_bit_as_the_path_it_resolves_to():
+    """At a Table VIII size "auto" is the live actuators to the last bit; above the cross-over it is the
+    external path to the last bit, and the same trajectory as live actuators there to 1e-9."""
+    small = fly_modes(("auto", "actuators"), n_agents=8)
+    assert small["auto"][0] == "actuators" and np.array_equal(small["auto"][1], small["actuators"][1])
+    big = fly_modes(("auto", "external", "actuators"), n_agents=AUTO_ACTUATORS_MAX_DRONES, steps=5)
+    assert big["auto"][0] == "external" and np.array_equal(big["auto"][1], big["external"][1])
+    np.testing.assert_allclose(big["auto"][1], big["actuators"][1], rtol=0, atol=1e-9)
+    assert np.abs(np.diff(big["auto"][1][:, 0])).max() > 1e-3  # it moved
 
 
 def test_strong_wind_is_rejected_by_the_velocity_loop():
@@ -512,7 +558,8 @@ def test_nan_state_and_flipped_drone_raise_simulation_diverged():
     (lambda: MujocoWorld(MujocoWorldConfig(offboard="position"), 1, 1, 0), "mujoco.offboard must be one of velocity, acceleration"),
     (lambda: MujocoWorld(MujocoWorldConfig(decision_dt=0.002), 1, 1, 0), "mujoco.decision_dt = 0.002 must be a whole number of position-loop periods"),
     (lambda: MujocoWorld(MujocoWorldConfig(physics_loop="c"), 1, 1, 0), "mujoco.physics_loop must be one of compiled, python"),
-    (lambda: MujocoWorld(MujocoWorldConfig(rotor_actuation="motors"), 1, 1, 0), "mujoco.rotor_actuation must be one of actuators, external"),
+    (lambda: MujocoWorld(MujocoWorldConfig(rotor_actuation="motors"), 1, 1, 0),
+     "mujoco.rotor_actuation must be one of auto, actuators, external"),
 ])
 def test_bad_configuration_is_one_clear_line(make, message):
     with pytest.raises(ConfigError, match=message) as info:

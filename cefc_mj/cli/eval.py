@@ -137,6 +137,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="MuJoCo: what the PX4-like offboard interface makes of the policy's acceleration setpoint: "
                         "velocity (default; integrated into a velocity setpoint) or acceleration (sent as PX4 "
                         "acceleration setpoints, as the paper does); single and table8, not with --sitl-m or --drop")
+    p.add_argument("--rotor-actuation", choices=("auto", "actuators", "external"), default=None,
+                   help="MuJoCo: how the rotor thrusts reach the physics: auto (default; live actuators up to 16 "
+                        "drones per env, the same forces through xfrc_applied above, where the actuators' cost grows "
+                        "with the square of the swarm), actuators or external (docs/mujoco_world.md); single, "
+                        "table8")
     p.add_argument("--rrd", type=Path, metavar="PATH",
                    help="record the episodes to a Rerun .rrd file (single; table5 with --policy: one game)")
     p.add_argument("--spawn", action="store_true", help="stream the episodes to a live Rerun viewer (single)")
@@ -257,6 +262,12 @@ def validate(args: argparse.Namespace) -> None:
             if given:
                 usage_error(f"--offboard: not available with {flag} (single and table8 in one process only)")
     args.offboard = args.offboard or "velocity"
+    if args.rotor_actuation is not None:
+        if args.backend != "mujoco":
+            usage_error("--rotor-actuation: the particle backend has no rotors; use --backend mujoco")
+        if proto in HIGHLEVEL_PROTOCOLS:
+            usage_error("--rotor-actuation: the game tables fly 9-16 drones per env, where auto is the actuators")
+    args.rotor_actuation = args.rotor_actuation or "auto"
     if args.estimator is not None and proto == "table3":
         usage_error("--estimator: Table III is flown with exact sensing, where the estimate is the fix")
     args.estimator = args.estimator or "fused"
@@ -528,7 +539,8 @@ def _single(args: argparse.Namespace) -> int:
     seeds = list(range(args.seed, args.seed + episodes))
     specs = [EpisodeSpec(formation=c, seed=seed, backend=args.backend, wind=wind, deviation=dev, steps=steps,
                          policy=args.policy, airframe=args.airframe, estimator=args.estimator, offboard=args.offboard,
-                         guard=args.guard, wind_direction=args.wind_direction if wind else None)
+                         guard=args.guard, wind_direction=args.wind_direction if wind else None,
+                         rotor_actuation=args.rotor_actuation)
              for wind, dev in conditions for c in formations for seed in seeds]
     asked = list(range(len(formations) * len(seeds)))  # the first condition's episodes
     calm = list(range(len(asked), len(specs)))
@@ -536,8 +548,8 @@ def _single(args: argparse.Namespace) -> int:
     batches = [(asked, {"sitl": args.sitl, "drop": None if args.sitl is not None else args.drop}), (calm, {})]
     recording = bool(args.rrd or args.spawn or args.png)
     vs = " vs calm air (SITL-S)" if condition != "SITL-S" else ""
-    world = (f"mujoco ({args.airframe} airframe{wind_direction_text(vars(args))})" if args.backend == "mujoco"
-             else args.backend)
+    world = (f"mujoco ({args.airframe} airframe{wind_direction_text(vars(args))}, rotors "
+             f"{rotor_text(args.rotor_actuation, formations)})" if args.backend == "mujoco" else args.backend)
     print(f"{PROG}: {condition}{vs}; policy {args.policy}; {world}; c = {', '.join(map(str, formations))}; "
           f"seeds {_seed_range(seeds)} ({episodes} per cell); {steps} steps per episode; {len(specs)} episodes"
           + (f" on {args.workers} workers" if args.workers > 1 else ""))
@@ -577,7 +589,7 @@ def _single(args: argparse.Namespace) -> int:
         "schema": "cefc-eval/single", "schema_version": 2, "protocol": "single", "command": args.command,
         "complete": not interrupted, "backend": args.backend, "policy": args.policy, "estimator": args.estimator,
         "offboard": args.offboard, "guard": args.guard, "airframe": args.airframe,
-        "wind_direction": args.wind_direction if args.wind else None,
+        "rotor_actuation": args.rotor_actuation, "wind_direction": args.wind_direction if args.wind else None,
         "condition": condition,
         "wind": args.wind, "deviation": args.deviation, "steps": steps, "seeds": seeds,
         "comparable_to_paper": steps == PAPER_STEPS, "provenance": args.provenance, "rows": table,
@@ -636,6 +648,14 @@ def _render(rows: list[list[str]], right: set[int]) -> list[str]:
             for row in rows]
 
 
+def rotor_text(mode: str, formations) -> str:
+    """"auto: actuators" (the rotor path each size flies, as `resolve_rotor_actuation` picks it)."""
+    from cefc_mj.sim.mujoco_world import resolve_rotor_actuation
+
+    used = sorted({resolve_rotor_actuation(mode, c) for c in formations})
+    return f"{mode}: {'/'.join(used)}" if mode == "auto" else mode
+
+
 def wind_direction_text(summary: dict) -> str:
     """", wind towards 90°" or ", wind direction drawn per episode" where the run has wind; "" otherwise."""
     if not summary.get("wind"):
@@ -660,7 +680,8 @@ def single_table(summary: dict) -> str:
         f"(each out of {steps}),",
         "  C = % of agent-steps in collision, retention = (F+N) / (F+N of the calm row above it: same c, same seeds).",
         f"  ours: {summary['backend']}"
-        + (f" ({summary.get('airframe', 'iris')} airframe{wind_direction_text(summary)})" if summary['backend'] == "mujoco" else "")
+        + (f" ({summary.get('airframe', 'iris')} airframe, rotors {summary.get('rotor_actuation', 'auto')}"
+           f"{wind_direction_text(summary)})" if summary['backend'] == "mujoco" else "")
         + f", policy {summary['policy']}, "
         f"{summary.get('estimator', 'raw')} position estimate"
         + guard_text(summary)
@@ -728,7 +749,8 @@ def _table8(args: argparse.Namespace) -> int:
     prov = args.provenance
     out: Path = args.report_dir
     specs = table8_specs(args.formation, args.episodes, args.seed, args.steps, args.backend, args.policy,
-                         args.airframe, args.estimator, args.offboard, args.guard, args.wind_direction)
+                         args.airframe, args.estimator, args.offboard, args.guard, args.wind_direction,
+                         args.rotor_actuation)
     policy_sha256 = {c: prov["policies"][str(c)]["sha256"] for c in args.formation}
     cells = plan_cells(specs, policy_sha256, prov["code_version"])
     if args.sitl is not None:  # the SITL-M row: the calm specs again, one process per UAV
@@ -740,7 +762,8 @@ def _table8(args: argparse.Namespace) -> int:
     rows_desc = "7 conditions" + (" + SITL-M" if args.sitl is not None else "")
     wind_towards = "drawn per episode" if args.wind_direction is None else f"towards {args.wind_direction:g}° (ENU)"
     print(f"{PROG} table8: {len(cells)} episodes ({len(args.formation)} c x {rows_desc} x {args.episodes} seeds, "
-          f"{args.steps} steps), {args.airframe} airframe, Wind rows' direction {wind_towards}, "
+          f"{args.steps} steps), {args.airframe} airframe, rotors {rotor_text(args.rotor_actuation, args.formation)}, "
+          f"Wind rows' direction {wind_towards}, "
           f"policy {args.policy}, {args.estimator} position estimate, "
           f"{'separation guard' if args.guard else 'no separation guard'}, {args.executor.describe()}"
           + ("; SITL-M episodes fly one at a time" if args.sitl is not None else ""))

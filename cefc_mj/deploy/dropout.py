@@ -181,7 +181,9 @@ def run_dropout_episode(spec, drop: tuple[int, int], policy=None):
     policy = policy if policy is not None else load_policy_for(spec.policy, spec.formation)
     config = policy.task_for(spec.task_config())
     world = TickedWorld(make_world(spec.backend, config, n_envs=1, wind=spec.wind, seed=spec.seed,
-                                   airframe=spec.mujoco_airframe, wind_direction=spec.wind_direction), 1, config.dt)
+                                   airframe=spec.mujoco_airframe, wind_direction=spec.wind_direction,
+                                   rotor_actuation=spec.rotor_actuation if spec.backend == "mujoco" else None),
+                        1, config.dt)
     env = DropoutCEFCEnv(config, n_envs=1, seed=spec.seed, world=world)
     dropped = choose_dropouts(spec.formation, k, spec.seed)
 

@@ -151,7 +151,8 @@ def run_sitl_episode(spec: EpisodeSpec, sitl: SitlConfig = SitlConfig(), record:
     """
     tick, drop, config = _check(spec, sitl)
     world = make_ticked_world(spec.backend, config, tick, wind=spec.wind, seed=spec.seed,
-                              airframe=spec.mujoco_airframe, wind_direction=spec.wind_direction)
+                              airframe=spec.mujoco_airframe, wind_direction=spec.wind_direction,
+                              rotor_actuation=spec.rotor_actuation)
     env = DropoutCEFCEnv(config, n_envs=1, seed=spec.seed, world=world)
     welcome = {"formation": spec.formation, "task": config.to_dict(), "heartbeat_timeout_s": sitl.heartbeat_timeout_s}
     server = SitlServer(sitl.bind, spec.formation, welcome, world.tick_s, sitl.link_delay_ms, sitl.jitter_ms,
@@ -294,7 +295,8 @@ def run_latency_model_episode(spec: EpisodeSpec, latency_ticks: int = 1, control
     policy = policy if policy is not None else load_policy_for(spec.policy, spec.formation)
     config = policy.task_for(config)
     world = make_ticked_world(spec.backend, config, tick, wind=spec.wind, seed=spec.seed,
-                              airframe=spec.mujoco_airframe, wind_direction=spec.wind_direction)
+                              airframe=spec.mujoco_airframe, wind_direction=spec.wind_direction,
+                              rotor_actuation=spec.rotor_actuation)
     env = DropoutCEFCEnv(config, n_envs=1, seed=spec.seed, world=world)
     n_ticks = world.n_ticks
     commands: dict[int, np.ndarray] = {}  # decision step -> its setpoints [1, N, 2]

@@ -33,7 +33,7 @@ PARK_SPACING = 10.0
 
 def make_ticked_world(backend: str, config: TaskConfig, control_tick_s: float, wind: float = 0.0,
                       seed: int | None = None, airframe: str | None = None,
-                      wind_direction: float | None = None) -> "TickedWorld":
+                      wind_direction: float | None = None, rotor_actuation: str = "auto") -> "TickedWorld":
     """The world of `backend` for one env, stepped at `control_tick_s` inside each decision step."""
     from cefc_mj import make_world
 
@@ -51,7 +51,8 @@ def make_ticked_world(backend: str, config: TaskConfig, control_tick_s: float, w
     from cefc_mj.sim.mujoco_world import MujocoWorldConfig, make_mujoco_world
 
     inner = make_mujoco_world(config, n_envs=1, wind=wind, seed=seed, airframe=airframe,
-                              config=MujocoWorldConfig(decision_dt=config.dt / n_ticks), wind_direction=wind_direction)
+                              config=MujocoWorldConfig(decision_dt=config.dt / n_ticks, rotor_actuation=rotor_actuation),
+                              wind_direction=wind_direction)
     return TickedWorld(inner, n_ticks, config.dt)
 
 

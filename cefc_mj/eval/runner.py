@@ -109,6 +109,10 @@ class EpisodeSpec:
     guard: bool = True
     """The agents pass their actions through the separation guard (cefc_mj/task/guard.py), the
     evaluators' default; False flies the policy's actions as they are (the paper's agent)."""
+    rotor_actuation: str = "auto"
+    """MuJoCo: how the rotor thrusts reach the physics (docs/mujoco_world.md): "auto" (live actuators up
+    to 16 drones per env, the same forces through xfrc_applied above), "actuators" or "external"; the
+    particle backend ignores it."""
     offboard: str = "velocity"
     """MuJoCo's offboard interface (docs/mujoco_world.md): "velocity" (the setpoint is integrated
     into a velocity setpoint, the default) or "acceleration" (sent as PX4 acceleration setpoints, as
@@ -200,7 +204,8 @@ def episode_env(spec: EpisodeSpec, policy: Policy | None = None) -> tuple[Batche
         policy = load_policy_for(spec.policy, spec.formation)
     config = policy.task_for(spec.task_config())
     world = make_world(spec.backend, config, n_envs=1, wind=spec.wind, seed=spec.seed, airframe=spec.mujoco_airframe,
-                       offboard=spec.offboard if spec.backend == "mujoco" else None, wind_direction=spec.wind_direction)
+                       offboard=spec.offboard if spec.backend == "mujoco" else None, wind_direction=spec.wind_direction,
+                       rotor_actuation=spec.rotor_actuation if spec.backend == "mujoco" else None)
     env = BatchedCEFCEnv(config, n_envs=1, seed=spec.seed, world=world)
     # Policy.act's numbers bit for bit without its per-call checks: the compiled kernel on the weights
     # as they are now (fixed for the episode)

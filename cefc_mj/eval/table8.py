@@ -52,13 +52,14 @@ def paper_table8() -> dict[str, dict[str, dict[str, float]]]:
 
 def table8_specs(formations, episodes: int, seed: int, steps: int, backend: str, policy: str,
                  airframe: str = "iris", estimator: str = "fused", offboard: str = "velocity",
-                 guard: bool = True, wind_direction: float | None = None) -> list[EpisodeSpec]:
+                 guard: bool = True, wind_direction: float | None = None,
+                 rotor_actuation: str = "auto") -> list[EpisodeSpec]:
     """The grid, seeds seed .. seed+K-1 for every cell (the same layouts under every condition);
     `wind_direction` (degrees) points the Wind rows' wind (None: drawn per episode from the seed)."""
     return [
         EpisodeSpec(formation=c, seed=seed + k, backend=backend, wind=wind, deviation=dev, steps=steps, policy=policy,
                     airframe=airframe, estimator=estimator, offboard=offboard, guard=guard,
-                    wind_direction=wind_direction if wind else None)
+                    wind_direction=wind_direction if wind else None, rotor_actuation=rotor_actuation)
         for c in formations
         for name, (wind, dev) in CONDITIONS.items()
         for k in range(episodes)

@@ -7,7 +7,9 @@ actuators; visual geoms only if asked for). The cascade writes each rotor's thru
 lag) to `data.ctrl`, drone by drone in the airframe's motor order, and MuJoCo applies it with the yaw
 reaction torque through the actuators' gear; rotor drag and wind act through `xfrc_applied`
 (`rotor_actuation = "external"`: no actuators, the whole rotor wrench through xfrc_applied, as before
-the actuators were live). K obstacles are cylinders
+the actuators were live; the default "auto" keeps the actuators up to AUTO_ACTUATORS_MAX_DRONES drones
+per env and goes external above, where MuJoCo's site transmissions, O(actuators x dofs) per mj_step,
+would make the cost quadratic in the swarm; `world.rotor_actuation_used` says which). K obstacles are cylinders
 (radius 0.4 m by default, geom group 1), each in its own world-welded body, compiled once and moved
 at reset by writing the env's `model.body_pos` (no recompile). Moving geoms inside one body instead
 (`model.geom_pos`) would leave the bounding-volume trees MuJoCo compiled for the body stale: its
@@ -58,7 +60,7 @@ from cefc_mj.control.params import load_params, params_for_airframe, params_path
 from cefc_mj.errors import ConfigError, SimulationDiverged
 from cefc_mj.paths import MJCF_DIR
 from cefc_mj.sim.raycast import MJU_RAY_GEOM, REACH_MARGIN, cast_lidar
-from cefc_mj.sim.wind import WindConfig, WindField
+from cefc_mj.sim.wind import WindConfig, WindField, wind_config_direction
 from cefc_mj.task.config import TaskConfig
 
 OBSTACLE_GROUP = 1
@@ -70,7 +72,14 @@ _VISUAL_GROUP = 3  # the airframe file's visual-only geoms and rotor sites
 _FOOTPRINT_HALF_HEIGHT = 0.05  # of the footprint cylinder the world adds to an airframe without one (m)
 _HOVER_MISMATCH = 0.1  # largest |MPC_THR_HOVER - the airframe's hover thrust| accepted (normalised)
 PHYSICS_LOOPS = ("compiled", "python")
-ROTOR_ACTUATIONS = ("actuators", "external")
+ROTOR_ACTUATIONS = ("auto", "actuators", "external")
+AUTO_ACTUATORS_MAX_DRONES = 16
+"""rotor_actuation = "auto": live actuators up to this many drones per env (UAVs + adversary), the external
+rotor wrench above. MuJoCo's site transmission builds a dense 3 x nv Jacobian per actuator, so the live
+actuators cost O(drones^2) per mj_step (no transmission MuJoCo offers applies a body-frame force at a
+rotor in O(1); jacobian="sparse" does not change it); the external path is the same physics (~1e-15)
+and linear. 16 keeps every shipped scene (Table VIII: 5-8 drones, Tables V/VI: 9, Table VII: up to 16)
+on the actuators, bit for bit as before "auto"; measured cross-over in docs/mujoco_world.md (Performance)."""
 
 
 def _mj_step_address() -> int | None:
@@ -100,12 +109,14 @@ class MujocoWorldConfig:
     params: str | None = None
     """Controller gains: a name in controllers/ (without .params) or a path to a .params file; None:
     the airframe's own, `<stem>.params` beside an airframe given as a file, else controllers/<stem>.params."""
-    rotor_actuation: str = "actuators"
+    rotor_actuation: str = "auto"
     """"actuators": the airframe's four `<motor>` actuators stay in the compiled scene and the cascade
     writes the rotor thrusts to `data.ctrl` (MuJoCo applies thrust and yaw reaction torque);
     "external": the actuators are left out and the same rotor wrench is summed into xfrc_applied (the
-    earlier path; same forces to ~1e-15 relative, a few percent cheaper per mj_step). Rotor drag and
-    wind go through xfrc_applied either way."""
+    earlier path; same forces to ~1e-15 relative, cheaper per mj_step: 1.4x at 8 drones, 30x at 256, as the
+    actuators' cost grows with drones x dofs); "auto" (default): "actuators" up to
+    AUTO_ACTUATORS_MAX_DRONES drones per env (UAVs + adversary), "external" above (`resolve_rotor_actuation`;
+    the world's `rotor_actuation_used` says which). Rotor drag and wind go through xfrc_applied either way."""
     physics_dt: float = 0.002
     """Physics step (s); 0.002 = 500 Hz (docs/design.md §3: 500 Hz or finer)."""
     decision_dt: float = 0.1
@@ -210,18 +221,30 @@ def _ratio(a: float, b: float) -> int | None:
     return n if n >= 1 and abs(r - n) < 1e-9 * max(1.0, r) else None
 
 
+def resolve_rotor_actuation(rotor_actuation: str, n_drones: int) -> str:
+    """The rotor path a scene of `n_drones` drones per env flies with: "actuators" or "external"; "auto"
+    is "actuators" up to AUTO_ACTUATORS_MAX_DRONES drones, "external" above."""
+    if rotor_actuation not in ROTOR_ACTUATIONS:
+        raise ConfigError(f"mujoco.rotor_actuation must be one of {', '.join(ROTOR_ACTUATIONS)}, "
+                          f"got {rotor_actuation!r}")
+    if rotor_actuation != "auto":
+        return rotor_actuation
+    return "actuators" if n_drones <= AUTO_ACTUATORS_MAX_DRONES else "external"
+
+
 def build_scene(config: MujocoWorldConfig, n_agents: int, n_obstacles: int, with_adversary: bool, uav_radius: float,
                 obstacle_radius: float = 0.4, airframe: Airframe | None = None) -> mujoco.MjModel:
     """Compose arena + N UAVs (+ adversary) + K parked obstacle cylinders (+ 2 contact sensors per UAV,
     sensordata[2i:2i+2] = contacts of UAV i's footprint: all, with the floor) into one MjModel.
 
-    Each drone is the airframe's body with its footprint and, with rotor_actuation = "actuators", its
-    four rotor sites and thrust motors (ctrlrange set to exactly 0 .. k omega_max^2): actuators 4 d ..
-    4 d + 3 are drone d's, in the airframe's motor order. Everything else of the file (other geoms,
-    sites, sensors, keyframes) is left out, visual geoms kept (without contacts) if config.visual_geoms.
+    Each drone is the airframe's body with its footprint and, with live actuators (rotor_actuation
+    "actuators", or "auto" at this drone count: `resolve_rotor_actuation`), its four rotor sites and
+    thrust motors (ctrlrange set to exactly 0 .. k omega_max^2): actuators 4 d .. 4 d + 3 are drone d's,
+    in the airframe's motor order. Everything else of the file (other geoms, sites, sensors, keyframes)
+    is left out, visual geoms kept (without contacts) if config.visual_geoms.
     The body keeps the mass and inertia the airframe file gives it, whatever geoms are left out."""
     airframe = airframe or load_airframe(config.airframe)
-    live = config.rotor_actuation == "actuators"
+    live = resolve_rotor_actuation(config.rotor_actuation, n_agents + int(with_adversary)) == "actuators"
     arena = mujoco.MjSpec.from_file(str(MJCF_DIR / "arena.xml"))
     arena.option.timestep = config.physics_dt
     arena.option.gravity = [0.0, 0.0, -config.gravity]
@@ -364,14 +387,17 @@ class MujocoWorld:
         if not (np.allclose(base.body_mass[1:self.n_drones + 1], self.airframe.mass, rtol=1e-12)
                 and np.allclose(base.body_ipos[1:self.n_drones + 1], self.airframe.centre_of_mass, atol=1e-12)):
             raise ConfigError(f"mujoco: the drones in the scene lost the mass or centre of mass of {self.airframe.path}")
-        self.rotor_actuators = config.rotor_actuation == "actuators"
+        # "actuators" or "external": the rotor path this world flies (config.rotor_actuation, "auto" resolved)
+        self.rotor_actuation_used = resolve_rotor_actuation(config.rotor_actuation, self.n_drones)
+        self.rotor_actuators = self.rotor_actuation_used == "actuators"
         if self.rotor_actuators:
             # actuator 4 d + i: drone d's rotor i, on its rotor site (data.ctrl viewed as [D, 4])
             sites = [base.site(f"{p}{s}").id for p in prefixes for s in self.airframe.rotor_sites]
             if base.nu != 4 * self.n_drones or base.actuator_trnid[:, 0].tolist() != sites:
                 raise ConfigError("mujoco: the scene must hold four rotor actuators per drone, in motor order")
         elif base.nu:
-            raise ConfigError("mujoco: with rotor_actuation = 'external' the scene must have no actuators")
+            raise ConfigError(f"mujoco: with rotor_actuation = 'external' (configured {config.rotor_actuation!r}) "
+                              "the scene must have no actuators")
         if base.nsensordata != 2 * self.n_agents:
             raise ConfigError("mujoco: the scene must have exactly the UAVs' contact sensors")
         self.obstacle_geom_ids = np.array([base.geom(f"obstacle{k}").id for k in range(self.n_obstacles)], dtype=int)
@@ -664,14 +690,18 @@ def _inside_any(origins: np.ndarray, centres: np.ndarray, radius: float) -> np.n
 
 
 def make_mujoco_world(task: TaskConfig, n_envs: int = 1, wind: float = 0.0, seed: int | None = None,
-                      config: MujocoWorldConfig | None = None, airframe: str | Path | None = None) -> MujocoWorld:
+                      config: MujocoWorldConfig | None = None, airframe: str | Path | None = None,
+                      wind_direction: float | None = None) -> MujocoWorld:
     """The MuJoCo world for a task: its counts, radii, speed limits and LiDAR, plus a wind of mean
-    speed `wind` (m/s, Gazebo wind-plugin semantics; 0 for calm air). `airframe` (a shipped name or an
+    speed `wind` (m/s, Gazebo wind-plugin semantics; 0 for calm air) blowing towards
+    `wind_direction` (degrees, ENU: 0 = +x, 90 = +y; None = drawn uniformly per episode from the seed). `airframe` (a shipped name or an
     MJCF path) replaces config.airframe; its gains are found as for MujocoWorldConfig.params = None.
     The footprint disc is the task's uav_radius whatever the airframe (docs/mujoco_world.md)."""
     for name in ("response_time", "velocity_noise"):  # the quadrotor has its own lag and tracking error
         if getattr(task, name):
             raise ConfigError(f"{name}={getattr(task, name)}: a particle-world setting; the MuJoCo world must keep it 0")
+    if wind_direction is not None and not wind:
+        raise ConfigError(f"wind_direction={wind_direction!r}: there is no wind to point (wind = 0)")
     config = config or MujocoWorldConfig()
     if airframe is not None:
         config = dataclasses.replace(config, airframe=str(airframe))
@@ -680,7 +710,7 @@ def make_mujoco_world(task: TaskConfig, n_envs: int = 1, wind: float = 0.0, seed
         n_lidar_rays=task.n_lidar_rays, lidar_range=task.lidar_range, lidar_sees_agents=task.lidar_sees_agents,
         uav_radius=task.uav_radius, obstacle_radius=task.obstacle_radius, speed_max=task.speed_max,
         adversary_speed_max=task.adversary_speed_max, accel_max=task.accel_max,
-        wind=WindConfig(mean_speed=float(wind)) if wind else None,
+        wind=WindConfig(mean_speed=float(wind), direction=wind_config_direction(wind_direction)) if wind else None,
         with_adversary=task.mode == "cefc" and task.adversary != "none",
         seed=0 if seed is None else seed,
     )
