@@ -17,7 +17,9 @@ from cefc_mj.nn.adversary_policy import AdversaryNetConfig, AdversaryPolicy, loa
     save_adversary_policy
 from cefc_mj.task.adversary import (ADVERSARY_OBS_DIM, ADVERSARY_OBSTACLE_SLOTS, ADVERSARY_SLOTS,
                                     adversary_observation, adversary_reward)
-from cefc_mj.train.adversary import AdversaryConfig, AdversaryTrainer, _adversary_ppo, evaluate_adversary, load_team
+from cefc_mj.task.config import RULE_TEAMS
+from cefc_mj.train.adversary import (AdversaryConfig, AdversaryTrainer, _adversary_ppo, evaluate_adversary,
+                                     load_population)
 from cefc_mj.train.config import Budget
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -121,43 +123,79 @@ def test_policy_file_round_trip_clipped_actions_and_tampering(tmp_path):
 
 
 def _tiny(iterations, **kw):
-    return AdversaryConfig(budget=Budget(iterations=iterations), ppo=dataclasses.replace(_adversary_ppo(), n_envs=2),
+    kw = {"teams": ("cihrl_consmac_a", "rule-split"), "teams_per_iteration": 2, **kw}
+    return AdversaryConfig(budget=Budget(iterations=iterations), ppo=dataclasses.replace(_adversary_ppo(), n_envs=4),
                            eval_episodes=0, **kw)
+
+
+def _trainer(cfg):
+    population, _, low_level, interval = load_population(cfg)
+    return AdversaryTrainer(cfg, population, low_level, interval)
 
 
 def test_a_checkpointed_trainer_continues_exactly_as_an_uninterrupted_one():
     cfg = _tiny(2)
-    team = load_team(cfg)
-    straight = AdversaryTrainer(cfg, *team)
+    straight = _trainer(cfg)
     rows = [straight.iterate() for _ in range(2)]
-    first = AdversaryTrainer(cfg, *team)
+    first = _trainer(cfg)
     first.iterate()
-    resumed = AdversaryTrainer(cfg, *team)
+    resumed = _trainer(cfg)
     resumed.load_state_dict(first.state_dict())
     row = resumed.iterate()
     assert row["episode_return"] == rows[1]["episode_return"]
     for a, b in zip(straight.actor.parameters(), resumed.actor.parameters()):
         torch.testing.assert_close(a, b, rtol=0, atol=0)
-    assert rows[0]["episodes"] == 2 and np.isfinite(rows[1]["approx_kl"])
+    assert rows[0]["episodes"] == 4 and np.isfinite(rows[1]["approx_kl"])
+
+
+def test_teams_are_drawn_from_the_whole_population_per_game_and_iteration():
+    trainer = _trainer(_tiny(1, teams=("cihrl_consmac_a", "cihrl_mappo", *RULE_TEAMS), teams_per_iteration=4))
+    draws = [trainer.draw_teams(it) for it in range(30)]
+    assert all(len(d) == 4 for d in draws) and draws[3] == trainer.draw_teams(3)  # a function of the iteration
+    assert {name for d in draws for name in d} == set(trainer.cfg.teams)
+    assert len({tuple(d) for d in draws}) > 20
+
+
+def test_the_paper_adversary_reads_no_goal_point():
+    """observes_goal False (the default of a training run): the goal columns of the observation do
+    not reach the network; a policy that reads them (every file written before the field) does."""
+    obs = np.random.default_rng(1).normal(size=(5, ADVERSARY_OBS_DIM)).astype(np.float32)
+    moved = obs.copy()
+    moved[:, 4:6] += 3.0
+    blind = AdversaryPolicy(AdversaryNetConfig(observes_goal=False), seed=2)
+    sighted = AdversaryPolicy(AdversaryNetConfig(observes_goal=True), seed=2)
+    with torch.no_grad():
+        for policy in (blind, sighted):
+            policy.head[-1].weight.mul_(100.0)  # make the output sensitive
+    np.testing.assert_array_equal(blind.act(obs), blind.act(moved))
+    assert not np.array_equal(sighted.act(obs), sighted.act(moved))
+    assert AdversaryConfig(budget=Budget(iterations=1)).observes_goal is False
 
 
 def test_cli_trains_exports_a_card_and_resumes(tmp_path, capsys):
     out = tmp_path / "runs"
-    argv = ["adversary", "--budget", "1it", "--envs", "2", "--eval-episodes", "1", "--out", str(out), "--no-progress"]
+    argv = ["adversary", "--budget", "1it", "--envs", "2", "--teams-per-iteration", "2", "--teams",
+            "cihrl_consmac_a,rule-evade", "--eval-episodes", "1", "--out", str(out), "--no-progress"]
     assert main(argv) == 0
     card = json.loads((out / "policies" / "adversary_ppo.json").read_text())
-    assert card["iterations"] == 1 and card["team"]["high_level"] == "policies/cihrl_consmac_a.pt"
-    assert set(card["evaluation"]) == {"protocol", "ours", "rule_nearest_group"}
-    assert 0 <= card["evaluation"]["ours"]["adversary_collision_share"] <= 1
+    assert card["iterations"] == 1 and card["network"]["observes_goal"] is False
+    assert card["team"]["population"]["cihrl_consmac_a"]["path"] == "policies/cihrl_consmac_a.pt"
+    assert card["team"]["population"]["rule-evade"]["kind"] == "rule"
+    per_team = card["evaluation"]["per_team"]
+    assert set(per_team) == {"cihrl_consmac_a", "rule-evade"}
+    assert card["evaluation"]["protocol"]["rule_avoids_obstacles"] is True
+    assert 0 <= per_team["rule-evade"]["ours"]["adversary_collision_share"] <= 1
     load_adversary_policy(out / "policies" / "adversary_ppo.pt")
-    assert "PPO adversary vs cihrl_consmac_a" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "against the PPO adversary / the nearest-group rule" in printed and "rule-evade" in printed
     assert main([*argv[:2], "2it", *argv[3:], "--resume"]) == 0
     assert json.loads((out / "policies" / "adversary_ppo.json").read_text())["iterations"] == 2
 
 
 @pytest.mark.parametrize("argv, needle", [
     (["--envs", "0"], "--envs 0: must be an integer >= 1"),
-    (["--high-level", "no_such_policy"], "--high-level: "),
+    (["--teams", "no_such_policy"], "--teams: "),
+    (["--teams-per-iteration", "3"], "--teams-per-iteration 3: must divide the 20 envs"),
     (["--low-level", "no_such_policy"], "--low-level: "),
     (["--density", "-1"], "--density -1.0: must be in"),
 ])
@@ -186,9 +224,10 @@ SEED = 100
 
 
 def _pressure(adversary) -> dict:
-    cfg = AdversaryConfig(budget=Budget(iterations=1))
-    team, meta, low_level = load_team(cfg)
-    return evaluate_adversary(adversary, team, low_level, cfg.task(), episodes=20, seed=SEED)
+    cfg = AdversaryConfig(budget=Budget(iterations=1), teams=("cihrl_consmac_a",))
+    population, _, low_level, interval = load_population(cfg)
+    return evaluate_adversary(adversary, population["cihrl_consmac_a"], low_level, cfg.task(), episodes=20,
+                              seed=SEED, decision_interval=interval)
 
 
 def test_shipped_ppo_adversary_chases_the_swarm_and_keeps_out_of_obstacles():

@@ -26,6 +26,7 @@ from pathlib import Path
 from cefc_mj import paths
 from cefc_mj.errors import CefcError, ConfigError
 from cefc_mj.fileio import can_write_in
+from cefc_mj.task.config import RULE_TEAMS
 from cefc_mj.train.config import CLM_CURRICULUM, DISTILL_TEACHERS, FORMATIONS, Budget, DistillConfig, LowLevelConfig, PPOConfig
 
 EXIT_USAGE = 2
@@ -229,14 +230,28 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _names(text: str) -> tuple[str, ...]:
+    """A comma-separated list of names (argparse type)."""
+    names = tuple(part.strip() for part in text.split(","))
+    if not all(names):
+        raise argparse.ArgumentTypeError(f"{text!r}: a comma-separated list of names, none empty")
+    return names
+
+
 def _adversary_parser(sub) -> None:
     """`cefc-train adversary`; flags left out keep AdversaryConfig's defaults (cefc_mj/train/adversary.py)."""
-    p = sub.add_parser("adversary", help="the PPO adversary (the paper's predator) against a trained UAV team",
+    p = sub.add_parser("adversary", help="the PPO adversary (the paper's predator) against a population of UAV teams",
                        description="Single-agent PPO with the low level's network shape: chase the nearest group "
-                                   "of >= 3 UAVs, avoid obstacles, against a trained high level over a trained low "
-                                   "level. Written as adversary_ppo[_seed<k>].")
-    p.add_argument("--high-level", default=None, metavar="NAME|PATH",
-                   help="the UAV team's high level (default cihrl_consmac_a)")
+                                   "of >= 3 UAVs, avoid obstacles, against a population of teams (trained high "
+                                   "levels and rule-driven teams, one drawn per game) over a trained low level. "
+                                   "Written as adversary_ppo[_seed<k>].")
+    p.add_argument("--teams", type=_names, default=None, metavar="NAME,...",
+                   help="the population: trained high levels (names or files) and rule teams ("
+                        + ", ".join(RULE_TEAMS) + "); default every shipped method over its training seeds and "
+                        "every rule team")
+    p.add_argument("--teams-per-iteration", type=int, default=None, metavar="K",
+                   help="games per iteration, each with a team drawn from the population (default 4; must divide "
+                        "--envs)")
     p.add_argument("--low-level", default=None, metavar="NAME|PATH|per-group",
                    help="the UAV team's low level (default atm_student)")
     p.add_argument("--density", type=float, default=None, dest="obstacle_density", metavar="D",

@@ -75,11 +75,14 @@ def game_task(adversary: str = "nearest_group", deviation: float = 0.0, n_agents
     optionally with sensing deviation (m; the agents then act on the fused position estimate, as in
     `cefc-eval`; without deviation the estimate is the exact position). adversary: a rule, or
     'learned' (the env then needs the adversary's policy: `resolve_adversary`). n_agents: the
-    swarm's size (Table VII; the observations read the 7 nearest neighbours whatever N is)."""
+    swarm's size (Table VII; the observations read the 7 nearest neighbours whatever N is). A rule
+    adversary steers around the obstacles, as the PPO adversary learns to (it is penalised inside
+    them): both play by the same physical rule (docs/high_level.md, "The adversary")."""
     if adversary not in ADVERSARIES:
         raise ConfigError(f"adversary={adversary!r}: must be one of {', '.join(ADVERSARIES)}")
     return TaskConfig(n_agents=n_agents, mode="cefc", obstacle_density=GAME_DENSITY, adversary=adversary,
-                      episode_steps=GAME_STEPS, deviation=deviation, position_estimator="fused")
+                      episode_steps=GAME_STEPS, deviation=deviation, position_estimator="fused",
+                      adversary_avoids_obstacles=True)
 
 
 def resolve_adversary(spec: str, policies_dir: Path | None = None) -> tuple[str, object, dict]:

@@ -26,7 +26,7 @@ from torch import nn
 from cefc_mj.errors import CheckpointError, ConfigError
 from cefc_mj.nn.layers import mlp
 from cefc_mj.nn.policy_io import read_policy_payload, write_policy_payload
-from cefc_mj.task.adversary import ADVERSARY_OBS_DIM
+from cefc_mj.task.adversary import ADVERSARY_GOAL_COLUMNS, ADVERSARY_OBS_DIM
 
 POLICY_FORMAT = "cefc-mj/adversary-policy"
 POLICY_VERSION = 1
@@ -44,6 +44,10 @@ class AdversaryNetConfig:
     """Per-axis action bound (m/s^2); the deployed action is the mean clipped to it."""
     init_log_std: float = 0.0
     """Initial log-std of the Gaussian (std 1 m/s^2)."""
+    observes_goal: bool = True
+    """Whether the network reads the observation's goal columns (ADVERSARY_GOAL_COLUMNS, the point the
+    rule would chase). False plays by what the paper gives its adversary: its own state, the agents'
+    and the obstacles' (files written before this field existed read it, hence the default True)."""
 
     def __post_init__(self) -> None:
         for name in ("obs_dim", "hidden"):
@@ -52,6 +56,14 @@ class AdversaryNetConfig:
                 raise ConfigError(f"{name}={value!r}: must be an integer >= 1")
         if not isinstance(self.accel_max, (int, float)) or not self.accel_max > 0:
             raise ConfigError(f"accel_max={self.accel_max!r}: must be a positive number")
+        if not isinstance(self.observes_goal, bool):
+            raise ConfigError(f"observes_goal={self.observes_goal!r}: must be True or False")
+
+    @property
+    def input_dim(self) -> int:
+        """The network's input width: the observation without the goal columns unless it reads them."""
+        goal = ADVERSARY_GOAL_COLUMNS.stop - ADVERSARY_GOAL_COLUMNS.start
+        return self.obs_dim if self.observes_goal else self.obs_dim - goal
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -66,11 +78,13 @@ class AdversaryPolicy(nn.Module):
         if seed is not None:
             torch.manual_seed(seed)
         h = cfg.hidden
-        self.features = mlp([cfg.obs_dim, h, h, h], activate_last=True)
+        self.features = mlp([cfg.input_dim, h, h, h], activate_last=True)
         self.head = mlp([h, h, h, 2], activate_last=False, last_gain=0.01)
         self.log_std = nn.Parameter(torch.full((2,), float(cfg.init_log_std)))
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        if not self.cfg.observes_goal:
+            obs = torch.cat([obs[..., :ADVERSARY_GOAL_COLUMNS.start], obs[..., ADVERSARY_GOAL_COLUMNS.stop:]], dim=-1)
         return self.head(self.features(obs))
 
     def distribution(self, obs: torch.Tensor) -> torch.distributions.Normal:

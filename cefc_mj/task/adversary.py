@@ -95,6 +95,9 @@ group of >= 3, `adversary_goal("nearest_group")`, what it is set to chase)] + pe
 [unit direction to it, clearance / range (the gap to its keep-out disc, clipped to [0, 1]),
 present]; a is the arena's half size. The clearance is what avoidance needs at full resolution:
 a 0.65 m keep-out disc is a few hundredths of the arena-scaled positions."""
+ADVERSARY_GOAL_COLUMNS = slice(4, 6)
+"""The goal's columns in the observation: a policy that plays by the paper's observation (its
+`observes_goal` False) never reads them; it must find the nearest group from the agent slots."""
 ADVERSARY_OBSTACLE_RANGE = 3.0
 """Clearance (m) at which an obstacle slot reads 1 (the UAVs' LiDAR range)."""
 

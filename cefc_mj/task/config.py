@@ -33,6 +33,8 @@ START_SPACING_MARGIN = 0.1
 step (both at a_max per axis towards each other), and a quadrotor's footprint disc tilted towards a
 neighbour reaches sqrt(0.25^2 + 0.05^2) = 0.255 m from its centre; 0.6 m is also the centre distance
 the separation guard holds (task/guard.py)."""
+RULE_TEAMS = ("rule-urgent", "rule-split", "rule-evade")
+"""The rule-driven UAV teams of the PPO adversary's training population (cefc_mj/rule_teams.py)."""
 ADVERSARY_RULES = ("nearest_group", "r_nearest", "r_largest", "none")
 LEARNED_ADVERSARY = "learned"
 """TaskConfig.adversary of a trained adversary: the env asks its `adversary_policy` for the acceleration."""

@@ -1,12 +1,15 @@
-"""The PPO adversary (the paper's predator, Sec. V-A): single-agent PPO against a trained UAV team.
+"""The PPO adversary (the paper's predator, Sec. V-A): single-agent PPO against a population of UAV teams.
 
 One iteration, CleanRL-style:
 
 1. **Collect** one 400-step episode in each of `ppo.n_envs` envs of the CEFC game
-   (`HierarchicalCEFCEnv` with adversary='learned'): the UAVs fly a trained high level (default
-   CI-HRL, `cihrl_consmac_a`) over a trained low level (default the distilled student), every
-   decision the mode of their policies, as in the evaluation; the adversary samples its
-   acceleration every low-level step from its Gaussian (`nn.adversary_policy`).
+   (`HierarchicalCEFCEnv` with adversary='learned'), split into `teams_per_iteration` games. Each
+   game's UAVs are a team drawn from the population `teams` (every method's trained high levels
+   and the rule-driven teams of `cefc_mj.rule_teams`) over a trained low level (default the
+   distilled student), every decision the mode of their policies, as in the evaluation; the
+   adversary samples its acceleration every low-level step from its Gaussian
+   (`nn.adversary_policy`). It reads what the paper gives it (its own state, the agents' and the
+   obstacles'), not the point the rule would chase (`observes_goal`).
 2. **Reward** after each step (`task.adversary.adversary_reward`): -0.1 x the distance (m) to the
    centre of the nearest group of >= 3 UAVs (the nearest UAV when there is none; the rule
    adversary's goal), + the share of UAVs within the 2 m alert distance, - 10 inside an obstacle
@@ -41,11 +44,13 @@ from cefc_mj.errors import CheckpointError, ConfigError
 from cefc_mj.eval.highlevel import game_task, highlevel_policy_path, play_highlevel
 from cefc_mj.fileio import write_atomic
 from cefc_mj.hierarchy import DECISION_INTERVAL, HierarchicalCEFCEnv, LowLevel, load_low_level
+from cefc_mj.rule_teams import RULE_TEAMS, RuleTeam
+from cefc_mj.seeds import GAME_VALIDATION_SEED
 from cefc_mj.nn.adversary_policy import AdversaryNetConfig, AdversaryPolicy, save_adversary_policy
 from cefc_mj.nn.atm import Critic
 from cefc_mj.nn.highlevel_policy import HighLevelPolicy, load_highlevel_policy
 from cefc_mj.nn.policy_io import atomic_torch_save
-from cefc_mj.task.adversary import adversary_goal, adversary_reward
+from cefc_mj.task.adversary import ADVERSARY_GOAL_COLUMNS, adversary_goal, adversary_reward
 from cefc_mj.task.config import LEARNED_ADVERSARY, TaskConfig
 from cefc_mj.train import run_state
 from cefc_mj.train.config import MAX_DENSITY, MAX_SEED, Budget, BudgetPPODict, PPOConfig, config_from_flags
@@ -57,6 +62,8 @@ from cefc_mj.train.ppo import ValueNorm, advantages_and_targets, learner_state, 
 from cefc_mj.train.run_state import STATE_FILE
 
 STATE_FORMAT = "cefc-mj/adversary-state"
+TEAM_DRAW_STREAM = 7
+"""Extra SeedSequence entry of the team draws (apart from every other stream of a run)."""
 PROGRESS_KEYS = ("episode_return", "team/E", "collision_share", "approx_kl")
 
 
@@ -68,6 +75,14 @@ def _fail(name: str, value: object, why: str) -> None:
     raise ConfigError(f"{name}={value!r}: {why}")
 
 
+DEFAULT_POPULATION = (
+    "cihrl_consmac_a", "cihrl_consmac_a_seed1", "cihrl_consmac_a_seed2", "cihrl_consmac_a_wo_ft",
+    "cihrl_mappo", "cihrl_mappo_seed1", "cihrl_mappo_seed2", "cihrl_tarmac", "cihrl_consmac_a_dt",
+    "cihrl_consmac_o", *RULE_TEAMS,
+)
+"""Every shipped method over its training seeds, and the rule-driven teams."""
+
+
 @dataclass(frozen=True)
 class AdversaryConfig(BudgetPPODict):
     """One PPO adversary training run; saved next to the run and in the model card."""
@@ -75,11 +90,17 @@ class AdversaryConfig(BudgetPPODict):
     budget: Budget
     """Iterations (each: one episode in each of ppo.n_envs envs, then the update) and/or wall-clock."""
     seed: int = 0
-    """Seeds network init, action sampling, minibatches and every iteration's episodes."""
-    high_level: str = "cihrl_consmac_a"
-    """The UAV team's high level: a policy name (in the shipped folder) or file."""
+    """Seeds network init, action sampling, minibatches, every iteration's episodes and team draws."""
+    teams: tuple[str, ...] = DEFAULT_POPULATION
+    """The population of UAV teams, each drawn with equal chance for each game of an iteration: a
+    trained high level's policy name (in the shipped folder) or file, or a rule team (RULE_TEAMS)."""
+    teams_per_iteration: int = 4
+    """Games per iteration, each with its own team and ppo.n_envs / teams_per_iteration envs."""
     low_level: str = "atm_student"
-    """The UAV team's low level: a policy name or file, or 'per-group'."""
+    """The UAV teams' low level: a policy name or file, or 'per-group'."""
+    observes_goal: bool = False
+    """Whether the adversary reads the rule's goal point (the centre of the nearest group of >= 3)
+    as input; False (the paper's adversary) leaves it to find the group from the agents it sees."""
     obstacle_density: float = 0.03
     """Obstacles per m^2 (the game of Tables V and VI)."""
     distance_weight: float = 0.1
@@ -105,6 +126,8 @@ class AdversaryConfig(BudgetPPODict):
     """Episodes of the final (deterministic) adversary reported in the model card; 0 skips."""
 
     def __post_init__(self) -> None:
+        if isinstance(self.teams, list):  # read back from JSON
+            object.__setattr__(self, "teams", tuple(self.teams))
         self.validate()
 
     @property
@@ -120,9 +143,14 @@ class AdversaryConfig(BudgetPPODict):
             _fail("budget", self.budget, "must be a Budget")
         if not isinstance(self.seed, int) or isinstance(self.seed, bool) or not 0 <= self.seed <= MAX_SEED:
             _fail("seed", self.seed, f"must be an integer in [0, {MAX_SEED}]")
-        for name in ("high_level", "low_level"):
-            if not isinstance(getattr(self, name), str) or not getattr(self, name):
-                _fail(name, getattr(self, name), "must name a policy (a name or a file)")
+        if not isinstance(self.low_level, str) or not self.low_level:
+            _fail("low_level", self.low_level, "must name a policy (a name or a file)")
+        if (not isinstance(self.teams, tuple) or not self.teams
+                or not all(isinstance(t, str) and t for t in self.teams) or len(set(self.teams)) != len(self.teams)):
+            _fail("teams", self.teams, "must be a non-empty list of distinct team names (policy names, files or "
+                  f"rules: {', '.join(RULE_TEAMS)})")
+        if not isinstance(self.observes_goal, bool):
+            _fail("observes_goal", self.observes_goal, "must be True or False")
         if not isinstance(self.obstacle_density, (int, float)) or not 0 <= self.obstacle_density <= MAX_DENSITY:
             _fail("obstacle_density", self.obstacle_density, f"must be in [0, {MAX_DENSITY}] per m^2")
         if not isinstance(self.init_log_std, (int, float)) or not -5 <= self.init_log_std <= 2:
@@ -132,13 +160,15 @@ class AdversaryConfig(BudgetPPODict):
             if not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0:
                 _fail(name, value, "must be a number >= 0")
         for name, least, most in (("hidden", 1, 4096), ("checkpoint_every", 1, 1_000_000),
-                                  ("eval_episodes", 0, 1000)):
+                                  ("eval_episodes", 0, 1000), ("teams_per_iteration", 1, 1000)):
             value = getattr(self, name)
             if not isinstance(value, int) or isinstance(value, bool) or not least <= value <= most:
                 _fail(name, value, f"must be an integer in [{least}, {most}]")
         if not isinstance(self.ppo, PPOConfig):
             _fail("ppo", self.ppo, "must be a PPOConfig")
         self.ppo.validate()
+        if self.ppo.n_envs % self.teams_per_iteration:
+            _fail("teams_per_iteration", self.teams_per_iteration, f"must divide the {self.ppo.n_envs} envs")
         self.task()
 
 
@@ -184,57 +214,85 @@ class _Sampler:
         std = t.actor.log_std.exp().expand_as(mean)
         action = mean + std * torch.randn(mean.shape, generator=t.generator)
         logp = torch.distributions.Normal(mean, std).log_prob(action).sum(-1)
-        for name, value in (("obs", obs_t), ("actions", action), ("logp", logp), ("values", t.critic(obs_t))):
+        for name, value in (("obs", obs_t), ("actions", action), ("logp", logp), ("values", t.value(obs_t))):
             self.buf[name].append(value)
         return action.numpy().astype(np.float64)
 
     def finish(self) -> torch.Tensor:
         """The last step's reward, and V of the final observation [B] (the time-limit bootstrap)."""
         self._reward()
-        return self.trainer.critic(torch.from_numpy(self.env.adversary_observation()))
+        return self.trainer.value(torch.from_numpy(self.env.adversary_observation()))
 
 
 class AdversaryTrainer:
     """The learner: actor, critic, their optimizers, the value normalizer and a torch RNG; one
-    `iterate()` = collect one episode per env, then the PPO update."""
+    `iterate()` = collect one episode per env (teams_per_iteration games, a team drawn for each), then
+    the PPO update."""
 
-    def __init__(self, cfg: AdversaryConfig, team: HighLevelPolicy, team_meta: dict, low_level: LowLevel):
+    def __init__(self, cfg: AdversaryConfig, population: dict[str, HighLevelPolicy | None], low_level: LowLevel,
+                 decision_interval: int = DECISION_INTERVAL):
+        """population: team name -> its high level, None for a rule team (RULE_TEAMS)."""
         self.cfg = cfg
         self.task = cfg.task()
-        self.team, self.low_level = team, low_level
-        net = AdversaryNetConfig(hidden=cfg.hidden, accel_max=self.task.accel_max, init_log_std=cfg.init_log_std)
+        self.population, self.low_level = population, low_level
+        net = AdversaryNetConfig(hidden=cfg.hidden, accel_max=self.task.accel_max, init_log_std=cfg.init_log_std,
+                                 observes_goal=cfg.observes_goal)
         self.actor = AdversaryPolicy(net, seed=cfg.seed)
         torch.manual_seed(cfg.seed + 1)
-        self.critic = Critic(net.obs_dim, cfg.hidden)
+        self.critic = Critic(net.input_dim, cfg.hidden)
         self.value_norm = ValueNorm()
         self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=cfg.ppo.lr, eps=1e-5)
         self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=cfg.ppo.lr, eps=1e-5)
         self.generator = torch.Generator().manual_seed(cfg.seed)
         self.iteration, self.episodes, self.elapsed = 0, 0, 0.0
-        self.sampler = _Sampler(self)
-        self.game = HierarchicalCEFCEnv(self.task, low_level, n_envs=cfg.ppo.n_envs, seed=cfg.seed,
-                                        decision_interval=int(team_meta.get("decision_interval", DECISION_INTERVAL)),
-                                        adversary_policy=self.sampler)
-        self.sampler.env = self.game.env
+        per_game = cfg.ppo.n_envs // cfg.teams_per_iteration
+        self.samplers = [_Sampler(self) for _ in range(cfg.teams_per_iteration)]
+        self.games = [HierarchicalCEFCEnv(self.task, low_level, n_envs=per_game, seed=cfg.seed,
+                                          decision_interval=decision_interval, adversary_policy=sampler)
+                      for sampler in self.samplers]
+        for sampler, game in zip(self.samplers, self.games):
+            sampler.env = game.env
+
+    def value(self, obs: torch.Tensor) -> torch.Tensor:
+        """V of adversary observations: the critic reads what the actor reads."""
+        if not self.cfg.observes_goal:
+            obs = torch.cat([obs[..., :ADVERSARY_GOAL_COLUMNS.start], obs[..., ADVERSARY_GOAL_COLUMNS.stop:]], dim=-1)
+        return self.critic(obs)
+
+    def draw_teams(self, iteration: int) -> list[str]:
+        """The team of each game of `iteration`: uniform draws from the population, a function of
+        (seed, iteration) alone, so a resumed run draws what the uninterrupted one would have."""
+        names = list(self.cfg.teams)
+        rng = np.random.default_rng([self.cfg.seed, iteration, TEAM_DRAW_STREAM])
+        return [names[i] for i in rng.integers(len(names), size=len(self.games))]
+
+    def team_for(self, name: str, game: HierarchicalCEFCEnv):
+        return RuleTeam(name, game) if self.population[name] is None else self.population[name]
 
     @torch.no_grad()
     def collect(self) -> tuple[dict[str, torch.Tensor], dict[str, float]]:
-        self.sampler.start()
-        team = play_highlevel(self.team, self.game, seed=iteration_seed(self.cfg.seed, self.iteration))
-        final_value = self.sampler.finish()
-        buf = {k: torch.stack(v) for k, v in self.sampler.buf.items()}  # [T, B, ...]
-        next_values = torch.cat([buf["values"][1:], final_value[None]])
+        parts, team_stats = [], []
+        for g, (name, game, sampler) in enumerate(zip(self.draw_teams(self.iteration), self.games, self.samplers)):
+            sampler.start()
+            team_stats.append(play_highlevel(self.team_for(name, game), game,
+                                             seed=iteration_seed(self.cfg.seed, self.iteration, stream=g)))
+            final_value = sampler.finish()
+            buf = {k: torch.stack(v) for k, v in sampler.buf.items()}  # [T, B/k, ...]
+            buf["next_values"] = torch.cat([buf["values"][1:], final_value[None]])
+            parts.append((buf, {k: np.stack(v) for k, v in sampler.terms.items()}))
+        buf = {k: torch.cat([p[0][k] for p in parts], dim=1) for k in parts[0][0]}  # [T, B, ...]
+        terms = {k: np.concatenate([p[1][k] for p in parts], axis=1) for k in parts[0][1]}
         episode_end = torch.zeros_like(buf["rewards"], dtype=torch.bool)
         episode_end[-1] = True
         buf["advantages"], buf["targets"], ev = advantages_and_targets(
-            buf["rewards"], buf["values"], next_values, episode_end, self.cfg.ppo, self.value_norm)
-        terms = {k: np.stack(v) for k, v in self.sampler.terms.items()}
+            buf["rewards"], buf["values"], buf.pop("next_values"), episode_end, self.cfg.ppo, self.value_norm)
+        team = {k: np.concatenate([s[k] for s in team_stats]) for k in ("E", "R_t", "R_H")}
         stats = {"episode_return": float(buf["rewards"].sum(0).mean()), "explained_variance": ev,
                  "distance_m": float(-terms["distance"].mean()), "alert_share": float(terms["alert"].mean()),
                  "collision_share": float(-terms["collision"].mean()),
                  "team/E": float(team["E"].mean()), "team/R_t": float(team["R_t"].mean()),
                  "team/R_H": float(team["R_H"].mean()), "action_std": float(self.actor.log_std.exp().mean()),
-                 "episodes": self.game.n_envs}
+                 "episodes": self.cfg.ppo.n_envs}
         return buf, stats
 
     def update(self, buf: dict[str, torch.Tensor]) -> dict[str, float]:
@@ -244,9 +302,11 @@ class AdversaryTrainer:
             dist = self.actor.distribution(flat["obs"][mb])
             return dist.log_prob(flat["actions"][mb]).sum(-1), dist.entropy().sum(-1).mean()
 
+        critic_obs = flat["obs"] if self.cfg.observes_goal else torch.cat(
+            [flat["obs"][:, :ADVERSARY_GOAL_COLUMNS.start], flat["obs"][:, ADVERSARY_GOAL_COLUMNS.stop:]], dim=-1)
         return ppo_epochs(len(flat["obs"]), self.cfg.ppo, self.generator, policy_terms, flat["logp"],
                           flat["advantages"], self.actor_opt, list(self.actor.parameters()), self.critic,
-                          flat["obs"], flat["targets"], self.critic_opt)
+                          critic_obs, flat["targets"], self.critic_opt)
 
     def iterate(self) -> dict[str, float]:
         t0 = time.perf_counter()
@@ -274,12 +334,13 @@ class AdversaryTrainer:
 
 # ---------------------------------------------------------------------------- evaluation
 @torch.no_grad()
-def evaluate_adversary(adversary, team: HighLevelPolicy, low_level: LowLevel, task: TaskConfig, episodes: int,
+def evaluate_adversary(adversary, team: HighLevelPolicy | str, low_level: LowLevel, task: TaskConfig, episodes: int,
                        seed: int = 0, decision_interval: int = DECISION_INTERVAL, world=None) -> dict[str, float]:
     """The UAV team's per-episode means (R_H and its parts, E, F, C: `play_highlevel`) against an
     adversary, and the share of steps it spent inside an obstacle ("adversary_collision_share").
     adversary: a callable of observations (e.g. `AdversaryPolicy.act`) for a task with
-    adversary='learned', or a rule's name (flown exactly as the env flies `task.adversary`)."""
+    adversary='learned', or a rule's name (flown exactly as the env flies `task.adversary`). team: a
+    trained high level or a rule team's name (RULE_TEAMS)."""
     inside: list[np.ndarray] = []
     keep_out = task.obstacle_radius + task.uav_radius
 
@@ -293,7 +354,7 @@ def evaluate_adversary(adversary, team: HighLevelPolicy, low_level: LowLevel, ta
     task = dataclasses.replace(task, adversary=LEARNED_ADVERSARY)
     game = HierarchicalCEFCEnv(task, low_level, n_envs=episodes, seed=seed, decision_interval=decision_interval,
                                world=world, adversary_policy=flown)
-    per_episode = play_highlevel(team, game, seed)
+    per_episode = play_highlevel(RuleTeam(team, game) if isinstance(team, str) else team, game, seed)
     out = {name: float(values.mean()) for name, values in per_episode.items()}
     out["adversary_collision_share"] = float(np.mean(inside)) if inside else 0.0
     return out
@@ -304,17 +365,29 @@ def read_state(path: Path) -> dict:
     return run_state.read_state(path, STATE_FORMAT, "adversary training state")
 
 
-def load_team(cfg: AdversaryConfig, policies_dir: Path | None = None) -> tuple[HighLevelPolicy, dict, LowLevel]:
-    """The UAV team the adversary trains against; CheckpointError naming the flag when a file is missing."""
-    try:
-        team, meta = load_highlevel_policy(highlevel_policy_path(cfg.high_level, policies_dir))
-    except CheckpointError as e:
-        raise CheckpointError(f"--high-level: {e}") from None
+def load_population(cfg: AdversaryConfig, policies_dir: Path | None = None
+                    ) -> tuple[dict[str, HighLevelPolicy | None], dict[str, dict], LowLevel, int]:
+    """(team name -> high level or None for a rule team, team name -> its record for the card, the low
+    level, the teams' decision interval); CheckpointError naming the flag when a file is missing."""
+    population, records, intervals = {}, {}, set()
+    for name in cfg.teams:
+        if name in RULE_TEAMS:
+            population[name], records[name] = None, {"kind": "rule", "rule": name}
+            continue
+        try:
+            path = highlevel_policy_path(name, policies_dir)
+            population[name], meta = load_highlevel_policy(path)
+        except CheckpointError as e:
+            raise CheckpointError(f"--teams: {e}") from None
+        records[name] = {"kind": "learned", "path": display_path(path), "sha256": file_sha256(path)}
+        intervals.add(int(meta.get("decision_interval", DECISION_INTERVAL)))
+    if len(intervals) > 1:
+        raise ConfigError(f"--teams: the teams decide at different intervals ({sorted(intervals)} steps)")
     try:
         low_level = load_low_level(cfg.low_level, cfg.task(), policies_dir)
     except CheckpointError as e:
         raise CheckpointError(f"--low-level: {e}") from None
-    return team, meta, low_level
+    return population, records, low_level, intervals.pop() if intervals else DECISION_INTERVAL
 
 
 def train_adversary(cfg: AdversaryConfig, out: Path, policies_dir: Path, resume: bool = False,
@@ -324,15 +397,13 @@ def train_adversary(cfg: AdversaryConfig, out: Path, policies_dir: Path, resume:
     out, policies_dir = Path(out), Path(policies_dir)
     run_dir = out / cfg.name
     state_path = run_dir / STATE_FILE
-    team, team_meta, low_level = load_team(cfg)
-    team_path = highlevel_policy_path(cfg.high_level)
-    team_record = {"high_level": display_path(team_path), "high_level_sha256": file_sha256(team_path),
-                   "low_level": display_paths(low_level.describe())}
+    population, team_records, low_level, interval = load_population(cfg)
+    team_record = {"population": team_records, "low_level": display_paths(low_level.describe())}
     saved = None
     if run_state.run_state_path(run_dir, resume) is not None:
         saved = read_state(state_path)
         run_state.check_same_run(saved["config"], cfg, state_path, free=("budget", "checkpoint_every", "eval_episodes"))
-    trainer = AdversaryTrainer(cfg, team, team_meta, low_level)
+    trainer = AdversaryTrainer(cfg, population, low_level, interval)
     if saved is not None:
         trainer.load_state_dict(saved["trainer"])
     write_atomic(run_dir / "config.json", json.dumps(
@@ -353,8 +424,8 @@ def train_adversary(cfg: AdversaryConfig, out: Path, policies_dir: Path, resume:
         "name": cfg.name, "seed": cfg.seed, "iterations": trainer.iteration})
     card = {
         "name": cfg.name,
-        "method": "PPO adversary (single-agent PPO, the low level's network shape), trained against "
-                  f"{cfg.high_level} over {low_level.name}",
+        "method": "PPO adversary (single-agent PPO, the low level's network shape), trained against a population "
+                  f"of {len(cfg.teams)} teams over {low_level.name}",
         "seed": cfg.seed,
         "config": cfg.to_dict(),
         "task": trainer.task.to_dict(),
@@ -369,19 +440,33 @@ def train_adversary(cfg: AdversaryConfig, out: Path, policies_dir: Path, resume:
         "last_iteration": {k: v for k, v in last_row.items() if isinstance(v, (int, float))},
     }
     if cfg.eval_episodes:
-        interval = int(team_meta.get("decision_interval", DECISION_INTERVAL))
-        card["evaluation"] = {
-            "protocol": {"episodes": cfg.eval_episodes, "seed": 0, "backend": "particle",
-                         "team": cfg.high_level, "adversary": "the mean action",
-                         "figures": "the team's per-episode sums (R_t, R_n, R_e weighted, summing to R_H; "
-                                    "E in steps) and the adversary's share of steps inside an obstacle"},
-            "ours": evaluate_adversary(trainer.actor.act, team, low_level, trainer.task, cfg.eval_episodes,
-                                       decision_interval=interval),
-            "rule_nearest_group": evaluate_adversary("nearest_group", team, low_level, trainer.task,
-                                                     cfg.eval_episodes, decision_interval=interval),
-        }
+        card["evaluation"] = evaluate_against_population(trainer.actor.act, population, low_level, trainer.task,
+                                                         cfg.eval_episodes, interval)
     write_model_card(policy_path, card)
     return card
+
+
+def evaluate_against_population(adversary, population: dict[str, HighLevelPolicy | None], low_level: LowLevel,
+                                task: TaskConfig, episodes: int, decision_interval: int = DECISION_INTERVAL,
+                                seed: int = GAME_VALIDATION_SEED) -> dict:
+    """Each team against the adversary (its mean action) and against the nearest-group rule, flown under
+    the same obstacle rule (task.adversary_avoids_obstacles), on `episodes` validation games; with the
+    ratio of E (PPO / rule) per team."""
+    per_team = {}
+    for name, policy in population.items():
+        team = name if policy is None else policy
+        ours = evaluate_adversary(adversary, team, low_level, task, episodes, seed=seed,
+                                  decision_interval=decision_interval)
+        rule = evaluate_adversary("nearest_group", team, low_level, task, episodes, seed=seed,
+                                  decision_interval=decision_interval)
+        per_team[name] = {"ours": ours, "rule_nearest_group": rule,
+                          "E_ratio": ours["E"] / rule["E"] if rule["E"] else None}
+    return {"protocol": {"episodes": episodes, "seed": seed, "seed_block": "validation", "backend": "particle",
+                         "adversary": "the mean action",
+                         "rule_avoids_obstacles": task.adversary_avoids_obstacles,
+                         "figures": "the team's per-episode sums (R_t, R_n, R_e weighted, summing to R_H; E in "
+                                    "steps) and the adversary's share of steps inside an obstacle"},
+            "per_team": per_team}
 
 
 def summary_lines(card: dict, policies_dir: Path) -> list[str]:
@@ -390,20 +475,25 @@ def summary_lines(card: dict, policies_dir: Path) -> list[str]:
              f"{card['train_wall_clock_s']} s -> {policies_dir / (card['name'] + '.pt')} (run {card['run_dir']})"]
     if "evaluation" in card:
         e = card["evaluation"]
-        for label, row in (("PPO adversary", e["ours"]), ("rule nearest_group", e["rule_nearest_group"])):
-            lines.append(f"{label} vs {e['protocol']['team']} ({e['protocol']['episodes']} episodes): team E "
-                         f"{row['E']:.1f} steps, R_t {row['R_t']:.1f}, R_e {row['R_e']:.1f}; adversary inside an "
-                         f"obstacle {100 * row['adversary_collision_share']:.1f} % of steps")
+        lines.append(f"team E in steps against the PPO adversary / the nearest-group rule "
+                     f"({e['protocol']['episodes']} validation episodes each):")
+        for name, row in e["per_team"].items():
+            ratio = "-" if row["E_ratio"] is None else f"{row['E_ratio']:.2f}"
+            lines.append(f"  {name:24s} {row['ours']['E']:6.1f} / {row['rule_nearest_group']['E']:6.1f}  "
+                         f"(ratio {ratio}); adversary inside an obstacle "
+                         f"{100 * row['ours']['adversary_collision_share']:.1f} %")
     return lines
 
 
 # ---------------------------------------------------------------------------- command line
-_FLAG_OF_FIELD = {"seed": "--seed", "high_level": "--high-level", "low_level": "--low-level",
+_FLAG_OF_FIELD = {"seed": "--seed", "teams": "--teams", "teams_per_iteration": "--teams-per-iteration",
+                  "low_level": "--low-level",
                   "obstacle_density": "--density", "eval_episodes": "--eval-episodes", "n_envs": "--envs",
                   "collision_weight": "--collision-weight",
                   "epochs": "--epochs", "lr": "--lr", "update_threads": "--threads"}
 """Config fields set by `cefc-train adversary` flags: their errors name the flag the user typed."""
-CLI_FIELDS = ("seed", "high_level", "low_level", "obstacle_density", "collision_weight", "eval_episodes")
+CLI_FIELDS = ("seed", "teams", "teams_per_iteration", "low_level", "obstacle_density", "collision_weight",
+              "eval_episodes")
 CLI_PPO_FIELDS = ("n_envs", "epochs", "lr", "update_threads")
 
 

@@ -35,11 +35,11 @@ from cefc_mj.train.config import PPOConfig
 from cefc_mj.train.ppo import ValueNorm, advantages_and_targets, learner_state, load_learner_state, ppo_epochs
 
 
-def iteration_seed(seed: int, iteration: int) -> int:
-    """The env seed of one iteration's episodes: independent streams per (run seed, iteration), inside
-    the training block of game seeds (cefc_mj.seeds.TRAINING), so no training game is a validation or
-    test game."""
-    drawn = int(np.random.SeedSequence([seed, iteration]).generate_state(1)[0])
+def iteration_seed(seed: int, iteration: int, stream: int = 0) -> int:
+    """The env seed of one iteration's episodes: independent streams per (run seed, iteration[, stream
+    > 0 for further batches of the same iteration]), inside the training block of game seeds
+    (cefc_mj.seeds.TRAINING), so no training game is a validation or test game."""
+    drawn = int(np.random.SeedSequence([seed, iteration, *([stream] if stream else [])]).generate_state(1)[0])
     return TRAINING.start + drawn % TRAINING.size
 
 
