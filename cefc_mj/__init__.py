@@ -64,6 +64,10 @@ def make_world(backend: str, config: TaskConfig, n_envs: int = 1, wind: float = 
                              wind_direction=wind_direction)
 
 
+EVALUATOR_AGENT = {"position_estimator": "fused", "separation_guard": True}
+"""The TaskConfig fields that make an agent the one cefc-eval flies (make_env(evaluator_agent=True))."""
+
+
 def make_env(
     backend: str = "particle",
     n_agents: int = 8,
@@ -74,6 +78,7 @@ def make_env(
     seed: int | None = None,
     render_mode: str | None = None,
     airframe: str | None = None,
+    evaluator_agent: bool = False,
     **task_options,
 ):
     """The CEFC game as a PettingZoo `ParallelEnv` (agents `uav_0 .. uav_{N-1}`; docs/pettingzoo.md).
@@ -92,6 +97,10 @@ def make_env(
             step to a live Rerun viewer).
         airframe: MuJoCo only: "iris" (default), "crazyflie", or your own MJCF quadrotor with four
             site-mounted thrust motors and a PX4-style params file (docs/mujoco_world.md).
+        evaluator_agent: True makes each agent the one `cefc-eval` flies (mode="formation"): it acts on the
+            fused position estimate (position_estimator="fused") and the env passes its actions through
+            the separation guard (separation_guard=True) before they reach the physics. False (the
+            default) is the paper's agent: raw fixes, the actions as given.
         **task_options: any `TaskConfig` field, e.g. mode="formation", obstacle_density=0.03.
 
     Raises:
@@ -103,6 +112,12 @@ def make_env(
     if backend not in BACKENDS:
         raise ConfigError(f"backend={backend!r}: must be one of {', '.join(BACKENDS)}")
     check_render_mode(render_mode)
+    if not isinstance(evaluator_agent, bool):
+        raise ConfigError(f"evaluator_agent={evaluator_agent!r}: must be True or False")
+    if evaluator_agent:
+        for name, value in EVALUATOR_AGENT.items():
+            if task_options.setdefault(name, value) != value:
+                raise ConfigError(f"evaluator_agent=True sets {name}={value!r}; drop {name}={task_options[name]!r}")
     config = make_task_config(n_agents=n_agents, deviation=deviation, **task_options)
     if backend == "mujoco" and render_mode == "rgb_array":
         prefer_headless_gl()  # before the world imports mujoco, which reads MUJOCO_GL once

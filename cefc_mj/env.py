@@ -90,6 +90,11 @@ class BatchedCEFCEnv:
         self._obs = np.zeros((b, n, self.layout.size), dtype=np.float32)
 
     # ------------------------------------------------------------------ reset
+    @property
+    def observation(self) -> np.ndarray:
+        """The current observation [B, N, D] (what the last reset or step returned)."""
+        return self._obs
+
     def reset(self, mask: np.ndarray | None = None, seed: int | None = None,
               scenario: Scenario | None = None) -> np.ndarray:
         """Start new episodes in the masked envs (all by default); returns obs [B, N, D] of all envs.

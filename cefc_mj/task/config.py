@@ -250,6 +250,9 @@ class TaskConfig:
             fail("position_estimator", self.position_estimator, f"must be one of {', '.join(POSITION_ESTIMATORS)}")
         if not isinstance(self.separation_guard, bool):
             fail("separation_guard", self.separation_guard, "must be True or False")
+        if self.separation_guard and self.mode != "formation":
+            fail("separation_guard", self.separation_guard, "the guard reads the low-level observation: "
+                 "mode='formation' only")
         if self.deviation_sampling not in ("fixed", "uniform"):
             fail("deviation_sampling", self.deviation_sampling, "must be 'fixed' or 'uniform'")
         finite("straggler_fraction", self.straggler_fraction)
