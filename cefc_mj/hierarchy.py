@@ -40,6 +40,7 @@ from cefc_mj.env import BatchedCEFCEnv
 from cefc_mj.errors import ConfigError
 from cefc_mj.nn.policy_io import Policy, load_policy, resolve_policy_path
 from cefc_mj.nn.selector import ANCHOR_VALUES, anchor_grid
+from cefc_mj.nn.registry import lowlevel_name
 from cefc_mj.provenance import display_path, file_sha256
 from cefc_mj.sim.world import World
 from cefc_mj.task.config import TaskConfig
@@ -175,7 +176,7 @@ def load_low_level(spec: str, task: TaskConfig, policies_dir: Path | None = None
     if spec == PER_GROUP:
         policies = {}
         for c in GROUP_SIZES:
-            path = resolve_policy_path(f"atm_c{c}_step3", policies_dir)
+            path = resolve_policy_path(lowlevel_name(c, "step3"), policies_dir)
             policies[c] = (load_policy(path, obs_dim=expected), path)
         return PerGroupPolicies(policies)
     path = resolve_policy_path(spec, policies_dir)

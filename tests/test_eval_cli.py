@@ -65,7 +65,8 @@ BAD_INPUTS = [
     (["--policy", "elsewhere/atm_c5_nav.pt", "--formation", "5"], "no policy file 'elsewhere/atm_c5_nav.pt'"),
     (["--protocol", "table5", "--backend", "particle", "--policy", "elsewhere/cihrl_mappo.pt"],
      "no policy file 'elsewhere/cihrl_mappo.pt'"),
-    (["--policy", "robust", "--formation", "3"], "atm_c3_robust"),
+    (["--policy", "robust", "--formation", "3"], "AT-M-Robust is withdrawn"),
+    (["--policy", "nav", "--formation", "3", "--wind", "0", "--wind-direction", "45"], "no wind to point"),
     (["--json", "{file}/out.json"], "is a file, not a folder"),
     (["--json", "{tmp}"], "is a folder"),
     (["--json", "/nonexistent/x.json"], "will not create /nonexistent"),
@@ -87,7 +88,7 @@ BAD_INPUTS = [
     (["--protocol", "table3"], "--backend particle"),
     (["--protocol", "table3", "--backend", "particle", "--deviation", "0.3"], "exact sensing"),
     (["--protocol", "table3", "--backend", "particle", "--workers", "2"], "one batch"),
-    (["--protocol", "table3", "--backend", "particle", "--policy", "quad", "--formation", "3"], "atm_c3_quad"),
+    (["--protocol", "table3", "--backend", "particle", "--policy", "quad", "--formation", "3"], "AT-M-Quad is withdrawn"),
 ]
 
 

@@ -16,7 +16,7 @@ from cefc_mj.task.config import TaskConfig
 from cefc_mj.task.guard import NEIGHBOUR_DISTANCE, guard_actions, guarded
 from cefc_mj.task.observation import build_low_level_observation
 
-CFG = TaskConfig(n_agents=2, obstacle_density=0.0)
+CFG = TaskConfig(n_agents=2, mode="formation", obstacle_density=0.0)
 SLOTS, RAYS = CFG.neighbour_slots, CFG.n_lidar_rays
 
 
@@ -24,7 +24,7 @@ def _row(pos, vel, lidar=None):
     """Observations [1, N, D] of agents at pos [N, 2] with velocities vel [N, 2], anchor at the origin."""
     pos, vel = np.asarray(pos, float)[None], np.asarray(vel, float)[None]
     lidar = np.full((1, pos.shape[1], RAYS), CFG.lidar_range) if lidar is None else np.asarray(lidar, float)[None]
-    cfg = TaskConfig(n_agents=pos.shape[1], obstacle_density=0.0)
+    cfg = TaskConfig(n_agents=pos.shape[1], mode="formation", obstacle_density=0.0)
     return build_low_level_observation(cfg, pos, vel, np.zeros((1, 2)), lidar)
 
 
@@ -72,15 +72,15 @@ def test_guarded_is_the_policy_itself_unless_asked():
         return np.zeros(obs.shape[:2] + (2,), np.float32)
 
     assert guarded(act, CFG) is act
-    assert guarded(act, TaskConfig(n_agents=2, separation_guard=True)) is not act
+    assert guarded(act, TaskConfig(n_agents=2, mode="formation", separation_guard=True)) is not act
     with pytest.raises(ConfigError, match="separation_guard"):
-        TaskConfig(n_agents=2, separation_guard="yes")
+        TaskConfig(n_agents=2, mode="formation", separation_guard="yes")
 
 
 def _fly_at_a_hovering_one(guard: bool) -> tuple[float, bool]:
     """Two MuJoCo quadrotors 4 m apart: UAV 0 is commanded at full acceleration towards UAV 1, whose
     policy asks to hover, for 6 s. Returns (closest centre distance, whether they touched)."""
-    cfg = TaskConfig(n_agents=2, obstacle_density=0.0, separation_guard=guard)
+    cfg = TaskConfig(n_agents=2, mode="formation", obstacle_density=0.0, separation_guard=guard)
     world = make_world("mujoco", cfg, n_envs=1, seed=0)
     world.reset(np.ones(1, bool), np.array([[[-2.0, 0.0], [2.0, 0.0]]]), np.zeros((1, 2)),
                 np.zeros((1, world.n_obstacles, 2)))

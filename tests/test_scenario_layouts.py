@@ -15,7 +15,8 @@ from cefc_mj.task.scenario import (
 )
 
 # sha256 of sample_scenario(cfg, default_rng(123), 32) (agent_pos, adversary_pos, obstacles, targets,
-# anchor as little-endian float64), computed with the sampler as it was before obstacle_layout existed.
+# anchor as little-endian float64), computed with the sampler as it was before obstacle_layout existed
+# (and before the start spacing grew to 0.6 m, hence start_min_spacing=0.5).
 CLEAR_START_DIGESTS = [
     (dict(n_agents=6, mode="formation", obstacle_density=0.05),
      "cb4020120fa7df8bef7eb478b45637d746a15a67e1cbfc0a80d4c11b51e22a7f"),
@@ -48,7 +49,7 @@ def test_layout_option_validated_and_round_trips():
 
 @pytest.mark.parametrize("kwargs,digest", CLEAR_START_DIGESTS)
 def test_clear_start_is_bit_identical_to_the_original_sampler(kwargs, digest):
-    explicit = TaskConfig(**kwargs, obstacle_layout="clear-start")
+    explicit = TaskConfig(**kwargs, obstacle_layout="clear-start", start_min_spacing=0.5)
     assert _digest(sample_scenario(explicit, np.random.default_rng(123), 32)) == digest
 
 

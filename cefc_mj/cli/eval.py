@@ -101,8 +101,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "comparable to the paper only at the default")
     p.add_argument("--seed", type=int, default=0, metavar="S", help="first seed (>= 0); episode k uses S+k (default 0)")
     p.add_argument("--policy", default=None, metavar="NAME|PATH",
-                   help="nav (AT-M-Nav of each c, the default), atm (AT-M Step 3 of each c, the paper's), safe, robust "
-                        "(AT-M-Robust, c = 5..8), quad (AT-M-Quad, c = 5..8), clm (the CL-M baseline, where trained), student, orca (the ORCA-F baseline, table3 "
+                   help="nav (AT-M-Nav of each c, the default), atm (AT-M Step 3 of each c, the paper's), safe, "
+                        "clm (the CL-M baseline, where trained), student, orca (the ORCA-F baseline, table3 "
                         "only), a name in policies/, or a .pt path; "
                         "table3 without it evaluates every method; table5: one high-level policy (default every "
                         "method); table6, table7: the high-level policy to play (default cihrl_consmac_a)")
@@ -274,6 +274,10 @@ def validate(args: argparse.Namespace) -> None:
     if args.guard is not None and proto == "table3":
         usage_error("--guard: Table III compares the policies themselves, without the guard")
     args.guard = args.guard != "off"
+    from cefc_mj.nn.registry import WITHDRAWN
+
+    if args.policy in WITHDRAWN:
+        usage_error(f"--policy {args.policy}: {WITHDRAWN[args.policy]}")
     if args.policy == "orca" and proto != "table3":
         usage_error("--policy orca: the ORCA-F baseline is a Table III row (--backend particle --protocol table3)")
     if args.drop is not None and proto != "single":

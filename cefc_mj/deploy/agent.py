@@ -242,7 +242,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="this agent's UAV index (0-based); several indices fork one agent process per UAV "
                         "after the shared imports")
     p.add_argument("--policy", default=DEFAULT_POLICY, metavar="NAME|PATH",
-                   help=f"nav, atm, safe, robust, quad, student, a name in policies/ or a .pt path (default {DEFAULT_POLICY})")
+                   help=f"nav, atm, safe, clm, student, a name in policies/ or a .pt path (default {DEFAULT_POLICY})")
     p.add_argument("--parent-pid", type=int, metavar="PID", help="exit when this process (the simulator) is gone")
     p.add_argument("--wait", type=float, default=DEFAULT_WAIT_S, metavar="S",
                    help=f"how long to wait for the simulator's welcome (default {DEFAULT_WAIT_S:g} s)")

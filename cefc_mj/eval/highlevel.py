@@ -30,6 +30,7 @@ from cefc_mj import paths
 from cefc_mj.errors import CheckpointError, ConfigError
 from cefc_mj.hierarchy import DECISION_INTERVAL, HierarchicalCEFCEnv, LowLevel, load_low_level
 from cefc_mj.nn.highlevel_policy import HighLevelPolicy, load_highlevel_policy
+from cefc_mj.nn.registry import HIERARCHY_LOWLEVEL
 from cefc_mj.nn.policy_io import resolve_policy_path
 from cefc_mj.provenance import display_path, file_sha256
 from cefc_mj.task.config import ADVERSARIES, ADVERSARY_RULES, LEARNED_ADVERSARY, TaskConfig
@@ -39,7 +40,7 @@ EPISODES = 50
 GAME_AGENTS = 8
 GAME_DENSITY = 0.03
 GAME_STEPS = 400
-LOW_LEVEL = "atm_student"
+LOW_LEVEL = HIERARCHY_LOWLEVEL
 DT = 0.1
 """Seconds per low-level step: the factor from our per-episode sums to the paper's scale."""
 COLUMNS = ("R_H", "R_t", "R_n", "R_e", "E")

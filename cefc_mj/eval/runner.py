@@ -21,6 +21,7 @@ from cefc_mj.errors import ConfigError, SimulationDiverged
 from cefc_mj.eval import DEFAULT_POLICY
 from cefc_mj.eval.record import EpisodeRecord, airframe_parts_from_mjcf
 from cefc_mj.nn.policy_io import Policy, load_policy
+from cefc_mj.nn.registry import policy_name_for
 from cefc_mj.paths import MJCF_DIR
 from cefc_mj.task.config import TaskConfig
 from cefc_mj.task.formation import formation_template
@@ -54,16 +55,6 @@ def condition_name(wind: float, deviation: float) -> str:
     if deviation:
         parts.append(f"Deviation-{deviation:g}")
     return "+".join(parts) if parts else "SITL-S"
-
-
-def policy_name_for(policy: str, formation: int) -> str:
-    """Resolve a policy choice for formation c: "atm" -> the AT-M Step 3 policy of c, "safe" ->
-    AT-M-Safe of c, "robust" -> AT-M-Robust of c, "quad" -> AT-M-Quad of c, "nav" -> AT-M-Nav of c,
-    "clm" -> the CL-M baseline of c, "student" -> the distilled student; anything else is a name or path."""
-    aliases = {"atm": f"atm_c{formation}_step3", "safe": f"atm_c{formation}_safe",
-               "robust": f"atm_c{formation}_robust", "quad": f"atm_c{formation}_quad",
-               "nav": f"atm_c{formation}_nav", "clm": f"clm_c{formation}", "student": "atm_student"}
-    return aliases.get(policy, policy)
 
 
 def load_policy_for(choice: str, formation: int) -> Policy:

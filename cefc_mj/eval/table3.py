@@ -27,6 +27,7 @@ from cefc_mj import paths
 from cefc_mj.env import BatchedCEFCEnv
 from cefc_mj.errors import CheckpointError, ConfigError
 from cefc_mj.fileio import write_atomic
+from cefc_mj.nn import registry
 from cefc_mj.nn.policy_io import Policy, load_policy
 from cefc_mj.provenance import display_path, file_sha256
 from cefc_mj.task.config import TaskConfig
@@ -37,8 +38,8 @@ TABLE3_STEPS = 100
 TABLE3_FORMATIONS = (6, 7, 8)
 OBSTACLE_LIDAR_STEP1 = "AT-M-Step1 (obstacle LiDAR)"
 METHODS = ("ORCA-F", "CL-M", OBSTACLE_LIDAR_STEP1, "AT-M-Step1", "AT-M-Step2", "AT-M-Step3", "AT-M-Safe",
-           "AT-M-Robust", "AT-M-Quad", "AT-M-Nav", "Student")
-"""Row names as the paper writes them (AT-M-Robust, AT-M-Quad, AT-M-Nav and the student are this project's additions;
+           "AT-M-Nav", "Student")
+"""Row names as the paper writes them (AT-M-Nav and the student are this project's additions;
 ORCA-F is the baseline of cefc_mj/baselines/orca.py, CL-M the curriculum baseline trained by `cefc-train clm`,
 docs/baselines.md). AT-M-Step1 is the Step 1 that Step 3 starts from, its LiDAR seeing obstacles and
 UAVs; the obstacle-LiDAR row is Step 1 trained with a LiDAR that sees obstacles only, as the paper's
@@ -63,20 +64,13 @@ def policy_file_for(method: str, formation: int) -> str | None:
     if method == "ORCA-F":
         return None
     if method == "Student":
-        return "atm_student"
+        return registry.STUDENT
     if method == "CL-M":
-        return f"clm_c{formation}"
-    if method == "AT-M-Safe":
-        return f"atm_c{formation}_safe"
-    if method == "AT-M-Robust":
-        return f"atm_c{formation}_robust"
-    if method == "AT-M-Quad":
-        return f"atm_c{formation}_quad"
-    if method == "AT-M-Nav":
-        return f"atm_c{formation}_nav"
+        return registry.clm_name(formation)
     if method == OBSTACLE_LIDAR_STEP1:
-        return f"atm_c{formation}_step1_obstacle_lidar"
-    return f"atm_c{formation}_step{method[-1]}"
+        return registry.lowlevel_name(formation, "step1") + "_obstacle_lidar"
+    kind = {"AT-M-Safe": "safe", "AT-M-Nav": "nav"}.get(method, f"step{method[-1]}")
+    return registry.lowlevel_name(formation, kind)
 
 
 @torch.no_grad()
@@ -121,8 +115,8 @@ def evaluate_lowlevel(policy: Policy, formation: int, density: float = TABLE3_DE
     return {m: float(v.mean()) for m, v in per_episode.items()}
 
 
-POLICY_CHOICES = {"atm": "AT-M-Step3", "safe": "AT-M-Safe", "robust": "AT-M-Robust", "quad": "AT-M-Quad",
-                  "nav": "AT-M-Nav", "student": "Student", "orca": "ORCA-F", "clm": "CL-M"}
+POLICY_CHOICES = {"atm": "AT-M-Step3", "safe": "AT-M-Safe", "nav": "AT-M-Nav", "student": "Student", "orca": "ORCA-F",
+                  "clm": "CL-M"}
 """cefc-eval's --policy aliases and the Table III row each one is."""
 
 

@@ -49,6 +49,7 @@ from cefc_mj.seeds import GAME_VALIDATION_SEED
 from cefc_mj.nn.adversary_policy import AdversaryNetConfig, AdversaryPolicy, save_adversary_policy
 from cefc_mj.nn.atm import Critic
 from cefc_mj.nn.highlevel_policy import HighLevelPolicy, load_highlevel_policy
+from cefc_mj.nn.registry import HIERARCHY_LOWLEVEL
 from cefc_mj.nn.policy_io import atomic_torch_save
 from cefc_mj.task.adversary import ADVERSARY_GOAL_COLUMNS, adversary_goal, adversary_reward
 from cefc_mj.task.config import LEARNED_ADVERSARY, TaskConfig
@@ -96,7 +97,7 @@ class AdversaryConfig(BudgetPPODict):
     trained high level's policy name (in the shipped folder) or file, or a rule team (RULE_TEAMS)."""
     teams_per_iteration: int = 4
     """Games per iteration, each with its own team and ppo.n_envs / teams_per_iteration envs."""
-    low_level: str = "atm_student"
+    low_level: str = HIERARCHY_LOWLEVEL
     """The UAV teams' low level: a policy name or file, or 'per-group'."""
     observes_goal: bool = False
     """Whether the adversary reads the rule's goal point (the centre of the nearest group of >= 3)

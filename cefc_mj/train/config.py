@@ -14,6 +14,7 @@ import re
 from dataclasses import dataclass, field
 
 from cefc_mj.errors import ConfigError
+from cefc_mj.nn.registry import DISTILL_TEACHER, clm_name, lowlevel_name
 from cefc_mj.task.config import FORMATION_EPISODE_STEPS, STRAGGLER_MAX_DISTANCE, STRAGGLER_MIN_DISTANCE
 
 FORMATIONS = (3, 4, 5, 6, 7, 8)
@@ -328,16 +329,10 @@ class LowLevelConfig(BudgetPPODict):
         """Stage name, also the policy file stem: atm_c6_step3, atm_c6_safe, atm_c6_robust, atm_c6_quad,
         atm_c6_nav, clm_c6 (CL-M); with an obstacles-only LiDAR e.g. atm_c6_step1_obstacle_lidar."""
         if self.curriculum is not None:
-            base = f"clm_c{self.formation}"
-        elif self.safe:
-            base = f"atm_c{self.formation}_safe"
-        elif self.robust:
-            base = f"atm_c{self.formation}_robust"
-        elif self.nav:
-            base = f"atm_c{self.formation}_nav"
-        else:
-            base = f"atm_c{self.formation}_quad" if self.quad else f"atm_c{self.formation}_step{self.step}"
-        return base + self.name_suffix
+            return clm_name(self.formation) + self.name_suffix
+        kind = ("safe" if self.safe else "robust" if self.robust else "nav" if self.nav else "quad" if self.quad
+                else f"step{self.step}")
+        return lowlevel_name(self.formation, kind) + self.name_suffix
 
     @property
     def name_suffix(self) -> str:
@@ -349,7 +344,8 @@ class LowLevelConfig(BudgetPPODict):
     def source_stages(self) -> tuple[str, ...]:
         """The stages whose runs a Step 3 stage starts from (without `init_from`): Step 3 for a fine-tune
         (Safe, Robust, Quad), else Steps 1 and 2; each with this stage's LiDAR suffix."""
-        return tuple(f"atm_c{self.formation}_step{k}{self.name_suffix}" for k in ((3,) if self.fine_tune else (1, 2)))
+        return tuple(lowlevel_name(self.formation, f"step{k}") + self.name_suffix
+                     for k in ((3,) if self.fine_tune else (1, 2)))
 
     @property
     def robust(self) -> bool:
@@ -488,7 +484,7 @@ class LowLevelConfig(BudgetPPODict):
                  f"got {self.budget.iterations}")
 
 
-DISTILL_TEACHERS = ("step3", "nav")
+DISTILL_TEACHERS = ("step3", "nav")  # registry.LOWLEVEL_KINDS a student can imitate
 """The low levels a student can be distilled from (DistillConfig.teacher)."""
 
 
@@ -500,7 +496,7 @@ class DistillConfig:
     """Gradient steps (iterations) and/or wall-clock time of the student's training."""
     formations: tuple[int, ...] = FORMATIONS
     """The teachers' formation sizes c."""
-    teacher: str = "step3"
+    teacher: str = DISTILL_TEACHER
     """Which low level of each c teaches: "step3" (atm_c<c>_step3, the paper's AT-M) or "nav"
     (atm_c<c>_nav, AT-M-Nav, the evaluators' default low level)."""
     tuples_per_formation: int = 60_000

@@ -32,11 +32,12 @@ from cefc_mj.provenance import file_sha256
 from cefc_mj.task.config import TaskConfig
 from cefc_mj.train.config import DistillConfig
 from cefc_mj.train.logger import RunLogger
+from cefc_mj.nn import registry
 from cefc_mj.train.mappo import iteration_seed
 from cefc_mj.train.run_state import STATE_FILE, run_state_path
 from cefc_mj.train.model_card import display_path, table3_figures, write_model_card
 
-STUDENT_NAME = "atm_student"
+STUDENT_NAME = registry.STUDENT
 STATE_FORMAT = "cefc-mj/distill-state"
 COLLECT_ENVS = 40
 LOG_EVERY = 200
@@ -82,9 +83,9 @@ def collect_replay(teacher: Policy, formation: int, tuples: int, density: float,
     }
 
 
-def teacher_name(formation: int, teacher: str = "step3") -> str:
+def teacher_name(formation: int, teacher: str = registry.DISTILL_TEACHER) -> str:
     """The policy name of c's teacher (DistillConfig.teacher: "step3" or "nav")."""
-    return f"atm_c{formation}_{teacher}"
+    return registry.lowlevel_name(formation, teacher)
 
 
 @torch.no_grad()

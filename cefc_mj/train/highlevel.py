@@ -52,6 +52,7 @@ from cefc_mj.nn.atm import Critic
 from cefc_mj.nn.consmac import ConsMACConfig, consmac_loss, global_labels, seeded
 from cefc_mj.nn.highlevel_policy import (VARIANTS, HighLevelPolicy, load_highlevel_policy,
                                          save_highlevel_policy)
+from cefc_mj.nn.registry import HIERARCHY_LOWLEVEL
 from cefc_mj.nn.policy_io import atomic_torch_save
 from cefc_mj.nn.selector import build_critic
 from cefc_mj.task.config import ADVERSARY_RULES, LEARNED_ADVERSARY, TaskConfig
@@ -121,7 +122,7 @@ class HighLevelConfig(BudgetPPODict):
     """Low-level steps per episode (paper: 400); a multiple of decision_interval."""
     decision_interval: int = DECISION_INTERVAL
     """Low-level steps per high-level decision (paper: 10)."""
-    low_level: str = "atm_student"
+    low_level: str = HIERARCHY_LOWLEVEL
     """The fine-tuning low level: a policy name or file (default the distilled student) or
     'per-group' (the AT-M teacher atm_c{c}_step3 of each agent's group size)."""
     pretrain_share: float = 2 / 3

@@ -44,6 +44,7 @@ from cefc_mj.task.config import FORMATION_EPISODE_STEPS, RewardConfig, TaskConfi
 from cefc_mj.train.config import LowLevelConfig
 from cefc_mj.train.logger import RunLogger
 from cefc_mj.train.mappo import MAPPO
+from cefc_mj.nn.registry import lowlevel_name
 from cefc_mj.train.model_card import display_path, table3_figures, write_model_card
 from cefc_mj.train import run_state
 from cefc_mj.train.ppo import ValueNorm
@@ -77,7 +78,7 @@ def _anchor_periods(periods: int) -> dict:
 
 
 def stage_name(formation: int, step: int, safe: bool = False) -> str:
-    return f"atm_c{formation}_safe" if safe else f"atm_c{formation}_step{step}"
+    return lowlevel_name(formation, "safe" if safe else f"step{step}")
 
 
 def read_state(path: Path) -> dict:

@@ -1,0 +1,61 @@
+"""The shipped policies' names, the aliases users type, and which policy each path flies by default.
+
+    atm_c<c>_step1 / _step2 / _step3 / _safe / _nav     AT-M of group size c (paper Sec. IV-B) and this
+                                                        project's navigation fine-tune, c = 3..8
+    clm_c<c>                                            the CL-M baseline (Table III), where trained
+    atm_student                                         one student for every c (the hierarchy's low level)
+
+Every module that names a shipped low-level policy (training, evaluation, deployment, benchmarks,
+the hierarchy) spells it through this module.
+"""
+
+from __future__ import annotations
+
+from cefc_mj.errors import ConfigError
+
+LOWLEVEL_KINDS = ("step1", "step2", "step3", "safe", "nav", "robust", "quad")
+"""The suffixes of atm_c<c>_<kind>; robust and quad are trained on request only (none shipped)."""
+STUDENT = "atm_student"
+"""The distilled student: one policy for every group size."""
+
+ALIASES = {"atm": "step3", "safe": "safe", "nav": "nav", "clm": "clm", "student": "student"}
+"""What users type (`--policy`) -> the kind of policy flown for each c."""
+WITHDRAWN = {
+    "robust": "AT-M-Robust is withdrawn: the shipped one was a fine-tune of the first Step 3 generation on the "
+              "old layouts; train one from today's Step 3 (docs/training.md) and give its file",
+    "quad": "AT-M-Quad is withdrawn: the shipped one was a fine-tune of the first Step 3 generation on the old "
+            "layouts; train one from today's Step 3 (docs/training.md) and give its file",
+}
+"""Aliases that once named shipped policies, with the line that says why they are gone."""
+
+DEFAULT_LOWLEVEL = "nav"
+"""The low level the evaluators (cefc-eval, the SITL-M agents, the benchmarks) fly without --policy:
+AT-M-Nav of each c, the Step 3 policy fine-tuned with a larger navigation weight (docs/decisions.md)."""
+HIERARCHY_LOWLEVEL = STUDENT
+"""The low level under every high level (training and the game tables)."""
+DISTILL_TEACHER = "step3"
+"""The teachers `cefc-train distill` imitates by default (the paper's: AT-M Step 3)."""
+
+
+def lowlevel_name(formation: int, kind: str) -> str:
+    """atm_c<c>_<kind> (kind in LOWLEVEL_KINDS)."""
+    if kind not in LOWLEVEL_KINDS:
+        raise ConfigError(f"low-level kind {kind!r}: must be one of {', '.join(LOWLEVEL_KINDS)}")
+    return f"atm_c{formation}_{kind}"
+
+
+def clm_name(formation: int) -> str:
+    return f"clm_c{formation}"
+
+
+def policy_name_for(choice: str, formation: int) -> str:
+    """The policy file name an alias stands for at group size c (anything else is a name or path, as
+    given); ConfigError with the reason for a withdrawn alias."""
+    if choice in WITHDRAWN:
+        raise ConfigError(f"--policy {choice}: {WITHDRAWN[choice]}")
+    kind = ALIASES.get(choice)
+    if kind is None:
+        return choice
+    if kind == "student":
+        return STUDENT
+    return clm_name(formation) if kind == "clm" else lowlevel_name(formation, kind)
