@@ -286,7 +286,7 @@ def _highlevel_parser(sub) -> None:
                    help="obstacle density per m^2 (default 0.03)")
     p.add_argument("--adversary", default=None, metavar="RULE|NAME|PATH",
                    help="the game's adversary: a rule (nearest_group, r_nearest, r_largest, none) or a trained "
-                        "adversary's policy name or file, e.g. adversary_ppo (default nearest_group)")
+                        "adversary's policy name or file (default adversary_ppo, the shipped PPO adversary)")
     p.add_argument("--episode-steps", type=int, default=None, metavar="N",
                    help="low-level steps per episode, a multiple of 10 (default 400)")
     p.add_argument("--consmac-every", type=int, default=None, metavar="IT",

@@ -45,7 +45,7 @@ import numpy as np
 import torch
 
 from cefc_mj.errors import CheckpointError, ConfigError
-from cefc_mj.eval.highlevel import evaluate_highlevel, resolve_adversary
+from cefc_mj.eval.highlevel import GAME_ADVERSARY, evaluate_highlevel, resolve_adversary
 from cefc_mj.fileio import write_atomic
 from cefc_mj.hierarchy import DECISION_INTERVAL, NAVIGATION, HierarchicalCEFCEnv, LowLevel, load_low_level
 from cefc_mj.nn.atm import Critic
@@ -113,11 +113,11 @@ class HighLevelConfig(BudgetPPODict):
     obstacle_density: float = 0.03
     """Obstacles per m^2 in the game (the density the low level was trained at; the paper's CEFC
     space is obstacle-cluttered but gives no density for it)."""
-    adversary: str = "nearest_group"
-    """The game's adversary during training (default the rule chasing the nearest group of >= 3: at
-    75 iterations it gave better policies against the PPO adversary than training against the PPO
-    adversary itself, docs/decisions.md): a rule (TaskConfig.adversary: nearest_group, r_nearest, r_largest, none)
-    or a trained adversary's policy name (in the shipped folder) or file (`cefc-train adversary`)."""
+    adversary: str = GAME_ADVERSARY
+    """The game's adversary during training (default the shipped PPO adversary, the opponent of Tables
+    V and VII, trained against a population of teams and at least as strong as the rules: docs/decisions.md):
+    a rule (TaskConfig.adversary: nearest_group, r_nearest, r_largest, none) or a trained adversary's
+    policy name (in the shipped folder) or file (`cefc-train adversary`)."""
     episode_steps: int = 400
     """Low-level steps per episode (paper: 400); a multiple of decision_interval."""
     decision_interval: int = DECISION_INTERVAL
