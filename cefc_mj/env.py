@@ -31,7 +31,7 @@ from cefc_mj.task.formation import agent_group_error, connected_groups, group_fo
 from cefc_mj.task.observation import build_cefc_observation, build_low_level_observation, layout_for
 from cefc_mj.task.scenario import Scenario, check_scenario, sample_anchor, sample_scenario
 
-METRIC_NAMES = ("F", "N", "C", "E")
+METRIC_NAMES = ("F", "N", "C", "E", "E_agents")
 
 
 class BatchedCEFCEnv:
@@ -275,16 +275,20 @@ class BatchedCEFCEnv:
         self.metric_sums["C"] += self.world.collisions().sum(axis=-1)
         if cfg.mode == "cefc" and cfg.adversary != "none":
             adv_dist = np.linalg.norm(pos - self.world.adversary_pos[:, None, :], axis=-1)
-            self.metric_sums["E"] += (adv_dist < cfg.rewards.evasion_alert_distance).any(axis=-1)
+            in_danger = adv_dist < cfg.rewards.evasion_alert_distance
+            self.metric_sums["E"] += in_danger.any(axis=-1)
+            self.metric_sums["E_agents"] += in_danger.sum(axis=-1)
 
     def episode_metrics(self) -> dict[str, np.ndarray]:
-        """F, N (steps), C (% of agent-steps in collision), E (steps) so far, each [B]."""
+        """F, N (steps), C (% of agent-steps in collision), E (steps with any agent within the alert
+        distance of the adversary) and E_agents (agent-steps within it) so far, each [B]."""
         steps = np.maximum(self.t, 1)
         return {
             "F": self.metric_sums["F"].copy(),
             "N": self.metric_sums["N"].copy(),
             "C": 100.0 * self.metric_sums["C"] / (steps * self.n_agents),
             "E": self.metric_sums["E"].copy(),
+            "E_agents": self.metric_sums["E_agents"].copy(),
         }
 
     def global_state(self) -> np.ndarray:

@@ -52,9 +52,14 @@ def test_table5_rows_units_seeds_and_missing_methods(policies):
     seeds = result["rows"]["MAPPO+AT-M"]["training_seeds"]
     assert seeds["seeds"] == [0, 1] and seeds["files"] == ["cihrl_mappo.pt", "cihrl_mappo_seed1.pt"]
     assert seeds["mean"]["R_H"] == pytest.approx(np.mean(seeds["R_H"]))
-    assert "training_seeds" not in result["rows"]["CI-HRL"]
+    assert result["rows"]["CI-HRL"]["training_seeds"]["seeds"] == [0]
+    assert seeds["ci95"]["E"]["ci_low"] <= seeds["mean"]["E"] <= seeds["ci95"]["E"]["ci_high"]
+    assert set(result["rows"]["MAPPO+AT-M"]["against_rule"]["E"]) <= set(range(401))  # per seed, vs the rule
+    assert result["rows"]["MAPPO+AT-M"]["vs_reference"]["E"]["p"] is None  # one CI-HRL seed: no test
+    assert result["rows"]["MAPPO+AT-M"]["vs_reference"]["E"]["verdict"] == "no significant difference"
     assert result["rows"]["CI-HRL"]["paper"]["E"] == 4.46
     text = format_highlevel_table(result)
+    assert "Over training seeds" in text and "E vs rule (s)" in text and "reference" in text
     assert "MAPPO+AT-M" in text and "2 training seeds" in text and "missing policies: TarMAC+AT-M" in text
     assert "Table IV, message size per agent and decision: MAPPO+AT-M 0 (paper 0), CI-HRL 64 (paper 64)" in text
     # The same seed flies the same episodes: bit-identical figures.

@@ -61,7 +61,7 @@ def test_shapes_anchor_decoding_and_a_400_step_episode_of_40_decisions():
         assert info["low_level_rewards"].shape == (10, 2) and reward.shape == (2,)
         assert done.all() == (k == 40) and ("metrics" in info) == (k == 40)
         np.testing.assert_array_equal(info["anchors"], env.decode(index))
-    assert set(info["metrics"]) == {"F", "N", "C", "E"}
+    assert set(info["metrics"]) == {"F", "N", "C", "E", "E_agents"}
     with pytest.raises(ConfigError, match="finished episode"):
         env.step(index)
     # Each agent's low-level observation points at its own anchor, from its perceived position.
@@ -256,7 +256,7 @@ def test_cli_trains_exports_and_resumes_a_run(tmp_path, monkeypatch, capsys):
     assert [p["low_level"] for p in card["phases"]] == ["navigation", "atm_student"]
     assert card["consmac_training"]["steps"] == 6 and card["consmac_training"]["paper"]["steps"] == 5000
     assert card["low_level"]["finetune"]["file"]["sha256"] == digest(paths.POLICIES_DIR / "atm_student.pt")
-    assert set(card["evaluation"]["ours"]) == {"R_H", "R_t", "R_n", "R_e", "E", "F", "C"}
+    assert set(card["evaluation"]["ours"]) == {"R_H", "R_t", "R_n", "R_e", "E", "E_agents", "F", "C"}
     loaded, meta = load_highlevel_policy(policy)
     assert meta["iterations"] == 2 and loaded.comm is not None
     with open(run / "progress.csv", newline="") as f:

@@ -181,7 +181,7 @@ def test_episode_metrics_at_end():
         obs, reward, done, info = env.step(np.zeros((2, 5, 2)))
         assert done.all() == (t == 19)
     m = info["metrics"]
-    assert set(m) == {"F", "N", "C", "E"} and all(v.shape == (2,) for v in m.values())
+    assert set(m) == {"F", "N", "C", "E", "E_agents"} and all(v.shape == (2,) for v in m.values())
     assert ((0 <= m["F"]) & (m["F"] <= 20) & (0 <= m["C"]) & (m["C"] <= 100)).all()
     with pytest.raises(ConfigError, match="reset"):
         env.step(np.zeros((2, 5, 2)))

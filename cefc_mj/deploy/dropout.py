@@ -94,6 +94,7 @@ class DropoutCEFCEnv(BatchedCEFCEnv):
                 adv_dist = np.linalg.norm(pos - self.world.adversary_pos[:, None, :], axis=-1)
                 near = (adv_dist < cfg.rewards.evasion_alert_distance) & active
                 self.metric_sums["E"] += near.any(axis=-1)
+                self.metric_sums["E_agents"] += near.sum(axis=-1)
         self.active_agent_steps += active.sum(axis=-1)
         for key in ("F", "N", "C"):
             self.trace[key].append(self.metric_sums[key] - before[key])

@@ -170,7 +170,7 @@ def play_highlevel(policy: HighLevelPolicy, game: HierarchicalCEFCEnv, seed: int
         for name, weight in weights.items():
             parts[name] += weight * info["reward_terms"][name]
     metrics = info["metrics"]
-    return {"R_H": total, **parts, **{m: np.asarray(metrics[m], dtype=float) for m in ("E", "F", "C")}}
+    return {"R_H": total, **parts, **{m: np.asarray(metrics[m], dtype=float) for m in ("E", "E_agents", "F", "C")}}
 
 
 def evaluate_highlevel_episodes(policy: HighLevelPolicy, task: TaskConfig, low_level: LowLevel, episodes: int,
@@ -276,15 +276,51 @@ def _low_level(task: TaskConfig) -> LowLevel:
         raise CheckpointError(f"the low level of Tables V-VI: {e}") from None
 
 
+SEED_METRICS = (*COLUMNS, "E_agents")
+"""The per-seed figures compared across methods: the paper's columns and E counted in agent-steps."""
+HIGHER_IS_BETTER = {"R_H": True, "R_t": True, "R_n": True, "R_e": True, "E": False, "E_agents": False}
+REFERENCE_METHOD = "CI-HRL"
+
+
+def _seed_block(per_seed: dict[int, dict], files: dict[int, Path]) -> dict:
+    """Each training seed's episode means, and over the seeds their mean, sample std and 95 % CI."""
+    from cefc_mj.eval.stats import seed_interval
+
+    values = {m: [r[m] for r in per_seed.values()] for m in SEED_METRICS}
+    ci = {m: seed_interval(v) for m, v in values.items()}
+    return {"seeds": list(per_seed), "files": [files[k].name for k in per_seed], **values,
+            "mean": {m: ci[m]["mean"] for m in SEED_METRICS},
+            "std": {m: ci[m]["std"] for m in SEED_METRICS}, "ci95": ci}
+
+
+def _compare_with_reference(rows: dict) -> None:
+    """row["vs_reference"]: per metric, Welch's p over training seeds against CI-HRL and the verdict."""
+    from cefc_mj.eval.stats import verdict, welch_p
+
+    reference = rows.get(REFERENCE_METHOD, {}).get("training_seeds")
+    if reference is None:
+        return
+    for method, row in rows.items():
+        if method == REFERENCE_METHOD or "training_seeds" not in row:
+            continue
+        ours = row["training_seeds"]
+        row["vs_reference"] = {"method": REFERENCE_METHOD, **{
+            m: {"p": welch_p(ours[m], reference[m]),
+                "verdict": verdict(ours[m], reference[m], HIGHER_IS_BETTER[m])} for m in SEED_METRICS}}
+
+
 def run_table5(episodes: int = EPISODES, seed: int = 0, policies_dir: Path | None = None,
                policy: str | None = None, provenance: dict | None = None, where: Conditions | None = None,
-               adversary: str = GAME_ADVERSARY) -> dict:
+               adversary: str = GAME_ADVERSARY, against_rule: bool = True) -> dict:
     """Table V: every method whose policy file exists (the others are listed in protocol["missing"]),
     or only `policy` (a file or a name in policies_dir, one row under its file name). Each row is
     the seed-0 policy over `episodes` episodes; where files of other training seeds exist,
-    row["training_seeds"] has each seed's means and their mean and sample std. where: backend, wind
-    and deviation (default the paper's: particles, calm, exact sensing). adversary: a rule or a
-    trained adversary (name in policies_dir, or file; default the PPO adversary)."""
+    row["training_seeds"] has each seed's means and their mean, sample std and 95 % CI, and
+    row["vs_reference"] Welch's p against CI-HRL per metric. where: backend, wind and deviation
+    (default the paper's: particles, calm, exact sensing). adversary: a rule or a trained adversary
+    (name in policies_dir, or file; default the PPO adversary). against_rule: also fly every seed's
+    policy against the nearest-group rule (row["against_rule"]), the yardstick of the adversary's
+    strength."""
     policies_dir = Path(policies_dir) if policies_dir is not None else paths.POLICIES_DIR
     where = where or Conditions()
     kind, adversary_policy, record = resolve_adversary(adversary, policies_dir)
@@ -308,17 +344,17 @@ def run_table5(episodes: int = EPISODES, seed: int = 0, policies_dir: Path | Non
             continue
         row = _evaluate_file(files[0], task, low_level, episodes, seed, where, adversary_policy, record)
         row["paper"] = dict(zip(COLUMNS, paper[method])) if method in paper else None
-        if len(files) > 1:
-            per_seed = {k: (row if k == 0 else _evaluate_file(f, task, low_level, episodes, seed, where,
-                                                              adversary_policy, record))
-                        for k, f in files.items()}
-            row["training_seeds"] = {
-                "seeds": list(per_seed), "files": [f.name for f in files.values()],
-                **{m: [r[m] for r in per_seed.values()] for m in COLUMNS},
-                "mean": {m: float(np.mean([r[m] for r in per_seed.values()])) for m in COLUMNS},
-                "std": {m: float(np.std([r[m] for r in per_seed.values()], ddof=1)) for m in COLUMNS},
-            }
+        per_seed = {k: (row if k == 0 else _evaluate_file(f, task, low_level, episodes, seed, where,
+                                                          adversary_policy, record))
+                    for k, f in files.items()}
+        row["training_seeds"] = _seed_block(per_seed, files)
+        if against_rule:
+            rule_kind, _, rule_record = resolve_adversary("nearest_group")
+            rule_task = game_task(rule_kind, deviation=where.deviation)
+            row["against_rule"] = _seed_block({k: _evaluate_file(f, rule_task, low_level, episodes, seed, where, None,
+                                                                 rule_record) for k, f in files.items()}, files)
         result["rows"][method] = row
+    _compare_with_reference(result["rows"])
     return result
 
 
@@ -434,7 +470,7 @@ def format_highlevel_table(result: dict) -> str:
                                         for m in COLUMNS]
                      + [format_mean_std(row["F"], row["F_std"], ".0f"), format_mean_std(row["C"], row["C_std"], ".2f")])
         seeds = row.get("training_seeds")
-        if seeds:
+        if seeds and len(seeds["seeds"]) > 1:
             table.append([f"  {len(seeds['seeds'])} training seeds", "ours"]
                          + [format_mean_std(seeds["mean"][m] * DT, seeds["std"][m] * DT, ".1f") for m in COLUMNS]
                          + ["", ""])
@@ -453,7 +489,50 @@ def format_highlevel_table(result: dict) -> str:
         lines.append("missing policies: " + ", ".join(proto["missing"]))
     if result["schema"] == "cefc-eval/table5" and table4_line(result):
         lines.append(table4_line(result))
+    if result["schema"] == "cefc-eval/table5" and any("training_seeds" in r for r in result["rows"].values()):
+        lines += seed_table_lines(result)
     return "\n".join(lines)
+
+
+def _ci_text(ci: dict, scale: float = 1.0, fmt: str = ".1f") -> str:
+    mean = format(ci["mean"] * scale, fmt)
+    if ci["ci_low"] is None:
+        return f"{mean} (1 seed)"
+    return f"{mean} [{format(ci['ci_low'] * scale, fmt)}, {format(ci['ci_high'] * scale, fmt)}]"
+
+
+def seed_table_lines(result: dict) -> list[str]:
+    """Over training seeds: mean [95 % CI] of each metric against the game's adversary and E against
+    the nearest-group rule, and Welch's p against CI-HRL with the verdict (p < 0.05, else "no
+    significant difference")."""
+    from cefc_mj.eval.stats import ALPHA
+
+    lines = ["", f"Over training seeds (each seed's mean over the {result['protocol']['episodes']} episodes; mean "
+             "[95 % CI of the mean, Student's t]). E: steps with any agent within 2 m of the adversary, in steps "
+             "and in seconds (x 0.1 s); E_agents: agent-steps within 2 m. R_* are per-episode sums, not "
+             "scaled. p: Welch's t-test against CI-HRL over the seeds; a difference counts only where "
+             f"p < {ALPHA}."]
+    header = ["method", "seeds", "R_H", "R_t", "R_n", "R_e", "E (steps)", "E (s)", "E_agents", "E vs rule (s)",
+              "p R_H", "p R_t", "p E", "vs CI-HRL (R_H / E)"]
+    table = [header]
+    for method, row in result["rows"].items():
+        seeds = row.get("training_seeds")
+        if not seeds:
+            continue
+        ci = seeds["ci95"]
+        rule = row.get("against_rule", {}).get("ci95", {}).get("E")
+        vs = row.get("vs_reference")
+        p = (lambda m: "-" if not vs or vs[m]["p"] is None else f"{vs[m]['p']:.3f}")
+        table.append([method, str(len(seeds["seeds"])), _ci_text(ci["R_H"], fmt=".0f"), _ci_text(ci["R_t"]),
+                      _ci_text(ci["R_n"], fmt=".0f"), _ci_text(ci["R_e"], fmt=".0f"), _ci_text(ci["E"]),
+                      _ci_text(ci["E"], DT, ".2f"), _ci_text(ci["E_agents"], fmt=".0f"),
+                      "-" if rule is None else _ci_text(rule, DT, ".2f"), p("R_H"), p("R_t"), p("E"),
+                      "reference" if method == REFERENCE_METHOD else
+                      "-" if not vs else f"{vs['R_H']['verdict']} / {vs['E']['verdict']}"])
+    widths = [max(len(r[i]) for r in table) for i in range(len(header))]
+    lines += ["  ".join(cell.ljust(w) if i == 0 else cell.rjust(w) for i, (cell, w) in enumerate(zip(r, widths)))
+              for r in table]
+    return lines
 
 
 def table4_line(result: dict) -> str | None:

@@ -1,0 +1,48 @@
+"""Statistics over training seeds for the method comparisons (Table V): mean with a 95 % confidence
+interval, and the p-value of a Welch t-test against a reference method, both from scipy.stats.
+
+A method "beats" another on a metric only where p < ALPHA on the test games; otherwise the report
+says "no significant difference", whatever the sign of the difference."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy import stats
+
+ALPHA = 0.05
+"""Significance level of the comparisons."""
+CONFIDENCE = 0.95
+"""Confidence level of the intervals over training seeds."""
+
+
+def seed_interval(values) -> dict[str, float | int | None]:
+    """{"n", "mean", "std", "ci_low", "ci_high"} of per-seed values: Student's t interval of the mean
+    (None bounds with fewer than two seeds)."""
+    x = np.asarray(values, dtype=np.float64)
+    n = int(x.size)
+    mean = float(x.mean()) if n else math.nan
+    if n < 2:
+        return {"n": n, "mean": mean, "std": None, "ci_low": None, "ci_high": None}
+    std = float(x.std(ddof=1))
+    low, high = stats.t.interval(CONFIDENCE, df=n - 1, loc=mean, scale=std / math.sqrt(n)) if std > 0 else (mean, mean)
+    return {"n": n, "mean": mean, "std": std, "ci_low": float(low), "ci_high": float(high)}
+
+
+def welch_p(values, reference) -> float | None:
+    """Two-sided p-value of Welch's t-test between two methods' per-seed values (None with fewer
+    than two seeds on either side, or no variance at all)."""
+    a, b = np.asarray(values, dtype=np.float64), np.asarray(reference, dtype=np.float64)
+    if a.size < 2 or b.size < 2 or (a.std() == 0 and b.std() == 0):
+        return None
+    return float(stats.ttest_ind(a, b, equal_var=False).pvalue)
+
+
+def verdict(values, reference, higher_is_better: bool) -> str:
+    """"better" / "worse" (than the reference) where Welch's p < ALPHA, else "no significant difference"."""
+    p = welch_p(values, reference)
+    if p is None or p >= ALPHA:
+        return "no significant difference"
+    ahead = float(np.mean(values)) > float(np.mean(reference))
+    return "better" if ahead == higher_is_better else "worse"
