@@ -254,6 +254,11 @@ def _adversary_parser(sub) -> None:
                         "--envs)")
     p.add_argument("--low-level", default=None, metavar="NAME|PATH|per-group",
                    help="the UAV team's low level (default atm_student)")
+    p.add_argument("--imitation-episodes", type=int, default=None, metavar="N",
+                   help="before PPO, imitate the nearest-group rule on N episodes of the population's games "
+                        "(default 200; 0: PPO from random weights)")
+    p.add_argument("--imitation-steps", type=int, default=None, metavar="N",
+                   help="Adam steps of that imitation (default 4000)")
     p.add_argument("--density", type=float, default=None, dest="obstacle_density", metavar="D",
                    help="obstacle density per m^2 (default 0.03)")
     p.add_argument("--collision-weight", type=float, default=None, metavar="W",

@@ -65,6 +65,8 @@ from cefc_mj.train.run_state import STATE_FILE
 STATE_FORMAT = "cefc-mj/adversary-state"
 TEAM_DRAW_STREAM = 7
 """Extra SeedSequence entry of the team draws (apart from every other stream of a run)."""
+IMITATION_STREAM = 1000
+"""`iteration_seed` stream of the imitation episodes (the PPO games use streams 0..teams_per_iteration-1)."""
 PROGRESS_KEYS = ("episode_return", "team/E", "collision_share", "approx_kl")
 
 
@@ -102,6 +104,12 @@ class AdversaryConfig(BudgetPPODict):
     observes_goal: bool = False
     """Whether the adversary reads the rule's goal point (the centre of the nearest group of >= 3)
     as input; False (the paper's adversary) leaves it to find the group from the agents it sees."""
+    imitation_episodes: int = 200
+    """Before PPO, the actor imitates the nearest-group rule (steering round obstacles) on this many
+    episodes of the population's games (its observations, the rule's accelerations); 0 starts PPO
+    from random weights. PPO alone stayed at 0.4-0.8 of the rule's E (docs/high_level.md)."""
+    imitation_steps: int = 4000
+    """Adam steps (batch 1024, rate 1e-3) of that imitation."""
     obstacle_density: float = 0.03
     """Obstacles per m^2 (the game of Tables V and VI)."""
     distance_weight: float = 0.1
@@ -161,7 +169,8 @@ class AdversaryConfig(BudgetPPODict):
             if not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0:
                 _fail(name, value, "must be a number >= 0")
         for name, least, most in (("hidden", 1, 4096), ("checkpoint_every", 1, 1_000_000),
-                                  ("eval_episodes", 0, 1000), ("teams_per_iteration", 1, 1000)):
+                                  ("eval_episodes", 0, 1000), ("teams_per_iteration", 1, 1000),
+                                  ("imitation_episodes", 0, 100_000), ("imitation_steps", 0, 10_000_000)):
             value = getattr(self, name)
             if not isinstance(value, int) or isinstance(value, bool) or not least <= value <= most:
                 _fail(name, value, f"must be an integer in [{least}, {most}]")
@@ -254,17 +263,60 @@ class AdversaryTrainer:
         for sampler, game in zip(self.samplers, self.games):
             sampler.env = game.env
 
+    @torch.no_grad()
+    def demonstrations(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """(observations [S, D], the nearest-group rule's accelerations [S, 2]) over cfg.imitation_episodes
+        episodes: batches of ppo.n_envs / teams_per_iteration games, a team drawn for each, the rule
+        flying the adversary. Seeded from the run seed (an imitation stream apart from the iterations')."""
+        obs_rows, act_rows = [], []
+        per_game = self.games[0].n_envs
+        for batch in range(math.ceil(self.cfg.imitation_episodes / per_game)):
+            name = self.draw_teams(batch, stream=IMITATION_STREAM)[0]
+            holder = {}
+
+            def rule(obs):
+                action = holder["game"].env.rule_adversary_acceleration("nearest_group")
+                obs_rows.append(torch.from_numpy(obs.copy()))
+                act_rows.append(torch.as_tensor(action, dtype=torch.float32))
+                return action
+
+            game = HierarchicalCEFCEnv(self.task, self.low_level, n_envs=per_game, seed=self.cfg.seed,
+                                       decision_interval=self.games[0].decision_interval, adversary_policy=rule)
+            holder["game"] = game
+            play_highlevel(self.team_for(name, game), game,
+                           seed=iteration_seed(self.cfg.seed, batch, stream=IMITATION_STREAM))
+        return torch.cat(obs_rows), torch.cat(act_rows)
+
+    def imitate(self) -> dict[str, float]:
+        """Fit the actor's mean to the rule's demonstrations (MSE); returns the first and last loss."""
+        cfg = self.cfg
+        obs, target = self.demonstrations()
+        optimizer = torch.optim.Adam(self.actor.parameters(), lr=1e-3)
+        losses = []
+        for _ in range(cfg.imitation_steps):
+            idx = torch.randint(len(obs), (1024,), generator=self.generator)
+            loss = (self.actor(obs[idx]) - target[idx]).pow(2).sum(-1).mean()
+            optimizer.zero_grad()
+            loss.backward()
+            optimizer.step()
+            losses.append(loss.item())
+        with torch.no_grad():
+            final = float((self.actor(obs) - target).pow(2).sum(-1).mean())
+        spread = float(target.var(0).sum())
+        return {"samples": len(obs), "steps": cfg.imitation_steps, "first_loss": losses[0] if losses else None,
+                "mse": final, "mse_of_the_mean_action": spread}
+
     def value(self, obs: torch.Tensor) -> torch.Tensor:
         """V of adversary observations: the critic reads what the actor reads."""
         if not self.cfg.observes_goal:
             obs = torch.cat([obs[..., :ADVERSARY_GOAL_COLUMNS.start], obs[..., ADVERSARY_GOAL_COLUMNS.stop:]], dim=-1)
         return self.critic(obs)
 
-    def draw_teams(self, iteration: int) -> list[str]:
+    def draw_teams(self, iteration: int, stream: int = TEAM_DRAW_STREAM) -> list[str]:
         """The team of each game of `iteration`: uniform draws from the population, a function of
-        (seed, iteration) alone, so a resumed run draws what the uninterrupted one would have."""
+        (seed, iteration, stream) alone, so a resumed run draws what the uninterrupted one would have."""
         names = list(self.cfg.teams)
-        rng = np.random.default_rng([self.cfg.seed, iteration, TEAM_DRAW_STREAM])
+        rng = np.random.default_rng([self.cfg.seed, iteration, stream])
         return [names[i] for i in rng.integers(len(names), size=len(self.games))]
 
     def team_for(self, name: str, game: HierarchicalCEFCEnv):
@@ -405,15 +457,23 @@ def train_adversary(cfg: AdversaryConfig, out: Path, policies_dir: Path, resume:
         saved = read_state(state_path)
         run_state.check_same_run(saved["config"], cfg, state_path, free=("budget", "checkpoint_every", "eval_episodes"))
     trainer = AdversaryTrainer(cfg, population, low_level, interval)
+    imitation = None
     if saved is not None:
         trainer.load_state_dict(saved["trainer"])
+        imitation = saved.get("imitation")
+    elif cfg.imitation_episodes and cfg.imitation_steps:
+        if show_progress:
+            print(f"{cfg.name}: imitating the nearest-group rule ({cfg.imitation_episodes} episodes, "
+                  f"{cfg.imitation_steps} steps)", flush=True)
+        start = time.perf_counter()
+        imitation = {**trainer.imitate(), "wall_s": round(time.perf_counter() - start, 1)}
     write_atomic(run_dir / "config.json", json.dumps(
         {"adversary": cfg.to_dict(), "task": trainer.task.to_dict(), "team": team_record, "command": command},
         indent=2, default=str) + "\n")
 
     def checkpoint() -> None:
-        atomic_torch_save({"format": STATE_FORMAT, "config": cfg.to_dict(), "trainer": trainer.state_dict()},
-                          state_path)
+        atomic_torch_save({"format": STATE_FORMAT, "config": cfg.to_dict(), "trainer": trainer.state_dict(),
+                           "imitation": imitation}, state_path)
 
     if saved is None:
         checkpoint()
@@ -432,6 +492,7 @@ def train_adversary(cfg: AdversaryConfig, out: Path, policies_dir: Path, resume:
         "task": trainer.task.to_dict(),
         "network": trainer.actor.cfg.to_dict(),
         "team": team_record,
+        "imitation": imitation,
         "iterations": trainer.iteration,
         "episodes": trainer.episodes,
         "steps": trainer.episodes * trainer.task.steps,
@@ -488,13 +549,14 @@ def summary_lines(card: dict, policies_dir: Path) -> list[str]:
 
 # ---------------------------------------------------------------------------- command line
 _FLAG_OF_FIELD = {"seed": "--seed", "teams": "--teams", "teams_per_iteration": "--teams-per-iteration",
-                  "low_level": "--low-level",
+                  "low_level": "--low-level", "imitation_episodes": "--imitation-episodes",
+                  "imitation_steps": "--imitation-steps",
                   "obstacle_density": "--density", "eval_episodes": "--eval-episodes", "n_envs": "--envs",
                   "collision_weight": "--collision-weight",
                   "epochs": "--epochs", "lr": "--lr", "update_threads": "--threads"}
 """Config fields set by `cefc-train adversary` flags: their errors name the flag the user typed."""
 CLI_FIELDS = ("seed", "teams", "teams_per_iteration", "low_level", "obstacle_density", "collision_weight",
-              "eval_episodes")
+              "eval_episodes", "imitation_episodes", "imitation_steps")
 CLI_PPO_FIELDS = ("n_envs", "epochs", "lr", "update_threads")
 
 
