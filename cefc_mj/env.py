@@ -23,7 +23,8 @@ from cefc_mj.errors import ConfigError
 from cefc_mj.sim.particle import ParticleWorld
 from cefc_mj.sim.world import World
 from cefc_mj.task import rewards as R
-from cefc_mj.task.adversary import adversary_goal, adversary_observation, pursuit_acceleration
+from cefc_mj.task.adversary import (adversary_goal, adversary_observation, pursuit_velocity,
+                                    velocity_tracking_acceleration)
 from cefc_mj.task.config import LEARNED_ADVERSARY, TaskConfig
 from cefc_mj.task.deviation import sample_deviation
 from cefc_mj.task.estimator import FusedPositionEstimate
@@ -225,15 +226,19 @@ class BatchedCEFCEnv:
             )
         self._obs[mask] = obs[mask]
 
+    def rule_adversary_velocity(self, rule: str) -> np.ndarray:
+        """The velocity [B, 2] a rule adversary (task/adversary.py) wants at this step."""
+        cfg = self.config
+        goal = adversary_goal(rule, self.world.adversary_pos, self.world.agent_pos, self.group_size, self.group_centre)
+        return pursuit_velocity(goal, self.world.adversary_pos, cfg.adversary_speed_max,
+                                obstacles=self.obstacles if cfg.adversary_avoids_obstacles else None,
+                                keep_out=cfg.obstacle_radius + cfg.uav_radius)
+
     def rule_adversary_acceleration(self, rule: str) -> np.ndarray:
         """The acceleration [B, 2] a rule adversary (task/adversary.py) commands at this step."""
         cfg = self.config
-        goal = adversary_goal(rule, self.world.adversary_pos, self.world.agent_pos, self.group_size, self.group_centre)
-        return pursuit_acceleration(
-            goal, self.world.adversary_pos, self.world.adversary_vel, cfg.adversary_speed_max, cfg.accel_max, cfg.dt,
-            obstacles=self.obstacles if cfg.adversary_avoids_obstacles else None,
-            keep_out=cfg.obstacle_radius + cfg.uav_radius,
-        )
+        return velocity_tracking_acceleration(self.rule_adversary_velocity(rule), self.world.adversary_vel,
+                                              cfg.accel_max, cfg.dt)
 
     def adversary_observation(self) -> np.ndarray:
         """The learned adversary's observation [B, D] of the current step (task/adversary.py)."""
@@ -242,7 +247,7 @@ class BatchedCEFCEnv:
         return adversary_observation(world.adversary_pos, world.adversary_vel, goal, world.agent_pos, world.agent_vel,
                                      np.take_along_axis(self.group_size, self.labels, axis=1), self.obstacles,
                                      cfg.arena_half_size, cfg.adversary_speed_max,
-                                     cfg.obstacle_radius + cfg.uav_radius)
+                                     cfg.obstacle_radius + cfg.uav_radius, self.group_centre, self.group_size)
 
     def _rewards(self, pos, group_error, group_size, group_centre, centre_distance):
         cfg, w = self.config, self.config.rewards

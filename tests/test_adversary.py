@@ -15,7 +15,7 @@ from cefc_mj.errors import CheckpointError, ConfigError
 from cefc_mj.eval.highlevel import game_task
 from cefc_mj.nn.adversary_policy import AdversaryNetConfig, AdversaryPolicy, load_adversary_policy, \
     save_adversary_policy
-from cefc_mj.task.adversary import (ADVERSARY_OBS_DIM, ADVERSARY_OBSTACLE_SLOTS, ADVERSARY_SLOTS,
+from cefc_mj.task.adversary import (ADVERSARY_GROUP_SLOTS, ADVERSARY_OBS_DIM, ADVERSARY_OBSTACLE_SLOTS, ADVERSARY_SLOTS,
                                     adversary_observation, adversary_reward)
 from cefc_mj.task.config import RULE_TEAMS
 from cefc_mj.train.adversary import (AdversaryConfig, AdversaryTrainer, _adversary_ppo, evaluate_adversary,
@@ -42,13 +42,26 @@ def test_observation_layout_nearest_first_with_presence_flags_and_padding():
     np.testing.assert_allclose(slots[:3, :2], [[0.1, 0.0], [0.0, -0.3], [0.5, 0.0]])  # nearest first
     np.testing.assert_allclose(slots[:3, 4:], [[3 / 3, 1]] * 3)  # group size / N, present
     assert not slots[3:].any()  # 3 agents: 5 empty slots
-    near = obs[6 + 6 * ADVERSARY_SLOTS:].reshape(ADVERSARY_OBSTACLE_SLOTS, 4)
+    near = obs[6 + 6 * ADVERSARY_SLOTS:6 + 6 * ADVERSARY_SLOTS + 4 * ADVERSARY_OBSTACLE_SLOTS].reshape(
+        ADVERSARY_OBSTACLE_SLOTS, 4)
     # unit direction, clearance to the 0.65 m keep-out disc over 3 m (clipped to 1), present
     np.testing.assert_allclose(near[:2], [[0, 1, (2 - 0.65) / 3, 1], [-1, 0, 1, 1]], atol=1e-7)
     assert not near[2:].any()
     # The agents' order in the swarm does not matter; an obstacle-free arena leaves the slots empty.
     np.testing.assert_array_equal(_obs(agents[::-1], [[0.0, 2.0], [-9.0, 0.0]]), obs)
     assert not _obs(agents, np.zeros((0, 2)))[6 + 6 * ADVERSARY_SLOTS:].any()
+    assert not obs[-4 * ADVERSARY_GROUP_SLOTS:].any()  # no groups given: empty group slots
+
+
+def test_observation_group_slots_nearest_centre_first():
+    agents = np.array([[[5.0, 0.0], [1.0, 0.0], [0.0, -3.0]]])
+    centre = np.array([[[6.0, 0.0], [0.0, -2.0], [0.0, 0.0]]])
+    size = np.array([[3, 1, 0]])  # the third slot is unused
+    obs = adversary_observation(np.zeros((1, 2)), np.zeros((1, 2)), np.ones((1, 2)), agents, np.zeros_like(agents),
+                                np.full((1, 3), 1), np.zeros((1, 0, 2)), arena_half_size=10.0, speed_max=0.75,
+                                keep_out=0.65, group_centre=centre, group_size=size)[0]
+    groups = obs[-4 * ADVERSARY_GROUP_SLOTS:].reshape(ADVERSARY_GROUP_SLOTS, 4)
+    np.testing.assert_allclose(groups, [[0.0, -0.2, 1 / 3, 1], [0.6, 0.0, 1.0, 1], [0, 0, 0, 0]], atol=1e-7)
 
 
 def test_reward_terms_by_hand():
@@ -123,7 +136,7 @@ def test_policy_file_round_trip_clipped_actions_and_tampering(tmp_path):
 
 
 def _tiny(iterations, **kw):
-    kw = {"teams": ("cihrl_consmac_a", "rule-split"), "teams_per_iteration": 2, **kw}
+    kw = {"teams": ("cihrl_consmac_a", "rule-split"), "teams_per_iteration": 2, "imitation_episodes": 0, **kw}
     return AdversaryConfig(budget=Budget(iterations=iterations), ppo=dataclasses.replace(_adversary_ppo(), n_envs=4),
                            eval_episodes=0, **kw)
 
@@ -175,10 +188,14 @@ def test_the_paper_adversary_reads_no_goal_point():
 def test_cli_trains_exports_a_card_and_resumes(tmp_path, capsys):
     out = tmp_path / "runs"
     argv = ["adversary", "--budget", "1it", "--envs", "2", "--teams-per-iteration", "2", "--teams",
-            "cihrl_consmac_a,rule-evade", "--eval-episodes", "1", "--out", str(out), "--no-progress"]
+            "cihrl_consmac_a,rule-evade", "--eval-episodes", "1", "--imitation-episodes", "1", "--imitation-steps",
+            "4", "--imitation-rounds", "2", "--out", str(out), "--no-progress"]
     assert main(argv) == 0
     card = json.loads((out / "policies" / "adversary_ppo.json").read_text())
     assert card["iterations"] == 1 and card["network"]["observes_goal"] is False
+    assert card["network"]["action"] == "velocity"
+    rounds = card["imitation"]["rounds"]
+    assert len(rounds) == 2 and rounds[1]["samples"] == 2 * rounds[0]["samples"] > 0
     assert card["team"]["population"]["cihrl_consmac_a"]["path"] == "policies/cihrl_consmac_a.pt"
     assert card["team"]["population"]["rule-evade"]["kind"] == "rule"
     per_team = card["evaluation"]["per_team"]
@@ -237,3 +254,30 @@ def test_shipped_ppo_adversary_chases_the_swarm_and_keeps_out_of_obstacles():
     assert shipped["adversary_collision_share"] <= IN_CEILING, shipped["adversary_collision_share"]
     untrained = _pressure(AdversaryPolicy(AdversaryNetConfig(), seed=0).act)  # the bands fail it
     assert untrained["E"] < E_FLOOR and untrained["adversary_collision_share"] > IN_CEILING
+
+
+def test_a_velocity_action_equal_to_the_rules_wish_flies_the_rules_acceleration():
+    """AdversaryNetConfig(action="velocity"): outputs u are the wanted velocity / speed_max; the rule's
+    own wish gives back the rule's setpoint (to float32 rounding of the observed velocity)."""
+    task = dataclasses.replace(game_task("learned"), episode_steps=40)
+    env = BatchedCEFCEnv(task, n_envs=3, seed=2, adversary_policy=lambda obs: env.rule_adversary_acceleration(
+        "nearest_group"))
+    env.reset(seed=2)
+    for _ in range(12):
+        env.step(np.zeros((3, 8, 2)))
+    policy = AdversaryPolicy(AdversaryNetConfig(action="velocity", speed_max=task.adversary_speed_max, dt=task.dt))
+    wish = env.rule_adversary_velocity("nearest_group") / task.adversary_speed_max
+    np.testing.assert_allclose(policy.to_acceleration(wish, env.adversary_observation()),
+                               env.rule_adversary_acceleration("nearest_group"), atol=1e-5)
+    assert np.abs(env.world.adversary_vel).max() > 0.1  # it was moving
+    with pytest.raises(ConfigError, match="action"):
+        AdversaryNetConfig(action="jerk")
+
+
+def test_imitation_brings_the_actor_to_the_rules_wish_on_its_own_states():
+    """DAgger rounds: the first flies the rule, the next the actor; the fit to the rule improves."""
+    trainer = _trainer(_tiny(1, imitation_episodes=4, imitation_steps=300, imitation_rounds=2))
+    out = trainer.imitate()
+    first, second = out["rounds"]
+    assert second["samples"] == 2 * first["samples"]
+    assert second["mse_after"] < 0.5 * out["mse_of_the_mean_action"]  # far better than a constant action

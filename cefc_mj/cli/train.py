@@ -255,10 +255,15 @@ def _adversary_parser(sub) -> None:
     p.add_argument("--low-level", default=None, metavar="NAME|PATH|per-group",
                    help="the UAV team's low level (default atm_student)")
     p.add_argument("--imitation-episodes", type=int, default=None, metavar="N",
-                   help="before PPO, imitate the nearest-group rule on N episodes of the population's games "
-                        "(default 200; 0: PPO from random weights)")
+                   help="before PPO, imitate the nearest-group rule on N episodes per round of the population's "
+                        "games (default 200; 0: PPO from random weights)")
     p.add_argument("--imitation-steps", type=int, default=None, metavar="N",
-                   help="Adam steps of that imitation (default 4000)")
+                   help="Adam steps of that imitation, over all rounds (default 8000)")
+    p.add_argument("--imitation-rounds", type=int, default=None, metavar="K",
+                   help="DAgger rounds: the first flies the rule, later ones the actor, labelled by the rule "
+                        "(default 8)")
+    p.add_argument("--init-log-std", type=float, default=None, metavar="S",
+                   help="initial log-std of the actor's Gaussian, in its output units (default -0.5)")
     p.add_argument("--density", type=float, default=None, dest="obstacle_density", metavar="D",
                    help="obstacle density per m^2 (default 0.03)")
     p.add_argument("--collision-weight", type=float, default=None, metavar="W",

@@ -26,10 +26,14 @@ from torch import nn
 from cefc_mj.errors import CheckpointError, ConfigError
 from cefc_mj.nn.layers import mlp
 from cefc_mj.nn.policy_io import read_policy_payload, write_policy_payload
-from cefc_mj.task.adversary import ADVERSARY_GOAL_COLUMNS, ADVERSARY_OBS_DIM
+from cefc_mj.task.adversary import (ADVERSARY_GOAL_COLUMNS, ADVERSARY_OBS_DIM, OWN_VELOCITY_COLUMNS,
+                                    velocity_tracking_acceleration)
 
 POLICY_FORMAT = "cefc-mj/adversary-policy"
 POLICY_VERSION = 1
+
+
+ADVERSARY_ACTIONS = ("acceleration", "velocity")
 
 
 @dataclass(frozen=True)
@@ -44,6 +48,15 @@ class AdversaryNetConfig:
     """Per-axis action bound (m/s^2); the deployed action is the mean clipped to it."""
     init_log_std: float = 0.0
     """Initial log-std of the Gaussian (std 1 m/s^2)."""
+    action: str = "acceleration"
+    """What the network's 2 outputs u mean: "acceleration" (u is the setpoint, m/s^2, clipped to
+    accel_max; files written before the field) or "velocity" (u x speed_max is the velocity it wants,
+    capped at speed_max, and the setpoint is the acceleration that reaches it in one step, clipped:
+    a pursuit is then a direction to learn, not a bang-bang acceleration)."""
+    speed_max: float = 0.75
+    """The adversary's speed limit (m/s), the scale of a "velocity" action."""
+    dt: float = 0.1
+    """The decision step (s) over which a "velocity" action's acceleration reaches the velocity."""
     observes_goal: bool = True
     """Whether the network reads the observation's goal columns (ADVERSARY_GOAL_COLUMNS, the point the
     rule would chase). False plays by what the paper gives its adversary: its own state, the agents'
@@ -58,6 +71,11 @@ class AdversaryNetConfig:
             raise ConfigError(f"accel_max={self.accel_max!r}: must be a positive number")
         if not isinstance(self.observes_goal, bool):
             raise ConfigError(f"observes_goal={self.observes_goal!r}: must be True or False")
+        if self.action not in ADVERSARY_ACTIONS:
+            raise ConfigError(f"action={self.action!r}: must be one of {', '.join(ADVERSARY_ACTIONS)}")
+        for name in ("speed_max", "dt"):
+            if not isinstance(getattr(self, name), (int, float)) or not getattr(self, name) > 0:
+                raise ConfigError(f"{name}={getattr(self, name)!r}: must be a positive number")
 
     @property
     def input_dim(self) -> int:
@@ -91,11 +109,24 @@ class AdversaryPolicy(nn.Module):
         mean = self(obs)
         return torch.distributions.Normal(mean, self.log_std.exp().expand_as(mean))
 
+    def to_acceleration(self, u: np.ndarray, obs: np.ndarray) -> np.ndarray:
+        """The acceleration setpoints [B, 2] (float64, m/s^2) of network outputs u [B, 2] at observations
+        obs [B, D] (cfg.action says how; the own velocity is read from the observation)."""
+        cfg = self.cfg
+        u = np.asarray(u, dtype=np.float64)
+        if cfg.action == "acceleration":
+            return np.clip(u, -cfg.accel_max, cfg.accel_max)
+        desired = cfg.speed_max * u
+        speed = np.linalg.norm(desired, axis=-1, keepdims=True)
+        desired = desired * np.minimum(1.0, cfg.speed_max / np.maximum(speed, 1e-12))
+        velocity = np.asarray(obs, dtype=np.float64)[..., OWN_VELOCITY_COLUMNS] * cfg.speed_max
+        return velocity_tracking_acceleration(desired, velocity, cfg.accel_max, cfg.dt)
+
     @torch.no_grad()
     def act(self, obs: np.ndarray) -> np.ndarray:
-        """The deployed action [B, 2] (float64, m/s^2) of observations [B, D]: the mean, clipped."""
-        mean = self(torch.as_tensor(np.asarray(obs), dtype=torch.float32))
-        return mean.clamp(-self.cfg.accel_max, self.cfg.accel_max).numpy().astype(np.float64)
+        """The deployed action [B, 2] (float64, m/s^2) of observations [B, D]: the mean, as a setpoint."""
+        obs = np.asarray(obs)
+        return self.to_acceleration(self(torch.as_tensor(obs, dtype=torch.float32)).numpy(), obs)
 
 
 def save_adversary_policy(policy: AdversaryPolicy, path: Path, meta: dict | None = None) -> Path:

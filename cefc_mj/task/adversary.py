@@ -69,18 +69,31 @@ def avoiding_velocity(desired: np.ndarray, position: np.ndarray, obstacles: np.n
     return np.where(norm > 1e-9, velocity * speed / np.maximum(norm, 1e-9), desired)
 
 
+def pursuit_velocity(goal: np.ndarray, position: np.ndarray, speed_max: float, obstacles: np.ndarray | None = None,
+                     keep_out: float = 0.0, margin: float = 1.0) -> np.ndarray:
+    """The velocity [B, 2] a pursuer wants: speed_max along goal - position, bent around `obstacles`
+    [B, K, 2] by `avoiding_velocity` when given."""
+    offset = goal - position
+    dist = np.linalg.norm(offset, axis=-1, keepdims=True)
+    desired = speed_max * offset / np.maximum(dist, 1e-9)
+    if obstacles is not None and obstacles.shape[1]:
+        desired = avoiding_velocity(desired, position, obstacles, keep_out, margin)
+    return desired
+
+
+def velocity_tracking_acceleration(desired: np.ndarray, velocity: np.ndarray, accel_max: float, dt: float) -> np.ndarray:
+    """The acceleration [B, 2] that turns `velocity` into `desired` within one step, per-axis clipped."""
+    return np.clip((desired - velocity) / dt, -accel_max, accel_max)
+
+
 def pursuit_acceleration(
     goal: np.ndarray, position: np.ndarray, velocity: np.ndarray, speed_max: float, accel_max: float, dt: float,
     obstacles: np.ndarray | None = None, keep_out: float = 0.0, margin: float = 1.0,
 ) -> np.ndarray:
     """Acceleration [B, 2] that turns the velocity towards speed_max along goal - position (bent
     around `obstacles` [B, K, 2] by `avoiding_velocity` when given), per-axis clipped to accel_max."""
-    offset = goal - position
-    dist = np.linalg.norm(offset, axis=-1, keepdims=True)
-    desired = speed_max * offset / np.maximum(dist, 1e-9)
-    if obstacles is not None and obstacles.shape[1]:
-        desired = avoiding_velocity(desired, position, obstacles, keep_out, margin)
-    return np.clip((desired - velocity) / dt, -accel_max, accel_max)
+    desired = pursuit_velocity(goal, position, speed_max, obstacles, keep_out, margin)
+    return velocity_tracking_acceleration(desired, velocity, accel_max, dt)
 
 
 # ---------------------------------------------------------------------------- learned adversary
@@ -88,13 +101,19 @@ ADVERSARY_SLOTS = 8
 """Agents the learned adversary observes (the nearest first); fewer agents leave slots empty."""
 ADVERSARY_OBSTACLE_SLOTS = 4
 """Obstacles the learned adversary observes (the nearest first)."""
-ADVERSARY_OBS_DIM = 6 + 6 * ADVERSARY_SLOTS + 4 * ADVERSARY_OBSTACLE_SLOTS
+ADVERSARY_GROUP_SLOTS = 3
+"""Groups of UAVs the learned adversary observes (the nearest centres first)."""
+ADVERSARY_OBS_DIM = 6 + 6 * ADVERSARY_SLOTS + 4 * ADVERSARY_OBSTACLE_SLOTS + 4 * ADVERSARY_GROUP_SLOTS
 """[own position / a, own velocity / v_max, the goal relative to it / a (the centre of the nearest
 group of >= 3, `adversary_goal("nearest_group")`, what it is set to chase)] + per agent slot
 [relative position / a, relative velocity / v_max, group size / N, present] + per obstacle slot
 [unit direction to it, clearance / range (the gap to its keep-out disc, clipped to [0, 1]),
-present]; a is the arena's half size. The clearance is what avoidance needs at full resolution:
-a 0.65 m keep-out disc is a few hundredths of the arena-scaled positions."""
+present] + per group slot [its centre relative to it / a, its size / N, present]; a is the arena's
+half size. The clearance is what avoidance needs at full resolution: a 0.65 m keep-out disc is a
+few hundredths of the arena-scaled positions. The groups are what it sees of the swarm (connected
+UAVs within 3 m of each other), not a choice among them: which one to trace is the policy's."""
+OWN_VELOCITY_COLUMNS = slice(2, 4)
+"""The adversary's own velocity / speed_max in its observation."""
 ADVERSARY_GOAL_COLUMNS = slice(4, 6)
 """The goal's columns in the observation: a policy that plays by the paper's observation (its
 `observes_goal` False) never reads them; it must find the nearest group from the agent slots."""
@@ -116,11 +135,13 @@ def _nearest(offset: np.ndarray, slots: int) -> tuple[np.ndarray, np.ndarray]:
 def adversary_observation(adversary_pos: np.ndarray, adversary_vel: np.ndarray, goal: np.ndarray,
                           agent_pos: np.ndarray, agent_vel: np.ndarray, agent_group_size: np.ndarray,
                           obstacles: np.ndarray, arena_half_size: float, speed_max: float,
-                          keep_out: float) -> np.ndarray:
+                          keep_out: float, group_centre: np.ndarray | None = None,
+                          group_size: np.ndarray | None = None) -> np.ndarray:
     """The learned adversary's observation [B, ADVERSARY_OBS_DIM] float32 (layout: ADVERSARY_OBS_DIM)
     from true states: it is the simulator's agent, not a sensing UAV. goal [B, 2] is the point it is
     set to chase; agent_group_size [B, N] is the size of each agent's group; keep_out (m) is the
-    obstacle radius plus its body radius."""
+    obstacle radius plus its body radius. group_centre [B, G, 2] and group_size [B, G] (0 for an
+    unused slot) describe the groups; None leaves the group slots empty."""
     b, n = agent_pos.shape[:2]
     rows = np.arange(b)[:, None]
     offset = agent_pos - adversary_pos[:, None, :]
@@ -140,7 +161,18 @@ def adversary_observation(adversary_pos: np.ndarray, adversary_vel: np.ndarray, 
     near *= present[..., None]
     own = np.concatenate([adversary_pos / arena_half_size, adversary_vel / speed_max,
                           (goal - adversary_pos) / arena_half_size], axis=-1)
-    return np.concatenate([own, agents.reshape(b, -1), near.reshape(b, -1)], axis=-1).astype(np.float32)
+    groups = np.zeros((b, ADVERSARY_GROUP_SLOTS, 4))
+    if group_centre is not None and group_centre.shape[1]:
+        rel = group_centre - adversary_pos[:, None, :]
+        dist = np.where(group_size > 0, (rel * rel).sum(-1), np.inf)
+        order = np.argsort(dist, axis=-1, kind="stable")[:, :ADVERSARY_GROUP_SLOTS]
+        k = order.shape[1]
+        present = np.isfinite(np.take_along_axis(dist, order, axis=1))
+        groups[:, :k] = np.concatenate([rel[rows, order] / arena_half_size,
+                                        group_size[rows, order][..., None] / n, present[..., None]], axis=-1)
+        groups[:, :k] *= present[..., None]
+    return np.concatenate([own, agents.reshape(b, -1), near.reshape(b, -1), groups.reshape(b, -1)],
+                          axis=-1).astype(np.float32)
 
 
 def adversary_reward(adversary_pos: np.ndarray, goal: np.ndarray, agent_pos: np.ndarray, obstacles: np.ndarray,

@@ -46,12 +46,12 @@ from cefc_mj.fileio import write_atomic
 from cefc_mj.hierarchy import DECISION_INTERVAL, HierarchicalCEFCEnv, LowLevel, load_low_level
 from cefc_mj.rule_teams import RULE_TEAMS, RuleTeam
 from cefc_mj.seeds import GAME_VALIDATION_SEED
-from cefc_mj.nn.adversary_policy import AdversaryNetConfig, AdversaryPolicy, save_adversary_policy
+from cefc_mj.nn.adversary_policy import ADVERSARY_ACTIONS, AdversaryNetConfig, AdversaryPolicy, save_adversary_policy
 from cefc_mj.nn.atm import Critic
 from cefc_mj.nn.highlevel_policy import HighLevelPolicy, load_highlevel_policy
 from cefc_mj.nn.registry import HIERARCHY_LOWLEVEL
 from cefc_mj.nn.policy_io import atomic_torch_save
-from cefc_mj.task.adversary import ADVERSARY_GOAL_COLUMNS, adversary_goal, adversary_reward
+from cefc_mj.task.adversary import ADVERSARY_GOAL_COLUMNS, ADVERSARY_OBS_DIM, adversary_goal, adversary_reward
 from cefc_mj.task.config import LEARNED_ADVERSARY, TaskConfig
 from cefc_mj.train import run_state
 from cefc_mj.train.config import MAX_DENSITY, MAX_SEED, Budget, BudgetPPODict, PPOConfig, config_from_flags
@@ -104,12 +104,19 @@ class AdversaryConfig(BudgetPPODict):
     observes_goal: bool = False
     """Whether the adversary reads the rule's goal point (the centre of the nearest group of >= 3)
     as input; False (the paper's adversary) leaves it to find the group from the agents it sees."""
+    action: str = "velocity"
+    """What the actor's outputs mean (AdversaryNetConfig.action): "velocity", the direction and speed it
+    wants (the pursuit is then a direction to learn), or "acceleration", the setpoint itself."""
     imitation_episodes: int = 200
     """Before PPO, the actor imitates the nearest-group rule (steering round obstacles) on this many
     episodes of the population's games (its observations, the rule's accelerations); 0 starts PPO
     from random weights. PPO alone stayed at 0.4-0.8 of the rule's E (docs/high_level.md)."""
-    imitation_steps: int = 4000
-    """Adam steps (batch 1024, rate 1e-3) of that imitation."""
+    imitation_steps: int = 8000
+    """Adam steps (batch 1024, rate 1e-3) of that imitation, split over the rounds."""
+    imitation_rounds: int = 8
+    """DAgger rounds: the first flies the rule; each later one flies the actor as it stands and adds
+    the rule's wish at the states the actor itself reaches (imitation of the rule's own states alone
+    chased at 0.35-0.97 of the rule's E: small errors lead it where the rule never goes)."""
     obstacle_density: float = 0.03
     """Obstacles per m^2 (the game of Tables V and VI)."""
     distance_weight: float = 0.1
@@ -160,6 +167,8 @@ class AdversaryConfig(BudgetPPODict):
                   f"rules: {', '.join(RULE_TEAMS)})")
         if not isinstance(self.observes_goal, bool):
             _fail("observes_goal", self.observes_goal, "must be True or False")
+        if self.action not in ADVERSARY_ACTIONS:
+            _fail("action", self.action, f"must be one of {', '.join(ADVERSARY_ACTIONS)}")
         if not isinstance(self.obstacle_density, (int, float)) or not 0 <= self.obstacle_density <= MAX_DENSITY:
             _fail("obstacle_density", self.obstacle_density, f"must be in [0, {MAX_DENSITY}] per m^2")
         if not isinstance(self.init_log_std, (int, float)) or not -5 <= self.init_log_std <= 2:
@@ -170,7 +179,8 @@ class AdversaryConfig(BudgetPPODict):
                 _fail(name, value, "must be a number >= 0")
         for name, least, most in (("hidden", 1, 4096), ("checkpoint_every", 1, 1_000_000),
                                   ("eval_episodes", 0, 1000), ("teams_per_iteration", 1, 1000),
-                                  ("imitation_episodes", 0, 100_000), ("imitation_steps", 0, 10_000_000)):
+                                  ("imitation_episodes", 0, 100_000), ("imitation_steps", 0, 10_000_000),
+                                  ("imitation_rounds", 1, 100)):
             value = getattr(self, name)
             if not isinstance(value, int) or isinstance(value, bool) or not least <= value <= most:
                 _fail(name, value, f"must be an integer in [{least}, {most}]")
@@ -226,7 +236,7 @@ class _Sampler:
         logp = torch.distributions.Normal(mean, std).log_prob(action).sum(-1)
         for name, value in (("obs", obs_t), ("actions", action), ("logp", logp), ("values", t.value(obs_t))):
             self.buf[name].append(value)
-        return action.numpy().astype(np.float64)
+        return t.actor.to_acceleration(action.numpy(), obs)
 
     def finish(self) -> torch.Tensor:
         """The last step's reward, and V of the final observation [B] (the time-limit bootstrap)."""
@@ -246,7 +256,8 @@ class AdversaryTrainer:
         self.task = cfg.task()
         self.population, self.low_level = population, low_level
         net = AdversaryNetConfig(hidden=cfg.hidden, accel_max=self.task.accel_max, init_log_std=cfg.init_log_std,
-                                 observes_goal=cfg.observes_goal)
+                                 observes_goal=cfg.observes_goal, action=cfg.action,
+                                 speed_max=self.task.adversary_speed_max, dt=self.task.dt)
         self.actor = AdversaryPolicy(net, seed=cfg.seed)
         torch.manual_seed(cfg.seed + 1)
         self.critic = Critic(net.input_dim, cfg.hidden)
@@ -264,21 +275,26 @@ class AdversaryTrainer:
             sampler.env = game.env
 
     @torch.no_grad()
-    def demonstrations(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """(observations [S, D], the nearest-group rule's accelerations [S, 2]) over cfg.imitation_episodes
-        episodes: batches of ppo.n_envs / teams_per_iteration games, a team drawn for each, the rule
-        flying the adversary. Seeded from the run seed (an imitation stream apart from the iterations')."""
+    def demonstrations(self, round_: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """(observations [S, D], what the actor should output there: the nearest-group rule's wish [S, 2])
+        over cfg.imitation_episodes episodes: batches of ppo.n_envs / teams_per_iteration games, a team
+        drawn for each; round 0 the rule flies the adversary, later rounds the actor's mean (DAgger).
+        Seeded from the run seed and the round (an imitation stream apart from the iterations')."""
         obs_rows, act_rows = [], []
         per_game = self.games[0].n_envs
-        for batch in range(math.ceil(self.cfg.imitation_episodes / per_game)):
+        batches = math.ceil(self.cfg.imitation_episodes / per_game)
+        for batch in range(round_ * batches, (round_ + 1) * batches):
             name = self.draw_teams(batch, stream=IMITATION_STREAM)[0]
             holder = {}
 
             def rule(obs):
-                action = holder["game"].env.rule_adversary_acceleration("nearest_group")
+                env = holder["game"].env
+                action = env.rule_adversary_acceleration("nearest_group")
+                target = (env.rule_adversary_velocity("nearest_group") / self.task.adversary_speed_max
+                          if self.cfg.action == "velocity" else action)  # what the actor outputs
                 obs_rows.append(torch.from_numpy(obs.copy()))
-                act_rows.append(torch.as_tensor(action, dtype=torch.float32))
-                return action
+                act_rows.append(torch.as_tensor(target, dtype=torch.float32))
+                return action if round_ == 0 else self.actor.act(obs)
 
             game = HierarchicalCEFCEnv(self.task, self.low_level, n_envs=per_game, seed=self.cfg.seed,
                                        decision_interval=self.games[0].decision_interval, adversary_policy=rule)
@@ -288,23 +304,28 @@ class AdversaryTrainer:
         return torch.cat(obs_rows), torch.cat(act_rows)
 
     def imitate(self) -> dict[str, float]:
-        """Fit the actor's mean to the rule's demonstrations (MSE); returns the first and last loss."""
+        """Fit the actor's mean to the rule's wish (MSE) over cfg.imitation_rounds DAgger rounds, the
+        data of every round kept; returns the fit of each round on the states of all rounds."""
         cfg = self.cfg
-        obs, target = self.demonstrations()
         optimizer = torch.optim.Adam(self.actor.parameters(), lr=1e-3)
-        losses = []
-        for _ in range(cfg.imitation_steps):
-            idx = torch.randint(len(obs), (1024,), generator=self.generator)
-            loss = (self.actor(obs[idx]) - target[idx]).pow(2).sum(-1).mean()
-            optimizer.zero_grad()
-            loss.backward()
-            optimizer.step()
-            losses.append(loss.item())
-        with torch.no_grad():
-            final = float((self.actor(obs) - target).pow(2).sum(-1).mean())
-        spread = float(target.var(0).sum())
-        return {"samples": len(obs), "steps": cfg.imitation_steps, "first_loss": losses[0] if losses else None,
-                "mse": final, "mse_of_the_mean_action": spread}
+        obs, target = torch.zeros(0, ADVERSARY_OBS_DIM), torch.zeros(0, 2)
+        per_round = []
+        for round_ in range(cfg.imitation_rounds):
+            new_obs, new_target = self.demonstrations(round_)
+            obs, target = torch.cat([obs, new_obs]), torch.cat([target, new_target])
+            with torch.no_grad():  # how far the actor is from the rule where it flew itself (before fitting)
+                on_policy = float((self.actor(new_obs) - new_target).pow(2).sum(-1).mean())
+            for _ in range(cfg.imitation_steps // cfg.imitation_rounds):
+                idx = torch.randint(len(obs), (1024,), generator=self.generator)
+                loss = (self.actor(obs[idx]) - target[idx]).pow(2).sum(-1).mean()
+                optimizer.zero_grad()
+                loss.backward()
+                optimizer.step()
+            with torch.no_grad():
+                fit = float((self.actor(obs) - target).pow(2).sum(-1).mean())
+            per_round.append({"samples": len(obs), "mse_on_new_states_before": on_policy, "mse_after": fit})
+        return {"rounds": per_round, "steps": cfg.imitation_steps,
+                "mse_of_the_mean_action": float(target.var(0).sum())}
 
     def value(self, obs: torch.Tensor) -> torch.Tensor:
         """V of adversary observations: the critic reads what the actor reads."""
@@ -550,13 +571,14 @@ def summary_lines(card: dict, policies_dir: Path) -> list[str]:
 # ---------------------------------------------------------------------------- command line
 _FLAG_OF_FIELD = {"seed": "--seed", "teams": "--teams", "teams_per_iteration": "--teams-per-iteration",
                   "low_level": "--low-level", "imitation_episodes": "--imitation-episodes",
-                  "imitation_steps": "--imitation-steps",
+                  "imitation_steps": "--imitation-steps", "imitation_rounds": "--imitation-rounds",
+                  "init_log_std": "--init-log-std",
                   "obstacle_density": "--density", "eval_episodes": "--eval-episodes", "n_envs": "--envs",
                   "collision_weight": "--collision-weight",
                   "epochs": "--epochs", "lr": "--lr", "update_threads": "--threads"}
 """Config fields set by `cefc-train adversary` flags: their errors name the flag the user typed."""
 CLI_FIELDS = ("seed", "teams", "teams_per_iteration", "low_level", "obstacle_density", "collision_weight",
-              "eval_episodes", "imitation_episodes", "imitation_steps")
+              "eval_episodes", "imitation_episodes", "imitation_steps", "imitation_rounds", "init_log_std")
 CLI_PPO_FIELDS = ("n_envs", "epochs", "lr", "update_threads")
 
 
