@@ -746,8 +746,16 @@ def _table8(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from cefc_mj.eval.table8 import (
-        aggregate, load_cells, plan_cells, report_csv, report_json, report_markdown, report_plot,
-        report_sitl_histograms, run_grid, table8_specs,
+        aggregate,
+        load_cells,
+        plan_cells,
+        report_csv,
+        report_json,
+        report_markdown,
+        report_plot,
+        report_sitl_histograms,
+        run_grid,
+        table8_specs,
     )
 
     prov = args.provenance
@@ -828,8 +836,16 @@ def _table3(args: argparse.Namespace) -> int:
 def _highlevel_table(args: argparse.Namespace) -> int:
     import json
 
-    from cefc_mj.eval.highlevel import (GAME_ADVERSARY, TABLE7_SIZES, Conditions, format_highlevel_table,
-                                        plot_highlevel_table, run_table5, run_table6, run_table7)
+    from cefc_mj.eval.highlevel import (
+        GAME_ADVERSARY,
+        TABLE7_SIZES,
+        Conditions,
+        format_highlevel_table,
+        plot_highlevel_table,
+        run_table5,
+        run_table6,
+        run_table7,
+    )
 
     proto = args.protocol
     playing = f"policy {args.policy}" if args.policy else "every method" if proto == "table5" else "cihrl_consmac_a"

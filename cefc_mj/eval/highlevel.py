@@ -30,8 +30,8 @@ from cefc_mj import paths
 from cefc_mj.errors import CheckpointError, ConfigError
 from cefc_mj.hierarchy import DECISION_INTERVAL, HierarchicalCEFCEnv, LowLevel, load_low_level
 from cefc_mj.nn.highlevel_policy import HighLevelPolicy, load_highlevel_policy
-from cefc_mj.nn.registry import HIERARCHY_LOWLEVEL
 from cefc_mj.nn.policy_io import resolve_policy_path
+from cefc_mj.nn.registry import HIERARCHY_LOWLEVEL
 from cefc_mj.provenance import display_path, file_sha256
 from cefc_mj.task.config import ADVERSARIES, ADVERSARY_RULES, LEARNED_ADVERSARY, TaskConfig
 from cefc_mj.task.messages import MessageChannel
@@ -522,7 +522,10 @@ def seed_table_lines(result: dict) -> list[str]:
         ci = seeds["ci95"]
         rule = row.get("against_rule", {}).get("ci95", {}).get("E")
         vs = row.get("vs_reference")
-        p = (lambda m: "-" if not vs or vs[m]["p"] is None else f"{vs[m]['p']:.3f}")
+
+        def p(m, vs=vs):
+            return "-" if not vs or vs[m]["p"] is None else f"{vs[m]['p']:.3f}"
+
         table.append([method, str(len(seeds["seeds"])), _ci_text(ci["R_H"], fmt=".0f"), _ci_text(ci["R_t"]),
                       _ci_text(ci["R_n"], fmt=".0f"), _ci_text(ci["R_e"], fmt=".0f"), _ci_text(ci["E"]),
                       _ci_text(ci["E"], DT, ".2f"), _ci_text(ci["E_agents"], fmt=".0f"),

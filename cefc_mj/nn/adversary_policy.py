@@ -26,8 +26,12 @@ from torch import nn
 from cefc_mj.errors import CheckpointError, ConfigError
 from cefc_mj.nn.layers import mlp
 from cefc_mj.nn.policy_io import read_policy_payload, write_policy_payload
-from cefc_mj.task.adversary import (ADVERSARY_GOAL_COLUMNS, ADVERSARY_OBS_DIM, OWN_VELOCITY_COLUMNS,
-                                    velocity_tracking_acceleration)
+from cefc_mj.task.adversary import (
+    ADVERSARY_GOAL_COLUMNS,
+    ADVERSARY_OBS_DIM,
+    OWN_VELOCITY_COLUMNS,
+    velocity_tracking_acceleration,
+)
 
 POLICY_FORMAT = "cefc-mj/adversary-policy"
 POLICY_VERSION = 1

@@ -81,7 +81,8 @@ def pursuit_velocity(goal: np.ndarray, position: np.ndarray, speed_max: float, o
     return desired
 
 
-def velocity_tracking_acceleration(desired: np.ndarray, velocity: np.ndarray, accel_max: float, dt: float) -> np.ndarray:
+def velocity_tracking_acceleration(desired: np.ndarray, velocity: np.ndarray, accel_max: float,
+                                   dt: float) -> np.ndarray:
     """The acceleration [B, 2] that turns `velocity` into `desired` within one step, per-axis clipped."""
     return np.clip((desired - velocity) / dt, -accel_max, accel_max)
 

@@ -44,20 +44,20 @@ from cefc_mj.errors import CheckpointError, ConfigError
 from cefc_mj.eval.highlevel import game_task, highlevel_policy_path, play_highlevel
 from cefc_mj.fileio import write_atomic
 from cefc_mj.hierarchy import DECISION_INTERVAL, HierarchicalCEFCEnv, LowLevel, load_low_level
-from cefc_mj.rule_teams import RULE_TEAMS, RuleTeam
-from cefc_mj.seeds import GAME_VALIDATION_SEED
 from cefc_mj.nn.adversary_policy import ADVERSARY_ACTIONS, AdversaryNetConfig, AdversaryPolicy, save_adversary_policy
 from cefc_mj.nn.atm import Critic
 from cefc_mj.nn.highlevel_policy import HighLevelPolicy, load_highlevel_policy
-from cefc_mj.nn.registry import HIERARCHY_LOWLEVEL
 from cefc_mj.nn.policy_io import atomic_torch_save
+from cefc_mj.nn.registry import HIERARCHY_LOWLEVEL
+from cefc_mj.provenance import file_sha256
+from cefc_mj.rule_teams import RULE_TEAMS, RuleTeam
+from cefc_mj.seeds import GAME_VALIDATION_SEED
 from cefc_mj.task.adversary import ADVERSARY_GOAL_COLUMNS, ADVERSARY_OBS_DIM, adversary_goal, adversary_reward
 from cefc_mj.task.config import LEARNED_ADVERSARY, TaskConfig
 from cefc_mj.train import run_state
 from cefc_mj.train.config import MAX_DENSITY, MAX_SEED, Budget, BudgetPPODict, PPOConfig, config_from_flags
 from cefc_mj.train.logger import RunLogger
 from cefc_mj.train.mappo import iteration_seed
-from cefc_mj.provenance import file_sha256
 from cefc_mj.train.model_card import display_path, display_paths, write_model_card
 from cefc_mj.train.ppo import ValueNorm, advantages_and_targets, learner_state, load_learner_state, ppo_epochs
 from cefc_mj.train.run_state import STATE_FILE
