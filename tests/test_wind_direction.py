@@ -4,6 +4,7 @@ the seeded per-episode draw, which the run prints and records (JSON, Rerun)."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 
@@ -72,3 +73,13 @@ def test_cli_flies_the_given_direction_and_names_the_airframe(tmp_path, capsys):
     assert windy["wind_direction"] == 135.0 and windy["wind_direction_flown"] == 135.0
     calm = summary["rows"]["3"]["SITL-S"]["episodes_detail"][0]
     assert calm["wind_direction"] is None and calm["wind_direction_flown"] is None
+
+
+def test_sitl_m_and_dropout_episodes_fly_and_record_the_given_direction():
+    """The agent processes' episode (real processes over ZeroMQ) and the lock-step dropout path."""
+    from cefc_mj.deploy.dropout import run_dropout_episode
+    from cefc_mj.deploy.episode import run_sitl_episode
+
+    spec = EpisodeSpec(formation=3, seed=1, steps=5, wind=4.0, wind_direction=300.0)
+    assert run_sitl_episode(spec).wind_direction_flown == 300.0
+    assert run_dropout_episode(dataclasses.replace(spec, formation=4), (1, 3)).wind_direction_flown == 300.0

@@ -28,7 +28,7 @@ from cefc_mj.deploy.sim_server import (  # noqa: F401
     OFFBOARD_LOSS_TIMEOUT_S, AgentError, AgentFleet, SitlServer, block_sigint, restore_sigint)
 from cefc_mj.deploy.tick_world import make_ticked_world
 from cefc_mj.errors import ConfigError, SimulationDiverged
-from cefc_mj.eval.runner import EpisodeSpec
+from cefc_mj.eval.runner import EpisodeSpec, wind_direction_flown
 from cefc_mj.task.config import TaskConfig
 from cefc_mj.task.guard import guarded
 
@@ -268,7 +268,7 @@ def _fly(spec, sitl, env, world, server: SitlServer, fleet: AgentFleet | None, d
         record.scalars.update({name: np.asarray(series, dtype=np.float64) for name, series in timing.items()})
     return SitlEpisodeResult(
         spec=spec, F=float(metrics["F"][0]), N=float(metrics["N"][0]), C=float(metrics["C"][0]),
-        steps=int(env.t[0]), wall_s=loop_wall, diverged=diverged,
+        steps=int(env.t[0]), wall_s=loop_wall, diverged=diverged, wind_direction_flown=wind_direction_flown(world),
         record=record,
         sitl=stats, dropout=dropout_report(env, dropped, drop[1]) if drop else None, mode="SITL-M",
     )
