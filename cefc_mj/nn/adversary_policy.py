@@ -91,6 +91,13 @@ class AdversaryNetConfig:
         return dataclasses.asdict(self)
 
 
+def network_input(obs: torch.Tensor, observes_goal: bool) -> torch.Tensor:
+    """What the networks read of an observation [..., D]: all of it, or without the goal columns."""
+    if observes_goal:
+        return obs
+    return torch.cat([obs[..., :ADVERSARY_GOAL_COLUMNS.start], obs[..., ADVERSARY_GOAL_COLUMNS.stop:]], dim=-1)
+
+
 class AdversaryPolicy(nn.Module):
     """F_o(F_f(o)) -> the mean acceleration [.., 2]; `log_std` is the Gaussian's learned log-std."""
 
@@ -105,9 +112,7 @@ class AdversaryPolicy(nn.Module):
         self.log_std = nn.Parameter(torch.full((2,), float(cfg.init_log_std)))
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
-        if not self.cfg.observes_goal:
-            obs = torch.cat([obs[..., :ADVERSARY_GOAL_COLUMNS.start], obs[..., ADVERSARY_GOAL_COLUMNS.stop:]], dim=-1)
-        return self.head(self.features(obs))
+        return self.head(self.features(network_input(obs, self.cfg.observes_goal)))
 
     def distribution(self, obs: torch.Tensor) -> torch.distributions.Normal:
         mean = self(obs)

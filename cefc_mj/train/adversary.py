@@ -44,7 +44,8 @@ from cefc_mj.errors import CheckpointError, ConfigError
 from cefc_mj.eval.highlevel import game_task, highlevel_policy_path, play_highlevel
 from cefc_mj.fileio import write_atomic
 from cefc_mj.hierarchy import DECISION_INTERVAL, HierarchicalCEFCEnv, LowLevel, load_low_level
-from cefc_mj.nn.adversary_policy import ADVERSARY_ACTIONS, AdversaryNetConfig, AdversaryPolicy, save_adversary_policy
+from cefc_mj.nn.adversary_policy import (ADVERSARY_ACTIONS, AdversaryNetConfig, AdversaryPolicy, network_input,
+                                         save_adversary_policy)
 from cefc_mj.nn.atm import Critic
 from cefc_mj.nn.highlevel_policy import HighLevelPolicy, load_highlevel_policy
 from cefc_mj.nn.policy_io import atomic_torch_save
@@ -52,7 +53,7 @@ from cefc_mj.nn.registry import HIERARCHY_LOWLEVEL
 from cefc_mj.provenance import file_sha256
 from cefc_mj.rule_teams import RULE_TEAMS, RuleTeam
 from cefc_mj.seeds import GAME_VALIDATION_SEED
-from cefc_mj.task.adversary import ADVERSARY_GOAL_COLUMNS, ADVERSARY_OBS_DIM, adversary_goal, adversary_reward
+from cefc_mj.task.adversary import ADVERSARY_OBS_DIM, adversary_goal, adversary_reward
 from cefc_mj.task.config import LEARNED_ADVERSARY, TaskConfig
 from cefc_mj.train import run_state
 from cefc_mj.train.config import MAX_DENSITY, MAX_SEED, Budget, BudgetPPODict, PPOConfig, config_from_flags
@@ -329,9 +330,7 @@ class AdversaryTrainer:
 
     def value(self, obs: torch.Tensor) -> torch.Tensor:
         """V of adversary observations: the critic reads what the actor reads."""
-        if not self.cfg.observes_goal:
-            obs = torch.cat([obs[..., :ADVERSARY_GOAL_COLUMNS.start], obs[..., ADVERSARY_GOAL_COLUMNS.stop:]], dim=-1)
-        return self.critic(obs)
+        return self.critic(network_input(obs, self.cfg.observes_goal))
 
     def draw_teams(self, iteration: int, stream: int = TEAM_DRAW_STREAM) -> list[str]:
         """The team of each game of `iteration`: uniform draws from the population, a function of
@@ -376,8 +375,7 @@ class AdversaryTrainer:
             dist = self.actor.distribution(flat["obs"][mb])
             return dist.log_prob(flat["actions"][mb]).sum(-1), dist.entropy().sum(-1).mean()
 
-        critic_obs = flat["obs"] if self.cfg.observes_goal else torch.cat(
-            [flat["obs"][:, :ADVERSARY_GOAL_COLUMNS.start], flat["obs"][:, ADVERSARY_GOAL_COLUMNS.stop:]], dim=-1)
+        critic_obs = network_input(flat["obs"], self.cfg.observes_goal)
         return ppo_epochs(len(flat["obs"]), self.cfg.ppo, self.generator, policy_terms, flat["logp"],
                           flat["advantages"], self.actor_opt, list(self.actor.parameters()), self.critic,
                           critic_obs, flat["targets"], self.critic_opt)
