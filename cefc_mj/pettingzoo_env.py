@@ -33,7 +33,7 @@ from cefc_mj.env import BatchedCEFCEnv
 from cefc_mj.errors import CefcError, ConfigError, SimulationDiverged
 from cefc_mj.sim.particle import ParticleWorld
 from cefc_mj.task.config import TaskConfig
-from cefc_mj.task.guard import guard_actions
+from cefc_mj.task.guard import guard_with
 from cefc_mj.task.observation import layout_for
 from cefc_mj.viz.frames import frame_renderer
 from cefc_mj.viz.recorder import RerunRecorder, has_display, spawn_viewer
@@ -255,8 +255,7 @@ class CEFCParallelEnv(ParallelEnv):
         stacked = self._stack_actions(actions)
         cfg = self.batched.config
         if cfg.separation_guard:  # each agent's guard on its own observation, in float32 as cefc-eval's agents
-            stacked = guard_actions(self.batched.observation, stacked.astype(np.float32), cfg.neighbour_slots,
-                                    cfg.n_lidar_rays, cfg.dt, cfg.accel_max)
+            stacked = guard_with(cfg, self.batched.observation, stacked.astype(np.float32))
         try:
             obs, reward, done, info = self.batched.step(stacked)
         except SimulationDiverged:

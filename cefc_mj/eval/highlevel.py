@@ -337,6 +337,8 @@ def run_table5(episodes: int = EPISODES, seed: int = 0, policies_dir: Path | Non
                                                       record),
                                      "paper": None}
         return result
+    rule_kind, _, rule_record = resolve_adversary("nearest_group")
+    rule_task = game_task(rule_kind, deviation=where.deviation)
     for method, stem, suffix in TABLE5_ROWS:
         files = _seed_files(stem, suffix, policies_dir)
         if 0 not in files:
@@ -349,8 +351,6 @@ def run_table5(episodes: int = EPISODES, seed: int = 0, policies_dir: Path | Non
                     for k, f in files.items()}
         row["training_seeds"] = _seed_block(per_seed, files)
         if against_rule:
-            rule_kind, _, rule_record = resolve_adversary("nearest_group")
-            rule_task = game_task(rule_kind, deviation=where.deviation)
             row["against_rule"] = _seed_block({k: _evaluate_file(f, rule_task, low_level, episodes, seed, where, None,
                                                                  rule_record) for k, f in files.items()}, files)
         result["rows"][method] = row

@@ -30,6 +30,7 @@ from cefc_mj.task.adversary import (
     ADVERSARY_GOAL_COLUMNS,
     ADVERSARY_OBS_DIM,
     OWN_VELOCITY_COLUMNS,
+    clip_speed,
     velocity_tracking_acceleration,
 )
 
@@ -125,9 +126,7 @@ class AdversaryPolicy(nn.Module):
         u = np.asarray(u, dtype=np.float64)
         if cfg.action == "acceleration":
             return np.clip(u, -cfg.accel_max, cfg.accel_max)
-        desired = cfg.speed_max * u
-        speed = np.linalg.norm(desired, axis=-1, keepdims=True)
-        desired = desired * np.minimum(1.0, cfg.speed_max / np.maximum(speed, 1e-12))
+        desired = clip_speed(cfg.speed_max * u, cfg.speed_max)
         velocity = np.asarray(obs, dtype=np.float64)[..., OWN_VELOCITY_COLUMNS] * cfg.speed_max
         return velocity_tracking_acceleration(desired, velocity, cfg.accel_max, cfg.dt)
 

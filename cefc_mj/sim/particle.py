@@ -16,15 +16,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from cefc_mj.task.adversary import clip_speed
 from cefc_mj.task.config import TaskConfig
 from cefc_mj.task.kernels import particle_step_kernel
 from cefc_mj.task.lidar import lidar_ranges
-
-
-def clip_speed(velocity: np.ndarray, speed_max: float) -> np.ndarray:
-    """Scale velocities [..., 2] whose norm exceeds speed_max back onto it."""
-    speed = np.sqrt((velocity * velocity).sum(-1, keepdims=True))
-    return velocity * np.minimum(1.0, speed_max / np.maximum(speed, 1e-12))
 
 
 class ParticleWorld:

@@ -81,6 +81,12 @@ def pursuit_velocity(goal: np.ndarray, position: np.ndarray, speed_max: float, o
     return desired
 
 
+def clip_speed(velocity: np.ndarray, speed_max: float) -> np.ndarray:
+    """Scale velocities [..., 2] whose norm exceeds speed_max back onto it."""
+    speed = np.sqrt((velocity * velocity).sum(-1, keepdims=True))
+    return velocity * np.minimum(1.0, speed_max / np.maximum(speed, 1e-12))
+
+
 def velocity_tracking_acceleration(desired: np.ndarray, velocity: np.ndarray, accel_max: float,
                                    dt: float) -> np.ndarray:
     """The acceleration [B, 2] that turns `velocity` into `desired` within one step, per-axis clipped."""

@@ -111,14 +111,18 @@ def guard_actions(obs: np.ndarray, actions: np.ndarray, slots: int, n_rays: int,
     return out.astype(actions.dtype, copy=False)
 
 
+def guard_with(config, obs: np.ndarray, actions: np.ndarray) -> np.ndarray:
+    """`guard_actions` with the neighbour slots, LiDAR beams, step and action bound of `config` (a TaskConfig)."""
+    return guard_actions(obs, actions, config.neighbour_slots, config.n_lidar_rays, config.dt, config.accel_max)
+
+
 def guarded(act, config):
     """`act` (obs [B, N, D] -> actions [B, N, 2]) with the separation guard after it when
     `config.separation_guard` is set (a TaskConfig); `act` itself otherwise."""
     if not config.separation_guard:
         return act
-    slots, n_rays, dt, accel_max = config.neighbour_slots, config.n_lidar_rays, config.dt, config.accel_max
 
     def act_guarded(obs):
-        return guard_actions(obs, act(obs), slots, n_rays, dt, accel_max)
+        return guard_with(config, obs, act(obs))
 
     return act_guarded

@@ -286,10 +286,9 @@ class AdversaryTrainer:
         batches = math.ceil(self.cfg.imitation_episodes / per_game)
         for batch in range(round_ * batches, (round_ + 1) * batches):
             name = self.draw_teams(batch, stream=IMITATION_STREAM)[0]
-            holder = {}
 
-            def rule(obs):
-                env = holder["game"].env
+            def rule(obs):  # called while `game` below plays
+                env = game.env
                 action = env.rule_adversary_acceleration("nearest_group")
                 target = (env.rule_adversary_velocity("nearest_group") / self.task.adversary_speed_max
                           if self.cfg.action == "velocity" else action)  # what the actor outputs
@@ -299,7 +298,6 @@ class AdversaryTrainer:
 
             game = HierarchicalCEFCEnv(self.task, self.low_level, n_envs=per_game, seed=self.cfg.seed,
                                        decision_interval=self.games[0].decision_interval, adversary_policy=rule)
-            holder["game"] = game
             play_highlevel(self.team_for(name, game), game,
                            seed=iteration_seed(self.cfg.seed, batch, stream=IMITATION_STREAM))
         return torch.cat(obs_rows), torch.cat(act_rows)
