@@ -264,6 +264,15 @@ def _adversary_parser(sub) -> None:
                         "(default 8)")
     p.add_argument("--init-log-std", type=float, default=None, metavar="S",
                    help="initial log-std of the actor's Gaussian, in its output units (default -0.5)")
+    p.add_argument("--critic-warmup", type=int, default=None, metavar="N",
+                   help="first PPO iterations in which only the critic learns (default 0)")
+    p.add_argument("--action", choices=("velocity", "heading", "acceleration"), default=None,
+                   help="what the actor outputs: the velocity it wants, its heading at top speed, or the "
+                        "acceleration (default velocity)")
+    p.add_argument("--alert-weight", type=float, default=None, metavar="W",
+                   help="reward per step for the share of UAVs within the alert distance (default 1)")
+    p.add_argument("--progress-weight", type=float, default=None, metavar="W",
+                   help="reward per metre the step approached the nearest group (default 10)")
     p.add_argument("--density", type=float, default=None, dest="obstacle_density", metavar="D",
                    help="obstacle density per m^2 (default 0.03)")
     p.add_argument("--collision-weight", type=float, default=None, metavar="W",

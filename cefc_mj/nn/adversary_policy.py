@@ -38,7 +38,7 @@ POLICY_FORMAT = "cefc-mj/adversary-policy"
 POLICY_VERSION = 1
 
 
-ADVERSARY_ACTIONS = ("acceleration", "velocity")
+ADVERSARY_ACTIONS = ("acceleration", "velocity", "heading")
 
 
 @dataclass(frozen=True)
@@ -57,7 +57,9 @@ class AdversaryNetConfig:
     """What the network's 2 outputs u mean: "acceleration" (u is the setpoint, m/s^2, clipped to
     accel_max; files written before the field) or "velocity" (u x speed_max is the velocity it wants,
     capped at speed_max, and the setpoint is the acceleration that reaches it in one step, clipped:
-    a pursuit is then a direction to learn, not a bang-bang acceleration)."""
+    a pursuit is then a direction to learn, not a bang-bang acceleration) or "heading" (as "velocity",
+    but at top speed along u / |u|: the rule adversaries always fly at top speed, and a regression onto
+    their unit wishes shrinks |u| where it is unsure, which slowed an imitating adversary)."""
     speed_max: float = 0.75
     """The adversary's speed limit (m/s), the scale of a "velocity" action."""
     dt: float = 0.1
@@ -126,6 +128,8 @@ class AdversaryPolicy(nn.Module):
         u = np.asarray(u, dtype=np.float64)
         if cfg.action == "acceleration":
             return np.clip(u, -cfg.accel_max, cfg.accel_max)
+        if cfg.action == "heading":
+            u = u / np.maximum(np.sqrt((u * u).sum(-1, keepdims=True)), 1e-9)
         desired = clip_speed(cfg.speed_max * u, cfg.speed_max)
         velocity = np.asarray(obs, dtype=np.float64)[..., OWN_VELOCITY_COLUMNS] * cfg.speed_max
         return velocity_tracking_acceleration(desired, velocity, cfg.accel_max, cfg.dt)

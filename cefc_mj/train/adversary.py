@@ -130,6 +130,9 @@ class AdversaryConfig(BudgetPPODict):
     progress_weight: float = 10.0
     """Weight of the approach d_before - d_after (m) of each step; without it the distance term
     alone taught the chase about 3x slower (docs/high_level.md)."""
+    critic_warmup: int = 0
+    """Iterations at the start of PPO in which only the critic learns (the actor's rate is 0): an
+    imitated actor is not pushed about by the advantages of a critic that has not yet fitted it."""
     hidden: int = 128
     """Hidden width of actor and critic (the low level's 128)."""
     init_log_std: float = -0.5
@@ -181,7 +184,7 @@ class AdversaryConfig(BudgetPPODict):
         for name, least, most in (("hidden", 1, 4096), ("checkpoint_every", 1, 1_000_000),
                                   ("eval_episodes", 0, 1000), ("teams_per_iteration", 1, 1000),
                                   ("imitation_episodes", 0, 100_000), ("imitation_steps", 0, 10_000_000),
-                                  ("imitation_rounds", 1, 100)):
+                                  ("imitation_rounds", 1, 100), ("critic_warmup", 0, 1_000_000)):
             value = getattr(self, name)
             if not isinstance(value, int) or isinstance(value, bool) or not least <= value <= most:
                 _fail(name, value, f"must be an integer in [{least}, {most}]")
@@ -291,7 +294,7 @@ class AdversaryTrainer:
                 env = game.env
                 action = env.rule_adversary_acceleration("nearest_group")
                 target = (env.rule_adversary_velocity("nearest_group") / self.task.adversary_speed_max
-                          if self.cfg.action == "velocity" else action)  # what the actor outputs
+                          if self.cfg.action != "acceleration" else action)  # what the actor outputs
                 obs_rows.append(torch.from_numpy(obs.copy()))
                 act_rows.append(torch.as_tensor(target, dtype=torch.float32))
                 return action if round_ == 0 else self.actor.act(obs)
@@ -384,6 +387,8 @@ class AdversaryTrainer:
         buf, stats = self.collect()
         t1 = time.perf_counter()
         torch.set_num_threads(self.cfg.ppo.update_threads)
+        for group in self.actor_opt.param_groups:
+            group["lr"] = 0.0 if self.iteration < self.cfg.critic_warmup else self.cfg.ppo.lr
         update = self.update(buf)
         t2 = time.perf_counter()
         self.iteration += 1
@@ -568,13 +573,15 @@ def summary_lines(card: dict, policies_dir: Path) -> list[str]:
 _FLAG_OF_FIELD = {"seed": "--seed", "teams": "--teams", "teams_per_iteration": "--teams-per-iteration",
                   "low_level": "--low-level", "imitation_episodes": "--imitation-episodes",
                   "imitation_steps": "--imitation-steps", "imitation_rounds": "--imitation-rounds",
-                  "init_log_std": "--init-log-std",
+                  "init_log_std": "--init-log-std", "critic_warmup": "--critic-warmup", "action": "--action",
+                  "alert_weight": "--alert-weight", "progress_weight": "--progress-weight",
                   "obstacle_density": "--density", "eval_episodes": "--eval-episodes", "n_envs": "--envs",
                   "collision_weight": "--collision-weight",
                   "epochs": "--epochs", "lr": "--lr", "update_threads": "--threads"}
 """Config fields set by `cefc-train adversary` flags: their errors name the flag the user typed."""
 CLI_FIELDS = ("seed", "teams", "teams_per_iteration", "low_level", "obstacle_density", "collision_weight",
-              "eval_episodes", "imitation_episodes", "imitation_steps", "imitation_rounds", "init_log_std")
+              "eval_episodes", "imitation_episodes", "imitation_steps", "imitation_rounds", "init_log_std",
+              "critic_warmup", "action", "alert_weight", "progress_weight")
 CLI_PPO_FIELDS = ("n_envs", "epochs", "lr", "update_threads")
 
 
