@@ -18,7 +18,8 @@ import platform
 import subprocess
 from pathlib import Path
 
-from cefc_mj import __version__, paths
+from cefc_mj import paths
+from cefc_mj.version import __version__
 
 _PACKAGE_DIR = Path(__file__).resolve().parent
 

@@ -42,7 +42,7 @@ def flown(monkeypatch):
     calls = []
     real = table8._fly
 
-    def counting(spec, record=False, sitl=None, drop=None):
+    def counting(spec, record=False, sitl=None, drop=None, runners=None):
         calls.append(spec)
         return real(spec, record=record)
 

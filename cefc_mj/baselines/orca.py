@@ -20,8 +20,8 @@ from scipy.optimize import linear_sum_assignment
 
 from cefc_mj.env import BatchedCEFCEnv
 from cefc_mj.errors import ConfigError
-from cefc_mj.eval.table3 import TABLE3_DENSITY, TABLE3_EPISODES, TABLE3_STEPS, roll_out
 from cefc_mj.sim.particle import clip_speed
+from cefc_mj.table3_protocol import TABLE3_DENSITY, TABLE3_EPISODES, TABLE3_STEPS, roll_out
 from cefc_mj.task.config import TaskConfig
 from cefc_mj.task.formation import formation_template
 

@@ -527,6 +527,23 @@ def _write_outputs(writes: list[tuple[Path, object]]) -> list[Path]:
 
 
 # ---------------------------------------------------------------------------- single
+def _deploy_runners(args: argparse.Namespace):
+    """`cefc_mj.deploy`'s episode runners for the rows asked for (--sitl-m, --drop), as table8 takes them;
+    deploy is imported only when one is."""
+    from cefc_mj.eval.table8 import RowRunners
+
+    sitl = dropout = None
+    if args.sitl is not None:
+        from cefc_mj.deploy.episode import run_sitl_episode
+
+        sitl = run_sitl_episode
+    if args.drop is not None:
+        from cefc_mj.deploy.dropout import run_dropout_episode
+
+        dropout = run_dropout_episode
+    return RowRunners(sitl=sitl, dropout=dropout)
+
+
 def _single(args: argparse.Namespace) -> int:
     import json
 
@@ -549,7 +566,8 @@ def _single(args: argparse.Namespace) -> int:
     asked = list(range(len(formations) * len(seeds)))  # the first condition's episodes
     calm = list(range(len(asked), len(specs)))
     # (indices into specs, how they fly): the asked condition carries the deployment and the dropout
-    batches = [(asked, {"sitl": args.sitl, "drop": None if args.sitl is not None else args.drop}), (calm, {})]
+    batches = [(asked, {"sitl": args.sitl, "drop": None if args.sitl is not None else args.drop,
+                        "runners": _deploy_runners(args)}), (calm, {})]
     recording = bool(args.rrd or args.spawn or args.png)
     vs = " vs calm air (SITL-S)" if condition != "SITL-S" else ""
     world = (f"mujoco ({args.airframe} airframe{wind_direction_text(vars(args))}, rotors "
@@ -791,7 +809,8 @@ def _table8(args: argparse.Namespace) -> int:
     resume = args.command if "--report-dir" in args.command else f"{args.command} --report-dir {shlex.quote(str(out))}"
     try:
         with tqdm(total=len(cells), desc="episodes", unit="ep", file=sys.stderr) as bar:
-            rows = run_grid(cells, cell_file, progress=bar, fresh=args.fresh, executor=args.executor)
+            rows = run_grid(cells, cell_file, progress=bar, fresh=args.fresh, executor=args.executor,
+                            runners=_deploy_runners(args))
     except KeyboardInterrupt:
         print(f"\n{PROG}: interrupted; finished episodes are kept in {cell_file}; resume with:\n  {resume}",
               file=sys.stderr)

@@ -172,10 +172,10 @@ def run_dropout_episode(spec, drop: tuple[int, int], policy=None):
     paper's experiment (the teachers are trained for one c)."""
     import torch
 
-    from cefc_mj import make_world
     from cefc_mj.deploy.results import SitlEpisodeResult
     from cefc_mj.deploy.tick_world import TickedWorld
     from cefc_mj.eval.runner import episode_fields, fly, load_policy_for
+    from cefc_mj.sim.backends import make_world
 
     torch.set_num_threads(1)
     k, step = check_drop(drop, spec.formation, spec.steps)

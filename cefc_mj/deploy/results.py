@@ -7,11 +7,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from cefc_mj.eval.runner import EpisodeResult
-
-
-HISTOGRAM_EDGES_MS = np.concatenate([[0.0], np.logspace(-2, 4, 61)])
-"""Bin edges (ms) of the timing histograms: 0, then 10 bins per decade from 0.01 ms to 10 s."""
+from cefc_mj.eval.runner import HISTOGRAM_EDGES_MS, EpisodeResult
 
 
 def _histogram(values: np.ndarray) -> list[int]:

@@ -35,7 +35,7 @@ def make_ticked_world(backend: str, config: TaskConfig, control_tick_s: float, w
                       seed: int | None = None, airframe: str | None = None,
                       wind_direction: float | None = None, rotor_actuation: str = "auto") -> "TickedWorld":
     """The world of `backend` for one env, stepped at `control_tick_s` inside each decision step."""
-    from cefc_mj import make_world
+    from cefc_mj.sim.backends import make_world
 
     n_ticks = round(config.dt / control_tick_s)
     if n_ticks < 1 or abs(n_ticks * control_tick_s - config.dt) > 1e-9:

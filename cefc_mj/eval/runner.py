@@ -15,7 +15,6 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 import torch
 
-from cefc_mj import make_world
 from cefc_mj.env import BatchedCEFCEnv
 from cefc_mj.errors import ConfigError, SimulationDiverged
 from cefc_mj.eval import DEFAULT_POLICY
@@ -23,6 +22,7 @@ from cefc_mj.eval.record import EpisodeRecord, airframe_parts_from_mjcf
 from cefc_mj.nn.policy_io import Policy, load_policy
 from cefc_mj.nn.registry import policy_name_for
 from cefc_mj.paths import MJCF_DIR
+from cefc_mj.sim.backends import make_world
 from cefc_mj.task.config import TaskConfig
 from cefc_mj.task.formation import formation_template
 from cefc_mj.task.guard import guarded
@@ -146,6 +146,11 @@ class EpisodeResult:
         out = {k: v for k, v in asdict(self).items() if k not in ("record", "spec")}
         out.update(asdict(self.spec), condition=self.spec.condition)
         return out
+
+
+HISTOGRAM_EDGES_MS = np.concatenate([[0.0], np.logspace(-2, 4, 61)])
+"""Bin edges (ms) of the SITL-M timing histograms: 0, then 10 bins per decade from 0.01 ms to 10 s
+(`cefc_mj.deploy.results` counts into them, `cefc_mj.eval.table8` draws them)."""
 
 
 def fly(env, steps: int, act, before_step=None, after_step=None) -> tuple[str | None, float]:

@@ -30,11 +30,9 @@ from cefc_mj.fileio import write_atomic
 from cefc_mj.nn import registry
 from cefc_mj.nn.policy_io import Policy, load_policy
 from cefc_mj.provenance import display_path, file_sha256
+from cefc_mj.table3_protocol import TABLE3_DENSITY, TABLE3_EPISODES, TABLE3_STEPS, roll_out
 from cefc_mj.task.config import TaskConfig
 
-TABLE3_DENSITY = 0.05
-TABLE3_EPISODES = 50
-TABLE3_STEPS = 100
 TABLE3_FORMATIONS = (6, 7, 8)
 OBSTACLE_LIDAR_STEP1 = "AT-M-Step1 (obstacle LiDAR)"
 METHODS = ("ORCA-F", "CL-M", OBSTACLE_LIDAR_STEP1, "AT-M-Step1", "AT-M-Step2", "AT-M-Step3", "AT-M-Safe",
@@ -89,23 +87,6 @@ def evaluate_lowlevel_episodes(policy: Policy, formation: int, density: float = 
         return roll_out(env, env.reset(seed=seed), policy.act, steps)
     finally:
         torch.set_num_threads(threads)
-
-
-def roll_out(env: BatchedCEFCEnv, obs: np.ndarray, act, steps: int) -> dict[str, np.ndarray]:
-    """Fly every episode of a reset `env` to its end with `act(obs) -> actions`; per-episode R_L (team
-    reward per step), F, N, C [episodes]: the Table III numbers of any controller."""
-    total = np.zeros(env.n_envs)
-    navigation_swap = np.zeros(env.n_envs)  # R_L^a - R_L: the navigation term summed over the agents
-    w_n = env.config.rewards.navigation_weight_low
-    done = np.zeros(env.n_envs, dtype=bool)
-    while not done.all():
-        obs, reward, done, info = env.step(act(obs))
-        total += reward
-        per_agent = -np.linalg.norm(env.world.agent_pos - env.anchor[:, None], axis=-1).sum(axis=-1)
-        navigation_swap += w_n * (per_agent - info["reward_terms"]["R_n"])
-    metrics = info["metrics"]
-    return {"R_L": total / steps, "R_L_agents": (total + navigation_swap) / steps,
-            **{m: np.asarray(metrics[m], dtype=np.float64) for m in ("F", "N", "C")}}
 
 
 def evaluate_lowlevel(policy: Policy, formation: int, density: float = TABLE3_DENSITY, episodes: int = TABLE3_EPISODES,

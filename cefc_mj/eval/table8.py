@@ -26,7 +26,8 @@ import numpy as np
 
 from cefc_mj import paths
 from cefc_mj.eval.runner import (
-    CONDITIONS, TABLE8_STEPS, EpisodeResult, EpisodeSpec, airframe_files, format_mean_std, load_policy_for, retention, run_episode, summarize,
+    CONDITIONS, HISTOGRAM_EDGES_MS, TABLE8_STEPS, EpisodeResult, EpisodeSpec, airframe_files, format_mean_std,
+    load_policy_for, retention, run_episode, summarize,
 )
 from cefc_mj.errors import ConfigError
 from cefc_mj.executors import ExecutorConfig, map_unordered
@@ -118,29 +119,46 @@ def load_cells(path: Path) -> dict[str, dict]:
 
 
 # ---------------------------------------------------------------------------- flying
+@dataclass(frozen=True)
+class RowRunners:
+    """The episode runners of the rows the lock-step runner does not fly, given by the caller
+    (`cefc-eval` passes `cefc_mj.deploy`'s), so that evaluation never imports the agent-process layer.
+    Module-level functions, so that pool workers receive them by reference."""
+
+    sitl: Callable | None = None
+    """`run_sitl_episode(spec, sitl, record=...)`: SITL-M, every UAV's policy in its own process."""
+    dropout: Callable | None = None
+    """`run_dropout_episode(spec, drop, policy=...)`: lock-step, agents leaving mid-episode."""
+
+
+def _runner(runners: RowRunners | None, row: str) -> Callable:
+    run = getattr(runners, row, None)
+    if run is None:
+        raise ValueError(f"the {row} row needs runners=RowRunners({row}=...), cefc_mj.deploy's runner "
+                         "(as cefc-eval passes it)")
+    return run
+
+
 @functools.lru_cache(maxsize=32)
 def cached_policy(choice: str, formation: int):
     """The policy for (choice, c), loaded once per process (pool workers fly many episodes each)."""
     return load_policy_for(choice, formation)
 
 
-def _fly(spec: EpisodeSpec, record: bool = False, sitl=None, drop: tuple[int, int] | None = None):
+def _fly(spec: EpisodeSpec, record: bool = False, sitl=None, drop: tuple[int, int] | None = None,
+         runners: RowRunners | None = None):
     import torch
 
     torch.set_num_threads(1)
     if sitl is not None:  # SITL-M: every UAV's policy in its own process (cefc_mj/deploy)
-        from cefc_mj.deploy.episode import run_sitl_episode
-
-        return run_sitl_episode(spec, sitl, record=record)
+        return _runner(runners, "sitl")(spec, sitl, record=record)
     if drop is not None:  # lock-step with agents leaving mid-episode
-        from cefc_mj.deploy.dropout import run_dropout_episode
-
-        return run_dropout_episode(spec, drop, policy=cached_policy(spec.policy, spec.formation))
+        return _runner(runners, "dropout")(spec, drop, policy=cached_policy(spec.policy, spec.formation))
     return run_episode(spec, cached_policy(spec.policy, spec.formation), record=record)
 
 
-def _fly_row(spec: EpisodeSpec, drop=None) -> dict:
-    return _fly(spec, drop=drop).to_dict()
+def _fly_row(spec: EpisodeSpec, drop=None, runners: RowRunners | None = None) -> dict:
+    return _fly(spec, drop=drop, runners=runners).to_dict()
 
 
 def _fly_cell(cell: Cell) -> dict:
@@ -178,22 +196,25 @@ class _PooledResult(EpisodeResult):
 
 def fly_episodes(specs: list[EpisodeSpec], workers: int = 1,
                  record: Callable[[EpisodeSpec], bool] | None = None, sitl=None,
-                 drop: tuple[int, int] | None = None) -> Iterator[tuple[int, object]]:
+                 drop: tuple[int, int] | None = None,
+                 runners: RowRunners | None = None) -> Iterator[tuple[int, object]]:
     """Fly `specs`, yielding (index into specs, EpisodeResult) as each finishes.
 
     `record(spec)` says which episodes keep an EpisodeRecord (workers = 1 only). workers > 1 uses a
     local process pool and yields results in completion order. Ctrl-C cancels the episodes not yet
     started. `sitl` (a SitlConfig) flies them as SITL-M, one after the other (each episode already runs
-    c + 1 processes); `drop` = (k, step) removes k agents before that step (lock-step).
+    c + 1 processes); `drop` = (k, step) removes k agents before that step (lock-step). Both fly with
+    the episode runners of `runners`.
     """
     if sitl is not None or workers <= 1 or len(specs) <= 1:
         for i, spec in enumerate(specs):
-            yield i, _fly(spec, record=bool(record and record(spec)), sitl=sitl, drop=drop)
+            yield i, _fly(spec, record=bool(record and record(spec)), sitl=sitl, drop=drop, runners=runners)
         return
     if record is not None:
         raise ValueError("fly_episodes: recording needs workers = 1")
     index = {id(spec): i for i, spec in enumerate(specs)}
-    with closing(map_unordered(functools.partial(_fly_row, drop=drop), specs, ExecutorConfig(workers=workers))) as rows:
+    fly_row = functools.partial(_fly_row, drop=drop, runners=runners)
+    with closing(map_unordered(fly_row, specs, ExecutorConfig(workers=workers))) as rows:
         for spec, row in rows:
             yield index[id(spec)], _PooledResult(spec=spec, row=row, **{k: row[k] for k in ("F", "N", "C", "steps",
                                                                                             "wall_s", "diverged")})
@@ -209,13 +230,14 @@ def _torn_tail(path: Path) -> bool:
 
 
 def run_grid(cells: list[Cell], cell_file: Path, workers: int = 1, progress=None, fresh: bool = False,
-             executor: ExecutorConfig | None = None) -> list[dict]:
+             executor: ExecutorConfig | None = None, runners: RowRunners | None = None) -> list[dict]:
     """Fly the cells not yet in `cell_file` (all of them with `fresh`), appending each finished
     episode as one JSON line; returns the rows of all `cells` in order.
 
     `executor` says where the lock-step cells fly (default: a local pool of `workers` processes;
     `ExecutorConfig("ray", ...)`: Ray tasks), with the same cache, rows and resume either way.
-    SITL-M cells always fly here, one at a time (each runs c + 1 processes and times them).
+    SITL-M cells always fly here, one at a time (each runs c + 1 processes and times them), with
+    `runners.sitl`.
     `fresh` moves an existing cell file aside (to `<name>.replaced-<n>`) rather than deleting it.
     The folder is created here, right before the first write.
     """
@@ -250,7 +272,7 @@ def run_grid(cells: list[Cell], cell_file: Path, workers: int = 1, progress=None
             for cell, result in flown:
                 keep(cell, result)
         if sitl:
-            with closing(fly_episodes([cell.spec for cell in sitl], sitl=sitl[0].sitl)) as flown:
+            with closing(fly_episodes([cell.spec for cell in sitl], sitl=sitl[0].sitl, runners=runners)) as flown:
                 for i, result in flown:
                     keep(sitl[i], result.to_dict())
     return [done[cell.key] for cell in cells]
@@ -471,8 +493,6 @@ def sitl_timing_lines(table: dict) -> list[str]:
 
 def report_sitl_histograms(table: dict, path: Path) -> bool:
     """Histograms of the SITL-M timings per c (counts summed over episodes); False if there is no SITL-M row."""
-    from cefc_mj.deploy.results import HISTOGRAM_EDGES_MS
-
     episodes = {c: e for c, e in _sitl_episodes(table).items() if e}
     if not episodes:
         return False

@@ -10,10 +10,11 @@ import json
 from pathlib import Path
 
 from cefc_mj import paths
-from cefc_mj.eval.table3 import PAPER_TABLE3, TABLE3_DENSITY, TABLE3_EPISODES, TABLE3_STEPS, evaluate_lowlevel
+from cefc_mj.eval.table3 import PAPER_TABLE3, evaluate_lowlevel
 from cefc_mj.fileio import write_atomic
 from cefc_mj.nn.policy_io import load_policy
 from cefc_mj.provenance import display_path, git_commit, library_versions
+from cefc_mj.table3_protocol import TABLE3_DENSITY, TABLE3_EPISODES, TABLE3_STEPS
 
 
 def table3_figures(policy_path: Path, formation: int, method: str | None, seed: int = 0) -> dict:
