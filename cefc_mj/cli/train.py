@@ -8,6 +8,7 @@ the CL-M baseline).
     cefc-train clm --formation 6 --budget 1404s     # the CL-M baseline (curriculum 0,0.01,0.02,0.03)
     cefc-train highlevel --variant consmac-a --budget 75it   # the high level (Algorithm 2) over atm_student
     cefc-train adversary --budget 100it                      # the PPO adversary against CI-HRL
+    cefc-train adversary-ddpg --budget 150it                 # the DDPG adversary (Table VI)
 
 Everything a run writes goes under --out (default runs/<command>, relative to the current folder):
 run folders (config, CSV and TensorBoard logs, resumable state) and the exported policies with their
@@ -126,7 +127,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="cefc-train", description=__doc__.split("\n\n")[0],
                      formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__.split("\n\n", 1)[1])
     parser.add_argument("--version", action=_VersionAction, help="print the version, code digest and libraries")
-    sub = parser.add_subparsers(dest="command", required=True, metavar="{lowlevel,distill,lowlevel-all,clm,highlevel,adversary}")
+    sub = parser.add_subparsers(dest="command", required=True,
+                                metavar="{lowlevel,distill,lowlevel-all,clm,highlevel,adversary,adversary-ddpg}")
 
     p = sub.add_parser("lowlevel", help="one AT-M stage for one formation size",
                        description="Train one AT-M stage (Algorithm 1): step 1 without obstacles, step 2 with "
@@ -227,6 +229,7 @@ def build_parser() -> argparse.ArgumentParser:
     _ppo_args(p)
     _highlevel_parser(sub)
     _adversary_parser(sub)
+    _adversary_ddpg_parser(sub)
     return parser
 
 
@@ -285,6 +288,62 @@ def _adversary_parser(sub) -> None:
     p.add_argument("--threads", type=int, default=None, dest="update_threads", metavar="N",
                    help="torch threads of the update (default 1)")
     _common(p, "adversary", "100it")
+
+
+def _adversary_ddpg_parser(sub) -> None:
+    """`cefc-train adversary-ddpg`; flags left out keep DDPGAdversaryConfig's defaults
+    (cefc_mj/train/adversary_ddpg.py)."""
+    p = sub.add_parser("adversary-ddpg", help="the DDPG adversary (Table VI) against a population of UAV teams",
+                       description="DDPG (Lillicrap et al.) with the PPO adversary's actor network, game, population "
+                                   "of teams and reward, learning from scratch (no imitation): Gaussian exploration "
+                                   "noise, a replay of transitions, a Q critic and target networks. Written as "
+                                   "adversary_ddpg[_seed<k>]; Table VI (cefc-eval --protocol table6) flies it once "
+                                   "it is in the policies folder (--install).")
+    p.add_argument("--teams", type=_names, default=None, metavar="NAME,...",
+                   help="the population: trained high levels (names or files) and rule teams ("
+                        + ", ".join(RULE_TEAMS) + "); default every shipped method over its training seeds and "
+                        "every rule team")
+    p.add_argument("--teams-per-iteration", type=int, default=None, metavar="K",
+                   help="games per iteration, each with a team drawn from the population (default 4; must divide "
+                        "--envs)")
+    p.add_argument("--low-level", default=None, metavar="NAME|PATH|per-group",
+                   help="the UAV team's low level (default atm_student)")
+    p.add_argument("--action", choices=("velocity", "heading", "acceleration"), default=None,
+                   help="what the actor outputs: the velocity it wants, its heading at top speed, or the "
+                        "acceleration (default velocity)")
+    p.add_argument("--alert-weight", type=float, default=None, metavar="W",
+                   help="reward per step for the share of UAVs within the alert distance (default 1)")
+    p.add_argument("--progress-weight", type=float, default=None, metavar="W",
+                   help="reward per metre the step approached the nearest group (default 10)")
+    p.add_argument("--collision-weight", type=float, default=None, metavar="W",
+                   help="penalty per step inside an obstacle (default 30)")
+    p.add_argument("--density", type=float, default=None, dest="obstacle_density", metavar="D",
+                   help="obstacle density per m^2 (default 0.03)")
+    p.add_argument("--eval-episodes", type=int, default=None, metavar="N",
+                   help="episodes evaluated for the model card (default 20; 0 skips)")
+    p.add_argument("--envs", type=int, default=None, dest="n_envs", metavar="N",
+                   help="parallel envs, one 400-step episode each per iteration (default 20)")
+    p.add_argument("--replay", type=int, default=None, dest="replay_capacity", metavar="N",
+                   help="replay capacity in transitions, a ring (default 100000)")
+    p.add_argument("--batch-size", type=int, default=None, metavar="N",
+                   help="transitions per gradient step (default 256)")
+    p.add_argument("--learning-starts", type=int, default=None, metavar="N",
+                   help="transitions in the replay before the updates start; until then iterations fly uniform "
+                        "random actions (default 8000)")
+    p.add_argument("--updates", type=int, default=None, dest="updates_per_iteration", metavar="N",
+                   help="gradient steps after each iteration (default 1000)")
+    p.add_argument("--actor-lr", type=float, default=None, metavar="LR", help="actor Adam learning rate (default 1e-4)")
+    p.add_argument("--critic-lr", type=float, default=None, metavar="LR",
+                   help="critic Adam learning rate (default 1e-3)")
+    p.add_argument("--tau", type=float, default=None, metavar="T",
+                   help="Polyak rate of the target networks per gradient step (default 0.005)")
+    p.add_argument("--gamma", type=float, default=None, metavar="G",
+                   help="discount per 0.1 s step (default 0.95, the PPO adversary's)")
+    p.add_argument("--noise", type=float, default=None, dest="exploration_noise", metavar="STD",
+                   help="std of the Gaussian exploration noise on the actor's output (velocity: a share of top "
+                        "speed) (default 0.2)")
+    p.add_argument("--threads", type=int, default=None, metavar="N", help="torch threads of the updates (default 1)")
+    _common(p, "adversary-ddpg", "150it")
 
 def _highlevel_parser(sub) -> None:
     """`cefc-train highlevel`; flags left out keep HighLevelConfig's defaults (cefc_mj/train/highlevel.py)."""
@@ -459,15 +518,18 @@ def run(args, command: str | None = None) -> list[dict]:
         o = card["table3"]["ours"]
         print(f"Table III protocol (density 0.05): R_L {o['R_L']:.2f}/step  F {o['F']:.2f}  N {o['N']:.2f}  C {o['C']:.2f}%")
         cards = [card]
-    elif args.command in ("highlevel", "adversary"):  # their own policy formats, so their own --install
+    elif args.command in ("highlevel", "adversary", "adversary-ddpg"):  # own policy formats, so own --install
         from cefc_mj.train.model_card import install_policy
 
         if args.command == "highlevel":
             from cefc_mj.nn.highlevel_policy import load_highlevel_policy as load
             from cefc_mj.train.highlevel import config_from_args, summary_lines, train_highlevel as train
-        else:
+        elif args.command == "adversary":
             from cefc_mj.nn.adversary_policy import load_adversary_policy as load
             from cefc_mj.train.adversary import config_from_args, summary_lines, train_adversary as train
+        else:
+            from cefc_mj.nn.adversary_policy import load_adversary_policy as load
+            from cefc_mj.train.adversary_ddpg import config_from_args, summary_lines, train_ddpg_adversary as train
         cfg = config_from_args(args, budget)
         policies_dir = check_destinations(args)
         card = train(cfg, args.out, policies_dir, resume=args.resume, show_progress=show, command=command)

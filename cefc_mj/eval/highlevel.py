@@ -59,12 +59,15 @@ on the other label the paper defines (all agents' relative positions and velocit
 paper figures: the paper's Table V lists ConsMAC-A only."""
 TABLE6_ROWS = (
     ("PPO", "adversary_ppo", None),
+    ("DDPG", "adversary_ddpg", None),
     ("R-Largest", "r_largest", None),
     ("R-Nearest", "r_nearest", None),
     ("Nearest-group rule", "nearest_group", "not in the paper: the rule the PPO adversary's reward describes"),
 )
-"""(the paper's column, our adversary (a rule, or a trained adversary's policy name), what differs).
-The paper's DDPG column has no counterpart here."""
+"""(the paper's column, our adversary (a rule, or a trained adversary's policy name), what differs)."""
+TABLE6_TRAINED_LATER = {"adversary_ddpg": "cefc-train adversary-ddpg --install"}
+"""Adversaries of TABLE6_ROWS not shipped from the start: flown once their file is in the policies folder,
+else the report notes how to train them."""
 TABLE7_SIZES = (8, 9, 10, 12, 15)
 """The swarm sizes N of Table VII."""
 GAME_ADVERSARY = "adversary_ppo"
@@ -128,7 +131,7 @@ class Conditions:
         """None (the env's own particle world) or the MuJoCo world of `episodes` envs."""
         if self.backend == "particle":
             return None
-        from cefc_mj import make_world
+        from cefc_mj.sim.backends import make_world
 
         return make_world("mujoco", task, episodes, wind=self.wind, seed=seed, wind_direction=self.wind_direction)
 
@@ -363,19 +366,25 @@ def run_table6(episodes: int = EPISODES, seed: int = 0, policies_dir: Path | Non
                where: Conditions | None = None) -> dict:
     """Table VI: one high-level policy (default CI-HRL) against each adversary strategy, the same
     episodes otherwise. Columns R_t, R_e, E as the paper prints them (R_H, R_n ride along); a row
-    without a paper column (the nearest-group rule) has paper None."""
+    without a paper column (the nearest-group rule) has paper None. An adversary of TABLE6_TRAINED_LATER
+    (DDPG) whose file is not in policies_dir is left out; protocol["missing"] says how to train it."""
     policies_dir = Path(policies_dir) if policies_dir is not None else paths.POLICIES_DIR
     path = highlevel_policy_path(policy, policies_dir)
-    adversaries = {column: resolve_adversary(adversary, policies_dir) for column, adversary, _ in TABLE6_ROWS}
+    untrained = {name for name in TABLE6_TRAINED_LATER if not (policies_dir / f"{name}.pt").is_file()}
+    rows = [row for row in TABLE6_ROWS if row[1] not in untrained]
+    adversaries = {column: resolve_adversary(adversary, policies_dir) for column, adversary, _ in rows}
     where = where or Conditions()
     low_level = _low_level(game_task())
     result = {"schema": "cefc-eval/table6", "schema_version": 1,
               "protocol": _protocol(episodes, seed, low_level, policies_dir, None, where), "rows": {}}
     result["protocol"]["policy"] = path.name
+    result["protocol"]["missing"] += [f"{column} ({name}.pt: not trained yet; train it with "
+                                      f"`{TABLE6_TRAINED_LATER[name]}`)" for column, name, _ in TABLE6_ROWS
+                                      if name in untrained]
     paper = _paper("table6_adversaries")
     if provenance is not None:
         result["provenance"] = provenance
-    for column, adversary, differs in TABLE6_ROWS:
+    for column, adversary, differs in rows:
         kind, adversary_policy, record = adversaries[column]
         row = _evaluate_file(path, game_task(kind, where.deviation), low_level, episodes, seed, where, adversary_policy)
         row.update({"adversary": adversary, "adversary_record": record,

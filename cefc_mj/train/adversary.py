@@ -156,44 +156,60 @@ class AdversaryConfig(BudgetPPODict):
         return "adversary_ppo" + (f"_seed{self.seed}" if self.seed else "")
 
     def task(self) -> TaskConfig:
-        return dataclasses.replace(game_task(), adversary=LEARNED_ADVERSARY, obstacle_density=self.obstacle_density)
+        return adversary_task(self.obstacle_density)
 
     def validate(self) -> None:
-        if not isinstance(self.budget, Budget):
-            _fail("budget", self.budget, "must be a Budget")
-        if not isinstance(self.seed, int) or isinstance(self.seed, bool) or not 0 <= self.seed <= MAX_SEED:
-            _fail("seed", self.seed, f"must be an integer in [0, {MAX_SEED}]")
-        if not isinstance(self.low_level, str) or not self.low_level:
-            _fail("low_level", self.low_level, "must name a policy (a name or a file)")
-        if (not isinstance(self.teams, tuple) or not self.teams
-                or not all(isinstance(t, str) and t for t in self.teams) or len(set(self.teams)) != len(self.teams)):
-            _fail("teams", self.teams, "must be a non-empty list of distinct team names (policy names, files or "
-                  f"rules: {', '.join(RULE_TEAMS)})")
-        if not isinstance(self.observes_goal, bool):
-            _fail("observes_goal", self.observes_goal, "must be True or False")
-        if self.action not in ADVERSARY_ACTIONS:
-            _fail("action", self.action, f"must be one of {', '.join(ADVERSARY_ACTIONS)}")
-        if not isinstance(self.obstacle_density, (int, float)) or not 0 <= self.obstacle_density <= MAX_DENSITY:
-            _fail("obstacle_density", self.obstacle_density, f"must be in [0, {MAX_DENSITY}] per m^2")
+        validate_population_game(self)
         if not isinstance(self.init_log_std, (int, float)) or not -5 <= self.init_log_std <= 2:
             _fail("init_log_std", self.init_log_std, "must be a number in [-5, 2]")
-        for name in ("distance_weight", "alert_weight", "collision_weight", "progress_weight"):
-            value = getattr(self, name)
-            if not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0:
-                _fail(name, value, "must be a number >= 0")
-        for name, least, most in (("hidden", 1, 4096), ("checkpoint_every", 1, 1_000_000),
-                                  ("eval_episodes", 0, 1000), ("teams_per_iteration", 1, 1000),
-                                  ("imitation_episodes", 0, 100_000), ("imitation_steps", 0, 10_000_000),
-                                  ("imitation_rounds", 1, 100), ("critic_warmup", 0, 1_000_000)):
-            value = getattr(self, name)
-            if not isinstance(value, int) or isinstance(value, bool) or not least <= value <= most:
-                _fail(name, value, f"must be an integer in [{least}, {most}]")
+        _check_ints(self, (("imitation_episodes", 0, 100_000), ("imitation_steps", 0, 10_000_000),
+                           ("imitation_rounds", 1, 100), ("critic_warmup", 0, 1_000_000)))
         if not isinstance(self.ppo, PPOConfig):
             _fail("ppo", self.ppo, "must be a PPOConfig")
         self.ppo.validate()
         if self.ppo.n_envs % self.teams_per_iteration:
             _fail("teams_per_iteration", self.teams_per_iteration, f"must divide the {self.ppo.n_envs} envs")
         self.task()
+
+
+def adversary_task(obstacle_density: float) -> TaskConfig:
+    """The game an adversary trains in: Tables V and VI's, with a learned adversary."""
+    return dataclasses.replace(game_task(), adversary=LEARNED_ADVERSARY, obstacle_density=obstacle_density)
+
+
+def _check_ints(cfg, bounds: tuple[tuple[str, int, int], ...]) -> None:
+    for name, least, most in bounds:
+        value = getattr(cfg, name)
+        if not isinstance(value, int) or isinstance(value, bool) or not least <= value <= most:
+            _fail(name, value, f"must be an integer in [{least}, {most}]")
+
+
+def validate_population_game(cfg) -> None:
+    """The checks of the fields every adversary trainer (PPO, DDPG) shares: budget, seed, low level,
+    teams, observes_goal, action, obstacle density, reward weights, hidden, checkpoint_every,
+    eval_episodes and teams_per_iteration."""
+    if not isinstance(cfg.budget, Budget):
+        _fail("budget", cfg.budget, "must be a Budget")
+    if not isinstance(cfg.seed, int) or isinstance(cfg.seed, bool) or not 0 <= cfg.seed <= MAX_SEED:
+        _fail("seed", cfg.seed, f"must be an integer in [0, {MAX_SEED}]")
+    if not isinstance(cfg.low_level, str) or not cfg.low_level:
+        _fail("low_level", cfg.low_level, "must name a policy (a name or a file)")
+    if (not isinstance(cfg.teams, tuple) or not cfg.teams
+            or not all(isinstance(t, str) and t for t in cfg.teams) or len(set(cfg.teams)) != len(cfg.teams)):
+        _fail("teams", cfg.teams, "must be a non-empty list of distinct team names (policy names, files or "
+              f"rules: {', '.join(RULE_TEAMS)})")
+    if not isinstance(cfg.observes_goal, bool):
+        _fail("observes_goal", cfg.observes_goal, "must be True or False")
+    if cfg.action not in ADVERSARY_ACTIONS:
+        _fail("action", cfg.action, f"must be one of {', '.join(ADVERSARY_ACTIONS)}")
+    if not isinstance(cfg.obstacle_density, (int, float)) or not 0 <= cfg.obstacle_density <= MAX_DENSITY:
+        _fail("obstacle_density", cfg.obstacle_density, f"must be in [0, {MAX_DENSITY}] per m^2")
+    for name in ("distance_weight", "alert_weight", "collision_weight", "progress_weight"):
+        value = getattr(cfg, name)
+        if not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0:
+            _fail(name, value, "must be a number >= 0")
+    _check_ints(cfg, (("hidden", 1, 4096), ("checkpoint_every", 1, 1_000_000), ("eval_episodes", 0, 1000),
+                      ("teams_per_iteration", 1, 1000)))
 
 
 class _Sampler:
@@ -207,8 +223,11 @@ class _Sampler:
         self.buf: dict[str, list] = {}
         self.terms: dict[str, list] = {}
 
+    KEYS = ("obs", "actions", "logp", "values", "rewards")
+    """What each step records (`buf`); "rewards" is filled by `_reward`."""
+
     def start(self) -> None:
-        self.buf = {k: [] for k in ("obs", "actions", "logp", "values", "rewards")}
+        self.buf = {k: [] for k in self.KEYS}
         self.terms = {k: [] for k in ("distance", "alert", "collision", "progress")}
         self.distance = None  # -d of the state the last action was taken in
 
@@ -248,7 +267,22 @@ class _Sampler:
         return self.trainer.value(torch.from_numpy(self.env.adversary_observation()))
 
 
-class AdversaryTrainer:
+class PopulationGames:
+    """What every adversary trainer (PPO, DDPG) shares: the team of each game, drawn from the
+    population. Needs cfg (seed, teams), population and games."""
+
+    def draw_teams(self, iteration: int, stream: int = TEAM_DRAW_STREAM) -> list[str]:
+        """The team of each game of `iteration`: uniform draws from the population, a function of
+        (seed, iteration, stream) alone, so a resumed run draws what the uninterrupted one would have."""
+        names = list(self.cfg.teams)
+        rng = np.random.default_rng([self.cfg.seed, iteration, stream])
+        return [names[i] for i in rng.integers(len(names), size=len(self.games))]
+
+    def team_for(self, name: str, game: HierarchicalCEFCEnv):
+        return RuleTeam(name, game) if self.population[name] is None else self.population[name]
+
+
+class AdversaryTrainer(PopulationGames):
     """The learner: actor, critic, their optimizers, the value normalizer and a torch RNG; one
     `iterate()` = collect one episode per env (teams_per_iteration games, a team drawn for each), then
     the PPO update."""
@@ -332,16 +366,6 @@ class AdversaryTrainer:
     def value(self, obs: torch.Tensor) -> torch.Tensor:
         """V of adversary observations: the critic reads what the actor reads."""
         return self.critic(network_input(obs, self.cfg.observes_goal))
-
-    def draw_teams(self, iteration: int, stream: int = TEAM_DRAW_STREAM) -> list[str]:
-        """The team of each game of `iteration`: uniform draws from the population, a function of
-        (seed, iteration, stream) alone, so a resumed run draws what the uninterrupted one would have."""
-        names = list(self.cfg.teams)
-        rng = np.random.default_rng([self.cfg.seed, iteration, stream])
-        return [names[i] for i in rng.integers(len(names), size=len(self.games))]
-
-    def team_for(self, name: str, game: HierarchicalCEFCEnv):
-        return RuleTeam(name, game) if self.population[name] is None else self.population[name]
 
     @torch.no_grad()
     def collect(self) -> tuple[dict[str, torch.Tensor], dict[str, float]]:
@@ -553,13 +577,13 @@ def evaluate_against_population(adversary, population: dict[str, HighLevelPolicy
             "per_team": per_team}
 
 
-def summary_lines(card: dict, policies_dir: Path) -> list[str]:
-    """What `cefc-train adversary` prints when a run ends."""
+def summary_lines(card: dict, policies_dir: Path, algorithm: str = "PPO") -> list[str]:
+    """What `cefc-train adversary` (and adversary-ddpg, algorithm "DDPG") prints when a run ends."""
     lines = [f"{card['name']}: {card['iterations']} iterations, {card['episodes']} episodes, "
              f"{card['train_wall_clock_s']} s -> {policies_dir / (card['name'] + '.pt')} (run {card['run_dir']})"]
     if "evaluation" in card:
         e = card["evaluation"]
-        lines.append(f"team E in steps against the PPO adversary / the nearest-group rule "
+        lines.append(f"team E in steps against the {algorithm} adversary / the nearest-group rule "
                      f"({e['protocol']['episodes']} validation episodes each):")
         for name, row in e["per_team"].items():
             ratio = "-" if row["E_ratio"] is None else f"{row['E_ratio']:.2f}"
