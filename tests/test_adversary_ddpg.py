@@ -161,7 +161,7 @@ def test_cli_trains_exports_a_card_with_the_population_evaluation(tmp_path, caps
     assert main(argv) == 0
     card = json.loads((out / "policies" / "adversary_ddpg.json").read_text())
     assert card["name"] == "adversary_ddpg" and "DDPG" in card["method"] and card["gradient_steps"] == 3
-    assert card["network"]["action"] == "velocity" and card["network"]["observes_goal"] is False
+    assert card["network"]["action"] == "heading" and card["network"]["observes_goal"] is False
     assert card["config"]["gamma"] == 0.95 and "git_commit" in card
     row = card["evaluation"]["per_team"]["rule-urgent"]
     assert set(row) == {"ours", "rule_nearest_group", "E_ratio"}

@@ -120,6 +120,11 @@ def test_adversary_rules():
     np.testing.assert_allclose(adversary_goal("r_nearest", adv, pos, size, centre)[0], [5, -6])
     np.testing.assert_allclose(adversary_goal("nearest_group", adv, pos, size, centre)[0], pos[0, :3].mean(0))
     np.testing.assert_allclose(adversary_goal("r_largest", adv, pos, size, centre)[0], pos[0, 3:7].mean(0))
+    # the strike rule: the lone agent 1 m away is within 3 m, so it is chased instead of the group...
+    np.testing.assert_allclose(adversary_goal("nearest_group_strike", adv, pos, size, centre)[0], [5, -6])
+    # ... and from 3.2 m away it is not: the nearest group of >= 3 again
+    far = np.array([[5.0, -2.8]])
+    np.testing.assert_allclose(adversary_goal("nearest_group_strike", far, pos, size, centre)[0], pos[0, :3].mean(0))
     # no group of 3: the nearest-group rule falls back to the nearest agent
     lone = pos[:, [0, 7]]
     _, size, centre = group_formation_error(lone, connected_groups(lone, 3.0))

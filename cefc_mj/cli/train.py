@@ -7,7 +7,7 @@ the CL-M baseline).
     cefc-train lowlevel-all --budget 80m            # the whole pipeline
     cefc-train clm --formation 6 --budget 1404s     # the CL-M baseline (curriculum 0,0.01,0.02,0.03)
     cefc-train highlevel --variant consmac-a --budget 75it   # the high level (Algorithm 2) over atm_student
-    cefc-train adversary --budget 100it                      # the PPO adversary against CI-HRL
+    cefc-train adversary                                     # the PPO adversary (imitation, critic warm-up)
     cefc-train adversary-ddpg --budget 150it                 # the DDPG adversary (Table VI)
 
 Everything a run writes goes under --out (default runs/<command>, relative to the current folder):
@@ -267,11 +267,14 @@ def _adversary_parser(sub) -> None:
                         "(default 8)")
     p.add_argument("--init-log-std", type=float, default=None, metavar="S",
                    help="initial log-std of the actor's Gaussian, in its output units (default -0.5)")
+    p.add_argument("--imitation-rule", default=None, metavar="RULE",
+                   help="the rule imitated before PPO: nearest_group_strike (default: the nearest group of >= 3, "
+                        "the nearest UAV within 3 m), nearest_group, r_nearest or r_largest")
     p.add_argument("--critic-warmup", type=int, default=None, metavar="N",
-                   help="first PPO iterations in which only the critic learns (default 0)")
+                   help="first PPO iterations in which only the critic learns (default 20)")
     p.add_argument("--action", choices=("velocity", "heading", "acceleration"), default=None,
-                   help="what the actor outputs: the velocity it wants, its heading at top speed, or the "
-                        "acceleration (default velocity)")
+                   help="what the actor outputs: its heading at top speed, the velocity it wants, or the "
+                        "acceleration (default heading)")
     p.add_argument("--alert-weight", type=float, default=None, metavar="W",
                    help="reward per step for the share of UAVs within the alert distance (default 1)")
     p.add_argument("--progress-weight", type=float, default=None, metavar="W",
@@ -287,7 +290,7 @@ def _adversary_parser(sub) -> None:
     p.add_argument("--lr", type=float, default=None, metavar="LR", help="Adam learning rate (default 3e-4)")
     p.add_argument("--threads", type=int, default=None, dest="update_threads", metavar="N",
                    help="torch threads of the update (default 1)")
-    _common(p, "adversary", "100it")
+    _common(p, "adversary", "20it")
 
 
 def _adversary_ddpg_parser(sub) -> None:
@@ -309,8 +312,8 @@ def _adversary_ddpg_parser(sub) -> None:
     p.add_argument("--low-level", default=None, metavar="NAME|PATH|per-group",
                    help="the UAV team's low level (default atm_student)")
     p.add_argument("--action", choices=("velocity", "heading", "acceleration"), default=None,
-                   help="what the actor outputs: the velocity it wants, its heading at top speed, or the "
-                        "acceleration (default velocity)")
+                   help="what the actor outputs: its heading at top speed, the velocity it wants, or the "
+                        "acceleration (default heading)")
     p.add_argument("--alert-weight", type=float, default=None, metavar="W",
                    help="reward per step for the share of UAVs within the alert distance (default 1)")
     p.add_argument("--progress-weight", type=float, default=None, metavar="W",

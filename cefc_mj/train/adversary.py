@@ -1,6 +1,7 @@
 """The PPO adversary (the paper's predator, Sec. V-A): single-agent PPO against a population of UAV teams.
 
-One iteration, CleanRL-style:
+Before PPO the actor imitates a rule (`imitation_rule`, by DAgger), then `critic_warmup` iterations fit
+the critic alone. One iteration, CleanRL-style:
 
 1. **Collect** one 400-step episode in each of `ppo.n_envs` envs of the CEFC game
    (`HierarchicalCEFCEnv` with adversary='learned'), split into `teams_per_iteration` games. Each
@@ -54,7 +55,7 @@ from cefc_mj.provenance import file_sha256
 from cefc_mj.rule_teams import RULE_TEAMS, RuleTeam
 from cefc_mj.seeds import GAME_VALIDATION_SEED
 from cefc_mj.task.adversary import ADVERSARY_OBS_DIM, adversary_goal, adversary_reward
-from cefc_mj.task.config import LEARNED_ADVERSARY, TaskConfig
+from cefc_mj.task.config import ADVERSARY_RULES, LEARNED_ADVERSARY, TaskConfig
 from cefc_mj.train import run_state
 from cefc_mj.train.config import MAX_DENSITY, MAX_SEED, Budget, BudgetPPODict, PPOConfig, config_from_flags
 from cefc_mj.train.logger import RunLogger
@@ -68,6 +69,8 @@ TEAM_DRAW_STREAM = 7
 """Extra SeedSequence entry of the team draws (apart from every other stream of a run)."""
 IMITATION_STREAM = 1000
 """`iteration_seed` stream of the imitation episodes (the PPO games use streams 0..teams_per_iteration-1)."""
+IMITATION_RULES = tuple(rule for rule in ADVERSARY_RULES if rule != "none")
+"""The rules an adversary can imitate before PPO."""
 PROGRESS_KEYS = ("episode_return", "team/E", "collision_share", "approx_kl")
 
 
@@ -105,13 +108,18 @@ class AdversaryConfig(BudgetPPODict):
     observes_goal: bool = False
     """Whether the adversary reads the rule's goal point (the centre of the nearest group of >= 3)
     as input; False (the paper's adversary) leaves it to find the group from the agents it sees."""
-    action: str = "velocity"
-    """What the actor's outputs mean (AdversaryNetConfig.action): "velocity", the direction and speed it
-    wants (the pursuit is then a direction to learn), or "acceleration", the setpoint itself."""
+    action: str = "heading"
+    """What the actor's outputs mean (AdversaryNetConfig.action): "heading", the direction it flies at top
+    speed (as every rule does), "velocity", the direction and speed it wants, or "acceleration", the
+    setpoint itself."""
+    imitation_rule: str = "nearest_group_strike"
+    """The rule the actor imitates before PPO (steering round obstacles, as the game's rules do): by
+    default the nearest group of >= 3, or the nearest UAV once one is within 3 m; an imitation of the
+    plain nearest-group rule chased at 0.7-1.0 of that rule's E (docs/high_level.md)."""
     imitation_episodes: int = 200
-    """Before PPO, the actor imitates the nearest-group rule (steering round obstacles) on this many
-    episodes of the population's games (its observations, the rule's accelerations); 0 starts PPO
-    from random weights. PPO alone stayed at 0.4-0.8 of the rule's E (docs/high_level.md)."""
+    """Before PPO, the actor imitates `imitation_rule` on this many episodes of the population's games
+    (its observations, the rule's wishes); 0 starts PPO from random weights. PPO alone stayed at 0.4-0.8
+    of the nearest-group rule's E (docs/high_level.md)."""
     imitation_steps: int = 8000
     """Adam steps (batch 1024, rate 1e-3) of that imitation, split over the rounds."""
     imitation_rounds: int = 8
@@ -130,9 +138,10 @@ class AdversaryConfig(BudgetPPODict):
     progress_weight: float = 10.0
     """Weight of the approach d_before - d_after (m) of each step; without it the distance term
     alone taught the chase about 3x slower (docs/high_level.md)."""
-    critic_warmup: int = 0
+    critic_warmup: int = 20
     """Iterations at the start of PPO in which only the critic learns (the actor's rate is 0): an
-    imitated actor is not pushed about by the advantages of a critic that has not yet fitted it."""
+    imitated actor is not pushed about by the advantages of a critic that has not yet fitted it. The
+    shipped adversary is the imitation after these 20 (PPO beyond them lowered its E on validation)."""
     hidden: int = 128
     """Hidden width of actor and critic (the low level's 128)."""
     init_log_std: float = -0.5
@@ -162,6 +171,8 @@ class AdversaryConfig(BudgetPPODict):
         validate_population_game(self)
         if not isinstance(self.init_log_std, (int, float)) or not -5 <= self.init_log_std <= 2:
             _fail("init_log_std", self.init_log_std, "must be a number in [-5, 2]")
+        if self.imitation_rule not in IMITATION_RULES:
+            _fail("imitation_rule", self.imitation_rule, f"must be one of {', '.join(IMITATION_RULES)}")
         _check_ints(self, (("imitation_episodes", 0, 100_000), ("imitation_steps", 0, 10_000_000),
                            ("imitation_rounds", 1, 100), ("critic_warmup", 0, 1_000_000)))
         if not isinstance(self.ppo, PPOConfig):
@@ -314,7 +325,7 @@ class AdversaryTrainer(PopulationGames):
 
     @torch.no_grad()
     def demonstrations(self, round_: int) -> tuple[torch.Tensor, torch.Tensor]:
-        """(observations [S, D], what the actor should output there: the nearest-group rule's wish [S, 2])
+        """(observations [S, D], what the actor should output there: the imitated rule's wish [S, 2])
         over cfg.imitation_episodes episodes: batches of ppo.n_envs / teams_per_iteration games, a team
         drawn for each; round 0 the rule flies the adversary, later rounds the actor's mean (DAgger).
         Seeded from the run seed and the round (an imitation stream apart from the iterations')."""
@@ -326,8 +337,8 @@ class AdversaryTrainer(PopulationGames):
 
             def rule(obs):  # called while `game` below plays
                 env = game.env
-                action = env.rule_adversary_acceleration("nearest_group")
-                target = (env.rule_adversary_velocity("nearest_group") / self.task.adversary_speed_max
+                action = env.rule_adversary_acceleration(self.cfg.imitation_rule)
+                target = (env.rule_adversary_velocity(self.cfg.imitation_rule) / self.task.adversary_speed_max
                           if self.cfg.action != "acceleration" else action)  # what the actor outputs
                 obs_rows.append(torch.from_numpy(obs.copy()))
                 act_rows.append(torch.as_tensor(target, dtype=torch.float32))
@@ -509,7 +520,7 @@ def train_adversary(cfg: AdversaryConfig, out: Path, policies_dir: Path, resume:
         imitation = saved.get("imitation")
     elif cfg.imitation_episodes and cfg.imitation_steps:
         if show_progress:
-            print(f"{cfg.name}: imitating the nearest-group rule ({cfg.imitation_episodes} episodes, "
+            print(f"{cfg.name}: imitating the {cfg.imitation_rule} rule ({cfg.imitation_episodes} episodes, "
                   f"{cfg.imitation_steps} steps)", flush=True)
         start = time.perf_counter()
         imitation = {**trainer.imitate(), "wall_s": round(time.perf_counter() - start, 1)}
@@ -598,6 +609,7 @@ _FLAG_OF_FIELD = {"seed": "--seed", "teams": "--teams", "teams_per_iteration": "
                   "low_level": "--low-level", "imitation_episodes": "--imitation-episodes",
                   "imitation_steps": "--imitation-steps", "imitation_rounds": "--imitation-rounds",
                   "init_log_std": "--init-log-std", "critic_warmup": "--critic-warmup", "action": "--action",
+                  "imitation_rule": "--imitation-rule",
                   "alert_weight": "--alert-weight", "progress_weight": "--progress-weight",
                   "obstacle_density": "--density", "eval_episodes": "--eval-episodes", "n_envs": "--envs",
                   "collision_weight": "--collision-weight",
@@ -605,7 +617,7 @@ _FLAG_OF_FIELD = {"seed": "--seed", "teams": "--teams", "teams_per_iteration": "
 """Config fields set by `cefc-train adversary` flags: their errors name the flag the user typed."""
 CLI_FIELDS = ("seed", "teams", "teams_per_iteration", "low_level", "obstacle_density", "collision_weight",
               "eval_episodes", "imitation_episodes", "imitation_steps", "imitation_rounds", "init_log_std",
-              "critic_warmup", "action", "alert_weight", "progress_weight")
+              "critic_warmup", "action", "alert_weight", "progress_weight", "imitation_rule")
 CLI_PPO_FIELDS = ("n_envs", "epochs", "lr", "update_threads")
 
 
