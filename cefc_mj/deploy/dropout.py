@@ -19,7 +19,7 @@ from __future__ import annotations
 import numpy as np
 
 from cefc_mj.env import BatchedCEFCEnv
-from cefc_mj.errors import ConfigError
+from cefc_mj.eval.requests import check_drop, parse_drop  # noqa: F401 (parse_drop: re-exported)
 from cefc_mj.task.formation import connected_groups
 from cefc_mj.task.guard import guarded
 
@@ -120,33 +120,6 @@ class DropoutCEFCEnv(BatchedCEFCEnv):
             "steps": steps,
             "group_size": int(rows["active"][-1]) if steps else int(self.active[env].sum()),
         }
-
-
-def check_drop(drop, formation: int, steps: int) -> tuple[int, int]:
-    """(k, step) validated for a c-agent episode of `steps` steps (ConfigError naming the problem)."""
-    if drop is None:
-        return None
-    try:
-        k, step = drop
-    except (TypeError, ValueError):
-        raise ConfigError(f"drop={drop!r}: must be (k, step)") from None
-    for name, value in (("k", k), ("step", step)):
-        if not isinstance(value, (int, np.integer)) or isinstance(value, bool):
-            raise ConfigError(f"drop={drop!r}: {name} must be an integer")
-    if not 1 <= k <= formation - 3:
-        raise ConfigError(f"drop={drop!r}: k must be in 1..{formation - 3} (at least 3 UAVs must stay to form)")
-    if not 1 <= step < steps:
-        raise ConfigError(f"drop={drop!r}: step must be in 1..{steps - 1}")
-    return int(k), int(step)
-
-
-def parse_drop(text: str) -> tuple[int, int]:
-    """"K@STEP" (e.g. "2@500") -> (2, 500); ConfigError for anything else (the range is checked
-    against the episode by check_drop)."""
-    parts = str(text).split("@")
-    if len(parts) != 2 or not all(p.strip().isdigit() for p in parts):
-        raise ConfigError(f"--drop {text}: must be K@STEP, e.g. 2@500 (K agents drop out before step STEP)")
-    return int(parts[0]), int(parts[1])
 
 
 def choose_dropouts(formation: int, k: int, seed: int) -> list[int]:

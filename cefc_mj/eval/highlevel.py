@@ -28,6 +28,7 @@ import torch
 
 from cefc_mj import paths
 from cefc_mj.errors import CheckpointError, ConfigError
+from cefc_mj.eval.conditions import Conditions
 from cefc_mj.hierarchy import DECISION_INTERVAL, HierarchicalCEFCEnv, LowLevel, load_low_level
 from cefc_mj.nn.highlevel_policy import HighLevelPolicy, load_highlevel_policy
 from cefc_mj.nn.policy_io import resolve_policy_path
@@ -72,6 +73,10 @@ TABLE7_SIZES = (8, 9, 10, 12, 15)
 """The swarm sizes N of Table VII."""
 GAME_ADVERSARY = "adversary_ppo"
 """The adversary of Table V: the shipped PPO adversary, the paper's default predator."""
+GAME_POLICY = "cihrl_consmac_a"
+"""The high-level policy Tables VI and VII play: CI-HRL (ConsMAC-A)."""
+PAPER_CONDITIONS = Conditions("particle")
+"""Where the paper plays the game: its MPE (particles), calm air, exact sensing."""
 
 
 def game_task(adversary: str = "nearest_group", deviation: float = 0.0, n_agents: int = GAME_AGENTS) -> TaskConfig:
@@ -104,42 +109,6 @@ def resolve_adversary(spec: str, policies_dir: Path | None = None) -> tuple[str,
         raise CheckpointError(f"adversary {spec}: {e} (a rule is one of {', '.join(ADVERSARY_RULES)}; a trained "
                               "adversary comes from cefc-train adversary)") from None
     return LEARNED_ADVERSARY, policy.act, {"policy": path.name, "sha256": file_sha256(path)}
-
-
-class Conditions:
-    """Where Tables V and VI are played: the backend ("particle", the paper's MPE, or "mujoco", the
-    quadrotors), the mean wind speed (m/s, MuJoCo), the direction it blows towards (degrees, ENU; None
-    = drawn per episode from the seed) and the sensing deviation (m)."""
-
-    def __init__(self, backend: str = "particle", wind: float = 0.0, deviation: float = 0.0,
-                 wind_direction: float | None = None):
-        if backend not in ("particle", "mujoco"):
-            raise ConfigError(f"backend={backend!r}: must be particle or mujoco")
-        if wind and backend != "mujoco":
-            raise ConfigError("wind: the particle backend has no wind model; use backend='mujoco'")
-        if wind_direction is not None and not wind:
-            raise ConfigError(f"wind_direction={wind_direction!r}: there is no wind to point (wind = 0)")
-        self.backend, self.wind, self.deviation = backend, float(wind), float(deviation)
-        self.wind_direction = wind_direction
-
-    @property
-    def paper_like(self) -> bool:
-        """The paper's Tables V and VI: the particle world, calm, exact sensing."""
-        return self.backend == "particle" and not self.wind and not self.deviation
-
-    def world(self, task: TaskConfig, episodes: int, seed: int):
-        """None (the env's own particle world) or the MuJoCo world of `episodes` envs."""
-        if self.backend == "particle":
-            return None
-        from cefc_mj.sim.backends import make_world
-
-        return make_world("mujoco", task, episodes, wind=self.wind, seed=seed, wind_direction=self.wind_direction)
-
-    def to_dict(self) -> dict:
-        out = {"backend": self.backend, "wind": self.wind, "deviation": self.deviation}
-        if self.wind_direction is not None:  # absent: drawn per episode (and reports flown before it existed)
-            out["wind_direction"] = self.wind_direction
-        return out
 
 
 # ---------------------------------------------------------------------------- episodes
@@ -325,7 +294,7 @@ def run_table5(episodes: int = EPISODES, seed: int = 0, policies_dir: Path | Non
     policy against the nearest-group rule (row["against_rule"]), the yardstick of the adversary's
     strength."""
     policies_dir = Path(policies_dir) if policies_dir is not None else paths.POLICIES_DIR
-    where = where or Conditions()
+    where = where or PAPER_CONDITIONS
     kind, adversary_policy, record = resolve_adversary(adversary, policies_dir)
     task = game_task(kind, deviation=where.deviation)
     low_level = _low_level(task)
@@ -362,7 +331,7 @@ def run_table5(episodes: int = EPISODES, seed: int = 0, policies_dir: Path | Non
 
 
 def run_table6(episodes: int = EPISODES, seed: int = 0, policies_dir: Path | None = None,
-               policy: str = "cihrl_consmac_a", provenance: dict | None = None,
+               policy: str = GAME_POLICY, provenance: dict | None = None,
                where: Conditions | None = None) -> dict:
     """Table VI: one high-level policy (default CI-HRL) against each adversary strategy, the same
     episodes otherwise. Columns R_t, R_e, E as the paper prints them (R_H, R_n ride along); a row
@@ -373,7 +342,7 @@ def run_table6(episodes: int = EPISODES, seed: int = 0, policies_dir: Path | Non
     untrained = {name for name in TABLE6_TRAINED_LATER if not (policies_dir / f"{name}.pt").is_file()}
     rows = [row for row in TABLE6_ROWS if row[1] not in untrained]
     adversaries = {column: resolve_adversary(adversary, policies_dir) for column, adversary, _ in rows}
-    where = where or Conditions()
+    where = where or PAPER_CONDITIONS
     low_level = _low_level(game_task())
     result = {"schema": "cefc-eval/table6", "schema_version": 1,
               "protocol": _protocol(episodes, seed, low_level, policies_dir, None, where), "rows": {}}
@@ -396,14 +365,14 @@ def run_table6(episodes: int = EPISODES, seed: int = 0, policies_dir: Path | Non
 
 
 def run_table7(episodes: int = EPISODES, seed: int = 0, policies_dir: Path | None = None,
-               policy: str = "cihrl_consmac_a", provenance: dict | None = None, where: Conditions | None = None,
+               policy: str = GAME_POLICY, provenance: dict | None = None, where: Conditions | None = None,
                adversary: str = GAME_ADVERSARY, sizes: tuple[int, ...] = TABLE7_SIZES) -> dict:
     """Table VII: one high-level policy (default CI-HRL, trained with N = 8) in games of N UAVs for
     each N in `sizes`, the same adversary, targets and obstacle density; each row adds the per-agent
     averages (R_H, R_t, R_n, R_e and E in seconds, divided by N), the paper's columns."""
     policies_dir = Path(policies_dir) if policies_dir is not None else paths.POLICIES_DIR
     path = highlevel_policy_path(policy, policies_dir)
-    where = where or Conditions()
+    where = where or PAPER_CONDITIONS
     if not sizes or any(not isinstance(n, int) or isinstance(n, bool) or not 3 <= n <= 32 for n in sizes):
         raise ConfigError(f"sizes={sizes!r}: must be swarm sizes in [3, 32]")
     kind, adversary_policy, record = resolve_adversary(adversary, policies_dir)

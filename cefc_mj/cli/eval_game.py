@@ -1,0 +1,101 @@
+"""cefc-eval --protocol table5/table6/table7: the high level's game (Tables V, VI and VII) on particles
+or quadrotors, beside the paper's rows; optional report folder, JSON, and (table5 with --policy) one
+recorded game with its message-similarity matrices."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from cefc_mj.cli.eval_common import PROG, wind_direction_text, write_outputs
+from cefc_mj.errors import ConfigError
+from cefc_mj.eval.highlevel import (
+    GAME_AGENTS, GAME_STEPS, LOW_LEVEL, TABLE7_SIZES, format_highlevel_table, game_task, highlevel_policy_path,
+    plot_highlevel_table, resolve_adversary, run_table5, run_table6, run_table7,
+)
+from cefc_mj.eval.requests import GameTablesRequest
+from cefc_mj.eval.runner import provenance
+from cefc_mj.hierarchy import DECISION_INTERVAL, load_low_level
+from cefc_mj.nn.highlevel_policy import load_highlevel_policy
+from cefc_mj.provenance import file_sha256
+
+
+def check(request: GameTablesRequest) -> dict:
+    """Before anything flies: the played policy's file (with messages to draw, for --png) and the
+    adversary's (a rule, or a trained adversary's file, loaded). Returns the run's provenance."""
+    if request.played_policy is not None:
+        path = highlevel_policy_path(request.played_policy)  # a missing file fails before any episode
+        if request.png is not None and load_highlevel_policy(path)[0].comm is None:
+            raise ConfigError(f"--png: {request.policy} sends no messages (no communication), so there is no "
+                              "similarity to draw; drop --png")
+    if request.protocol in ("table5", "table7"):  # a missing or broken adversary file fails before any episode
+        resolve_adversary(request.played_adversary)
+    return provenance("atm", [])  # the tables record each row's file and sha256 themselves
+
+
+def run(request: GameTablesRequest, prov: dict, command: str) -> int:
+    """Play the table's games, print it, write the outputs and (table5 with --policy) record one game."""
+    proto, where = request.protocol, request.conditions
+    if request.policy:
+        playing = f"policy {request.policy}"
+    else:
+        playing = "every method" if proto == "table5" else request.played_policy
+    uavs = "N = " + ", ".join(map(str, TABLE7_SIZES)) if proto == "table7" else str(GAME_AGENTS)
+    wind = {"wind": where.wind, "wind_direction": where.wind_direction}
+    world = f"mujoco (iris airframe{wind_direction_text(wind)})" if where.backend == "mujoco" else where.backend
+    print(f"{PROG} {proto}: {world}, wind {where.wind:g} m/s, deviation {where.deviation:g} m, {uavs} UAVs, "
+          f"{request.episodes} episodes x {GAME_STEPS} steps, seed {request.seed}, {playing}")
+    prov = {k: v for k, v in prov.items() if k != "policies"}
+    common = {"episodes": request.episodes, "seed": request.seed, "provenance": prov, "where": where}
+    if proto == "table5":
+        result = run_table5(policy=request.policy, adversary=request.played_adversary, **common)
+    elif proto == "table6":
+        result = run_table6(policy=request.played_policy, **common)
+    else:
+        result = run_table7(policy=request.played_policy, adversary=request.played_adversary, **common)
+    result["protocol"]["command"] = command
+    text = format_highlevel_table(result)
+    print(text)
+    data = json.dumps(result, indent=2) + "\n"
+    writes: list[tuple[Path, object]] = []
+    if request.report_dir is not None:
+        out = request.report_dir
+        writes += [(out / f"{proto}.md", f"# {proto}\n\n```\n{text}\n```\n\nCommand: `{command}`\n"),
+                   (out / f"{proto}.json", data),
+                   (out / f"{proto}.png", lambda path: plot_highlevel_table(result, path))]
+    if request.json is not None:
+        writes.append((request.json, data))
+    write_outputs(writes)
+    if request.rrd is not None or request.png is not None:
+        for path in _record_game(request):
+            print(f"wrote {path}")
+    return 0
+
+
+def _record_game(request: GameTablesRequest) -> list[Path]:
+    """--rrd / --png of table5: one game with --seed, flown by the evaluated policy, recorded (the
+    same game as a one-episode evaluation with that seed)."""
+    from cefc_mj.viz.highlevel_log import (  # imports rerun
+        play_highlevel_episode, plot_similarity_matrices, record_highlevel_episode,
+    )
+
+    seed = request.seed
+    path = highlevel_policy_path(request.policy)
+    policy, meta = load_highlevel_policy(path)
+    adversary = request.played_adversary
+    kind, adversary_policy, _ = resolve_adversary(adversary)
+    task = game_task(kind, deviation=request.conditions.deviation)
+    episode = play_highlevel_episode(policy, task, load_low_level(LOW_LEVEL, task), seed=seed,
+                                     world=request.conditions.world(task, 1, seed),
+                                     decision_interval=int(meta.get("decision_interval", DECISION_INTERVAL)),
+                                     adversary_policy=adversary_policy)
+    episode.policy, episode.policy_sha256 = path.stem, file_sha256(path)
+    episode.adversary_rule = adversary if adversary_policy is None else f"{adversary} (trained)"
+    written: list[Path] = []
+    if request.rrd is not None:
+        request.rrd.parent.mkdir(parents=True, exist_ok=True)
+        written.append(record_highlevel_episode(episode, request.rrd, recording_id=f"{path.stem}_s{seed}"))
+    if request.png is not None:
+        request.png.mkdir(parents=True, exist_ok=True)
+        written.append(plot_similarity_matrices(episode, request.png / f"similarity_{path.stem}_s{seed}.png"))
+    return written
