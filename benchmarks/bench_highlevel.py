@@ -38,9 +38,15 @@ TARGET_US = 500.0
 
 def agent_inbox(inbox: Inbox, env: int, agent: int) -> Inbox:
     """The inbox of one agent as a batch of one ([1, 1, ...] arrays)."""
-    pick = lambda a: a[env:env + 1, agent:agent + 1]  # noqa: E731
-    return Inbox(pick(inbox.messages), pick(inbox.mask), pick(inbox.distance), pick(inbox.sender),
-                 pick(inbox.received), pick(inbox.own))
+    pick = lambda a: a[env : env + 1, agent : agent + 1]  # noqa: E731
+    return Inbox(
+        pick(inbox.messages),
+        pick(inbox.mask),
+        pick(inbox.distance),
+        pick(inbox.sender),
+        pick(inbox.received),
+        pick(inbox.own),
+    )
 
 
 def best_us(fn, repeat: int, rounds: int) -> float:
@@ -61,8 +67,9 @@ def main() -> None:
     parser.add_argument("--repeat", type=int, default=300, help="calls per round (default 300)")
     parser.add_argument("--rounds", type=int, default=5, help="rounds, best taken (default 5)")
     parser.add_argument("--eager", action="store_true", help="also time the eager paths (decide, Policy.act)")
-    parser.add_argument("--smoke", action="store_true",
-                        help="decision 2, one round of 5 calls: the same code path in seconds")
+    parser.add_argument(
+        "--smoke", action="store_true", help="decision 2, one round of 5 calls: the same code path in seconds"
+    )
     args = parser.parse_args()
     if args.smoke:
         args.decision, args.repeat, args.rounds = 2, 5, 1
@@ -85,9 +92,9 @@ def main() -> None:
     inbox = channel.receive(env.world.agent_pos) if policy.comm is not None else None
     received = inbox.received[0] if inbox is not None else np.zeros(task.n_agents, dtype=int)
     agent = int(np.argmax(received))  # the agent with the most neighbours: the costliest attention
-    agent_obs = obs[:, agent:agent + 1]
+    agent_obs = obs[:, agent : agent + 1]
     one_inbox = agent_inbox(inbox, 0, agent) if inbox is not None else None
-    low_obs = env.low_level_observation()[:, agent:agent + 1]
+    low_obs = env.low_level_observation()[:, agent : agent + 1]
     decider = policy.agent_decider()
     student = load_policy(resolve_policy_path(LOW_LEVEL))  # the game's low level, as the evaluators fly it
     low_act = student.actor.deterministic_actions
@@ -98,19 +105,26 @@ def main() -> None:
     high_us = best_us(lambda: decider(agent_obs, one_inbox), args.repeat, args.rounds)
     low_us = best_us(lambda: low_act(low_obs), args.repeat, args.rounds)
     full_us = high_us + low_us
-    print(f"policy {path.name} ({policy.variant}), decision {args.decision}, agent {agent} with "
-          f"{int(received[agent])} received messages, one torch thread, best of {args.rounds} x {args.repeat}")
+    print(
+        f"policy {path.name} ({policy.variant}), decision {args.decision}, agent {agent} with "
+        f"{int(received[agent])} received messages, one torch thread, best of {args.rounds} x {args.repeat}"
+    )
     print(f"  high level (ConsMAC + selector)  {high_us:8.1f} us")
     print(f"  low level (student, reference)   {low_us:8.1f} us")
-    print(f"  full decision                    {full_us:8.1f} us = {full_us / low_us:.2f} x the low level alone; "
-          f"target <= {TARGET_US:.0f} us: {'met' if full_us <= TARGET_US else 'NOT met'} "
-          f"({full_us / TARGET_US:.2f} of it)")
+    print(
+        f"  full decision                    {full_us:8.1f} us = {full_us / low_us:.2f} x the low level alone; "
+        f"target <= {TARGET_US:.0f} us: {'met' if full_us <= TARGET_US else 'NOT met'} "
+        f"({full_us / TARGET_US:.2f} of it)"
+    )
     if args.eager:
         with torch.inference_mode():
             eager_high = best_us(lambda: policy.decide(agent_obs, one_inbox), args.repeat, args.rounds)
             eager_low = best_us(lambda: student.act(low_obs), args.repeat, args.rounds)
-        print(f"  eager paths: decide {eager_high:.1f} us ({eager_high / high_us:.2f} x the traced), "
-              f"Policy.act {eager_low:.1f} us ({eager_low / low_us:.2f} x)")
+        print(
+            f"  eager paths: decide {eager_high:.1f} us ({eager_high / high_us:.2f} x the traced), "
+            f"Policy.act {eager_low:.1f} us ({eager_low / low_us:.2f} x)"
+        )
+
 
 if __name__ == "__main__":
     main()

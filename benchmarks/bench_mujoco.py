@@ -60,8 +60,13 @@ from cefc_mj.env import BatchedCEFCEnv
 from cefc_mj.eval import DEFAULT_POLICY
 from cefc_mj.eval.runner import TABLE8_DENSITY, EpisodeSpec, load_policy_for, run_episode
 from cefc_mj.nn.policy_io import Policy
-from cefc_mj.sim.mujoco_world import (AUTO_ACTUATORS_MAX_DRONES, MujocoWorld, MujocoWorldConfig, make_mujoco_world,
-                                      resolve_rotor_actuation)
+from cefc_mj.sim.mujoco_world import (
+    AUTO_ACTUATORS_MAX_DRONES,
+    MujocoWorld,
+    MujocoWorldConfig,
+    make_mujoco_world,
+    resolve_rotor_actuation,
+)
 from cefc_mj.task.config import TaskConfig
 from cefc_mj.task.observation import low_level_layout
 
@@ -134,13 +139,13 @@ def raw_rtf(model: mujoco.MjModel, qpos: np.ndarray, n_drones: int, seconds: flo
     actuators at m g / 4 each, or their weight in xfrc_applied without actuators)."""
     data = mujoco.MjData(model)
     data.qpos[:] = qpos
-    drones = data.qpos[:7 * n_drones].reshape(n_drones, 7)
+    drones = data.qpos[: 7 * n_drones].reshape(n_drones, 7)
     drones[:, 3:] = (1.0, 0.0, 0.0, 0.0)
     weight = model.body_mass[1] * -model.opt.gravity[2]
     if model.nu:
         data.ctrl[:] = weight / 4.0
     else:
-        data.xfrc_applied[1:n_drones + 1, 2] = weight
+        data.xfrc_applied[1 : n_drones + 1, 2] = weight
     mujoco.mj_forward(model, data)
     n = int(round(seconds / model.opt.timestep))
     start = time.perf_counter()
@@ -209,8 +214,9 @@ def table8(args, policy: Policy) -> None:
             if variant == "now":
                 world = keep.world
                 raw = max(raw, raw_rtf(world.models[0], world.datas[0].qpos, world.n_drones, sim_seconds))
-                replay = max(replay, replay_rtf(replay_world.models[0], states, replay_world.n_substeps,
-                                                spec.task_config().dt))
+                replay = max(
+                    replay, replay_rtf(replay_world.models[0], states, replay_world.n_substeps, spec.task_config().dt)
+                )
     # breakdown: one instrumented episode (timers add a little overhead of their own)
     timers: dict[str, float] = {}
     timed_actor = _PolicyLike(policy, _timed(policy.actor.deterministic_actions, timers, "policy"))
@@ -219,28 +225,42 @@ def table8(args, policy: Policy) -> None:
     ms = {k: v / result.steps * 1e3 for k, v in timers.items()}
     rest = result.wall_s / result.steps * 1e3 - sum(ms.values())
 
-    print(f"Table VIII episode: c = {spec.formation}, {spec.condition}, {spec.steps} decision steps, seed {spec.seed}, "
-          f"policy {policy.name}, rotor_actuation {replay_world.config.rotor_actuation!r} -> "
-          f"{replay_world.rotor_actuation_used!r}; best of {args.rounds}")
+    print(
+        f"Table VIII episode: c = {spec.formation}, {spec.condition}, {spec.steps} decision steps, seed {spec.seed}, "
+        f"policy {policy.name}, rotor_actuation {replay_world.config.rotor_actuation!r} -> "
+        f"{replay_world.rotor_actuation_used!r}; best of {args.rounds}"
+    )
     print(f"  raw mj_step, same model, the episode's own states:  RTF {replay:7.1f}")
     print(f"  raw mj_step, same model, drones hovering at start:   RTF {raw:7.1f}")
     for variant in variants:
         f, n, c = metrics[variant]
-        print(f"  eval loop ({variant:>6}):     RTF {loop[variant]:7.1f}   "
-              f"loop / raw mj_step = {loop[variant] / replay:.3f} (hovering: {loop[variant] / raw:.3f})   "
-              f"F / N / C = {f:.0f} / {n:.0f} / {c:.2f}")
+        print(
+            f"  eval loop ({variant:>6}):     RTF {loop[variant]:7.1f}   "
+            f"loop / raw mj_step = {loop[variant] / replay:.3f} (hovering: {loop[variant] / raw:.3f})   "
+            f"F / N / C = {f:.0f} / {n:.0f} / {c:.2f}"
+        )
     if args.before:
         print(f"  speed-up now / before: x{loop['now'] / loop['before']:.2f}")
-    print(f"  ms per decision step (instrumented episode): world.step {ms['world.step']:.3f}, LiDAR {ms['world.lidar']:.3f}, "
-          f"policy {ms['policy']:.3f}, task core + observations {rest:.3f}")
+    print(
+        f"  ms per decision step (instrumented episode): world.step {ms['world.step']:.3f}, "
+        f"LiDAR {ms['world.lidar']:.3f}, "
+        f"policy {ms['policy']:.3f}, task core + observations {rest:.3f}"
+    )
 
 
 def sweep_config(n: int) -> TaskConfig:
     """Formation task for n drones: start square and arena grown with n (the start density of c = 8 in the
     4 m x 4 m square at most), Table VIII obstacle density."""
     start = max(2.0, math.sqrt(n / 8.0) * 2.0)
-    return TaskConfig(n_agents=n, mode="formation", obstacle_density=TABLE8_DENSITY, start_half_size=start,
-                      arena_half_size=start + 8.0, anchor_half_size=start + 4.0, episode_steps=10_000)
+    return TaskConfig(
+        n_agents=n,
+        mode="formation",
+        obstacle_density=TABLE8_DENSITY,
+        start_half_size=start,
+        arena_half_size=start + 8.0,
+        anchor_half_size=start + 4.0,
+        episode_steps=10_000,
+    )
 
 
 def nearest_slots(config: TaskConfig, slots: int = 7) -> np.ndarray:
@@ -248,8 +268,15 @@ def nearest_slots(config: TaskConfig, slots: int = 7) -> np.ndarray:
     come nearest first): what a c = 8 policy reads."""
     layout = low_level_layout(config)
     cols = np.arange(layout.size)
-    return np.concatenate([cols[layout["anchor"]], cols[layout["own_velocity"]], cols[layout["neighbours"]][:4 * slots],
-                           cols[layout["neighbour_mask"]][:slots], cols[layout["lidar"]]])
+    return np.concatenate(
+        [
+            cols[layout["anchor"]],
+            cols[layout["own_velocity"]],
+            cols[layout["neighbours"]][: 4 * slots],
+            cols[layout["neighbour_mask"]][:slots],
+            cols[layout["lidar"]],
+        ]
+    )
 
 
 def swarm_loop(n: int, mode: str, policy: Policy, steps: int, seed: int) -> tuple[float, dict, MujocoWorld]:
@@ -278,13 +305,17 @@ def swarm_loop(n: int, mode: str, policy: Policy, steps: int, seed: int) -> tupl
 
 def sweep(args, policy: Policy) -> None:
     drones = [int(x) for x in args.sweep.split(",")]
-    print(f"\nDrones sweep: one world, formation mode, policy {policy.name} on the 7 nearest neighbour slots, "
-          f"{args.sweep_steps} decision steps, best of {args.rounds}; cost = wall us per drone per simulated second, "
-          f"parts in us per drone per decision step")
+    print(
+        f"\nDrones sweep: one world, formation mode, policy {policy.name} on the 7 nearest neighbour slots, "
+        f"{args.sweep_steps} decision steps, best of {args.rounds}; cost = wall us per drone per simulated second, "
+        f"parts in us per drone per decision step"
+    )
     for mode in args.sweep_rotors.split(","):
         print(f"rotor_actuation = {mode!r}")
-        print(f"{'drones':>7} {'loop RTF':>9} {'raw RTF':>8} {'loop/raw':>9} {'cost/drone':>11} {f'vs {drones[0]}':>7}"
-              f"   {'world.step':>10} {'LiDAR':>6} {'policy':>7} {'task':>6}")
+        print(
+            f"{'drones':>7} {'loop RTF':>9} {'raw RTF':>8} {'loop/raw':>9} {'cost/drone':>11} {f'vs {drones[0]}':>7}"
+            f"   {'world.step':>10} {'LiDAR':>6} {'policy':>7} {'task':>6}"
+        )
         reference = None
         for n in drones:
             best, best_raw, parts = 0.0, 0.0, {}
@@ -292,12 +323,15 @@ def sweep(args, policy: Policy) -> None:
                 rtf, round_parts, world = swarm_loop(n, mode, policy, args.sweep_steps, args.seed)
                 if rtf > best:
                     best, parts = rtf, round_parts
-                best_raw = max(best_raw, raw_rtf(world.models[0], world.datas[0].qpos, world.n_drones,
-                                                 args.sweep_steps * world.dt))
+                best_raw = max(
+                    best_raw, raw_rtf(world.models[0], world.datas[0].qpos, world.n_drones, args.sweep_steps * world.dt)
+                )
             cost = 1e6 / (best * n)
             reference = reference or cost
-            print(f"{n:>7} {best:>9.1f} {best_raw:>8.1f} {best / best_raw:>9.3f} {cost:>11.1f} {cost / reference:>7.2f}"
-                  f"   {parts['world.step']:>10.1f} {parts['lidar']:>6.1f} {parts['policy']:>7.1f} {parts['task']:>6.1f}")
+            print(
+                f"{n:>7} {best:>9.1f} {best_raw:>8.1f} {best / best_raw:>9.3f} {cost:>11.1f} {cost / reference:>7.2f}"
+                f"   {parts['world.step']:>10.1f} {parts['lidar']:>6.1f} {parts['policy']:>7.1f} {parts['task']:>6.1f}"
+            )
 
 
 ROTOR_PATHS = ("actuators", "external")
@@ -306,9 +340,11 @@ ROTOR_PATHS = ("actuators", "external")
 def scaling(args, policy: Policy) -> None:
     """(iii): both rotor paths per N, interleaved round by round, best of args.rounds."""
     drones = [int(x) for x in args.scaling.split(",")]
-    print(f"\nRotor paths by swarm size: one world, formation mode, policy {policy.name} on the 7 nearest "
-          f"neighbour slots, {args.scaling_steps} decision steps, both paths interleaved, best of {args.rounds}; "
-          f"RTF = x real time (full loop; raw: mj_step alone, drones hovering)")
+    print(
+        f"\nRotor paths by swarm size: one world, formation mode, policy {policy.name} on the 7 nearest "
+        f"neighbour slots, {args.scaling_steps} decision steps, both paths interleaved, best of {args.rounds}; "
+        f"RTF = x real time (full loop; raw: mj_step alone, drones hovering)"
+    )
     for n in drones:
         loop = {m: 0.0 for m in ROTOR_PATHS}
         raw = {m: 0.0 for m in ROTOR_PATHS}
@@ -317,13 +353,17 @@ def scaling(args, policy: Policy) -> None:
                 rtf, _, world = swarm_loop(n, mode, policy, args.scaling_steps, args.seed)
                 assert world.rotor_actuation_used == mode
                 loop[mode] = max(loop[mode], rtf)
-                raw[mode] = max(raw[mode], raw_rtf(world.models[0], world.datas[0].qpos, world.n_drones,
-                                                   args.scaling_steps * world.dt))
-        print(f"{n:>5} drones   actuators: loop RTF {loop['actuators']:7.2f} (raw {raw['actuators']:7.2f})   "
-              f"external: loop RTF {loop['external']:7.2f} (raw {raw['external']:7.2f})   "
-              f"external / actuators x{loop['external'] / loop['actuators']:.2f} "
-              f"(raw x{raw['external'] / raw['actuators']:.2f})   auto -> {resolve_rotor_actuation('auto', n)}",
-              flush=True)
+                raw[mode] = max(
+                    raw[mode],
+                    raw_rtf(world.models[0], world.datas[0].qpos, world.n_drones, args.scaling_steps * world.dt),
+                )
+        print(
+            f"{n:>5} drones   actuators: loop RTF {loop['actuators']:7.2f} (raw {raw['actuators']:7.2f})   "
+            f"external: loop RTF {loop['external']:7.2f} (raw {raw['external']:7.2f})   "
+            f"external / actuators x{loop['external'] / loop['actuators']:.2f} "
+            f"(raw x{raw['external'] / raw['actuators']:.2f})   auto -> {resolve_rotor_actuation('auto', n)}",
+            flush=True,
+        )
 
 
 SMOKE = dict(steps=10, rounds=1, sweep_steps=3, scaling_steps=3)
@@ -336,18 +376,30 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--formation", type=int, default=8, help="c: UAVs in the group (5..8, shipped policies)")
     parser.add_argument("--wind", type=float, default=0.0, help="mean wind speed (m/s)")
-    parser.add_argument("--steps", type=int, default=1000, help="decision steps per episode (Table VIII: 1000; 0 skips (i))")
+    parser.add_argument(
+        "--steps", type=int, default=1000, help="decision steps per episode (Table VIII: 1000; 0 skips (i))"
+    )
     parser.add_argument("--rounds", type=int, default=3, help="alternating rounds (best kept)")
     parser.add_argument("--seed", type=int, default=0, help="episode seed (the same layout every round)")
     parser.add_argument("--before", action="store_true", help="also the loop before the speed-ups (same numbers)")
     parser.add_argument("--sweep", default="", help="comma-separated drone counts for the scaling sweep (ii)")
     parser.add_argument("--sweep-steps", type=int, default=100, help="decision steps per sweep run")
-    parser.add_argument("--sweep-rotors", default="external", help="rotor_actuation modes for the sweep, comma-separated")
-    parser.add_argument("--scaling", nargs="?", const="8,64,256", default="",
-                        help="(iii): comma-separated drone counts flown with both rotor paths (default 8,64,256)")
+    parser.add_argument(
+        "--sweep-rotors", default="external", help="rotor_actuation modes for the sweep, comma-separated"
+    )
+    parser.add_argument(
+        "--scaling",
+        nargs="?",
+        const="8,64,256",
+        default="",
+        help="(iii): comma-separated drone counts flown with both rotor paths (default 8,64,256)",
+    )
     parser.add_argument("--scaling-steps", type=int, default=50, help="decision steps per scaling run")
-    parser.add_argument("--smoke", action="store_true",
-                        help="tiny sizes, one round: every asked-for mode runs in seconds (tests/test_benchmarks.py)")
+    parser.add_argument(
+        "--smoke",
+        action="store_true",
+        help="tiny sizes, one round: every asked-for mode runs in seconds (tests/test_benchmarks.py)",
+    )
     args = parser.parse_args()
     if args.smoke:
         for name, value in SMOKE.items():

@@ -35,8 +35,9 @@ def main() -> None:
         args.steps, args.repeats = 20, 1
 
     airframe = MJCF_DIR / "iris.xml" if (MJCF_DIR / "iris.xml").is_file() else TEST_AIRFRAME
-    record = synthetic_record(n_steps=args.steps, n_agents=args.agents, n_beams=args.beams,
-                              airframe_parts=airframe_parts_from_mjcf(airframe))
+    record = synthetic_record(
+        n_steps=args.steps, n_agents=args.agents, n_beams=args.beams, airframe_parts=airframe_parts_from_mjcf(airframe)
+    )
     log_s, close_s, size = [], [], 0
     with tempfile.TemporaryDirectory() as tmp:
         for k in range(args.repeats):
@@ -52,16 +53,22 @@ def main() -> None:
             size = path.stat().st_size
     total = statistics.median(a + b for a, b in zip(log_s, close_s))
     sim_s = args.steps * record.dt
-    print(f"episode: {args.steps} steps x {args.agents} UAVs x {args.beams} beams, airframe {airframe.name} "
-          f"({len(record.airframe_parts)} parts)")
-    print(f"log_episode      median {statistics.median(log_s) * 1e3:7.1f} ms  "
-          f"({statistics.median(log_s) / args.steps * 1e3:.3f} ms a step)")
+    print(
+        f"episode: {args.steps} steps x {args.agents} UAVs x {args.beams} beams, airframe {airframe.name} "
+        f"({len(record.airframe_parts)} parts)"
+    )
+    print(
+        f"log_episode      median {statistics.median(log_s) * 1e3:7.1f} ms  "
+        f"({statistics.median(log_s) / args.steps * 1e3:.3f} ms a step)"
+    )
     print(f"flush + close    median {statistics.median(close_s) * 1e3:7.1f} ms")
     print(f"total            median {total * 1e3:7.1f} ms   .rrd size {size / 1e6:.1f} MB")
     for speed in (30, 110):
         episode_s = sim_s / speed
-        print(f"overhead vs a {sim_s:.0f} s episode at {speed:3d}x real time ({episode_s:.2f} s): "
-              f"{100 * total / episode_s:5.1f} %")
+        print(
+            f"overhead vs a {sim_s:.0f} s episode at {speed:3d}x real time ({episode_s:.2f} s): "
+            f"{100 * total / episode_s:5.1f} %"
+        )
 
 
 if __name__ == "__main__":

@@ -84,8 +84,9 @@ def make_env(
     config = make_task_config(n_agents=n_agents, deviation=deviation, **task_options)
     if backend == "mujoco" and render_mode == "rgb_array":
         prefer_headless_gl()  # before the world imports mujoco, which reads MUJOCO_GL once
-    world = make_world(backend, config, n_envs=1, wind=wind, seed=seed, airframe=airframe,
-                       wind_direction=wind_direction)
+    world = make_world(
+        backend, config, n_envs=1, wind=wind, seed=seed, airframe=airframe, wind_direction=wind_direction
+    )
     return CEFCParallelEnv(BatchedCEFCEnv(config, n_envs=1, seed=seed, world=world), render_mode=render_mode)
 
 

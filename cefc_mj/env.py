@@ -23,8 +23,12 @@ from cefc_mj.errors import ConfigError
 from cefc_mj.sim.particle import ParticleWorld
 from cefc_mj.sim.world import World
 from cefc_mj.task import rewards as R
-from cefc_mj.task.adversary import (adversary_goal, adversary_observation, pursuit_velocity,
-                                    velocity_tracking_acceleration)
+from cefc_mj.task.adversary import (
+    adversary_goal,
+    adversary_observation,
+    pursuit_velocity,
+    velocity_tracking_acceleration,
+)
 from cefc_mj.task.config import LEARNED_ADVERSARY, TaskConfig
 from cefc_mj.task.deviation import sample_deviation
 from cefc_mj.task.estimator import FusedPositionEstimate
@@ -43,8 +47,14 @@ class BatchedCEFCEnv:
     Episodes of all envs end together after `config.steps` steps; `reset(mask)` restarts some.
     """
 
-    def __init__(self, config: TaskConfig, n_envs: int = 1, seed: int | None = 0, world: World | None = None,
-                 adversary_policy=None):
+    def __init__(
+        self,
+        config: TaskConfig,
+        n_envs: int = 1,
+        seed: int | None = 0,
+        world: World | None = None,
+        adversary_policy=None,
+    ):
         """adversary_policy: with config.adversary = "learned", a callable mapping the adversary's
         observation [B, D] (`adversary_observation`) to its acceleration setpoint [B, 2] (m/s^2),
         called at every step (e.g. a loaded `nn.adversary_policy.AdversaryPolicy`)."""
@@ -54,8 +64,10 @@ class BatchedCEFCEnv:
         if learned and adversary_policy is None:
             raise ConfigError("adversary='learned': give the env an adversary_policy (a trained adversary)")
         if adversary_policy is not None and not learned:
-            raise ConfigError(f"adversary_policy: flies only the 'learned' adversary of cefc mode (this task: "
-                              f"mode={config.mode!r}, adversary={config.adversary!r})")
+            raise ConfigError(
+                f"adversary_policy: flies only the 'learned' adversary of cefc mode (this task: "
+                f"mode={config.mode!r}, adversary={config.adversary!r})"
+            )
         self.adversary_policy = adversary_policy
         if config.mode == "formation" and config.n_agents < 3:
             raise ConfigError(f"n_agents={config.n_agents}: formation mode needs a group of at least 3 agents")
@@ -96,8 +108,9 @@ class BatchedCEFCEnv:
         """The current observation [B, N, D] (what the last reset or step returned)."""
         return self._obs
 
-    def reset(self, mask: np.ndarray | None = None, seed: int | None = None,
-              scenario: Scenario | None = None) -> np.ndarray:
+    def reset(
+        self, mask: np.ndarray | None = None, seed: int | None = None, scenario: Scenario | None = None
+    ) -> np.ndarray:
         """Start new episodes in the masked envs (all by default); returns obs [B, N, D] of all envs.
         `scenario` (one layout per masked env) replaces the sampled one, e.g. a hand-built situation."""
         if seed is not None:
@@ -116,7 +129,9 @@ class BatchedCEFCEnv:
             check_scenario(self.config, scenario, count)
         full = lambda arr, like: _scatter(mask, arr, like)  # noqa: E731 - expand masked rows to [B, ...]
         self.world.reset(
-            mask, full(scenario.agent_pos, self.world.agent_pos), full(scenario.adversary_pos, self.world.adversary_pos),
+            mask,
+            full(scenario.agent_pos, self.world.agent_pos),
+            full(scenario.adversary_pos, self.world.adversary_pos),
             full(scenario.obstacles, self.obstacles),
         )
         self.obstacles[mask] = scenario.obstacles
@@ -221,8 +236,14 @@ class BatchedCEFCEnv:
             obs = build_low_level_observation(cfg, self.perceived_pos, world.agent_vel, self.anchor, self.lidar)
         else:
             obs = build_cefc_observation(
-                cfg, self.perceived_pos, world.agent_vel, self.targets, self.urgency,
-                world.adversary_pos, world.adversary_vel, self.lidar,
+                cfg,
+                self.perceived_pos,
+                world.agent_vel,
+                self.targets,
+                self.urgency,
+                world.adversary_pos,
+                world.adversary_vel,
+                self.lidar,
             )
         self._obs[mask] = obs[mask]
 
@@ -230,24 +251,39 @@ class BatchedCEFCEnv:
         """The velocity [B, 2] a rule adversary (task/adversary.py) wants at this step."""
         cfg = self.config
         goal = adversary_goal(rule, self.world.adversary_pos, self.world.agent_pos, self.group_size, self.group_centre)
-        return pursuit_velocity(goal, self.world.adversary_pos, cfg.adversary_speed_max,
-                                obstacles=self.obstacles if cfg.adversary_avoids_obstacles else None,
-                                keep_out=cfg.obstacle_radius + cfg.uav_radius)
+        return pursuit_velocity(
+            goal,
+            self.world.adversary_pos,
+            cfg.adversary_speed_max,
+            obstacles=self.obstacles if cfg.adversary_avoids_obstacles else None,
+            keep_out=cfg.obstacle_radius + cfg.uav_radius,
+        )
 
     def rule_adversary_acceleration(self, rule: str) -> np.ndarray:
         """The acceleration [B, 2] a rule adversary (task/adversary.py) commands at this step."""
         cfg = self.config
-        return velocity_tracking_acceleration(self.rule_adversary_velocity(rule), self.world.adversary_vel,
-                                              cfg.accel_max, cfg.dt)
+        return velocity_tracking_acceleration(
+            self.rule_adversary_velocity(rule), self.world.adversary_vel, cfg.accel_max, cfg.dt
+        )
 
     def adversary_observation(self) -> np.ndarray:
         """The learned adversary's observation [B, D] of the current step (task/adversary.py)."""
         world, cfg = self.world, self.config
         goal = adversary_goal("nearest_group", world.adversary_pos, world.agent_pos, self.group_size, self.group_centre)
-        return adversary_observation(world.adversary_pos, world.adversary_vel, goal, world.agent_pos, world.agent_vel,
-                                     np.take_along_axis(self.group_size, self.labels, axis=1), self.obstacles,
-                                     cfg.arena_half_size, cfg.adversary_speed_max,
-                                     cfg.obstacle_radius + cfg.uav_radius, self.group_centre, self.group_size)
+        return adversary_observation(
+            world.adversary_pos,
+            world.adversary_vel,
+            goal,
+            world.agent_pos,
+            world.agent_vel,
+            np.take_along_axis(self.group_size, self.labels, axis=1),
+            self.obstacles,
+            cfg.arena_half_size,
+            cfg.adversary_speed_max,
+            cfg.obstacle_radius + cfg.uav_radius,
+            self.group_centre,
+            self.group_size,
+        )
 
     def _rewards(self, pos, group_error, group_size, group_centre, centre_distance):
         cfg, w = self.config, self.config.rewards

@@ -104,8 +104,10 @@ def check_reachable(address: str, timeout_s: float = CONNECT_TIMEOUT_S) -> None:
     try:
         socket.create_connection((host, port), timeout=timeout_s).close()
     except OSError as e:
-        raise ConfigError(f"--address {address}: no Ray head answers there ({e.strerror or e}); "
-                          "is `ray start --head` running on that machine and port?") from None
+        raise ConfigError(
+            f"--address {address}: no Ray head answers there ({e.strerror or e}); "
+            "is `ray start --head` running on that machine and port?"
+        ) from None
 
 
 def import_ray():
@@ -137,13 +139,20 @@ def ray_session(executor: ExecutorConfig):
         if executor.address is not None:
             ray.init(address=executor.address, **quiet)
         else:
-            ray.init(address="local", num_cpus=executor.workers, include_dashboard=False,
-                     _node_ip_address=LOCAL_HOST, **quiet)
+            ray.init(
+                address="local",
+                num_cpus=executor.workers,
+                include_dashboard=False,
+                _node_ip_address=LOCAL_HOST,
+                **quiet,
+            )
     except BaseException as e:  # Ctrl-C or a failure half-way: stop what has started, disconnect
         ray.shutdown()
         if isinstance(e, ConnectionError):
-            raise ConfigError(f"--address {executor.address}: no Ray cluster answers there, or it asks for a token "
-                              "this machine lacks (RAY_AUTH_MODE=token and the token: docs/scaling.md)") from None
+            raise ConfigError(
+                f"--address {executor.address}: no Ray cluster answers there, or it asks for a token "
+                "this machine lacks (RAY_AUTH_MODE=token and the token: docs/scaling.md)"
+            ) from None
         raise
     try:
         yield ray
@@ -151,8 +160,13 @@ def ray_session(executor: ExecutorConfig):
         ray.shutdown()  # a local instance: its GCS, raylet and workers end here
 
 
-def map_unordered(fn: Callable[[Any], Any], items: Sequence, executor: ExecutorConfig | None = None,
-                  mp_context=None, ray_options: dict | None = None) -> Iterator[tuple[Any, Any]]:
+def map_unordered(
+    fn: Callable[[Any], Any],
+    items: Sequence,
+    executor: ExecutorConfig | None = None,
+    mp_context=None,
+    ray_options: dict | None = None,
+) -> Iterator[tuple[Any, Any]]:
     """Yield (item, fn(item)) for every item, in completion order.
 
     `fn` must be a module-level function (the local pool also takes a functools.partial of one), and

@@ -39,8 +39,8 @@ import numpy as np
 from cefc_mj.env import BatchedCEFCEnv
 from cefc_mj.errors import ConfigError
 from cefc_mj.nn.policy_io import Policy, load_policy, resolve_policy_path
-from cefc_mj.nn.selector import ANCHOR_VALUES, anchor_grid
 from cefc_mj.nn.registry import lowlevel_name
+from cefc_mj.nn.selector import ANCHOR_VALUES, anchor_grid
 from cefc_mj.provenance import display_path, file_sha256
 from cefc_mj.sim.world import World
 from cefc_mj.task.config import TaskConfig
@@ -84,13 +84,23 @@ class NavigationOnly:
 
     name = NAVIGATION
 
-    def __init__(self, layout_parts: tuple[tuple[str, int], ...], speed_max: float = 1.0, accel_max: float = 2.0,
-                 gain: float = 5.0, slow_radius: float = 1.0):
+    def __init__(
+        self,
+        layout_parts: tuple[tuple[str, int], ...],
+        speed_max: float = 1.0,
+        accel_max: float = 2.0,
+        gain: float = 5.0,
+        slow_radius: float = 1.0,
+    ):
         sizes = dict(layout_parts)
         if "anchor" not in sizes or "own_velocity" not in sizes:
             raise ConfigError("NavigationOnly: needs the low-level observation layout (anchor, own_velocity)")
-        for name, value in (("speed_max", speed_max), ("accel_max", accel_max), ("gain", gain),
-                            ("slow_radius", slow_radius)):
+        for name, value in (
+            ("speed_max", speed_max),
+            ("accel_max", accel_max),
+            ("gain", gain),
+            ("slow_radius", slow_radius),
+        ):
             if not np.isfinite(value) or value <= 0:
                 raise ConfigError(f"{name}={value!r}: must be a finite number > 0")
         layout = ObservationLayout(layout_parts)
@@ -110,8 +120,13 @@ class NavigationOnly:
         return np.clip(self.gain * (desired - velocity), -self.accel_max, self.accel_max)
 
     def describe(self) -> dict:
-        return {"name": self.name, "kind": "rule: fly at the anchor at top speed (no formation, no obstacles)",
-                "speed_max": self.speed_max, "gain": self.gain, "slow_radius": self.slow_radius}
+        return {
+            "name": self.name,
+            "kind": "rule: fly at the anchor at top speed (no formation, no obstacles)",
+            "speed_max": self.speed_max,
+            "gain": self.gain,
+            "slow_radius": self.slow_radius,
+        }
 
 
 class SharedPolicy:
@@ -155,8 +170,11 @@ class PerGroupPolicies:
         return actions
 
     def describe(self) -> dict:
-        return {"name": self.name, "kind": "the AT-M teacher of each agent's group size (c < 3: c = 3)",
-                "files": {str(c): _file_record(path) for c, (_, path) in sorted(self.policies.items())}}
+        return {
+            "name": self.name,
+            "kind": "the AT-M teacher of each agent's group size (c < 3: c = 3)",
+            "files": {str(c): _file_record(path) for c, (_, path) in sorted(self.policies.items())},
+        }
 
 
 def _file_record(path: Path) -> dict:
@@ -183,8 +201,10 @@ def load_low_level(spec: str, task: TaskConfig, policies_dir: Path | None = None
     policy = load_policy(path, obs_dim=expected)
     if policy.lidar_sees_agents != task.lidar_sees_agents:
         sees = "obstacles and UAVs" if policy.lidar_sees_agents else "obstacles only"
-        raise ConfigError(f"low level {spec!r} was trained with a LiDAR that sees {sees}, unlike this game's "
-                          f"(TaskConfig.lidar_sees_agents={task.lidar_sees_agents})")
+        raise ConfigError(
+            f"low level {spec!r} was trained with a LiDAR that sees {sees}, unlike this game's "
+            f"(TaskConfig.lidar_sees_agents={task.lidar_sees_agents})"
+        )
     return SharedPolicy(policy, path)
 
 
@@ -195,23 +215,34 @@ class HierarchicalCEFCEnv:
     after `done`, call `reset()` (or `reset(mask)`).
     """
 
-    def __init__(self, task: TaskConfig, low_level: LowLevel, n_envs: int = 1, seed: int | None = 0,
-                 decision_interval: int = DECISION_INTERVAL, anchor_values: tuple[float, ...] = ANCHOR_VALUES,
-                 world: World | None = None, adversary_policy=None):
+    def __init__(
+        self,
+        task: TaskConfig,
+        low_level: LowLevel,
+        n_envs: int = 1,
+        seed: int | None = 0,
+        decision_interval: int = DECISION_INTERVAL,
+        anchor_values: tuple[float, ...] = ANCHOR_VALUES,
+        world: World | None = None,
+        adversary_policy=None,
+    ):
         """adversary_policy: the trained adversary of a task with adversary='learned' (BatchedCEFCEnv)."""
         if task.mode != "cefc":
             raise ConfigError(f"mode={task.mode!r}: the hierarchical game is the CEFC game (mode='cefc')")
         if not isinstance(decision_interval, int) or isinstance(decision_interval, bool) or decision_interval < 1:
             raise ConfigError(f"decision_interval={decision_interval!r}: must be an integer >= 1")
         if task.steps % decision_interval:
-            raise ConfigError(f"episode_steps={task.steps}: must be a multiple of the decision interval "
-                              f"{decision_interval}")
+            raise ConfigError(
+                f"episode_steps={task.steps}: must be a multiple of the decision interval {decision_interval}"
+            )
         needed = low_level_layout(task).size
         if getattr(low_level, "obs_dim", needed) != needed:
-            raise ConfigError(f"max_neighbours={task.neighbour_slots}: the low level {low_level.name!r} reads "
-                              f"{low_level.obs_dim} "
-                              f"numbers, this game's low-level observation has {needed} "
-                              f"({task.neighbour_slots} neighbour slots)")
+            raise ConfigError(
+                f"max_neighbours={task.neighbour_slots}: the low level {low_level.name!r} reads "
+                f"{low_level.obs_dim} "
+                f"numbers, this game's low-level observation has {needed} "
+                f"({task.neighbour_slots} neighbour slots)"
+            )
         self.task = task
         self.low_level = low_level
         self.decision_interval = decision_interval
@@ -299,8 +330,12 @@ class HierarchicalCEFCEnv:
             step_rewards.append(reward.copy())
             for name, value in info["reward_terms"].items():
                 term_sums[name] = term_sums.get(name, 0.0) + value
-        out = {"low_level_rewards": np.stack(step_rewards), "reward_terms": term_sums,
-               "anchors": self.anchors.copy(), "low_level_steps": self.decision_interval}
+        out = {
+            "low_level_rewards": np.stack(step_rewards),
+            "reward_terms": term_sums,
+            "anchors": self.anchors.copy(),
+            "low_level_steps": self.decision_interval,
+        }
         if "metrics" in info:
             out["metrics"] = info["metrics"]
         return obs.copy(), total, done.copy(), out

@@ -55,8 +55,12 @@ def main() -> None:
     """Print where the data folders were found, one `name: path` per line."""
     print(f"source: {DATA_SOURCE}")
     print(f"root: {PROJECT_ROOT}")
-    for name, folder in (("assets", ASSETS_DIR), ("controllers", CONTROLLERS_DIR), ("policies", POLICIES_DIR),
-                         ("eval", EVAL_DIR)):
+    for name, folder in (
+        ("assets", ASSETS_DIR),
+        ("controllers", CONTROLLERS_DIR),
+        ("policies", POLICIES_DIR),
+        ("eval", EVAL_DIR),
+    ):
         print(f"{name}: {folder}{'' if folder.is_dir() else '  (missing)'}")
 
 

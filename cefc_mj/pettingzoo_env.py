@@ -149,8 +149,9 @@ def state_bounds(config: TaskConfig, world) -> tuple[np.ndarray, np.ndarray]:
     low, high = [np.tile(agent_low, config.n_agents)], [np.tile(agent_high, config.n_agents)]
     if config.mode == "cefc":
         j = config.n_targets
-        rest = np.concatenate([[limits["adversary_reach"]] * 2, [limits["adversary_speed"]] * 2,
-                               np.full(2 * j, config.target_corner)])
+        rest = np.concatenate(
+            [[limits["adversary_reach"]] * 2, [limits["adversary_speed"]] * 2, np.full(2 * j, config.target_corner)]
+        )
         low += [-rest, np.zeros(j)]
         high += [rest, np.ones(j)]
     return np.concatenate(low).astype(np.float32), np.concatenate(high).astype(np.float32)
@@ -204,8 +205,9 @@ class CEFCParallelEnv(ParallelEnv):
 
     metadata = {"name": "cefc_v0", "render_modes": list(RENDER_MODES), "render_fps": 10}
 
-    def __init__(self, batched: BatchedCEFCEnv, render_mode: str | None = None,
-                 render_size: tuple[int, int] = RENDER_SIZE):
+    def __init__(
+        self, batched: BatchedCEFCEnv, render_mode: str | None = None, render_size: tuple[int, int] = RENDER_SIZE
+    ):
         if batched.n_envs != 1:
             raise ConfigError("CEFCParallelEnv wraps a BatchedCEFCEnv with n_envs=1")
         check_render_mode(render_mode)

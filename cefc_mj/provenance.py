@@ -109,8 +109,9 @@ def git_commit() -> str | None:
     if paths.CHECKOUT_ROOT is None:
         return None
     try:
-        out = subprocess.run(["git", "rev-parse", "HEAD"], cwd=paths.CHECKOUT_ROOT, capture_output=True, text=True,
-                             timeout=10)
+        out = subprocess.run(
+            ["git", "rev-parse", "HEAD"], cwd=paths.CHECKOUT_ROOT, capture_output=True, text=True, timeout=10
+        )
     except (OSError, subprocess.SubprocessError):
         return None
     return out.stdout.strip() if out.returncode == 0 else None
@@ -119,5 +120,7 @@ def git_commit() -> str | None:
 def version_line(prog: str) -> str:
     """What `--version` prints: the package version, code digest and the key libraries."""
     v = library_versions()
-    return (f"{prog} {v['cefc_mj']} (code {v['code_version']}); python {v['python']}, numpy {v['numpy']}, "
-            f"numba {v['numba']}, mujoco {v['mujoco']}, torch {v['torch']}")
+    return (
+        f"{prog} {v['cefc_mj']} (code {v['code_version']}); python {v['python']}, numpy {v['numpy']}, "
+        f"numba {v['numba']}, mujoco {v['mujoco']}, torch {v['torch']}"
+    )

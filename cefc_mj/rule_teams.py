@@ -40,11 +40,11 @@ class RuleTeam:
     def decide(self, obs: np.ndarray, inbox=None, deterministic: bool = True, generator=None):
         """(anchor index [B, N], None) for the game's current state; obs and inbox are not read."""
         env = self.game.env
-        targets, urgency = env.targets, env.urgency                      # [B, J, 2], [B, J]
+        targets, urgency = env.targets, env.urgency  # [B, J, 2], [B, J]
         b, n = env.n_envs, env.n_agents
         rows = np.arange(b)
         if self.name == "rule-urgent":
-            goal = targets[rows, urgency.argmax(axis=-1)]                 # [B, 2]
+            goal = targets[rows, urgency.argmax(axis=-1)]  # [B, 2]
             return np.repeat(self._anchor_of(goal)[:, None], n, axis=1), None
         if self.name == "rule-split":
             j = targets.shape[1]
@@ -52,8 +52,8 @@ class RuleTeam:
             if j == 2:  # a covered target's half goes to the other
                 choice = np.where(np.take_along_axis(urgency > 0, choice, axis=1), choice, 1 - choice)
             return self._anchor_of(np.take_along_axis(targets, choice[..., None], axis=1)), None
-        adversary = env.world.adversary_pos                               # rule-evade
-        away = np.linalg.norm(targets - adversary[:, None], axis=-1)     # [B, J]
+        adversary = env.world.adversary_pos  # rule-evade
+        away = np.linalg.norm(targets - adversary[:, None], axis=-1)  # [B, J]
         best = np.where(urgency > 0, away, -np.inf).argmax(axis=-1)
         goal = targets[rows, best]
         fallback = self.game.grid[np.linalg.norm(self.game.grid[None] - adversary[:, None], axis=-1).argmax(axis=-1)]

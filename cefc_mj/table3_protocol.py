@@ -25,5 +25,8 @@ def roll_out(env: BatchedCEFCEnv, obs: np.ndarray, act, steps: int) -> dict[str,
         per_agent = -np.linalg.norm(env.world.agent_pos - env.anchor[:, None], axis=-1).sum(axis=-1)
         navigation_swap += w_n * (per_agent - info["reward_terms"]["R_n"])
     metrics = info["metrics"]
-    return {"R_L": total / steps, "R_L_agents": (total + navigation_swap) / steps,
-            **{m: np.asarray(metrics[m], dtype=np.float64) for m in ("F", "N", "C")}}
+    return {
+        "R_L": total / steps,
+        "R_L_agents": (total + navigation_swap) / steps,
+        **{m: np.asarray(metrics[m], dtype=np.float64) for m in ("F", "N", "C")},
+    }

@@ -38,8 +38,9 @@ import numpy as np
 PROG = "anchor_approach.py"
 
 
-def anchor_periods(formation: int, seed: int, backend: str, policy,
-                   trace: dict | None = None) -> tuple[list[dict], float]:
+def anchor_periods(
+    formation: int, seed: int, backend: str, policy, trace: dict | None = None
+) -> tuple[list[dict], float]:
     """One Table VIII episode flown by `policy` (a loaded Policy): per anchor period its reach, start,
     approach, stays and bound; and the env's N. A `trace` dict receives the paths (positions [T, c, 2]
     after each step), each step's anchor (anchors [T, 2]) and the obstacles [M, 2]."""
@@ -57,30 +58,39 @@ def anchor_periods(formation: int, seed: int, backend: str, policy,
 
     fly(env, env.config.episode_steps, act, after_step=after_step)
     if trace is not None:
-        trace.update(positions=np.array(positions), anchors=np.array(anchors), obstacles=np.array(env.obstacles[0]),
-                     obstacle_radius=env.config.obstacle_radius)
+        trace.update(
+            positions=np.array(positions),
+            anchors=np.array(anchors),
+            obstacles=np.array(env.obstacles[0]),
+            obstacle_radius=env.config.obstacle_radius,
+        )
     periods = []
     for start in range(0, len(distances), TABLE8_ANCHOR_REDRAW):
-        d = np.array(distances[start:start + TABLE8_ANCHOR_REDRAW])
+        d = np.array(distances[start : start + TABLE8_ANCHOR_REDRAW])
         inside = d < tolerance
         reach = int(np.argmax(inside)) if inside.any() else len(d)
-        periods.append({
-            "reach": reach, "start": float(d[0]),
-            "approach": (d[0] - tolerance) / (max(reach, 1) * env.config.dt) if inside.any() else float("nan"),
-            "stays": float(inside[reach:].mean()) if inside.any() else 0.0,
-            "inside": int(inside.sum()),
-            "bound": len(d) - int(np.ceil(max(d[0] - tolerance, 0.0) / step_length - 1e-9)),
-        })
+        periods.append(
+            {
+                "reach": reach,
+                "start": float(d[0]),
+                "approach": (d[0] - tolerance) / (max(reach, 1) * env.config.dt) if inside.any() else float("nan"),
+                "stays": float(inside[reach:].mean()) if inside.any() else 0.0,
+                "inside": int(inside.sum()),
+                "bound": len(d) - int(np.ceil(max(d[0] - tolerance, 0.0) / step_length - 1e-9)),
+            }
+        )
     return periods, float(env.episode_metrics()["N"][0])
 
 
 def draw_episode(trace: dict, title: str, path: Path) -> None:
     """One panel per anchor period: each UAV's path (its start dotted black), the anchor, the obstacles."""
     import matplotlib
+
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from cefc_mj.fileio import atomic_write
+
     from cefc_mj.eval.runner import TABLE8_ANCHOR_REDRAW
+    from cefc_mj.fileio import atomic_write
 
     positions, anchors = trace["positions"], trace["anchors"]
     n_periods = len(positions) // TABLE8_ANCHOR_REDRAW
@@ -103,13 +113,19 @@ def draw_episode(trace: dict, title: str, path: Path) -> None:
 def parse(argv: list[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(prog=PROG, description=__doc__.splitlines()[0])
     parser.add_argument("--backend", choices=("particle", "mujoco"), default="particle")
-    parser.add_argument("--formations", type=int, nargs="+", default=[5, 6, 7, 8], metavar="C",
-                        help="group sizes c (default 5 6 7 8)")
+    parser.add_argument(
+        "--formations", type=int, nargs="+", default=[5, 6, 7, 8], metavar="C", help="group sizes c (default 5 6 7 8)"
+    )
     parser.add_argument("--seeds", type=int, default=5, help="episodes per c, seeds S..S+K-1 (default 5)")
     parser.add_argument("--seed", type=int, default=0, metavar="S", help="first seed (default 0, as cefc-eval)")
     parser.add_argument("--policy", default="atm", help="as cefc-eval's --policy (default atm: AT-M Step 3)")
-    parser.add_argument("--png", type=Path, default=None, metavar="DIR",
-                        help="also draw each episode's paths per anchor period into DIR/c<C>_seed<S>.png")
+    parser.add_argument(
+        "--png",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="also draw each episode's paths per anchor period into DIR/c<C>_seed<S>.png",
+    )
     args = parser.parse_args(argv)
     if any(c not in (3, 4, 5, 6, 7, 8) for c in args.formations):
         parser.exit(2, f"{PROG}: --formations {args.formations}: each c must be one of 3..8\n")
@@ -119,6 +135,7 @@ def parse(argv: list[str] | None) -> argparse.Namespace:
         parser.exit(2, f"{PROG}: --seed {args.seed}: must be at least 0\n")
     from cefc_mj.errors import CefcError
     from cefc_mj.eval.runner import load_policy_for
+
     try:
         args.loaded = {c: load_policy_for(args.policy, c) for c in args.formations}
     except CefcError as e:
@@ -126,6 +143,7 @@ def parse(argv: list[str] | None) -> argparse.Namespace:
     if args.png is not None:
         from cefc_mj.errors import ConfigError
         from cefc_mj.fileio import make_writable_folder
+
         try:
             make_writable_folder(args.png)
         except ConfigError as e:
@@ -135,9 +153,14 @@ def parse(argv: list[str] | None) -> argparse.Namespace:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse(argv)
-    print(f"{args.backend}, policy {args.policy}, seeds {args.seed}..{args.seed + args.seeds - 1}, means over the anchor periods")
-    print(f"{'c':>2} {'N':>7} {'bound':>6} {'reach (steps)':>14} {'start (m)':>10} {'approach (m/s)':>15} {'stays':>6} "
-          f"{'never':>6}")
+    print(
+        f"{args.backend}, policy {args.policy}, seeds {args.seed}..{args.seed + args.seeds - 1}, "
+        "means over the anchor periods"
+    )
+    print(
+        f"{'c':>2} {'N':>7} {'bound':>6} {'reach (steps)':>14} {'start (m)':>10} {'approach (m/s)':>15} {'stays':>6} "
+        f"{'never':>6}"
+    )
     for c in args.formations:
         periods, n_values, bounds = [], [], []
         for seed in range(args.seed, args.seed + args.seeds):
@@ -147,13 +170,18 @@ def main(argv: list[str] | None = None) -> int:
             n_values.append(n)
             bounds.append(sum(q["bound"] for q in p))
             if trace is not None:
-                draw_episode(trace, f"{args.backend}, policy {args.policy}, c = {c}, seed {seed}: N {n:.0f} "
-                             f"(bound {bounds[-1]})", args.png / f"c{c}_seed{seed}.png")
+                draw_episode(
+                    trace,
+                    f"{args.backend}, policy {args.policy}, c = {c}, seed {seed}: N {n:.0f} (bound {bounds[-1]})",
+                    args.png / f"c{c}_seed{seed}.png",
+                )
         arrived = [p for p in periods if p["approach"] == p["approach"]]  # nan: never arrived
-        print(f"{c:>2} {np.mean(n_values):7.1f} {np.mean(bounds):6.1f} {np.mean([p['reach'] for p in periods]):14.1f} "
-              f"{np.mean([p['start'] for p in periods]):10.2f} "
-              f"{np.mean([p['approach'] for p in arrived]) if arrived else float('nan'):15.2f} "
-              f"{np.mean([p['stays'] for p in arrived]) if arrived else 0.0:6.3f} {len(periods) - len(arrived):>6}")
+        print(
+            f"{c:>2} {np.mean(n_values):7.1f} {np.mean(bounds):6.1f} {np.mean([p['reach'] for p in periods]):14.1f} "
+            f"{np.mean([p['start'] for p in periods]):10.2f} "
+            f"{np.mean([p['approach'] for p in arrived]) if arrived else float('nan'):15.2f} "
+            f"{np.mean([p['stays'] for p in arrived]) if arrived else 0.0:6.3f} {len(periods) - len(arrived):>6}"
+        )
     return 0
 
 

@@ -42,19 +42,31 @@ class _Parser(argparse.ArgumentParser):
 
 def build_parser() -> argparse.ArgumentParser:
     p = _Parser(prog=PROG, description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--backend", choices=["particle", "mujoco"], default="particle",
-                   help="particle world (default) or MuJoCo quadrotors")
-    p.add_argument("--policy", default="atm_c6_step3", metavar="NAME|PATH",
-                   help="a policy name in policies/ or a .pt path (default atm_c6_step3)")
+    p.add_argument(
+        "--backend",
+        choices=["particle", "mujoco"],
+        default="particle",
+        help="particle world (default) or MuJoCo quadrotors",
+    )
+    p.add_argument(
+        "--policy",
+        default="atm_c6_step3",
+        metavar="NAME|PATH",
+        help="a policy name in policies/ or a .pt path (default atm_c6_step3)",
+    )
     p.add_argument("--agents", type=int, default=6, metavar="N", help="number of UAVs, 3..8 (default 6)")
-    p.add_argument("--steps", type=int, default=100, metavar="T",
-                   help=f"decision steps (0.1 s each), 1..{MAX_STEPS} (default 100)")
+    p.add_argument(
+        "--steps", type=int, default=100, metavar="T", help=f"decision steps (0.1 s each), 1..{MAX_STEPS} (default 100)"
+    )
     p.add_argument("--seed", type=int, default=0, metavar="S", help="scenario seed, >= 0 (default 0)")
-    p.add_argument("--density", type=float, default=0.03, metavar="D",
-                   help="obstacles per m^2, 0..0.1 (default 0.03)")
-    p.add_argument("--out", type=Path, default=None, metavar="PATH",
-                   help="where to write the recording, .gif or .rrd "
-                        "(default <temp folder>/cefc_fly_<policy>_<backend>.gif)")
+    p.add_argument("--density", type=float, default=0.03, metavar="D", help="obstacles per m^2, 0..0.1 (default 0.03)")
+    p.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        metavar="PATH",
+        help="where to write the recording, .gif or .rrd (default <temp folder>/cefc_fly_<policy>_<backend>.gif)",
+    )
     return p
 
 
@@ -94,9 +106,15 @@ def fly(args) -> int:
 
     torch.set_num_threads(1)  # a small network: intra-op threads only cost time
     as_gif = args.out.suffix == ".gif"
-    env = cefc_mj.make_env(backend=args.backend, n_agents=args.agents, mode="formation", seed=args.seed,
-                           obstacle_density=args.density, episode_steps=args.steps,
-                           render_mode="rgb_array" if as_gif else None)
+    env = cefc_mj.make_env(
+        backend=args.backend,
+        n_agents=args.agents,
+        mode="formation",
+        seed=args.seed,
+        obstacle_density=args.density,
+        episode_steps=args.steps,
+        render_mode="rgb_array" if as_gif else None,
+    )
     policy = load_policy(args.policy_path, obs_dim=env.layout.size)
     frames: list[np.ndarray] = []
     recorder = None if as_gif else RerunRecorder(env, rrd_path=args.out)
@@ -130,8 +148,12 @@ def write_gif(frames, path: Path, fps: int) -> None:
     from cefc_mj.fileio import atomic_write
 
     images = [Image.fromarray(f) for f in frames]
-    atomic_write(path, lambda fh: images[0].save(fh, format="GIF", save_all=True, append_images=images[1:],
-                                                 duration=round(1000 / fps), loop=0))
+    atomic_write(
+        path,
+        lambda fh: images[0].save(
+            fh, format="GIF", save_all=True, append_images=images[1:], duration=round(1000 / fps), loop=0
+        ),
+    )
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -56,8 +56,13 @@ def straggler_layout(formation: int, n_obstacles: int, case_seed: int):
     obstacles[1] = start + rng.uniform(1.0, 2.5) * ahead + rng.choice([-1.0, 1.0]) * rng.uniform(1.3, 2.0) * side
     ring = np.linspace(0.0, 2 * np.pi, formation - 1, endpoint=False)
     waiting = anchor + 0.8 * (np.cos(ring)[:, None] * ahead + np.sin(ring)[:, None] * side)
-    return Scenario(agent_pos=np.concatenate([start[None], waiting])[None], adversary_pos=np.zeros((1, 2)),
-                    obstacles=obstacles[None], targets=np.zeros((1, 0, 2)), anchor=anchor[None])
+    return Scenario(
+        agent_pos=np.concatenate([start[None], waiting])[None],
+        adversary_pos=np.zeros((1, 2)),
+        obstacles=obstacles[None],
+        targets=np.zeros((1, 0, 2)),
+        anchor=anchor[None],
+    )
 
 
 def fly_case(formation: int, case_seed: int, backend: str, policy) -> tuple[int | None, dict]:
@@ -75,14 +80,20 @@ def fly_case(formation: int, case_seed: int, backend: str, policy) -> tuple[int 
         if np.linalg.norm(positions[-1][0] - anchor) < JOINED_DISTANCE:
             joined = k + 1
             break
-    return joined, {"positions": np.array(positions), "anchor": anchor, "obstacles": layout.obstacles[0, :2],
-                    "obstacle_radius": env.config.obstacle_radius}
+    return joined, {
+        "positions": np.array(positions),
+        "anchor": anchor,
+        "obstacles": layout.obstacles[0, :2],
+        "obstacle_radius": env.config.obstacle_radius,
+    }
 
 
 def draw_failures(traces: list[dict], title: str, path: Path) -> None:
     import matplotlib
+
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+
     from cefc_mj.fileio import atomic_write
 
     fig, axes = plt.subplots(1, len(traces), figsize=(3.6 * len(traces), 3.9), squeeze=False)
@@ -104,13 +115,19 @@ def draw_failures(traces: list[dict], title: str, path: Path) -> None:
 def parse(argv: list[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(prog=PROG, description=__doc__.splitlines()[0])
     parser.add_argument("--backend", choices=("particle", "mujoco"), default="particle")
-    parser.add_argument("--formations", type=int, nargs="+", default=[5, 6, 7, 8], metavar="C",
-                        help="group sizes c (default 5 6 7 8)")
+    parser.add_argument(
+        "--formations", type=int, nargs="+", default=[5, 6, 7, 8], metavar="C", help="group sizes c (default 5 6 7 8)"
+    )
     parser.add_argument("--cases", type=int, default=100, help="cases per c, seeds S..S+K-1 (default 100)")
     parser.add_argument("--seed", type=int, default=0, metavar="S", help="first case seed (default 0)")
     parser.add_argument("--policy", default="nav", help="as cefc-eval's --policy (default nav, its default)")
-    parser.add_argument("--png", type=Path, default=None, metavar="DIR",
-                        help="draw up to six cases that did not escape into DIR/c<C>_failures.png")
+    parser.add_argument(
+        "--png",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="draw up to six cases that did not escape into DIR/c<C>_failures.png",
+    )
     args = parser.parse_args(argv)
     if any(c not in (3, 4, 5, 6, 7, 8) for c in args.formations):
         parser.exit(2, f"{PROG}: --formations {args.formations}: each c must be one of 3..8\n")
@@ -121,12 +138,14 @@ def parse(argv: list[str] | None) -> argparse.Namespace:
     if args.png is not None:
         from cefc_mj.errors import ConfigError
         from cefc_mj.fileio import make_writable_folder
+
         try:
             make_writable_folder(args.png)
         except ConfigError as e:
             parser.exit(2, f"{PROG}: --png {args.png}: {e}\n")
     from cefc_mj.errors import CefcError
     from cefc_mj.eval.runner import load_policy_for
+
     try:
         args.loaded = {c: load_policy_for(args.policy, c) for c in args.formations}
     except CefcError as e:
@@ -150,8 +169,11 @@ def main(argv: list[str] | None = None) -> int:
         mean, median = (np.mean(steps), np.median(steps)) if steps else (float("nan"), float("nan"))
         print(f"{c:>2} {len(steps):>4}/{args.cases:<4} {mean:11.1f} {median:7.0f}")
         if args.png is not None and failures:
-            draw_failures(failures[:6], f"{args.backend}, policy {args.policy}, c = {c}: cases not escaped",
-                          args.png / f"c{c}_failures.png")
+            draw_failures(
+                failures[:6],
+                f"{args.backend}, policy {args.policy}, c = {c}: cases not escaped",
+                args.png / f"c{c}_failures.png",
+            )
     return 0
 
 

@@ -64,10 +64,16 @@ def neighbour_features_reference(
     take = min(slots, n - 1)
     order = np.argsort(dist, axis=-1, kind="stable")[:, :, :take]  # [B, N, take]
     near = np.take_along_axis(dist, order, axis=-1) < observation_distance
-    feats = np.concatenate(
-        [np.take_along_axis(rel_pos, order[..., None], axis=2), np.take_along_axis(rel_vel, order[..., None], axis=2)],
-        axis=-1,
-    ) * near[..., None]
+    feats = (
+        np.concatenate(
+            [
+                np.take_along_axis(rel_pos, order[..., None], axis=2),
+                np.take_along_axis(rel_vel, order[..., None], axis=2),
+            ],
+            axis=-1,
+        )
+        * near[..., None]
+    )
     features = np.zeros((b, n, slots, 4))
     mask = np.zeros((b, n, slots))
     features[:, :, :take] = feats
@@ -75,10 +81,12 @@ def neighbour_features_reference(
     return features, mask
 
 
-
-
 def low_level_observation_reference(
-    perceived_pos: np.ndarray, velocity: np.ndarray, anchor: np.ndarray, lidar: np.ndarray, slots: int,
+    perceived_pos: np.ndarray,
+    velocity: np.ndarray,
+    anchor: np.ndarray,
+    lidar: np.ndarray,
+    slots: int,
     observation_distance: float,
 ) -> np.ndarray:
     """The low-level observation [B, N, D] float32 as the concatenation of its parts (anchor [B, 2] or [B, N, 2])."""
@@ -88,6 +96,6 @@ def low_level_observation_reference(
     if anchor.ndim == 2:
         anchor = anchor[:, None, :]
     feats, mask = neighbour_features(perceived_pos, velocity, slots, observation_distance)
-    return np.concatenate(
-        [anchor - perceived_pos, velocity, feats.reshape(b, n, -1), mask, lidar], axis=-1
-    ).astype(np.float32)
+    return np.concatenate([anchor - perceived_pos, velocity, feats.reshape(b, n, -1), mask, lidar], axis=-1).astype(
+        np.float32
+    )

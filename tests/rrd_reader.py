@@ -14,7 +14,6 @@ import time
 from pathlib import Path
 
 import pytest
-
 from rerun.chunk import RrdReader
 
 
@@ -59,8 +58,12 @@ def rerun_listener(port: int, path: Path):
         pytest.skip("the rerun CLI is not installed")
     if port_open(port):
         pytest.skip(f"port {port} is taken (a Rerun viewer is running)")
-    server = subprocess.Popen([rerun_cli, "--port", str(port), "--save", str(path)], stdout=subprocess.DEVNULL,
-                              stderr=subprocess.DEVNULL, start_new_session=True)
+    server = subprocess.Popen(
+        [rerun_cli, "--port", str(port), "--save", str(path)],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,
+    )
     try:
         for _ in range(100):
             if port_open(port):

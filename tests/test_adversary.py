@@ -13,13 +13,28 @@ from cefc_mj.cli.train import main
 from cefc_mj.env import BatchedCEFCEnv
 from cefc_mj.errors import CheckpointError, ConfigError
 from cefc_mj.eval.highlevel import game_task
-from cefc_mj.nn.adversary_policy import AdversaryNetConfig, AdversaryPolicy, load_adversary_policy, \
-    save_adversary_policy
-from cefc_mj.task.adversary import (ADVERSARY_GROUP_SLOTS, ADVERSARY_OBS_DIM, ADVERSARY_OBSTACLE_SLOTS, ADVERSARY_SLOTS,
-                                    adversary_observation, adversary_reward)
+from cefc_mj.nn.adversary_policy import (
+    AdversaryNetConfig,
+    AdversaryPolicy,
+    load_adversary_policy,
+    save_adversary_policy,
+)
+from cefc_mj.task.adversary import (
+    ADVERSARY_GROUP_SLOTS,
+    ADVERSARY_OBS_DIM,
+    ADVERSARY_OBSTACLE_SLOTS,
+    ADVERSARY_SLOTS,
+    adversary_observation,
+    adversary_reward,
+)
 from cefc_mj.task.config import RULE_TEAMS
-from cefc_mj.train.adversary import (AdversaryConfig, AdversaryTrainer, _adversary_ppo, evaluate_adversary,
-                                     load_population)
+from cefc_mj.train.adversary import (
+    AdversaryConfig,
+    AdversaryTrainer,
+    _adversary_ppo,
+    evaluate_adversary,
+    load_population,
+)
 from cefc_mj.train.config import Budget
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -28,9 +43,18 @@ pytestmark = pytest.mark.usefixtures("one_torch_thread")
 def _obs(agent_pos, obstacles, adversary_pos=(0.0, 0.0), goal=(1.0, 1.0)):
     agent_pos = np.asarray(agent_pos, dtype=float)[None]
     n = agent_pos.shape[1]
-    return adversary_observation(np.array([adversary_pos]), np.array([[0.3, -0.3]]), np.array([goal]), agent_pos,
-                                 np.zeros_like(agent_pos), np.full((1, n), 3), np.asarray(obstacles, float)[None]
-                                 .reshape(1, -1, 2), arena_half_size=10.0, speed_max=0.75, keep_out=0.65)[0]
+    return adversary_observation(
+        np.array([adversary_pos]),
+        np.array([[0.3, -0.3]]),
+        np.array([goal]),
+        agent_pos,
+        np.zeros_like(agent_pos),
+        np.full((1, n), 3),
+        np.asarray(obstacles, float)[None].reshape(1, -1, 2),
+        arena_half_size=10.0,
+        speed_max=0.75,
+        keep_out=0.65,
+    )[0]
 
 
 def test_observation_layout_nearest_first_with_presence_flags_and_padding():
@@ -38,29 +62,41 @@ def test_observation_layout_nearest_first_with_presence_flags_and_padding():
     obs = _obs(agents, [[0.0, 2.0], [-9.0, 0.0]])
     assert obs.shape == (ADVERSARY_OBS_DIM,) and obs.dtype == np.float32
     np.testing.assert_allclose(obs[:6], [0, 0, 0.4, -0.4, 0.1, 0.1])
-    slots = obs[6:6 + 6 * ADVERSARY_SLOTS].reshape(ADVERSARY_SLOTS, 6)
+    slots = obs[6 : 6 + 6 * ADVERSARY_SLOTS].reshape(ADVERSARY_SLOTS, 6)
     np.testing.assert_allclose(slots[:3, :2], [[0.1, 0.0], [0.0, -0.3], [0.5, 0.0]])  # nearest first
     np.testing.assert_allclose(slots[:3, 4:], [[3 / 3, 1]] * 3)  # group size / N, present
     assert not slots[3:].any()  # 3 agents: 5 empty slots
-    near = obs[6 + 6 * ADVERSARY_SLOTS:6 + 6 * ADVERSARY_SLOTS + 4 * ADVERSARY_OBSTACLE_SLOTS].reshape(
-        ADVERSARY_OBSTACLE_SLOTS, 4)
+    near = obs[6 + 6 * ADVERSARY_SLOTS : 6 + 6 * ADVERSARY_SLOTS + 4 * ADVERSARY_OBSTACLE_SLOTS].reshape(
+        ADVERSARY_OBSTACLE_SLOTS, 4
+    )
     # unit direction, clearance to the 0.65 m keep-out disc over 3 m (clipped to 1), present
     np.testing.assert_allclose(near[:2], [[0, 1, (2 - 0.65) / 3, 1], [-1, 0, 1, 1]], atol=1e-7)
     assert not near[2:].any()
     # The agents' order in the swarm does not matter; an obstacle-free arena leaves the slots empty.
     np.testing.assert_array_equal(_obs(agents[::-1], [[0.0, 2.0], [-9.0, 0.0]]), obs)
-    assert not _obs(agents, np.zeros((0, 2)))[6 + 6 * ADVERSARY_SLOTS:].any()
-    assert not obs[-4 * ADVERSARY_GROUP_SLOTS:].any()  # no groups given: empty group slots
+    assert not _obs(agents, np.zeros((0, 2)))[6 + 6 * ADVERSARY_SLOTS :].any()
+    assert not obs[-4 * ADVERSARY_GROUP_SLOTS :].any()  # no groups given: empty group slots
 
 
 def test_observation_group_slots_nearest_centre_first():
     agents = np.array([[[5.0, 0.0], [1.0, 0.0], [0.0, -3.0]]])
     centre = np.array([[[6.0, 0.0], [0.0, -2.0], [0.0, 0.0]]])
     size = np.array([[3, 1, 0]])  # the third slot is unused
-    obs = adversary_observation(np.zeros((1, 2)), np.zeros((1, 2)), np.ones((1, 2)), agents, np.zeros_like(agents),
-                                np.full((1, 3), 1), np.zeros((1, 0, 2)), arena_half_size=10.0, speed_max=0.75,
-                                keep_out=0.65, group_centre=centre, group_size=size)[0]
-    groups = obs[-4 * ADVERSARY_GROUP_SLOTS:].reshape(ADVERSARY_GROUP_SLOTS, 4)
+    obs = adversary_observation(
+        np.zeros((1, 2)),
+        np.zeros((1, 2)),
+        np.ones((1, 2)),
+        agents,
+        np.zeros_like(agents),
+        np.full((1, 3), 1),
+        np.zeros((1, 0, 2)),
+        arena_half_size=10.0,
+        speed_max=0.75,
+        keep_out=0.65,
+        group_centre=centre,
+        group_size=size,
+    )[0]
+    groups = obs[-4 * ADVERSARY_GROUP_SLOTS :].reshape(ADVERSARY_GROUP_SLOTS, 4)
     np.testing.assert_allclose(groups[:3], [[0.0, -0.2, 1 / 3, 1], [0.6, 0.0, 1.0, 1], [0, 0, 0, 0]], atol=1e-7)
     assert not groups[3:].any()  # the slots beyond the given groups stay empty
 
@@ -77,8 +113,17 @@ def test_reward_terms_by_hand():
     np.testing.assert_allclose(terms["reward"], [0.1 * -5 + 0.5 - 10, 0.0])
     assert not terms["progress"].any()  # no step before
     # Potential-based shaping: approached from 6 m to 5 m (gamma 0.9): 6 - 0.9 x 5.
-    shaped = adversary_reward(adversary, goal, agents, obstacles, 2.0, 0.65, previous_distance=np.array([6.0, 1.0]),
-                              progress_weight=2.0, gamma=0.9)
+    shaped = adversary_reward(
+        adversary,
+        goal,
+        agents,
+        obstacles,
+        2.0,
+        0.65,
+        previous_distance=np.array([6.0, 1.0]),
+        progress_weight=2.0,
+        gamma=0.9,
+    )
     np.testing.assert_allclose(shaped["progress"], [6 - 0.9 * 5, 1.0])
     np.testing.assert_allclose(shaped["reward"] - terms["reward"], 2.0 * shaped["progress"])
 
@@ -138,8 +183,9 @@ def test_policy_file_round_trip_clipped_actions_and_tampering(tmp_path):
 
 def _tiny(iterations, **kw):
     kw = {"teams": ("cihrl_consmac_a", "rule-split"), "teams_per_iteration": 2, "imitation_episodes": 0, **kw}
-    return AdversaryConfig(budget=Budget(iterations=iterations), ppo=dataclasses.replace(_adversary_ppo(), n_envs=4),
-                           eval_episodes=0, **kw)
+    return AdversaryConfig(
+        budget=Budget(iterations=iterations), ppo=dataclasses.replace(_adversary_ppo(), n_envs=4), eval_episodes=0, **kw
+    )
 
 
 def _trainer(cfg):
@@ -188,9 +234,28 @@ def test_the_paper_adversary_reads_no_goal_point():
 
 def test_cli_trains_exports_a_card_and_resumes(tmp_path, capsys):
     out = tmp_path / "runs"
-    argv = ["adversary", "--budget", "1it", "--envs", "2", "--teams-per-iteration", "2", "--teams",
-            "cihrl_consmac_a,rule-evade", "--eval-episodes", "1", "--imitation-episodes", "1", "--imitation-steps",
-            "4", "--imitation-rounds", "2", "--out", str(out), "--no-progress"]
+    argv = [
+        "adversary",
+        "--budget",
+        "1it",
+        "--envs",
+        "2",
+        "--teams-per-iteration",
+        "2",
+        "--teams",
+        "cihrl_consmac_a,rule-evade",
+        "--eval-episodes",
+        "1",
+        "--imitation-episodes",
+        "1",
+        "--imitation-steps",
+        "4",
+        "--imitation-rounds",
+        "2",
+        "--out",
+        str(out),
+        "--no-progress",
+    ]
     assert main(argv) == 0
     card = json.loads((out / "policies" / "adversary_ppo.json").read_text())
     assert card["iterations"] == 1 and card["network"]["observes_goal"] is False
@@ -210,13 +275,16 @@ def test_cli_trains_exports_a_card_and_resumes(tmp_path, capsys):
     assert json.loads((out / "policies" / "adversary_ppo.json").read_text())["iterations"] == 2
 
 
-@pytest.mark.parametrize("argv, needle", [
-    (["--envs", "0"], "--envs 0: must be an integer >= 1"),
-    (["--teams", "no_such_policy"], "--teams: "),
-    (["--teams-per-iteration", "3"], "--teams-per-iteration 3: must divide the 20 envs"),
-    (["--low-level", "no_such_policy"], "--low-level: "),
-    (["--density", "-1"], "--density -1.0: must be in"),
-])
+@pytest.mark.parametrize(
+    "argv, needle",
+    [
+        (["--envs", "0"], "--envs 0: must be an integer >= 1"),
+        (["--teams", "no_such_policy"], "--teams: "),
+        (["--teams-per-iteration", "3"], "--teams-per-iteration 3: must divide the 20 envs"),
+        (["--low-level", "no_such_policy"], "--low-level: "),
+        (["--density", "-1"], "--density -1.0: must be in"),
+    ],
+)
 def test_cli_bad_input_exits_2_with_one_line_and_writes_nothing(argv, needle, tmp_path, capsys):
     out = tmp_path / "runs"
     with pytest.raises(SystemExit) as e:
@@ -245,8 +313,15 @@ SEED = 100
 def _pressure(adversary) -> dict:
     cfg = AdversaryConfig(budget=Budget(iterations=1), teams=("cihrl_consmac_a",))
     population, _, low_level, interval = load_population(cfg)
-    return evaluate_adversary(adversary, population["cihrl_consmac_a"], low_level, cfg.task(), episodes=20,
-                              seed=SEED, decision_interval=interval)
+    return evaluate_adversary(
+        adversary,
+        population["cihrl_consmac_a"],
+        low_level,
+        cfg.task(),
+        episodes=20,
+        seed=SEED,
+        decision_interval=interval,
+    )
 
 
 def test_shipped_ppo_adversary_chases_the_swarm_and_keeps_out_of_obstacles():
@@ -269,15 +344,19 @@ def test_a_velocity_action_equal_to_the_rules_wish_flies_the_rules_acceleration(
     """AdversaryNetConfig(action="velocity"): outputs u are the wanted velocity / speed_max; the rule's
     own wish gives back the rule's setpoint (to float32 rounding of the observed velocity)."""
     task = dataclasses.replace(game_task("learned"), episode_steps=40)
-    env = BatchedCEFCEnv(task, n_envs=3, seed=2, adversary_policy=lambda obs: env.rule_adversary_acceleration(
-        "nearest_group"))
+    env = BatchedCEFCEnv(
+        task, n_envs=3, seed=2, adversary_policy=lambda obs: env.rule_adversary_acceleration("nearest_group")
+    )
     env.reset(seed=2)
     for _ in range(12):
         env.step(np.zeros((3, 8, 2)))
     policy = AdversaryPolicy(AdversaryNetConfig(action="velocity", speed_max=task.adversary_speed_max, dt=task.dt))
     wish = env.rule_adversary_velocity("nearest_group") / task.adversary_speed_max
-    np.testing.assert_allclose(policy.to_acceleration(wish, env.adversary_observation()),
-                               env.rule_adversary_acceleration("nearest_group"), atol=1e-5)
+    np.testing.assert_allclose(
+        policy.to_acceleration(wish, env.adversary_observation()),
+        env.rule_adversary_acceleration("nearest_group"),
+        atol=1e-5,
+    )
     assert np.abs(env.world.adversary_vel).max() > 0.1  # it was moving
     with pytest.raises(ConfigError, match="action"):
         AdversaryNetConfig(action="jerk")

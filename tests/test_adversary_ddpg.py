@@ -34,8 +34,16 @@ from cefc_mj.train.config import Budget
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
-TINY = {"teams": ("rule-urgent",), "teams_per_iteration": 1, "n_envs": 2, "learning_starts": 800,
-        "updates_per_iteration": 5, "batch_size": 32, "replay_capacity": 2000, "eval_episodes": 0}
+TINY = {
+    "teams": ("rule-urgent",),
+    "teams_per_iteration": 1,
+    "n_envs": 2,
+    "learning_starts": 800,
+    "updates_per_iteration": 5,
+    "batch_size": 32,
+    "replay_capacity": 2000,
+    "eval_episodes": 0,
+}
 """Two envs of one game: 800 transitions an iteration, so the first flies random actions, the second the actor."""
 
 
@@ -48,18 +56,21 @@ def _trainer(cfg: DDPGAdversaryConfig) -> DDPGAdversaryTrainer:
     return DDPGAdversaryTrainer(cfg, population, low_level, interval)
 
 
-@pytest.mark.parametrize("kw, needle", [
-    ({"tau": 0.0}, "tau=0.0: must be a number in (0, 1]"),
-    ({"gamma": 1.5}, "gamma=1.5: must be a number in [0, 1]"),
-    ({"actor_lr": -1e-3}, "actor_lr=-0.001"),
-    ({"exploration_noise": float("nan")}, "exploration_noise=nan"),
-    ({"batch_size": 0}, "batch_size=0: must be an integer in [1, "),
-    ({"replay_capacity": 100, "learning_starts": 200}, "learning_starts=200: must be at most the replay's 100"),
-    ({"n_envs": 20, "teams_per_iteration": 3}, "teams_per_iteration=3: must divide the 20 envs"),
-    ({"action": "jerk"}, "action='jerk'"),  # the PPO adversary's checks, shared
-    ({"teams": ()}, "teams=()"),
-    ({"collision_weight": -1}, "collision_weight=-1"),
-])
+@pytest.mark.parametrize(
+    "kw, needle",
+    [
+        ({"tau": 0.0}, "tau=0.0: must be a number in (0, 1]"),
+        ({"gamma": 1.5}, "gamma=1.5: must be a number in [0, 1]"),
+        ({"actor_lr": -1e-3}, "actor_lr=-0.001"),
+        ({"exploration_noise": float("nan")}, "exploration_noise=nan"),
+        ({"batch_size": 0}, "batch_size=0: must be an integer in [1, "),
+        ({"replay_capacity": 100, "learning_starts": 200}, "learning_starts=200: must be at most the replay's 100"),
+        ({"n_envs": 20, "teams_per_iteration": 3}, "teams_per_iteration=3: must divide the 20 envs"),
+        ({"action": "jerk"}, "action='jerk'"),  # the PPO adversary's checks, shared
+        ({"teams": ()}, "teams=()"),
+        ({"collision_weight": -1}, "collision_weight=-1"),
+    ],
+)
 def test_config_refuses_bad_values_up_front(kw, needle):
     with pytest.raises(ConfigError) as e:
         _tiny(**kw)
@@ -82,8 +93,9 @@ def test_effective_action_is_what_the_env_flies():
     assert effective_action(u, AdversaryNetConfig(action="acceleration", accel_max=2.0)).abs().max() == 2.0
     policy = AdversaryPolicy(AdversaryNetConfig(action="velocity"))
     obs = np.zeros((3, ADVERSARY_OBS_DIM), dtype=np.float32)
-    np.testing.assert_allclose(policy.to_acceleration(vel.numpy(), obs), policy.to_acceleration(u.numpy(), obs),
-                               atol=1e-6)
+    np.testing.assert_allclose(
+        policy.to_acceleration(vel.numpy(), obs), policy.to_acceleration(u.numpy(), obs), atol=1e-6
+    )
 
 
 def test_replay_is_a_ring_and_round_trips():
@@ -129,8 +141,9 @@ def test_run_writes_folder_policy_and_card_and_resumes_exactly(tmp_path):
     optimizers, replay); the exported file loads as any adversary policy."""
     straight = train_ddpg_adversary(_tiny(2), tmp_path / "a", tmp_path / "a" / "policies", show_progress=False)
     train_ddpg_adversary(_tiny(1), tmp_path / "b", tmp_path / "b" / "policies", show_progress=False)
-    resumed = train_ddpg_adversary(_tiny(2), tmp_path / "b", tmp_path / "b" / "policies", resume=True,
-                                   show_progress=False)
+    resumed = train_ddpg_adversary(
+        _tiny(2), tmp_path / "b", tmp_path / "b" / "policies", resume=True, show_progress=False
+    )
     assert straight["iterations"] == resumed["iterations"] == 2 and resumed["gradient_steps"] == 10
     run = tmp_path / "a" / "adversary_ddpg"
     assert {"config.json", "progress.csv", "state.pt"} <= {p.name for p in run.iterdir()}
@@ -149,15 +162,37 @@ def test_run_writes_folder_policy_and_card_and_resumes_exactly(tmp_path):
             assert torch.equal(torch.as_tensor(value), torch.as_tensor(sb[part][key])), (part, key)
     assert sa["counters"]["updates"] == sb["counters"]["updates"] == 10
     with pytest.raises(ConfigError, match="different settings"):
-        train_ddpg_adversary(_tiny(3, tau=0.01), tmp_path / "b", tmp_path / "b" / "policies", resume=True,
-                             show_progress=False)
+        train_ddpg_adversary(
+            _tiny(3, tau=0.01), tmp_path / "b", tmp_path / "b" / "policies", resume=True, show_progress=False
+        )
 
 
 def test_cli_trains_exports_a_card_with_the_population_evaluation(tmp_path, capsys):
     out = tmp_path / "runs"
-    argv = ["adversary-ddpg", "--budget", "1it", "--envs", "2", "--teams-per-iteration", "1", "--teams",
-            "rule-urgent", "--learning-starts", "0", "--updates", "3", "--batch-size", "16", "--replay", "1000",
-            "--eval-episodes", "1", "--out", str(out), "--no-progress"]
+    argv = [
+        "adversary-ddpg",
+        "--budget",
+        "1it",
+        "--envs",
+        "2",
+        "--teams-per-iteration",
+        "1",
+        "--teams",
+        "rule-urgent",
+        "--learning-starts",
+        "0",
+        "--updates",
+        "3",
+        "--batch-size",
+        "16",
+        "--replay",
+        "1000",
+        "--eval-episodes",
+        "1",
+        "--out",
+        str(out),
+        "--no-progress",
+    ]
     assert main(argv) == 0
     card = json.loads((out / "policies" / "adversary_ddpg.json").read_text())
     assert card["name"] == "adversary_ddpg" and "DDPG" in card["method"] and card["gradient_steps"] == 3
@@ -168,16 +203,19 @@ def test_cli_trains_exports_a_card_with_the_population_evaluation(tmp_path, caps
     assert "against the DDPG adversary / the nearest-group rule" in capsys.readouterr().out
 
 
-@pytest.mark.parametrize("argv, needle", [
-    (["--tau", "0"], "--tau 0.0: must be a number in (0, 1]"),
-    (["--batch-size", "0"], "--batch-size 0: must be an integer in [1, "),
-    (["--noise", "-1"], "--noise -1.0: must be a number in (0, 5]"),
-    (["--teams-per-iteration", "3"], "--teams-per-iteration 3: must divide the 20 envs"),
-    (["--learning-starts", "200000"], "--learning-starts 200000: must be at most the replay's 100000"),
-    (["--teams", "no_such_policy"], "--teams: "),
-    (["--budget", "0"], "--budget '0': must be more than zero"),
-    (["--updates", "many"], "argument --updates: invalid int value"),
-])
+@pytest.mark.parametrize(
+    "argv, needle",
+    [
+        (["--tau", "0"], "--tau 0.0: must be a number in (0, 1]"),
+        (["--batch-size", "0"], "--batch-size 0: must be an integer in [1, "),
+        (["--noise", "-1"], "--noise -1.0: must be a number in (0, 5]"),
+        (["--teams-per-iteration", "3"], "--teams-per-iteration 3: must divide the 20 envs"),
+        (["--learning-starts", "200000"], "--learning-starts 200000: must be at most the replay's 100000"),
+        (["--teams", "no_such_policy"], "--teams: "),
+        (["--budget", "0"], "--budget '0': must be more than zero"),
+        (["--updates", "many"], "argument --updates: invalid int value"),
+    ],
+)
 def test_cli_bad_input_exits_2_with_one_line_and_writes_nothing(argv, needle, tmp_path, capsys):
     out = tmp_path / "runs"
     with pytest.raises(SystemExit) as e:
@@ -196,21 +234,25 @@ def test_cli_help_states_the_configs_defaults():
             shown = re.search(r"\(default ([-+.\w]+)", action.help.replace("\n", " "))
             value = getattr(defaults, action.dest)
             assert shown, action.dest
-            assert (shown.group(1) == value if isinstance(value, str) else float(shown.group(1)) == value), action.dest
+            assert shown.group(1) == value if isinstance(value, str) else float(shown.group(1)) == value, action.dest
 
 
 def test_table6_flies_the_ddpg_adversary_once_trained_and_else_says_how(tmp_path):
     policies = tmp_path / "policies"
     policies.mkdir()
-    save_highlevel_policy(HighLevelPolicy.build("mappo", game_task(), seed=0), policies / "cihrl_mappo.pt",
-                          meta={"name": "cihrl_mappo", "decision_interval": 10})
+    save_highlevel_policy(
+        HighLevelPolicy.build("mappo", game_task(), seed=0),
+        policies / "cihrl_mappo.pt",
+        meta={"name": "cihrl_mappo", "decision_interval": 10},
+    )
     save_adversary_policy(AdversaryPolicy(AdversaryNetConfig(), seed=0), policies / "adversary_ppo.pt")
     without = run_table6(episodes=1, policies_dir=policies, policy="cihrl_mappo")
     assert "DDPG" not in without["rows"]
     note = [line for line in format_highlevel_table(without).splitlines() if "adversary_ddpg" in line]
     assert len(note) == 1 and "not trained yet" in note[0] and "cefc-train adversary-ddpg --install" in note[0]
-    save_adversary_policy(AdversaryPolicy(AdversaryNetConfig(observes_goal=False), seed=1),
-                          policies / "adversary_ddpg.pt")
+    save_adversary_policy(
+        AdversaryPolicy(AdversaryNetConfig(observes_goal=False), seed=1), policies / "adversary_ddpg.pt"
+    )
     result = run_table6(episodes=1, policies_dir=policies, policy="cihrl_mappo")
     assert list(result["rows"])[:2] == ["PPO", "DDPG"] and not result["protocol"]["missing"]
     assert result["rows"]["DDPG"]["adversary_record"]["policy"] == "adversary_ddpg.pt"

@@ -22,8 +22,15 @@ ALL = np.ones(1, dtype=bool)
 
 
 def single_drone(airframe, wind=None, **config):
-    world = MujocoWorld(MujocoWorldConfig(airframe=str(airframe), **config), n_envs=1, n_agents=1, n_obstacles=0,
-                        with_adversary=False, wind=wind, seed=3)
+    world = MujocoWorld(
+        MujocoWorldConfig(airframe=str(airframe), **config),
+        n_envs=1,
+        n_agents=1,
+        n_obstacles=0,
+        with_adversary=False,
+        wind=wind,
+        seed=3,
+    )
     world.reset(ALL, np.zeros((1, 1, 2)), np.zeros((1, 2)), np.zeros((1, 0, 2)))
     return world
 
@@ -91,7 +98,9 @@ def test_crazyflie_flies_a_table8_like_episode_without_diverging():
 
 
 def test_iris_gains_on_the_micro_quad_are_refused():
-    with pytest.raises(ConfigError, match=r"MPC_THR_HOVER = 0.52 in iris.params but airframe 'crazyflie' hovers at 0.415") as info:
+    with pytest.raises(
+        ConfigError, match=r"MPC_THR_HOVER = 0.52 in iris.params but airframe 'crazyflie' hovers at 0.415"
+    ) as info:
         MujocoWorld(MujocoWorldConfig(airframe="crazyflie", params="iris"), 1, 1, 0)
     assert "\n" not in str(info.value)
 
@@ -160,7 +169,9 @@ def write_quad(folder, text=QUAD, params=True, name="quad"):
     path = folder / f"{name}.xml"
     path.write_text(text)
     if params:
-        gains = (CONTROLLERS_DIR / "iris.params").read_text().replace("MPC_THR_HOVER     0.52", "MPC_THR_HOVER     0.25")
+        gains = (
+            (CONTROLLERS_DIR / "iris.params").read_text().replace("MPC_THR_HOVER     0.52", "MPC_THR_HOVER     0.25")
+        )
         (folder / f"{name}.params").write_text(gains)
     return path
 
@@ -199,29 +210,75 @@ def _variant(old: str, new: str) -> str:
 THIRD_ACTUATOR = '<motor class="quad" name="thrust4" site="thrust4" gear="0 0 1 0 0 .0201"/>'
 
 
-@pytest.mark.parametrize("text, message", [
-    (_variant(THIRD_ACTUATOR, ""), "has 3 actuators; a quadrotor airframe needs exactly four <motor> actuators"),
-    (_variant(THIRD_ACTUATOR, THIRD_ACTUATOR + '<motor class="quad" site="imu" gear="0 0 1 0 0 .0201"/>'
-              '<motor class="quad" site="thrust1" gear="0 0 1 0 0 .0201"/>'), "has 6 actuators"),
-    (_variant('site="thrust2" gear', 'site="thrust1" gear'), "actuator thrust2 acts on site 'thrust1' like another actuator"),
-    (_variant('<motor class="quad" name="thrust1" site="thrust1"', '<motor class="quad" name="thrust1" joint="root"')
-     .replace("<freejoint/>", '<freejoint name="root"/>'),
-     "actuator thrust1 must act on a rotor site .* not through a joint transmission"),
-    (_variant('gear="0 0 1 0 0 -.0201"/>\n    <motor class="quad" name="thrust2"', 'gear="0 0 0 1 0 0"/>\n    <motor class="quad" name="thrust2"'),
-     r"actuator thrust1 gear must be '0 0 1 0 0 \+-km'"),
-    (_variant('name="thrust3" site="thrust3" gear="0 0 1 0 0 -.0201"', 'name="thrust3" site="thrust3" gear="0 0 1 0 0 .0201"'),
-     "two counter-clockwise and two clockwise rotors"),
-    # Menagerie's x2.xml yaw gears: both right rotors one spin, both left the other
-    (_variant('name="thrust3" site="thrust3" gear="0 0 1 0 0 -.0201"', 'name="thrust3" site="thrust3" gear="0 0 1 0 0 .0201"')
-     .replace('name="thrust4" site="thrust4" gear="0 0 1 0 0 .0201"', 'name="thrust4" site="thrust4" gear="0 0 1 0 0 -.0201"'),
-     "cannot make independent roll, pitch and yaw torques"),
-    (_variant('<site name="thrust2" pos="-.14 .18 .05"/>', '<site name="thrust2" pos="-.14 .18 .05" euler="0.3 0 0"/>'),
-     "rotor site 'thrust2' must not tilt"),
-    (_variant('<numeric name="max_rot_velocity" data="1200"/>', ""), "lacks <custom><numeric name='max_rot_velocity'>"),
-    (_variant('<motor ctrlrange="0 13"/>', '<motor ctrlrange="0 12"/>'), r"ctrlrange must be 0 .. motor_constant \* max_rot_velocity\^2 = 13"),
-    (_variant("</body>", '</body><body name="payload" pos="1 0 0"><freejoint/><geom size=".1" mass="1"/></body>'),
-     "one body with a free joint .found 2 bodies"),
-])
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        (_variant(THIRD_ACTUATOR, ""), "has 3 actuators; a quadrotor airframe needs exactly four <motor> actuators"),
+        (
+            _variant(
+                THIRD_ACTUATOR,
+                THIRD_ACTUATOR + '<motor class="quad" site="imu" gear="0 0 1 0 0 .0201"/>'
+                '<motor class="quad" site="thrust1" gear="0 0 1 0 0 .0201"/>',
+            ),
+            "has 6 actuators",
+        ),
+        (
+            _variant('site="thrust2" gear', 'site="thrust1" gear'),
+            "actuator thrust2 acts on site 'thrust1' like another actuator",
+        ),
+        (
+            _variant(
+                '<motor class="quad" name="thrust1" site="thrust1"', '<motor class="quad" name="thrust1" joint="root"'
+            ).replace("<freejoint/>", '<freejoint name="root"/>'),
+            "actuator thrust1 must act on a rotor site .* not through a joint transmission",
+        ),
+        (
+            _variant(
+                'gear="0 0 1 0 0 -.0201"/>\n    <motor class="quad" name="thrust2"',
+                'gear="0 0 0 1 0 0"/>\n    <motor class="quad" name="thrust2"',
+            ),
+            r"actuator thrust1 gear must be '0 0 1 0 0 \+-km'",
+        ),
+        (
+            _variant(
+                'name="thrust3" site="thrust3" gear="0 0 1 0 0 -.0201"',
+                'name="thrust3" site="thrust3" gear="0 0 1 0 0 .0201"',
+            ),
+            "two counter-clockwise and two clockwise rotors",
+        ),
+        # Menagerie's x2.xml yaw gears: both right rotors one spin, both left the other
+        (
+            _variant(
+                'name="thrust3" site="thrust3" gear="0 0 1 0 0 -.0201"',
+                'name="thrust3" site="thrust3" gear="0 0 1 0 0 .0201"',
+            ).replace(
+                'name="thrust4" site="thrust4" gear="0 0 1 0 0 .0201"',
+                'name="thrust4" site="thrust4" gear="0 0 1 0 0 -.0201"',
+            ),
+            "cannot make independent roll, pitch and yaw torques",
+        ),
+        (
+            _variant(
+                '<site name="thrust2" pos="-.14 .18 .05"/>', '<site name="thrust2" pos="-.14 .18 .05" euler="0.3 0 0"/>'
+            ),
+            "rotor site 'thrust2' must not tilt",
+        ),
+        (
+            _variant('<numeric name="max_rot_velocity" data="1200"/>', ""),
+            "lacks <custom><numeric name='max_rot_velocity'>",
+        ),
+        (
+            _variant('<motor ctrlrange="0 13"/>', '<motor ctrlrange="0 12"/>'),
+            r"ctrlrange must be 0 .. motor_constant \* max_rot_velocity\^2 = 13",
+        ),
+        (
+            _variant(
+                "</body>", '</body><body name="payload" pos="1 0 0"><freejoint/><geom size=".1" mass="1"/></body>'
+            ),
+            "one body with a free joint .found 2 bodies",
+        ),
+    ],
+)
 def test_not_a_site_mounted_quadrotor_is_one_clear_line(tmp_path, text, message):
     path = write_quad(tmp_path, text)
     with pytest.raises(ConfigError, match=message) as info:
@@ -231,15 +288,20 @@ def test_not_a_site_mounted_quadrotor_is_one_clear_line(tmp_path, text, message)
 
 def test_airframe_file_and_params_errors(tmp_path):
     path = write_quad(tmp_path, params=False)
-    with pytest.raises(ConfigError, match=r"params: no parameter file for airframe 'quad' \(looked for .*quad.params") as info:
+    with pytest.raises(
+        ConfigError, match=r"params: no parameter file for airframe 'quad' \(looked for .*quad.params"
+    ) as info:
         MujocoWorld(MujocoWorldConfig(airframe=str(path)), 1, 1, 0)
     assert "\n" not in str(info.value)
     with pytest.raises(ConfigError, match="airframe: no MJCF file"):
         MujocoWorldConfig(airframe=str(tmp_path / "missing.xml")).validate()
     with pytest.raises(ConfigError, match=r"unknown airframe 'cf3' \(known: crazyflie, iris"):
         MujocoWorldConfig(airframe="cf3").validate()
-    box_footprint = write_quad(tmp_path, _variant('<site name="imu"', '<geom name="footprint" type="box" size=".2 .2 .05"/><site name="imu"'),
-                               name="boxed")
+    box_footprint = write_quad(
+        tmp_path,
+        _variant('<site name="imu"', '<geom name="footprint" type="box" size=".2 .2 .05"/><site name="imu"'),
+        name="boxed",
+    )
     with pytest.raises(ConfigError, match="geom 'footprint' must be a cylinder"):
         MujocoWorld(MujocoWorldConfig(airframe=str(box_footprint)), 1, 1, 0)
     with pytest.raises(ConfigError, match="does not compile"):

@@ -12,11 +12,14 @@ from cefc_mj.eval.runner import EpisodeSpec, airframe_files
 from cefc_mj.eval.table8 import cell_key_fields
 
 
-@pytest.mark.parametrize("argv, needle", [
-    (["--airframe", "nope"], "unknown airframe 'nope'"),
-    (["--airframe", "crazyflie", "--backend", "particle"], "--airframe: the particle backend has no airframe"),
-    (["--airframe", "MISSING.xml"], "--airframe MISSING.xml"),
-])
+@pytest.mark.parametrize(
+    "argv, needle",
+    [
+        (["--airframe", "nope"], "unknown airframe 'nope'"),
+        (["--airframe", "crazyflie", "--backend", "particle"], "--airframe: the particle backend has no airframe"),
+        (["--airframe", "MISSING.xml"], "--airframe MISSING.xml"),
+    ],
+)
 def test_bad_airframe_is_one_line_exit_2(argv, needle, capsys, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     with pytest.raises(SystemExit) as exit_info:

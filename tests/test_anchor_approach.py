@@ -42,13 +42,16 @@ def test_png_draws_one_picture_per_episode(tmp_path, capsys):
     assert "bound" in capsys.readouterr().out
 
 
-@pytest.mark.parametrize("argv, needle", [
-    (["--formations", "9"], "--formations [9]"),
-    (["--seeds", "0"], "--seeds 0"),
-    (["--seed", "-1"], "--seed -1"),
-    (["--policy", "no_such_policy", "--formations", "5"], "--policy no_such_policy"),
-    (["--png", "/proc/no_such_dir"], "--png /proc/no_such_dir: cannot write there"),
-])
+@pytest.mark.parametrize(
+    "argv, needle",
+    [
+        (["--formations", "9"], "--formations [9]"),
+        (["--seeds", "0"], "--seeds 0"),
+        (["--seed", "-1"], "--seed -1"),
+        (["--policy", "no_such_policy", "--formations", "5"], "--policy no_such_policy"),
+        (["--png", "/proc/no_such_dir"], "--png /proc/no_such_dir: cannot write there"),
+    ],
+)
 def test_bad_input_exits_2_with_one_line(argv, needle):
     run = subprocess.run([sys.executable, str(SCRIPT), *argv], capture_output=True, text=True, timeout=120)
     assert run.returncode == 2 and run.stdout == ""

@@ -16,8 +16,9 @@ BACKENDS = ["particle", "mujoco"]
 
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_parallel_api(backend):
-    env = cefc_mj.make_env(backend=backend, n_agents=4, mode="formation", obstacle_density=0.03, seed=0,
-                           episode_steps=30)
+    env = cefc_mj.make_env(
+        backend=backend, n_agents=4, mode="formation", obstacle_density=0.03, seed=0, episode_steps=30
+    )
     parallel_api_test(env, num_cycles=40)
 
 
@@ -37,13 +38,20 @@ def test_same_observation_layout_and_infos_in_both_backends(mode):
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_same_seed_same_trajectory_bit_for_bit(backend):
     def run(seed):
-        env = cefc_mj.make_env(backend=backend, n_agents=3, mode="formation", obstacle_density=0.03, seed=seed,
-                               deviation=0.3, **({"wind": 5.0} if backend == "mujoco" else {}))
+        env = cefc_mj.make_env(
+            backend=backend,
+            n_agents=3,
+            mode="formation",
+            obstacle_density=0.03,
+            seed=seed,
+            deviation=0.3,
+            **({"wind": 5.0} if backend == "mujoco" else {}),
+        )
         obs, _ = env.reset(seed=seed)
         rng = np.random.default_rng(0)
         trace = []
         for _ in range(15):
-            obs, *_ , infos = env.step({a: rng.uniform(-2, 2, 2) for a in env.agents})
+            obs, *_, infos = env.step({a: rng.uniform(-2, 2, 2) for a in env.agents})
             trace.append(np.stack([infos[a]["position"] for a in env.possible_agents]))
             trace.append(np.stack(list(obs.values())))
         return trace

@@ -18,14 +18,22 @@ ROOT = Path(__file__).resolve().parent.parent
 BENCHMARKS = ROOT / "benchmarks"
 
 CASES = {
-    "mujoco": (["bench_mujoco.py", "--smoke", "--before"],
-               [r"eval loop \(   now\): +RTF +[\d.]+ +loop / raw mj_step = [\d.]+",
-                r"eval loop \(before\): +RTF +[\d.]+ +loop / raw mj_step = [\d.]+",
-                r"speed-up now / before: x[\d.]+"]),
-    "mujoco-swarm": (["bench_mujoco.py", "--smoke", "--steps", "0", "--sweep", "8", "--scaling"],
-                     [r"(?m)^ +8 +[\d.]+ +[\d.]+ +[\d.]+ +[\d.]+ +1\.00 ",
-                      r"8 drones .*external / actuators x[\d.]+ .*auto -> actuators",
-                      rf"{AUTO_ACTUATORS_MAX_DRONES + 1} drones .*external / actuators x[\d.]+ .*auto -> external"]),
+    "mujoco": (
+        ["bench_mujoco.py", "--smoke", "--before"],
+        [
+            r"eval loop \(   now\): +RTF +[\d.]+ +loop / raw mj_step = [\d.]+",
+            r"eval loop \(before\): +RTF +[\d.]+ +loop / raw mj_step = [\d.]+",
+            r"speed-up now / before: x[\d.]+",
+        ],
+    ),
+    "mujoco-swarm": (
+        ["bench_mujoco.py", "--smoke", "--steps", "0", "--sweep", "8", "--scaling"],
+        [
+            r"(?m)^ +8 +[\d.]+ +[\d.]+ +[\d.]+ +[\d.]+ +1\.00 ",
+            r"8 drones .*external / actuators x[\d.]+ .*auto -> actuators",
+            rf"{AUTO_ACTUATORS_MAX_DRONES + 1} drones .*external / actuators x[\d.]+ .*auto -> external",
+        ],
+    ),
     "particle": (["bench_particle.py", "--smoke"], [r"(?m)^ +4 +[\d,]+ +[\d,]+ +[\d.]+x$"]),
     "highlevel": (["bench_highlevel.py", "--smoke"], [r"full decision +[\d.]+ us = [\d.]+ x the low level alone"]),
     "rerun": (["bench_rerun.py", "--smoke"], [r"overhead vs a \d+ s episode at +\d+x real time .*: +[\d.]+ %"]),
@@ -41,8 +49,14 @@ def test_every_benchmark_has_a_smoke_case():
 def test_benchmark_smoke_runs_and_prints_its_ratio(case):
     args, patterns = CASES[case]
     env = dict(os.environ, MUJOCO_GL=os.environ.get("MUJOCO_GL", "egl"), OMP_NUM_THREADS="1")
-    proc = subprocess.run([sys.executable, str(BENCHMARKS / args[0]), *args[1:]], cwd=ROOT, env=env,
-                          capture_output=True, text=True, timeout=300)
+    proc = subprocess.run(
+        [sys.executable, str(BENCHMARKS / args[0]), *args[1:]],
+        cwd=ROOT,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert proc.returncode == 0, f"{' '.join(args)} exited {proc.returncode}:\n{proc.stdout}\n{proc.stderr[-3000:]}"
     for pattern in patterns:
         assert re.search(pattern, proc.stdout), f"{' '.join(args)}: no line matching {pattern!r} in:\n{proc.stdout}"

@@ -42,13 +42,20 @@ def in_tmp(tmp_path, monkeypatch):
 def logged(run_dir: Path) -> list[tuple[int, int, float]]:
     """(iteration, curriculum_phase, obstacle_density) of every row of a run's progress.csv."""
     with (run_dir / "progress.csv").open(newline="") as f:
-        return [(int(r["iteration"]), int(r["curriculum_phase"]), float(r["obstacle_density"]))
-                for r in csv.DictReader(f)]
+        return [
+            (int(r["iteration"]), int(r["curriculum_phase"]), float(r["obstacle_density"])) for r in csv.DictReader(f)
+        ]
 
 
 def clm(curriculum=(0.0, 0.02, 0.05), iterations=3, formation=3) -> LowLevelConfig:
-    return LowLevelConfig(formation=formation, step=1, curriculum=curriculum, budget=Budget(iterations=iterations),
-                          ppo=TINY_PPO, checkpoint_every=1)
+    return LowLevelConfig(
+        formation=formation,
+        step=1,
+        curriculum=curriculum,
+        budget=Budget(iterations=iterations),
+        ppo=TINY_PPO,
+        checkpoint_every=1,
+    )
 
 
 # ---------------------------------------------------------------------------- configuration
@@ -65,19 +72,22 @@ def test_config_names_the_stage_and_round_trips():
     assert LowLevelConfig(formation=3, step=1, budget=Budget(iterations=1)).curriculum is None
 
 
-@pytest.mark.parametrize("changes, needle", [
-    ({"curriculum": (0.0, 0.5)}, "curriculum=0,0.5: density 0.5 is not in [0, 0.2]"),
-    ({"curriculum": (0.0, float("nan"))}, "density nan"),
-    ({"curriculum": (-0.01, 0.02)}, "density -0.01"),
-    ({"curriculum": (0.03, 0.01)}, "must not decrease"),
-    ({"curriculum": (0.03,)}, "must be 2 to 20"),
-    ({"curriculum": tuple([0.01] * 21)}, "must be 2 to 20"),
-    ({"curriculum": "0,0.01"}, "must be 2 to 20"),
-    ({"curriculum": (0.0, True)}, "density True"),
-    ({"curriculum": (0.0, 0.01), "step": 2}, "use it with step 1"),
-    ({"curriculum": (0.0, 0.01), "obstacle_density": 0.01}, "leave obstacle_density unset"),
-    ({"curriculum": (0.0, 0.01, 0.02), "budget": Budget(iterations=2)}, "3 phases need a budget of at least 3"),
-])
+@pytest.mark.parametrize(
+    "changes, needle",
+    [
+        ({"curriculum": (0.0, 0.5)}, "curriculum=0,0.5: density 0.5 is not in [0, 0.2]"),
+        ({"curriculum": (0.0, float("nan"))}, "density nan"),
+        ({"curriculum": (-0.01, 0.02)}, "density -0.01"),
+        ({"curriculum": (0.03, 0.01)}, "must not decrease"),
+        ({"curriculum": (0.03,)}, "must be 2 to 20"),
+        ({"curriculum": tuple([0.01] * 21)}, "must be 2 to 20"),
+        ({"curriculum": "0,0.01"}, "must be 2 to 20"),
+        ({"curriculum": (0.0, True)}, "density True"),
+        ({"curriculum": (0.0, 0.01), "step": 2}, "use it with step 1"),
+        ({"curriculum": (0.0, 0.01), "obstacle_density": 0.01}, "leave obstacle_density unset"),
+        ({"curriculum": (0.0, 0.01, 0.02), "budget": Budget(iterations=2)}, "3 phases need a budget of at least 3"),
+    ],
+)
 def test_bad_curriculum_is_one_line_config_error(changes, needle):
     kwargs = {"formation": 3, "step": 1, "budget": Budget(iterations=3), **changes}
     with pytest.raises(ConfigError) as exc:
@@ -85,16 +95,19 @@ def test_bad_curriculum_is_one_line_config_error(changes, needle):
     assert needle in str(exc.value) and "\n" not in str(exc.value)
 
 
-@pytest.mark.parametrize("argv, needle", [
-    (["--curriculum", "0,0.5"], "--curriculum 0,0.5: density 0.5 is not in [0, 0.2] per m^2"),
-    (["--curriculum", "0.03,0"], "--curriculum 0.03,0: densities must not decrease"),
-    (["--curriculum", "0.01"], "--curriculum 0.01: must be 2 to 20"),
-    (["--curriculum", "0,abc"], "argument --curriculum: '0,abc': expected comma-separated densities"),
-    (["--curriculum", "0,,0.01"], "expected comma-separated densities"),
-    (["--budget", "3"], "4 phases need a budget of at least 4 iterations, got 3"),
-    (["--formation", "9"], "invalid choice: 9"),
-    (["--resume"], "--resume: no run to continue"),
-])
+@pytest.mark.parametrize(
+    "argv, needle",
+    [
+        (["--curriculum", "0,0.5"], "--curriculum 0,0.5: density 0.5 is not in [0, 0.2] per m^2"),
+        (["--curriculum", "0.03,0"], "--curriculum 0.03,0: densities must not decrease"),
+        (["--curriculum", "0.01"], "--curriculum 0.01: must be 2 to 20"),
+        (["--curriculum", "0,abc"], "argument --curriculum: '0,abc': expected comma-separated densities"),
+        (["--curriculum", "0,,0.01"], "expected comma-separated densities"),
+        (["--budget", "3"], "4 phases need a budget of at least 4 iterations, got 3"),
+        (["--formation", "9"], "invalid choice: 9"),
+        (["--resume"], "--resume: no run to continue"),
+    ],
+)
 def test_cli_bad_input_exits_2_before_writing(argv, needle, tmp_path, capsys):
     base = ["clm", "--formation", "3", "--budget", "4"]
     with pytest.raises(SystemExit) as exc:
@@ -108,8 +121,13 @@ def test_cli_bad_input_exits_2_before_writing(argv, needle, tmp_path, capsys):
 def test_cli_bad_curriculum_in_a_real_process(tmp_path):
     if not CEFC_TRAIN.is_file():
         pytest.skip("cefc-train is not installed next to this python")
-    bad = subprocess.run([str(CEFC_TRAIN), "clm", "--formation", "6", "--curriculum", "0,0.3"], cwd=tmp_path,
-                         capture_output=True, text=True, timeout=120)
+    bad = subprocess.run(
+        [str(CEFC_TRAIN), "clm", "--formation", "6", "--curriculum", "0,0.3"],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert bad.returncode == 2 and bad.stderr.count("\n") == 1 and "Traceback" not in bad.stderr
     assert "--curriculum 0,0.3" in bad.stderr and list(tmp_path.iterdir()) == []
 
@@ -129,8 +147,11 @@ def test_cli_run_visits_every_phase_and_the_card_records_the_curriculum(tmp_path
     card = json.loads((tmp_path / "runs" / "clm" / "policies" / "clm_c6.json").read_text())
     assert (card["name"], card["method"], card["init"]["actor"]) == ("clm_c6", "CL-M", "random")
     assert card["config"]["curriculum"] == [0.0, 0.02, 0.05] and card["config"]["step"] == 1
-    assert card["curriculum"]["phases"] == [{"density": 0.0, "iterations": 1}, {"density": 0.02, "iterations": 1},
-                                            {"density": 0.05, "iterations": 1}]
+    assert card["curriculum"]["phases"] == [
+        {"density": 0.0, "iterations": 1},
+        {"density": 0.02, "iterations": 1},
+        {"density": 0.05, "iterations": 1},
+    ]
     assert card["table3"]["paper"] == PAPER_TABLE3["6"]["CL-M"] == {"R_L": -90.79, "F": 48.8, "N": 38.94, "C": 0.78}
     assert json.loads((run_dir / "config.json").read_text())["stage"]["curriculum"] == [0.0, 0.02, 0.05]
     assert read_state(run_dir / "state.pt")["curriculum"] == {"phase": 2, "iterations": [1, 1, 1]}

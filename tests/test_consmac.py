@@ -99,7 +99,7 @@ def test_channel_matches_a_brute_force_reference_and_respects_sent_and_reset():
         assert inbox.received[e, i] == len(senders)
         np.testing.assert_array_equal(inbox.sender[e, i], senders + [-1] * (n - 1 - len(senders)))
         np.testing.assert_array_equal(inbox.messages[e, i, : len(senders)], messages[e, senders])
-        assert not inbox.messages[e, i, len(senders):].any()
+        assert not inbox.messages[e, i, len(senders) :].any()
         np.testing.assert_array_equal(inbox.own[e, i], messages[e, i] if sent[e, i] else 0.0)
     # reset(mask) silences only the masked envs
     ch.send(messages)

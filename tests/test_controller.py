@@ -71,32 +71,39 @@ def reference_tick(tick, qpos, qvel, s, sp, wind, p, k, mix, eff, rotors):
     g, m, dt_phys = k[C.K_G], k[C.K_MASS], k[C.K_DT]
     pos, q, v, body_rate = qpos[:3], qpos[3:], qvel[:3], qvel[3:]
     R = rot(q)
-    omega = s[C.S_OMEGA:C.S_OMEGA + 4]
+    omega = s[C.S_OMEGA : C.S_OMEGA + 4]
 
     if tick % int(k[C.K_POS_DIV]) == 0:
         dt = dt_phys * k[C.K_POS_DIV]
         drag_gain = k[C.K_CRD] * np.abs(omega).sum() / m
         velocity_mode = k[C.K_OFFBOARD] == C.OFFBOARD_VELOCITY
-        measured = (v[:2] - s[C.S_VXY_PREV:C.S_VXY_PREV + 2]) / dt
-        s[C.S_VXY_PREV:C.S_VXY_PREV + 2] = v[:2]
+        measured = (v[:2] - s[C.S_VXY_PREV : C.S_VXY_PREV + 2]) / dt
+        s[C.S_VXY_PREV : C.S_VXY_PREV + 2] = v[:2]
         if velocity_mode:  # PX4 _velocityControl on the ramped setpoint, feed-forward = ramp slope
-            ff = sp[C.SP_AX:C.SP_AX + 2]
-            s[C.S_VSP:C.S_VSP + 2] += ff * dt
-            s[C.S_VEL_DOT:C.S_VEL_DOT + 2] += lowpass_alpha(p["MPC_VELD_LP"], dt) * (measured - s[C.S_VEL_DOT:C.S_VEL_DOT + 2])
-            err_xy = s[C.S_VSP:C.S_VSP + 2] - v[:2]
-            acc = ff + p["MPC_XY_VEL_P_ACC"] * err_xy + s[C.S_VEL_INT:C.S_VEL_INT + 2] - p["MPC_XY_VEL_D_ACC"] * s[C.S_VEL_DOT:C.S_VEL_DOT + 2]
+            ff = sp[C.SP_AX : C.SP_AX + 2]
+            s[C.S_VSP : C.S_VSP + 2] += ff * dt
+            s[C.S_VEL_DOT : C.S_VEL_DOT + 2] += lowpass_alpha(p["MPC_VELD_LP"], dt) * (
+                measured - s[C.S_VEL_DOT : C.S_VEL_DOT + 2]
+            )
+            err_xy = s[C.S_VSP : C.S_VSP + 2] - v[:2]
+            acc = (
+                ff
+                + p["MPC_XY_VEL_P_ACC"] * err_xy
+                + s[C.S_VEL_INT : C.S_VEL_INT + 2]
+                - p["MPC_XY_VEL_D_ACC"] * s[C.S_VEL_DOT : C.S_VEL_DOT + 2]
+            )
         else:
-            explained = s[C.S_THRUST_N:C.S_THRUST_N + 4].sum() / m * R[:2, 2] - drag_gain * v[:2]
+            explained = s[C.S_THRUST_N : C.S_THRUST_N + 4].sum() / m * R[:2, 2] - drag_gain * v[:2]
             beta = dt / (dt + k[C.K_DIST_TAU])
-            s[C.S_DIST:C.S_DIST + 2] += beta * (measured - explained - s[C.S_DIST:C.S_DIST + 2])
-            push = s[C.S_DIST:C.S_DIST + 2]
-            acc = sp[C.SP_AX:C.SP_AX + 2].copy()
+            s[C.S_DIST : C.S_DIST + 2] += beta * (measured - explained - s[C.S_DIST : C.S_DIST + 2])
+            push = s[C.S_DIST : C.S_DIST + 2]
+            acc = sp[C.SP_AX : C.SP_AX + 2].copy()
             tau, vmax = k[C.K_SPEED_TAU], sp[C.SP_VMAX]
             predicted = v[:2] + (acc + push) * tau
             if np.linalg.norm(predicted) > vmax:
                 acc = (predicted / np.linalg.norm(predicted) * vmax - v[:2]) / tau - push
         acc = acc + drag_gain * v[:2]
-        s[C.S_ACC_CMD:C.S_ACC_CMD + 2] = acc
+        s[C.S_ACC_CMD : C.S_ACC_CMD + 2] = acc
 
         vz_sp = np.clip(p["MPC_Z_P"] * (sp[C.SP_Z] - pos[2]), -p["MPC_Z_VEL_MAX_DN"], p["MPC_Z_VEL_MAX_UP"])
         vz_dot = (v[2] - s[C.S_VZ_PREV]) / dt
@@ -123,17 +130,17 @@ def reference_tick(tick, qpos, qvel, s, sp, wind, p, k, mix, eff, rotors):
             produced = thr[:2] * g / hover
             if acc @ acc > produced @ produced:
                 err_xy = err_xy - 2.0 / p["MPC_XY_VEL_P_ACC"] * (acc - produced)
-            s[C.S_VEL_INT:C.S_VEL_INT + 2] += err_xy * p["MPC_XY_VEL_I_ACC"] * dt
+            s[C.S_VEL_INT : C.S_VEL_INT + 2] += err_xy * p["MPC_XY_VEL_I_ACC"] * dt
         z_axis = thr / np.linalg.norm(thr)
         x_axis = np.cross([0.0, 1.0, 0.0], z_axis)
         x_axis /= np.linalg.norm(x_axis)
-        s[C.S_QSP:C.S_QSP + 4] = quat_of(np.column_stack([x_axis, np.cross(z_axis, x_axis), z_axis]))
+        s[C.S_QSP : C.S_QSP + 4] = quat_of(np.column_stack([x_axis, np.cross(z_axis, x_axis), z_axis]))
         s[C.S_THRUST] = np.linalg.norm(thr)
 
-    u = s[C.S_U:C.S_U + 4].copy()
+    u = s[C.S_U : C.S_U + 4].copy()
     if tick % int(k[C.K_RATE_DIV]) == 0:
         dt = dt_phys * k[C.K_RATE_DIV]
-        qd = s[C.S_QSP:C.S_QSP + 4]
+        qd = s[C.S_QSP : C.S_QSP + 4]
         e_z, e_zd = R[:, 2], rot(qd)[:, 2]
         axis = np.cross(e_z, e_zd)
         angle = math.atan2(np.linalg.norm(axis), e_z @ e_zd)
@@ -150,14 +157,20 @@ def reference_tick(tick, qpos, qvel, s, sp, wind, p, k, mix, eff, rotors):
         rate_sp = np.clip(2 * qe[1:] * gains, -limits, limits)
 
         axes = [("MC_ROLLRATE_", "MC_RR_INT_LIM"), ("MC_PITCHRATE_", "MC_PR_INT_LIM"), ("MC_YAWRATE_", "MC_YR_INT_LIM")]
-        ang_acc = (body_rate - s[C.S_RATE_PREV:C.S_RATE_PREV + 3]) / dt
-        s[C.S_RATE_PREV:C.S_RATE_PREV + 3] = body_rate
-        s[C.S_ANG_ACC:C.S_ANG_ACC + 3] += lowpass_alpha(p["IMU_DGYRO_CUTOFF"], dt) * (ang_acc - s[C.S_ANG_ACC:C.S_ANG_ACC + 3])
+        ang_acc = (body_rate - s[C.S_RATE_PREV : C.S_RATE_PREV + 3]) / dt
+        s[C.S_RATE_PREV : C.S_RATE_PREV + 3] = body_rate
+        s[C.S_ANG_ACC : C.S_ANG_ACC + 3] += lowpass_alpha(p["IMU_DGYRO_CUTOFF"], dt) * (
+            ang_acc - s[C.S_ANG_ACC : C.S_ANG_ACC + 3]
+        )
         err = rate_sp - body_rate
-        torque = np.array([
-            p[a + "K"] * (p[a + "P"] * err[i] - p[a + "D"] * s[C.S_ANG_ACC + i]) + s[C.S_RATE_INT + i] + p[a + "FF"] * rate_sp[i]
-            for i, (a, _) in enumerate(axes)
-        ])
+        torque = np.array(
+            [
+                p[a + "K"] * (p[a + "P"] * err[i] - p[a + "D"] * s[C.S_ANG_ACC + i])
+                + s[C.S_RATE_INT + i]
+                + p[a + "FF"] * rate_sp[i]
+                for i, (a, _) in enumerate(axes)
+            ]
+        )
         s[C.S_YAW_TQ] += lowpass_alpha(p["MC_YAW_TQ_CUTOFF"], dt) * (torque[2] - s[C.S_YAW_TQ])
         control = np.array([torque[0], torque[1], s[C.S_YAW_TQ], s[C.S_THRUST]])
         u = mix[:, 0] * control[0] + mix[:, 1] * control[1] + mix[:, 3] * control[3]
@@ -176,14 +189,16 @@ def reference_tick(tick, qpos, qvel, s, sp, wind, p, k, mix, eff, rotors):
             if unallocated[i] < -1e-6:
                 e = max(e, 0.0)
             factor = max(0.0, 1 - (e / math.radians(400)) ** 2)
-            s[C.S_RATE_INT + i] = np.clip(s[C.S_RATE_INT + i] + factor * p[a + "I"] * p[a + "K"] * e * dt, -p[lim], p[lim])
-        s[C.S_U:C.S_U + 4] = u
+            s[C.S_RATE_INT + i] = np.clip(
+                s[C.S_RATE_INT + i] + factor * p[a + "I"] * p[a + "K"] * e * dt, -p[lim], p[lim]
+            )
+        s[C.S_U : C.S_U + 4] = u
 
     # motors: asymmetric first-order lag on the rotor speed, thrust k omega^2
     reference = k[C.K_WMAX] * np.sqrt(np.clip(u, 0, 1))
     alpha = np.where(reference > omega, k[C.K_ALPHA_UP], k[C.K_ALPHA_DOWN])
     omega = alpha * omega + (1 - alpha) * reference
-    s[C.S_OMEGA:C.S_OMEGA + 4] = omega
+    s[C.S_OMEGA : C.S_OMEGA + 4] = omega
     force, torque = np.zeros(3), np.zeros(3)
     drag_force, drag_torque = np.zeros(3), np.zeros(3)
     for i in range(4):
@@ -201,7 +216,7 @@ def reference_tick(tick, qpos, qvel, s, sp, wind, p, k, mix, eff, rotors):
         f_thrust = thrust * R[:, 2]
         force += f_thrust
         torque += np.cross(R @ r_body, f_thrust) - rotors[i, 3] * k[C.K_KM] * thrust * R[:, 2]
-    s[C.S_DRAG:C.S_DRAG + 6] = np.concatenate([drag_force, drag_torque])
+    s[C.S_DRAG : C.S_DRAG + 6] = np.concatenate([drag_force, drag_torque])
     return s, np.concatenate([force + drag_force, torque + drag_torque])
 
 
@@ -215,15 +230,23 @@ def random_case(rng, cascade, n_drones):
     qpos[:, 3:] = xyzw[:, [3, 0, 1, 2]]
     qvel = rng.normal(0, 1.0, (n_drones, 6))
     s = np.zeros((n_drones, C.N_STATE))
-    s[:, C.S_THRUST_N:C.S_THRUST_N + 4] = rng.uniform(2, 6, (n_drones, 4))
-    s[:, C.S_OMEGA:C.S_OMEGA + 4] = rng.uniform(500, 1000, (n_drones, 4))
-    s[:, C.S_U:C.S_U + 4] = rng.uniform(0.3, 0.7, (n_drones, 4))
-    s[:, C.S_QSP:C.S_QSP + 4] = Rotation.from_rotvec(rng.normal(0, 0.2, (n_drones, 3))).as_quat()[:, [3, 0, 1, 2]]
+    s[:, C.S_THRUST_N : C.S_THRUST_N + 4] = rng.uniform(2, 6, (n_drones, 4))
+    s[:, C.S_OMEGA : C.S_OMEGA + 4] = rng.uniform(500, 1000, (n_drones, 4))
+    s[:, C.S_U : C.S_U + 4] = rng.uniform(0.3, 0.7, (n_drones, 4))
+    s[:, C.S_QSP : C.S_QSP + 4] = Rotation.from_rotvec(rng.normal(0, 0.2, (n_drones, 3))).as_quat()[:, [3, 0, 1, 2]]
     s[:, C.S_THRUST] = rng.uniform(0.3, 0.8, n_drones)
-    for col, scale in ((C.S_RATE_INT, 0.1), (C.S_RATE_PREV, 1.0), (C.S_ANG_ACC, 5.0), (C.S_DIST, 1.0), (C.S_VXY_PREV, 1.0),
-                       (C.S_VSP, 1.0), (C.S_VEL_INT, 1.0), (C.S_VEL_DOT, 2.0)):
+    for col, scale in (
+        (C.S_RATE_INT, 0.1),
+        (C.S_RATE_PREV, 1.0),
+        (C.S_ANG_ACC, 5.0),
+        (C.S_DIST, 1.0),
+        (C.S_VXY_PREV, 1.0),
+        (C.S_VSP, 1.0),
+        (C.S_VEL_INT, 1.0),
+        (C.S_VEL_DOT, 2.0),
+    ):
         width = 2 if col in (C.S_DIST, C.S_VXY_PREV, C.S_VSP, C.S_VEL_INT, C.S_VEL_DOT) else 3
-        s[:, col:col + width] = rng.normal(0, scale, (n_drones, width))
+        s[:, col : col + width] = rng.normal(0, scale, (n_drones, width))
     s[:, C.S_YAW_TQ] = rng.normal(0, 0.05, n_drones)
     s[:, C.S_Z_INT] = rng.normal(0, 0.5, n_drones)
     s[:, C.S_VZ_PREV] = rng.normal(0, 0.3, n_drones)
@@ -234,8 +257,14 @@ def random_case(rng, cascade, n_drones):
 
 @pytest.fixture(scope="module", params=["velocity", "acceleration"])
 def cascade(request):
-    return C.Px4Cascade(load_airframe("iris"), load_params("iris"), C.CascadeTiming(0.002, 2, 5), n_envs=1, n_drones=6,
-                        offboard=request.param)
+    return C.Px4Cascade(
+        load_airframe("iris"),
+        load_params("iris"),
+        C.CascadeTiming(0.002, 2, 5),
+        n_envs=1,
+        n_drones=6,
+        offboard=request.param,
+    )
 
 
 @pytest.mark.parametrize("tick", [0, 1, 2, 5])  # all loops / motors only / + rate loop / + position loop
@@ -245,14 +274,27 @@ def test_compiled_cascade_matches_numpy_reference(cascade, tick):
     for _ in range(5):
         qpos, qvel, s, sp, wind = random_case(rng, cascade, 6)
         if tick == 0:  # large setpoints: the tilt limit and the horizontal anti-windup engage
-            sp[:3, C.SP_AX:C.SP_AY + 1] *= 6.0
+            sp[:3, C.SP_AX : C.SP_AY + 1] *= 6.0
         s_fast, xfrc_fast = s.copy(), np.zeros((6, 6))
-        bad = C.cascade_step(tick, qpos, qvel, xfrc_fast, s_fast, sp, wind, cascade.prm, cascade.k,
-                             cascade.mix, cascade.eff, cascade.rotors)
+        bad = C.cascade_step(
+            tick,
+            qpos,
+            qvel,
+            xfrc_fast,
+            s_fast,
+            sp,
+            wind,
+            cascade.prm,
+            cascade.k,
+            cascade.mix,
+            cascade.eff,
+            cascade.rotors,
+        )
         assert bad == -1
         for d in range(6):
-            s_ref, xfrc_ref = reference_tick(tick, qpos[d], qvel[d], s[d], sp[d], wind, p, cascade.k,
-                                             cascade.mix, cascade.eff, cascade.rotors)
+            s_ref, xfrc_ref = reference_tick(
+                tick, qpos[d], qvel[d], s[d], sp[d], wind, p, cascade.k, cascade.mix, cascade.eff, cascade.rotors
+            )
             # atol 1e-6: a motor command saturated at 0 is 0 +- 1e-15 in either implementation, and
             # the rotor speed follows sqrt(command) (rad/s of order 1e3 elsewhere)
             np.testing.assert_allclose(s_fast[d], s_ref, rtol=1e-9, atol=1e-6)
@@ -271,8 +313,8 @@ def test_kernel_writes_rotor_thrusts_to_actuator_controls(cascade):
         assert C.cascade_step(tick, qpos, qvel, xfrc_ext, s_ext, sp, wind, *args) == -1
         assert C.cascade_step(tick, qpos, qvel, xfrc_act, s_act, sp, wind, *args, ctrl) == -1
         np.testing.assert_array_equal(s_act, s_ext)
-        np.testing.assert_array_equal(ctrl, s_act[:, C.S_THRUST_N:C.S_THRUST_N + 4])
-        np.testing.assert_array_equal(xfrc_act, s_act[:, C.S_DRAG:C.S_DRAG + 6])
+        np.testing.assert_array_equal(ctrl, s_act[:, C.S_THRUST_N : C.S_THRUST_N + 4])
+        np.testing.assert_array_equal(xfrc_act, s_act[:, C.S_DRAG : C.S_DRAG + 6])
         # what the actuators must add: thrust along body z at each rotor (+ moment) and the yaw reaction
         for d in range(6):
             R = rot(qpos[d, 3:])
@@ -281,7 +323,9 @@ def test_kernel_writes_rotor_thrusts_to_actuator_controls(cascade):
                 f = ctrl[d, i] * R[:, 2]
                 force += f
                 torque += np.cross(R @ cascade.rotors[i, :3], f) - cascade.rotors[i, 3] * cascade.k[C.K_KM] * f
-            np.testing.assert_allclose(xfrc_ext[d] - xfrc_act[d], np.concatenate([force, torque]), rtol=1e-9, atol=1e-12)
+            np.testing.assert_allclose(
+                xfrc_ext[d] - xfrc_act[d], np.concatenate([force, torque]), rtol=1e-9, atol=1e-12
+            )
 
 
 def test_kernel_flags_nan_and_flipped_drones(cascade):
@@ -297,7 +341,9 @@ def test_kernel_flags_nan_and_flipped_drones(cascade):
 
 def test_velocity_command_integrates_like_the_particle_world():
     """Ten position ticks per decision step of slope x period land v_sp on clip_norm(v_sp + a dt)."""
-    cascade = C.Px4Cascade(load_airframe("iris"), load_params("iris"), C.CascadeTiming(0.002, 2, 5), n_envs=2, n_drones=3)
+    cascade = C.Px4Cascade(
+        load_airframe("iris"), load_params("iris"), C.CascadeTiming(0.002, 2, 5), n_envs=2, n_drones=3
+    )
     cascade.setpoint[..., C.SP_VMAX] = 1.0
     rng = np.random.default_rng(0)
     v = np.zeros((2, 3, 2))
@@ -305,15 +351,15 @@ def test_velocity_command_integrates_like_the_particle_world():
         a = rng.uniform(-2, 2, (2, 3, 2))
         cascade.command(a, 0.1)
         for _ in range(10):  # what the position loop does at each of its ticks (0.01 s)
-            cascade.state[..., C.S_VSP:C.S_VSP + 2] += cascade.setpoint[..., C.SP_AX:C.SP_AY + 1] * 0.01
+            cascade.state[..., C.S_VSP : C.S_VSP + 2] += cascade.setpoint[..., C.SP_AX : C.SP_AY + 1] * 0.01
         v = v + a * 0.1
         v = v * np.minimum(1.0, 1.0 / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-12))
-        np.testing.assert_allclose(cascade.state[..., C.S_VSP:C.S_VSP + 2], v, atol=1e-12)
+        np.testing.assert_allclose(cascade.state[..., C.S_VSP : C.S_VSP + 2], v, atol=1e-12)
     # the feed-forward is the acceleration itself until the speed limit clips
     cascade.reset(0)
     cascade.reset(1)
     cascade.command(np.full((2, 3, 2), 0.3), 0.1)
-    np.testing.assert_allclose(cascade.setpoint[..., C.SP_AX:C.SP_AY + 1], 0.3)
+    np.testing.assert_allclose(cascade.setpoint[..., C.SP_AX : C.SP_AY + 1], 0.3)
 
 
 # ----------------------------------------------------------------------------- mixer and airframe
@@ -349,7 +395,10 @@ def iris_text():
     return (CONTROLLERS_DIR / "iris.params").read_text()
 
 
-@pytest.mark.parametrize("name, value", [("MC_ROLLRATE_P", "0.9"), ("MPC_TILTMAX_AIR", "95"), ("MC_YAW_WEIGHT", "-0.1"), ("MPC_THR_HOVER", "nan")])
+@pytest.mark.parametrize(
+    "name, value",
+    [("MC_ROLLRATE_P", "0.9"), ("MPC_TILTMAX_AIR", "95"), ("MC_YAW_WEIGHT", "-0.1"), ("MPC_THR_HOVER", "nan")],
+)
 def test_parameter_outside_px4_range_is_named(name, value):
     lines = [f"{name} {value}" if line.split()[:1] == [name] else line for line in iris_text().splitlines()]
     with pytest.raises(ConfigError, match=rf"parameter {name} = .* outside PX4's range") as info:

@@ -11,8 +11,9 @@ from cefc_mj.task.config import TaskConfig
 
 
 def _config(estimator, deviation, **kw):
-    return TaskConfig(n_agents=5, mode="formation", obstacle_density=0.03, deviation=deviation,
-                      position_estimator=estimator, **kw)
+    return TaskConfig(
+        n_agents=5, mode="formation", obstacle_density=0.03, deviation=deviation, position_estimator=estimator, **kw
+    )
 
 
 def _errors(env, steps, rng):

@@ -9,8 +9,8 @@ import pytest
 import torch
 
 import cefc_mj.eval.table8 as table8
-from cefc_mj.eval import DEFAULT_POLICY
 from cefc_mj.cli.eval import main
+from cefc_mj.eval import DEFAULT_POLICY
 from cefc_mj.nn.atm import ATMActor, ATMConfig
 from cefc_mj.nn.policy_io import save_policy
 from cefc_mj.task.config import TaskConfig
@@ -63,8 +63,10 @@ BAD_INPUTS = [
     (["--workers", "2", "--rrd", "run.rrd"], "--workers 2"),
     (["--policy", "no_such_policy"], "no_such_policy"),
     (["--policy", "elsewhere/atm_c5_nav.pt", "--formation", "5"], "no policy file 'elsewhere/atm_c5_nav.pt'"),
-    (["--protocol", "table5", "--backend", "particle", "--policy", "elsewhere/cihrl_mappo.pt"],
-     "no policy file 'elsewhere/cihrl_mappo.pt'"),
+    (
+        ["--protocol", "table5", "--backend", "particle", "--policy", "elsewhere/cihrl_mappo.pt"],
+        "no policy file 'elsewhere/cihrl_mappo.pt'",
+    ),
     (["--policy", "robust", "--formation", "3"], "AT-M-Robust is withdrawn"),
     (["--policy", "nav", "--formation", "3", "--wind", "0", "--wind-direction", "45"], "no wind to point"),
     (["--json", "{file}/out.json"], "is a file, not a folder"),
@@ -88,7 +90,10 @@ BAD_INPUTS = [
     (["--protocol", "table3"], "--backend particle"),
     (["--protocol", "table3", "--backend", "particle", "--deviation", "0.3"], "exact sensing"),
     (["--protocol", "table3", "--backend", "particle", "--workers", "2"], "one batch"),
-    (["--protocol", "table3", "--backend", "particle", "--policy", "quad", "--formation", "3"], "AT-M-Quad is withdrawn"),
+    (
+        ["--protocol", "table3", "--backend", "particle", "--policy", "quad", "--formation", "3"],
+        "AT-M-Quad is withdrawn",
+    ),
 ]
 
 
@@ -112,20 +117,25 @@ def test_bad_input_one_line_exit_2_nothing_flown_or_written(argv, needle, capsys
 
 
 def test_checkpoint_for_another_observation_size(wrong_shape_policy, capsys):
-    code, out, err = run_cli(["--backend", "particle", "--formation", "5", "--steps", "5", "--policy",
-                              str(wrong_shape_policy)], capsys)
+    code, out, err = run_cli(
+        ["--backend", "particle", "--formation", "5", "--steps", "5", "--policy", str(wrong_shape_policy)], capsys
+    )
     assert code == 2 and "observations of size 51" in err and len(err.strip().splitlines()) == 1 and out == ""
 
 
-@pytest.mark.parametrize("argv, needle", [
-    (["--backend", "bullet"], "invalid choice"),
-    (["--json", "/nonexistent/x.json"], "will not create /nonexistent"),
-    (["--wind", "1e9"], "maximum speed"),
-    (["--protocol", "table8", "--deviation", "0.3"], "its own 7 conditions"),
-])
+@pytest.mark.parametrize(
+    "argv, needle",
+    [
+        (["--backend", "bullet"], "invalid choice"),
+        (["--json", "/nonexistent/x.json"], "will not create /nonexistent"),
+        (["--wind", "1e9"], "maximum speed"),
+        (["--protocol", "table8", "--deviation", "0.3"], "its own 7 conditions"),
+    ],
+)
 def test_bad_input_via_subprocess(argv, needle, tmp_path):
-    proc = subprocess.run([sys.executable, "-m", "cefc_mj.cli.eval", *argv], capture_output=True, text=True,
-                          cwd=tmp_path, timeout=120)
+    proc = subprocess.run(
+        [sys.executable, "-m", "cefc_mj.cli.eval", *argv], capture_output=True, text=True, cwd=tmp_path, timeout=120
+    )
     assert proc.returncode == 2 and needle in proc.stderr and "Traceback" not in proc.stderr
     assert len(proc.stderr.strip().splitlines()) == 1 and proc.stdout == ""
     assert list(tmp_path.iterdir()) == []
@@ -142,8 +152,24 @@ def test_version_and_help(capsys):
 
 def test_particle_single_run_writes_json_and_png_into_new_folders(random_policy, tmp_path, capsys):
     out = tmp_path / "new" / "res.json"
-    code = main(["--backend", "particle", "--formation", "5", "--steps", "30", "--deviation", "0.3",
-                 "--policy", str(random_policy), "--json", str(out), "--png", str(tmp_path / "png")])
+    code = main(
+        [
+            "--backend",
+            "particle",
+            "--formation",
+            "5",
+            "--steps",
+            "30",
+            "--deviation",
+            "0.3",
+            "--policy",
+            str(random_policy),
+            "--json",
+            str(out),
+            "--png",
+            str(tmp_path / "png"),
+        ]
+    )
     assert code == 0
     data = json.loads(out.read_text())
     assert data["condition"] == "Deviation-0.3" and data["seeds"] == [0] and data["comparable_to_paper"] is False
@@ -160,8 +186,20 @@ def test_particle_single_run_writes_json_and_png_into_new_folders(random_policy,
 
 def test_single_with_workers_uses_a_pool(random_policy, tmp_path, capsys):
     """--workers 2 flies the episodes in two processes and gives the same numbers as one process."""
-    argv = ["--backend", "particle", "--formation", "5", "--steps", "15", "--episodes", "2", "--deviation", "0.5",
-            "--policy", str(random_policy)]
+    argv = [
+        "--backend",
+        "particle",
+        "--formation",
+        "5",
+        "--steps",
+        "15",
+        "--episodes",
+        "2",
+        "--deviation",
+        "0.5",
+        "--policy",
+        str(random_policy),
+    ]
     assert main(argv + ["--json", str(tmp_path / "one.json")]) == 0
     assert main(argv + ["--workers", "2", "--json", str(tmp_path / "two.json")]) == 0
     one, two = (json.loads((tmp_path / f"{n}.json").read_text())["rows"] for n in ("one", "two"))
@@ -176,8 +214,23 @@ def test_rrd_recording_into_a_missing_folder_read_back(random_policy, tmp_path):
     import rerun as rr
 
     rrd = tmp_path / "missing" / "run.rrd"
-    assert main(["--backend", "particle", "--formation", "5", "--steps", "20", "--policy", str(random_policy),
-                 "--rrd", str(rrd)]) == 0
+    assert (
+        main(
+            [
+                "--backend",
+                "particle",
+                "--formation",
+                "5",
+                "--steps",
+                "20",
+                "--policy",
+                str(random_policy),
+                "--rrd",
+                str(rrd),
+            ]
+        )
+        == 0
+    )
     paths = set()
     for chunk in rr.chunk.RrdReader(rrd).stream().to_chunks():
         paths.add(str(chunk.entity_path))
@@ -194,8 +247,20 @@ def test_output_that_fails_at_the_end_is_one_line_after_the_table(random_policy,
 
     monkeypatch.setattr(cefc_mj.fileio, "write_atomic", disk_full)
     with pytest.raises(SystemExit) as exc:
-        main(["--backend", "particle", "--formation", "5", "--steps", "5", "--policy", str(random_policy),
-              "--json", str(tmp_path / "r.json")])
+        main(
+            [
+                "--backend",
+                "particle",
+                "--formation",
+                "5",
+                "--steps",
+                "5",
+                "--policy",
+                str(random_policy),
+                "--json",
+                str(tmp_path / "r.json"),
+            ]
+        )
     out = capsys.readouterr()
     assert exc.value.code == 1 and "Table VIII metrics" in out.out
     last = out.err.strip().splitlines()[-1]
@@ -228,7 +293,10 @@ def test_default_policy_is_shipped_for_every_formation_and_says_how_it_differs()
         assert card["method"] == "AT-M-Nav" and card["config"]["navigation_weight"] in (7.0, 10.0)
         periods = card["config"].get("anchor_periods", 1)
         stragglers = card["config"].get("straggler_fraction", 0.0)
-        assert card["differs_from_paper"][0] == f"navigation weight omega_n = {card['config']['navigation_weight']:g} (paper 4)"
+        assert (
+            card["differs_from_paper"][0]
+            == f"navigation weight omega_n = {card['config']['navigation_weight']:g} (paper 4)"
+        )
         assert len(card["differs_from_paper"]) == 1 + (periods > 1) + (stragglers > 0)
         assert card["task"].get("straggler_fraction", 0.0) == stragglers
         assert card["task"]["rewards"]["navigation_weight_low"] == card["config"]["navigation_weight"]

@@ -11,13 +11,21 @@ import pytest
 
 from cefc_mj import paths
 from cefc_mj.cli.eval import main
-from cefc_mj.eval.highlevel import (DT, Conditions, evaluate_highlevel_episodes, format_highlevel_table, game_task,
-                                    plot_highlevel_table, run_table5, run_table6, run_table7)
 from cefc_mj.errors import ConfigError
+from cefc_mj.eval.highlevel import (
+    DT,
+    Conditions,
+    evaluate_highlevel_episodes,
+    format_highlevel_table,
+    game_task,
+    plot_highlevel_table,
+    run_table5,
+    run_table6,
+    run_table7,
+)
 from cefc_mj.hierarchy import load_low_level
 from cefc_mj.nn.adversary_policy import AdversaryNetConfig, AdversaryPolicy, save_adversary_policy
 from cefc_mj.nn.highlevel_policy import HighLevelPolicy, save_highlevel_policy
-
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -28,10 +36,16 @@ def policies(tmp_path):
     folder = tmp_path / "policies"
     folder.mkdir()
     task = game_task()
-    for name, variant, seed in (("cihrl_mappo", "mappo", 0), ("cihrl_mappo_seed1", "mappo", 1),
-                                ("cihrl_consmac_a", "consmac-a", 0)):
-        save_highlevel_policy(HighLevelPolicy.build(variant, task, seed=seed), folder / f"{name}.pt",
-                              meta={"name": name, "decision_interval": 10})
+    for name, variant, seed in (
+        ("cihrl_mappo", "mappo", 0),
+        ("cihrl_mappo_seed1", "mappo", 1),
+        ("cihrl_consmac_a", "consmac-a", 0),
+    ):
+        save_highlevel_policy(
+            HighLevelPolicy.build(variant, task, seed=seed),
+            folder / f"{name}.pt",
+            meta={"name": name, "decision_interval": 10},
+        )
     save_adversary_policy(AdversaryPolicy(AdversaryNetConfig(), seed=0), folder / "adversary_ppo.pt")
     return folder
 
@@ -39,9 +53,12 @@ def policies(tmp_path):
 def test_table5_rows_units_seeds_and_missing_methods(policies):
     result = run_table5(episodes=2, seed=3, policies_dir=policies)
     assert list(result["rows"]) == ["MAPPO+AT-M", "CI-HRL"]
-    assert result["protocol"]["missing"] == ["TarMAC+AT-M (cihrl_tarmac.pt)", "CI-HRL-DT (cihrl_consmac_a_dt.pt)",
-                                             "CI-HRL-wo-FT (cihrl_consmac_a_wo_ft.pt)",
-                                             "CI-HRL (ConsMAC-O) (cihrl_consmac_o.pt)"]
+    assert result["protocol"]["missing"] == [
+        "TarMAC+AT-M (cihrl_tarmac.pt)",
+        "CI-HRL-DT (cihrl_consmac_a_dt.pt)",
+        "CI-HRL-wo-FT (cihrl_consmac_a_wo_ft.pt)",
+        "CI-HRL (ConsMAC-O) (cihrl_consmac_o.pt)",
+    ]
     for row in result["rows"].values():
         per = {k: np.array(v) for k, v in row["per_episode"].items()}
         np.testing.assert_allclose(per["R_H"], per["R_t"] + per["R_n"] + per["R_e"], rtol=1e-12, atol=1e-9)
@@ -97,8 +114,12 @@ def test_the_evaluation_follows_the_policy_a_better_anchor_choice_scores_more():
 def test_table6_plays_one_policy_against_each_adversary(policies):
     result = run_table6(episodes=2, policies_dir=policies, policy="cihrl_mappo")
     assert list(result["rows"]) == ["PPO", "R-Largest", "R-Nearest", "Nearest-group rule"]
-    assert [r["adversary"] for r in result["rows"].values()] == ["adversary_ppo", "r_largest", "r_nearest",
-                                                                 "nearest_group"]
+    assert [r["adversary"] for r in result["rows"].values()] == [
+        "adversary_ppo",
+        "r_largest",
+        "r_nearest",
+        "nearest_group",
+    ]
     assert result["rows"]["PPO"]["adversary_record"]["policy"] == "adversary_ppo.pt"
     assert "not in the paper" in result["rows"]["Nearest-group rule"]["differs"]
     assert result["rows"]["Nearest-group rule"]["paper"] is None
@@ -108,8 +129,9 @@ def test_table6_plays_one_policy_against_each_adversary(policies):
     # Table V against a rule: the same games as Table VI's row of that rule.
     rule = run_table5(episodes=2, policies_dir=policies, policy="cihrl_mappo", adversary="r_nearest")
     assert rule["rows"]["cihrl_mappo"]["per_episode"] == result["rows"]["R-Nearest"]["per_episode"]
-    assert rule["protocol"]["adversary"] == {"rule": "r_nearest"} and "adversary r_nearest" in \
-        format_highlevel_table(rule)
+    assert rule["protocol"]["adversary"] == {"rule": "r_nearest"} and "adversary r_nearest" in format_highlevel_table(
+        rule
+    )
 
 
 def test_table7_plays_the_n8_policy_in_larger_swarms_per_agent(policies, tmp_path):
@@ -132,8 +154,13 @@ def test_table7_plays_the_n8_policy_in_larger_swarms_per_agent(policies, tmp_pat
 def test_the_game_flies_on_quadrotors_with_wind_and_deviation(policies):
     """The same policy file on MuJoCo quadrotors: the same episodes (layouts, targets), other physics."""
     calm = run_table5(episodes=1, seed=2, policies_dir=policies, policy="cihrl_mappo")["rows"]["cihrl_mappo"]
-    quad = run_table5(episodes=1, seed=2, policies_dir=policies, policy="cihrl_mappo",
-                      where=Conditions("mujoco", wind=5.0, deviation=0.3))
+    quad = run_table5(
+        episodes=1,
+        seed=2,
+        policies_dir=policies,
+        policy="cihrl_mappo",
+        where=Conditions("mujoco", wind=5.0, deviation=0.3),
+    )
     assert quad["protocol"]["backend"] == "mujoco" and not quad["protocol"]["comparable_to_paper"]
     row = quad["rows"]["cihrl_mappo"]
     assert row["per_episode"] != calm["per_episode"] and row["R_n"] < 0
@@ -144,8 +171,23 @@ def test_cli_writes_the_report_folder(policies, tmp_path, monkeypatch, capsys):
     (policies / "atm_student.pt").write_bytes((paths.POLICIES_DIR / "atm_student.pt").read_bytes())
     monkeypatch.setattr(paths, "POLICIES_DIR", policies)
     out = tmp_path / "reports"
-    assert main(["--backend", "particle", "--protocol", "table5", "--episodes", "2", "--report-dir", str(out),
-                 "--json", str(tmp_path / "t5.json")]) == 0
+    assert (
+        main(
+            [
+                "--backend",
+                "particle",
+                "--protocol",
+                "table5",
+                "--episodes",
+                "2",
+                "--report-dir",
+                str(out),
+                "--json",
+                str(tmp_path / "t5.json"),
+            ]
+        )
+        == 0
+    )
     assert "MAPPO+AT-M" in capsys.readouterr().out
     assert {p.name for p in out.iterdir()} == {"table5.md", "table5.json", "table5.png"}
     data = json.loads((out / "table5.json").read_text())
@@ -161,8 +203,25 @@ def test_cli_records_one_game_of_a_policy(policies, tmp_path, monkeypatch, capsy
     (policies / "atm_student.pt").write_bytes((paths.POLICIES_DIR / "atm_student.pt").read_bytes())
     monkeypatch.setattr(paths, "POLICIES_DIR", policies)
     rrd, png = tmp_path / "game.rrd", tmp_path / "png"
-    assert main(["--backend", "particle", "--protocol", "table5", "--policy", "cihrl_consmac_a", "--episodes", "1",
-                 "--rrd", str(rrd), "--png", str(png)]) == 0
+    assert (
+        main(
+            [
+                "--backend",
+                "particle",
+                "--protocol",
+                "table5",
+                "--policy",
+                "cihrl_consmac_a",
+                "--episodes",
+                "1",
+                "--rrd",
+                str(rrd),
+                "--png",
+                str(png),
+            ]
+        )
+        == 0
+    )
     assert rrd.stat().st_size > 0 and [p.name for p in png.iterdir()] == ["similarity_cihrl_consmac_a_s0.png"]
     with pytest.raises(SystemExit) as exc:
         main(["--backend", "particle", "--protocol", "table5", "--policy", "cihrl_mappo", "--png", str(tmp_path / "x")])
@@ -170,19 +229,25 @@ def test_cli_records_one_game_of_a_policy(policies, tmp_path, monkeypatch, capsy
     assert not (tmp_path / "x").exists()
 
 
-@pytest.mark.parametrize("argv, needle", [
-    (["--protocol", "table5", "--backend", "particle", "--wind", "3"], "--wind: the particle backend has no wind"),
-    (["--protocol", "table5", "--backend", "particle", "--estimator", "raw"], "--estimator: --protocol table5"),
-    (["--protocol", "table6", "--backend", "particle", "--steps", "100"], "--steps: --protocol table6"),
-    (["--protocol", "table5", "--backend", "particle", "--workers", "2"], "--workers: table5"),
-    (["--protocol", "table5", "--backend", "particle", "--policy", "no_such"], "--policy no_such: no high-level"),
-    (["--protocol", "table6", "--backend", "particle", "--episodes", "0"], "--episodes 0"),
-    (["--protocol", "table5", "--backend", "particle", "--rrd", "x.rrd"], "--rrd: recording works with"),
-    (["--protocol", "table6", "--backend", "particle", "--adversary", "r_nearest"], "--adversary r_nearest: chooses"),
-    (["--formation", "6", "--adversary", "r_nearest"], "--adversary r_nearest: chooses"),
-    (["--protocol", "table7", "--backend", "particle", "--formation", "6"], "--formation: --protocol table7"),
-    (["--protocol", "table5", "--backend", "particle", "--adversary", "no_such"], "adversary no_such: "),
-])
+@pytest.mark.parametrize(
+    "argv, needle",
+    [
+        (["--protocol", "table5", "--backend", "particle", "--wind", "3"], "--wind: the particle backend has no wind"),
+        (["--protocol", "table5", "--backend", "particle", "--estimator", "raw"], "--estimator: --protocol table5"),
+        (["--protocol", "table6", "--backend", "particle", "--steps", "100"], "--steps: --protocol table6"),
+        (["--protocol", "table5", "--backend", "particle", "--workers", "2"], "--workers: table5"),
+        (["--protocol", "table5", "--backend", "particle", "--policy", "no_such"], "--policy no_such: no high-level"),
+        (["--protocol", "table6", "--backend", "particle", "--episodes", "0"], "--episodes 0"),
+        (["--protocol", "table5", "--backend", "particle", "--rrd", "x.rrd"], "--rrd: recording works with"),
+        (
+            ["--protocol", "table6", "--backend", "particle", "--adversary", "r_nearest"],
+            "--adversary r_nearest: chooses",
+        ),
+        (["--formation", "6", "--adversary", "r_nearest"], "--adversary r_nearest: chooses"),
+        (["--protocol", "table7", "--backend", "particle", "--formation", "6"], "--formation: --protocol table7"),
+        (["--protocol", "table5", "--backend", "particle", "--adversary", "no_such"], "adversary no_such: "),
+    ],
+)
 def test_cli_bad_input_exits_2_with_one_line(argv, needle, tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
     with pytest.raises(SystemExit) as exc:
@@ -209,11 +274,15 @@ def test_agent_decider_is_decide_bit_for_bit_for_one_agent(policies):
         for _ in range(4):
             inbox = channel.receive(env.world.agent_pos)
             for agent in range(8):
-                one = Inbox(*(a[:, agent:agent + 1] for a in (inbox.messages, inbox.mask, inbox.distance,
-                                                             inbox.sender, inbox.received, inbox.own)))
+                one = Inbox(
+                    *(
+                        a[:, agent : agent + 1]
+                        for a in (inbox.messages, inbox.mask, inbox.distance, inbox.sender, inbox.received, inbox.own)
+                    )
+                )
                 one = one if policy.comm is not None else None
-                index, message = decider(obs[:, agent:agent + 1], one)
-                ref_index, ref_message = policy.decide(obs[:, agent:agent + 1], one)
+                index, message = decider(obs[:, agent : agent + 1], one)
+                ref_index, ref_message = policy.decide(obs[:, agent : agent + 1], one)
                 assert (index == ref_index).all()
                 assert (message is None and ref_message is None) or (message == ref_message).all()
             index, message = policy.decide(obs, inbox if policy.comm is not None else None)
@@ -221,8 +290,11 @@ def test_agent_decider_is_decide_bit_for_bit_for_one_agent(policies):
                 channel.send(message)
             obs, _, _, _ = env.step(index)
         if policy.comm is not None:  # 3 slots instead of 7: traced anew, still equal
-            short = Inbox(*(a[:, :1, :3] for a in (inbox.messages, inbox.mask, inbox.distance, inbox.sender)),
-                          np.minimum(inbox.received[:, :1], 3), inbox.own[:, :1])
+            short = Inbox(
+                *(a[:, :1, :3] for a in (inbox.messages, inbox.mask, inbox.distance, inbox.sender)),
+                np.minimum(inbox.received[:, :1], 3),
+                inbox.own[:, :1],
+            )
             assert (decider(obs[:, :1], short)[1] == policy.decide(obs[:, :1], short)[1]).all()
     with pytest.raises(ConfigError, match=r"\[1, 1, D\]"):
         decider(obs, None)

@@ -51,8 +51,10 @@ def flown(monkeypatch):
 
 
 def particle_specs(policy, steps=10, deviations=(0.0, 0.3)):
-    return [EpisodeSpec(formation=5, seed=0, backend="particle", deviation=d, steps=steps, policy=str(policy))
-            for d in deviations]
+    return [
+        EpisodeSpec(formation=5, seed=0, backend="particle", deviation=d, steps=steps, policy=str(policy))
+        for d in deviations
+    ]
 
 
 def plan(specs, policy):
@@ -71,8 +73,16 @@ def test_cache_key_changes_with_policy_file_code_and_every_parameter(tmp_path, f
     again = run_grid(plan(specs, policy), cell_file)  # same key: reused, nothing flown
     assert len(flown) == 2 and [r["F"] for r in again] == [r["F"] for r in first]
 
-    for field, value in (("steps", 11), ("seed", 1), ("deviation", 0.31), ("formation", 6), ("wind", 3.0),
-                         ("backend", "mujoco"), ("policy", "other"), ("airframe", "crazyflie")):
+    for field, value in (
+        ("steps", 11),
+        ("seed", 1),
+        ("deviation", 0.31),
+        ("formation", 6),
+        ("wind", 3.0),
+        ("backend", "mujoco"),
+        ("policy", "other"),
+        ("airframe", "crazyflie"),
+    ):
         changed = dataclasses.replace(specs[0], **{field: value})
         sha = {5: "x", 6: "x"}
         assert plan_cells([changed], sha, "v")[0].key != plan_cells([specs[0]], sha, "v")[0].key, field
@@ -112,8 +122,11 @@ def test_interrupted_grid_resumes(tmp_path, flown):
 # ---------------------------------------------------------------------------- table8 end to end
 def shipped_reports_digest():
     root = paths.EVAL_DIR / "reports"
-    return {str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest()
-            for p in sorted(root.rglob("*")) if p.is_file()}
+    return {
+        str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(root.rglob("*"))
+        if p.is_file()
+    }
 
 
 TINY_TABLE8 = ["--protocol", "table8", "--formation", "5", "--episodes", "1", "--steps", "10"]
@@ -123,14 +136,24 @@ def test_table8_default_run_leaves_shipped_reports_alone(tmp_path):
     """`cefc-eval --protocol table8` (a real process, default flags) writes into a new folder under
     the current directory and leaves every file of the shipped eval/reports/ as it was."""
     before = shipped_reports_digest()
-    proc = subprocess.run([sys.executable, "-m", "cefc_mj.cli.eval", *TINY_TABLE8], cwd=tmp_path,
-                          capture_output=True, text=True, timeout=300)
+    proc = subprocess.run(
+        [sys.executable, "-m", "cefc_mj.cli.eval", *TINY_TABLE8],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert proc.returncode == 0, proc.stderr
     assert shipped_reports_digest() == before
     (out,) = (tmp_path / "cefc-eval-reports").iterdir()
     assert out.name.startswith(f"table8-{DEFAULT_POLICY}-mujoco-") and f"reports go to {out}" in proc.stdout
-    assert {p.name for p in out.iterdir()} == {"table8.md", "table8.csv", "table8.json", "table8.png",
-                                               "table8_cells_mujoco.jsonl"}
+    assert {p.name for p in out.iterdir()} == {
+        "table8.md",
+        "table8.csv",
+        "table8.json",
+        "table8.png",
+        "table8_cells_mujoco.jsonl",
+    }
     assert f"0 of 7 cells reused from {out / 'table8_cells_mujoco.jsonl'}" in proc.stdout
     data = json.loads((out / "table8.json").read_text())
     assert data["provenance"]["policies"]["5"]["name"] == "atm_c5_nav" and data["comparable_to_paper"] is False
@@ -159,17 +182,41 @@ def fake_rows(seeds=3, calm_zero=False):
     for cond, (wind, dev) in table8.CONDITIONS.items():
         for s in range(seeds):
             f = 0.0 if calm_zero and cond == "SITL-S" else 800.0 + 10 * s - 50 * dev
-            rows.append({"formation": 5, "seed": s, "condition": cond, "wind": wind, "deviation": dev, "F": f,
-                         "N": 0.0 if calm_zero and cond == "SITL-S" else 600.0 - s, "C": 0.1 * s, "steps": 1000,
-                         "diverged": None})
+            rows.append(
+                {
+                    "formation": 5,
+                    "seed": s,
+                    "condition": cond,
+                    "wind": wind,
+                    "deviation": dev,
+                    "F": f,
+                    "N": 0.0 if calm_zero and cond == "SITL-S" else 600.0 - s,
+                    "C": 0.1 * s,
+                    "steps": 1000,
+                    "diverged": None,
+                }
+            )
     return rows
 
 
-META = {"command": "cefc-eval --protocol table8", "backend": "mujoco", "policy": "atm", "episodes": 3, "seed": 0,
-        "steps": 1000, "report_dir": "r", "cell_file": "r/cells.jsonl", "cells_reused": 0, "cells_total": 21,
-        "provenance": {"git_commit": "abc", "code_version": "0123456789abcdef",
-                       "library_versions": {"mujoco": "3.17.0", "code_version": "0123456789abcdef"},
-                       "policies": {"5": {"name": "atm_c5_step3", "file": "p.pt", "sha256": "f" * 64}}}}
+META = {
+    "command": "cefc-eval --protocol table8",
+    "backend": "mujoco",
+    "policy": "atm",
+    "episodes": 3,
+    "seed": 0,
+    "steps": 1000,
+    "report_dir": "r",
+    "cell_file": "r/cells.jsonl",
+    "cells_reused": 0,
+    "cells_total": 21,
+    "provenance": {
+        "git_commit": "abc",
+        "code_version": "0123456789abcdef",
+        "library_versions": {"mujoco": "3.17.0", "code_version": "0123456789abcdef"},
+        "policies": {"5": {"name": "atm_c5_step3", "file": "p.pt", "sha256": "f" * 64}},
+    },
+}
 
 
 def test_table8_reports_carry_mean_std_and_provenance_never_nan():
@@ -191,14 +238,26 @@ def test_table8_reports_carry_mean_std_and_provenance_never_nan():
 
 
 def test_single_table_labels_columns_and_explains_dashes():
-    calm = {**summarize([{"F": 0.0, "N": 0.0, "C": 0.0, "steps": 200}] * 2), "retention": None,
-            "retention_note": "calm F+N is 0"}
-    windy = {**summarize([{"F": 10.0, "N": 5.0, "C": 1.0, "steps": 200},
-                          {"F": 20.0, "N": 7.0, "C": 0.0, "steps": 200}]),
-             "retention": None, "retention_note": "calm F+N is 0"}
-    text = single_table({"condition": "Wind-8+Deviation-0.5", "steps": 200, "seeds": [0, 1], "backend": "mujoco",
-                         "policy": "atm", "rows": {"5": {"Wind-8+Deviation-0.5": {**windy, "diverged": 0},
-                                                         "SITL-S": {**calm, "diverged": 0}}}})
+    calm = {
+        **summarize([{"F": 0.0, "N": 0.0, "C": 0.0, "steps": 200}] * 2),
+        "retention": None,
+        "retention_note": "calm F+N is 0",
+    }
+    windy = {
+        **summarize([{"F": 10.0, "N": 5.0, "C": 1.0, "steps": 200}, {"F": 20.0, "N": 7.0, "C": 0.0, "steps": 200}]),
+        "retention": None,
+        "retention_note": "calm F+N is 0",
+    }
+    text = single_table(
+        {
+            "condition": "Wind-8+Deviation-0.5",
+            "steps": 200,
+            "seeds": [0, 1],
+            "backend": "mujoco",
+            "policy": "atm",
+            "rows": {"5": {"Wind-8+Deviation-0.5": {**windy, "diverged": 0}, "SITL-S": {**calm, "diverged": 0}}},
+        }
+    )
     assert not NAN.search(text)
     assert "F, N over 200 steps; the paper's are over 1000: not comparable" in text
     assert "15.0 ± 7.1" in text and "SITL-S (calm reference)" in text and "retention - (calm F+N is 0)" in text
@@ -210,8 +269,25 @@ def test_single_table_labels_columns_and_explains_dashes():
 def test_single_json_has_mean_std_and_per_episode_rows(tmp_path, capsys):
     policy = save_random_policy(tmp_path / "p.pt", seed=0)
     out = tmp_path / "r.json"
-    assert main(["--backend", "particle", "--formation", "5", "--steps", "10", "--episodes", "3", "--policy",
-                 str(policy), "--json", str(out)]) == 0
+    assert (
+        main(
+            [
+                "--backend",
+                "particle",
+                "--formation",
+                "5",
+                "--steps",
+                "10",
+                "--episodes",
+                "3",
+                "--policy",
+                str(policy),
+                "--json",
+                str(out),
+            ]
+        )
+        == 0
+    )
     printed = capsys.readouterr().out
     assert "mean ± sample std over 3 seeds" in printed and not NAN.search(printed)
     text = out.read_text()

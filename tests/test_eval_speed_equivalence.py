@@ -50,8 +50,15 @@ def before_actions(policy):
 @pytest.mark.parametrize("sees_agents", [True, False])
 def test_compiled_lidar_equals_mj_multiray_bit_for_bit(sees_agents):
     rng = np.random.default_rng(7)
-    world = MujocoWorld(MujocoWorldConfig(), n_envs=2, n_agents=8, n_obstacles=12, seed=0, with_adversary=True,
-                        lidar_sees_agents=sees_agents)
+    world = MujocoWorld(
+        MujocoWorldConfig(),
+        n_envs=2,
+        n_agents=8,
+        n_obstacles=12,
+        seed=0,
+        with_adversary=True,
+        lidar_sees_agents=sees_agents,
+    )
     assert world._lidar_compiled
     hits = uav_hits = inside = 0
     for _ in range(12):
@@ -139,7 +146,7 @@ def test_deterministic_actions_are_policy_act_batch_invariant_and_close_to_torch
         np.testing.assert_allclose(actions, before(obs), rtol=0, atol=TORCH_TOLERANCE)
         assert np.array_equal(actions.astype(np.float64), policy.act(obs))
         rows = obs.reshape(-1, policy.obs_dim)  # one row at a time (a SITL-M agent) = the whole batch
-        alone = np.concatenate([policy.actor.deterministic_actions(rows[i:i + 1]) for i in range(len(rows))])
+        alone = np.concatenate([policy.actor.deterministic_actions(rows[i : i + 1]) for i in range(len(rows))])
         assert np.array_equal(alone, actions.reshape(-1, 2))
 
 
@@ -167,7 +174,7 @@ def _reference_actions(actor, obs: np.ndarray) -> np.ndarray:
             w, b = m.weight.detach().numpy().T.astype(f32), m.bias.detach().numpy().astype(f32)
             out = np.broadcast_to(b, (len(x), len(b))).copy()
             for i in range(w.shape[0]):
-                out = out + x[:, i:i + 1] * w[i]
+                out = out + x[:, i : i + 1] * w[i]
             x = tanh(out) if n < len(linears) - 1 or tanh_last else out
         return x
 

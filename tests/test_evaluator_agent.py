@@ -17,9 +17,17 @@ STEPS = 120
 
 
 def _fly_env(evaluator_agent: bool, c: int, seed: int, deviation: float = 0.0):
-    env = cefc_mj.make_env(backend="mujoco", n_agents=c, mode="formation", obstacle_density=TABLE8_DENSITY,
-                           episode_steps=1000, anchor_redraw_steps=TABLE8_ANCHOR_REDRAW, deviation=deviation,
-                           seed=seed, evaluator_agent=evaluator_agent)
+    env = cefc_mj.make_env(
+        backend="mujoco",
+        n_agents=c,
+        mode="formation",
+        obstacle_density=TABLE8_DENSITY,
+        episode_steps=1000,
+        anchor_redraw_steps=TABLE8_ANCHOR_REDRAW,
+        deviation=deviation,
+        seed=seed,
+        evaluator_agent=evaluator_agent,
+    )
     policy = load_policy(f"atm_c{c}_nav")
     observations, _ = env.reset(seed=seed)
     for _ in range(STEPS):

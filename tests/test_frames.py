@@ -25,8 +25,9 @@ N_AGENTS = 3  # tab10 blue, orange, green: no UAV ring is red like the adversary
 
 def _env(mode: str, render_size=None):
     try:
-        env = cefc_mj.make_env(backend="mujoco", n_agents=N_AGENTS, mode=mode, obstacle_density=0.03, seed=SEED,
-                               render_mode="rgb_array")
+        env = cefc_mj.make_env(
+            backend="mujoco", n_agents=N_AGENTS, mode=mode, obstacle_density=0.03, seed=SEED, render_mode="rgb_array"
+        )
     except ConfigError as e:
         if "needs OpenGL" in str(e):
             pytest.skip(f"no OpenGL context for MuJoCo: {e}")
@@ -80,8 +81,9 @@ def _entities(env) -> dict[str, np.ndarray]:
     return points
 
 
-@pytest.mark.parametrize("mode, render_size", [("cefc", None), ("formation", None), ("cefc", (360, 640)),
-                                               ("formation", (640, 360))])
+@pytest.mark.parametrize(
+    "mode, render_size", [("cefc", None), ("formation", None), ("cefc", (360, 640)), ("formation", (640, 360))]
+)
 def test_every_entity_projects_inside_the_frame(mode, render_size):
     env = _env(mode, render_size)
     obstacles = env.batched.obstacles[0]
@@ -110,7 +112,7 @@ def test_every_entity_projects_inside_the_frame(mode, render_size):
 
 def _window(frame, pixel, radius: int) -> np.ndarray:
     row, col = (int(np.rint(v)) for v in pixel)
-    patch = frame[max(row - radius, 0):row + radius + 1, max(col - radius, 0):col + radius + 1]
+    patch = frame[max(row - radius, 0) : row + radius + 1, max(col - radius, 0) : col + radius + 1]
     return patch.reshape(-1, 3).astype(int)
 
 
@@ -144,10 +146,11 @@ def test_each_uav_is_drawn_as_its_airframe(mode):
     geoms = [scene.geoms[i] for i in range(scene.ngeom)]
     model_geoms = [g for g in geoms if g.objtype == mujoco.mjtObj.mjOBJ_GEOM]
     tab10 = np.array([(31, 119, 180), (255, 127, 14), (44, 160, 44)])
-    for i, position in enumerate(world.drone_positions[0, :cfg.n_agents]):
+    for i, position in enumerate(world.drone_positions[0, : cfg.n_agents]):
         parts = [g for g in model_geoms if np.linalg.norm(np.array(g.pos) - position) < 0.45]
         assert len(parts) >= 5 and len({int(g.type) for g in parts}) >= 2, (
-            f"uav_{i}: {len(parts)} model geoms drawn at the drone, of types {sorted({int(g.type) for g in parts})}")
+            f"uav_{i}: {len(parts)} model geoms drawn at the drone, of types {sorted({int(g.type) for g in parts})}"
+        )
         pixel = _project(scene, position[None], height, width)[0]
         centre = _window(frame, pixel, 2)
         hull = (centre.max(axis=1) < 100) & (np.ptp(centre, axis=1) < 40)  # dark, grey

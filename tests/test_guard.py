@@ -44,8 +44,9 @@ def test_a_closing_neighbour_is_braked_for_and_a_receding_one_is_not():
     assert closing[0, 0, 0] == -2.0 and closing[0, 1, 0] == 2.0  # both brake as hard as the clip allows
     assert closing[0, 0, 1] == closing[0, 1, 1] == np.float32(0.5)  # sideways is left alone
     receding = [[[-2.0, 0.0], [2.0, 0.0]]]
-    assert np.array_equal(_guard(_row([[0.0, 0.0], [0.9, 0.0]], [[-0.8, 0.0], [0.8, 0.0]]), receding),
-                          np.asarray(receding, np.float32))
+    assert np.array_equal(
+        _guard(_row([[0.0, 0.0], [0.9, 0.0]], [[-0.8, 0.0], [0.8, 0.0]]), receding), np.asarray(receding, np.float32)
+    )
 
 
 def test_a_masked_slot_is_ignored():
@@ -63,8 +64,10 @@ def test_a_lidar_hit_ahead_is_braked_for():
     out = guard_actions(obs, np.array([[[2.0, 0.0]]], np.float32), SLOTS, RAYS, CFG.dt, CFG.accel_max)
     assert out[0, 0, 0] == -2.0
     obs_behind = _row([[0.0, 0.0]], [[-0.8, 0.0]], lidar)  # flying away from it
-    assert guard_actions(obs_behind, np.array([[[-2.0, 0.0]]], np.float32), SLOTS, RAYS, CFG.dt,
-                         CFG.accel_max)[0, 0, 0] == -2.0
+    assert (
+        guard_actions(obs_behind, np.array([[[-2.0, 0.0]]], np.float32), SLOTS, RAYS, CFG.dt, CFG.accel_max)[0, 0, 0]
+        == -2.0
+    )
 
 
 def test_guarded_is_the_policy_itself_unless_asked():
@@ -82,8 +85,9 @@ def _fly_at_a_hovering_one(guard: bool) -> tuple[float, bool]:
     policy asks to hover, for 6 s. Returns (closest centre distance, whether they touched)."""
     cfg = TaskConfig(n_agents=2, mode="formation", obstacle_density=0.0, separation_guard=guard)
     world = make_world("mujoco", cfg, n_envs=1, seed=0)
-    world.reset(np.ones(1, bool), np.array([[[-2.0, 0.0], [2.0, 0.0]]]), np.zeros((1, 2)),
-                np.zeros((1, world.n_obstacles, 2)))
+    world.reset(
+        np.ones(1, bool), np.array([[[-2.0, 0.0], [2.0, 0.0]]]), np.zeros((1, 2)), np.zeros((1, world.n_obstacles, 2))
+    )
     act = guarded(lambda obs: np.array([[[2.0, 0.0], [0.0, 0.0]]], np.float32), cfg)
     closest, touched = np.inf, False
     for _ in range(60):
@@ -126,8 +130,10 @@ def test_a_sitl_m_agent_guards_its_own_row_when_the_game_asks():
     try:
         assert agent._welcome({"uav": 0, "task": cfg.to_dict(), "formation": 5, "heartbeat_timeout_s": 1.0}) is None
         # heading for the anchor 6 m ahead, a neighbour 1.2 m ahead coming the other way
-        obs = _row([[-6.0, 0.0], [-4.8, 0.0], [-6.0, 1.0], [-7.0, 0.0], [-6.0, -1.0]],
-                   [[0.9, 0.0], [-0.9, 0.0], [0.9, 0.0], [0.9, 0.0], [0.9, 0.0]])[:, :1]
+        obs = _row(
+            [[-6.0, 0.0], [-4.8, 0.0], [-6.0, 1.0], [-7.0, 0.0], [-6.0, -1.0]],
+            [[0.9, 0.0], [-0.9, 0.0], [0.9, 0.0], [0.9, 0.0], [0.9, 0.0]],
+        )[:, :1]
         plain = load_policy_for("atm", 5).act(obs)
         expected = guard_actions(obs, plain, cfg.neighbour_slots, cfg.n_lidar_rays, cfg.dt, cfg.accel_max)
         assert not np.array_equal(expected, plain)  # the guard acts on this row
@@ -138,6 +144,10 @@ def test_a_sitl_m_agent_guards_its_own_row_when_the_game_asks():
 
 @pytest.mark.parametrize("protocol", ["table3", "table5"])
 def test_cli_refuses_the_guard_where_it_does_not_apply(protocol):
-    result = subprocess.run([sys.executable, "-m", "cefc_mj.cli.eval", "--backend", "particle", "--protocol", protocol,
-                             "--guard", "on"], capture_output=True, text=True, timeout=120)
+    result = subprocess.run(
+        [sys.executable, "-m", "cefc_mj.cli.eval", "--backend", "particle", "--protocol", protocol, "--guard", "on"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert result.returncode == 2 and "--guard" in result.stderr and "Traceback" not in result.stderr

@@ -31,8 +31,15 @@ pytestmark = pytest.mark.usefixtures("one_torch_thread")
 def tiny_config(variant="consmac-a", **overrides) -> HighLevelConfig:
     """2 envs, 50-step episodes (5 decisions), 2 PPO epochs, a few ConsMAC steps."""
     ppo = PPOConfig(n_envs=2, epochs=2, minibatches=2, lr=1e-4, entropy_coef=0.01, update_threads=1)
-    settings = dict(budget=Budget(iterations=2), variant=variant, episode_steps=50, consmac_steps=4, consmac_batch=64,
-                    ppo=ppo, eval_episodes=0)
+    settings = dict(
+        budget=Budget(iterations=2),
+        variant=variant,
+        episode_steps=50,
+        consmac_steps=4,
+        consmac_batch=64,
+        ppo=ppo,
+        eval_episodes=0,
+    )
     settings.update(overrides)
     return HighLevelConfig(**settings)
 
@@ -108,8 +115,9 @@ def test_reward_is_the_envs_r_h_summed_over_ten_low_level_steps_of_the_student()
         np.testing.assert_allclose(reward, expected, rtol=1e-12)
         np.testing.assert_allclose(info["low_level_rewards"].sum(0), reward, rtol=1e-12)
         w = TASK.rewards
-        weighted = sum(w.task_weight * t["R_t"] + w.navigation_weight_high * t["R_n"] + w.evasion_weight * t["R_e"]
-                       for t in terms)
+        weighted = sum(
+            w.task_weight * t["R_t"] + w.navigation_weight_high * t["R_n"] + w.evasion_weight * t["R_e"] for t in terms
+        )
         np.testing.assert_allclose(reward, weighted, rtol=1e-9)
         assert not done.any()
 
@@ -137,11 +145,15 @@ def test_per_group_low_level_flies_the_teacher_of_each_group_size():
 
 # ---------------------------------------------------------------------------- the trainer
 def test_messages_arrive_one_decision_late_within_3_m_and_restart_with_each_episode():
-    cfg = tiny_config("tarmac", ppo=PPOConfig(n_envs=2, episodes_per_iteration=2, epochs=1, minibatches=2,
-                                              update_threads=1))
+    cfg = tiny_config(
+        "tarmac", ppo=PPOConfig(n_envs=2, episodes_per_iteration=2, epochs=1, minibatches=2, update_threads=1)
+    )
     trainer = make_trainer(cfg)
-    ro = trainer.collect(HierarchicalCEFCEnv(trainer.task, trainer.low_levels[0], n_envs=2, seed=0,
-                                         adversary_policy=trainer.adversary_policy))
+    ro = trainer.collect(
+        HierarchicalCEFCEnv(
+            trainer.task, trainer.low_levels[0], n_envs=2, seed=0, adversary_policy=trainer.adversary_policy
+        )
+    )
     obs, own, messages, mask, distance = ro.comm_inputs
     assert obs.shape[:3] == (10, 2, 8) and messages.shape == (10, 2, 8, 7, 64)
     for start in (0, 5):  # each episode starts silent
@@ -157,16 +169,18 @@ def test_messages_arrive_one_decision_late_within_3_m_and_restart_with_each_epis
 def test_the_rl_update_never_changes_consmac_but_reaches_tarmacs_communication():
     for variant in ("consmac-a", "tarmac"):
         trainer = make_trainer(tiny_config(variant))
-        env = HierarchicalCEFCEnv(trainer.task, trainer.low_levels[1], n_envs=2, seed=0,
-                                         adversary_policy=trainer.adversary_policy)
+        env = HierarchicalCEFCEnv(
+            trainer.task, trainer.low_levels[1], n_envs=2, seed=0, adversary_policy=trainer.adversary_policy
+        )
         ro = trainer.collect(env)
         comm_before = {k: v.clone() for k, v in trainer.policy.comm.state_dict().items()}
         selector_before = {k: v.clone() for k, v in trainer.policy.selector.state_dict().items()}
         # The RL loss of one minibatch: ConsMAC gets no gradient at all (stop-gradient, paper Sec. IV-C3).
         rows = slice(0, 4)
         flat = lambda x: x.reshape(-1, *x.shape[2:])[rows]  # noqa: E731
-        logp, entropy = trainer.policy_terms(flat(ro.obs), flat(ro.consensus), tuple(flat(x) for x in ro.comm_inputs),
-                                             flat(ro.actions))
+        logp, entropy = trainer.policy_terms(
+            flat(ro.obs), flat(ro.consensus), tuple(flat(x) for x in ro.comm_inputs), flat(ro.actions)
+        )
         (-(logp * torch.randn(logp.shape)).mean() - entropy.mean()).backward()
         comm_grads = [p.grad for p in trainer.policy.comm.parameters()]
         assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in trainer.policy.selector.parameters())
@@ -185,8 +199,9 @@ def test_the_rl_update_never_changes_consmac_but_reaches_tarmacs_communication()
 def test_consmac_supervised_loss_falls_on_a_small_fixed_replay():
     cfg = tiny_config("consmac-o", replay_capacity=64, consmac_batch=32, consmac_lr=3e-3)
     trainer = make_trainer(cfg)
-    env = HierarchicalCEFCEnv(trainer.task, trainer.low_levels[0], n_envs=2, seed=0,
-                                         adversary_policy=trainer.adversary_policy)
+    env = HierarchicalCEFCEnv(
+        trainer.task, trainer.low_levels[0], n_envs=2, seed=0, adversary_policy=trainer.adversary_policy
+    )
     trainer.collect(env)  # 80 agent-decisions; the replay keeps the newest 64
     assert trainer.replay.size == 64
     data = {k: v.clone() for k, v in trainer.replay.data.items()}
@@ -223,9 +238,28 @@ def test_a_checkpointed_trainer_continues_exactly_as_an_uninterrupted_one(tmp_pa
 
 
 # ---------------------------------------------------------------------------- the command line
-TINY = ["highlevel", "--envs", "2", "--epochs", "2", "--minibatches", "2", "--episode-steps", "50",
-        "--consmac-steps", "3", "--consmac-batch", "32", "--pretrain-share", "0.5", "--eval-episodes", "1",
-        "--threads", "1", "--no-progress"]
+TINY = [
+    "highlevel",
+    "--envs",
+    "2",
+    "--epochs",
+    "2",
+    "--minibatches",
+    "2",
+    "--episode-steps",
+    "50",
+    "--consmac-steps",
+    "3",
+    "--consmac-batch",
+    "32",
+    "--pretrain-share",
+    "0.5",
+    "--eval-episodes",
+    "1",
+    "--threads",
+    "1",
+    "--no-progress",
+]
 
 
 def digest(path) -> str:
@@ -286,7 +320,8 @@ def test_cli_trains_exports_and_resumes_a_run(tmp_path, monkeypatch, capsys):
     assert card["iterations"] == 3 and [p["iterations"] for p in card["phases"]] == [1, 2]
     assert card["consmac_training"]["rounds"] == 3
     assert "different settings (consmac_steps)" in usage_error(
-        [a if a != "3" else "4" for a in TINY] + ["--budget", "4", "--resume"], capsys)
+        [a if a != "3" else "4" for a in TINY] + ["--budget", "4", "--resume"], capsys
+    )
     assert {p.name: digest(p) for p in paths.POLICIES_DIR.iterdir() if p.is_file()} == shipped
 
 
@@ -294,21 +329,24 @@ def main_ok(argv) -> None:
     assert main(argv) == 0
 
 
-@pytest.mark.parametrize("argv, needle", [
-    (["--budget", "0"], "--budget '0'"),
-    (["--variant", "consmac"], "invalid choice"),
-    (["--consmac-steps", "0"], "--consmac-steps 0"),
-    (["--consmac-lr", "nan"], "--consmac-lr nan"),
-    (["--density", "0.5"], "--density 0.5"),
-    (["--pretrain-share", "1.5"], "--pretrain-share 1.5"),
-    (["--episode-steps", "45"], "--episode-steps 45: must be a multiple"),
-    (["--envs", "1", "--episode-steps", "50", "--minibatches", "8"], "--minibatches 8: must be at most the 5"),
-    (["--low-level", "no_such_policy"], "--low-level: no policy 'no_such_policy'"),
-    (["--low-level", "navigation"], "--low-level 'navigation'"),
-    (["--replay", "0"], "--replay 0"),
-    (["--policies-dir", str(paths.POLICIES_DIR)], "written only with --install"),
-    (["--resume"], "--resume: no run to continue"),
-])
+@pytest.mark.parametrize(
+    "argv, needle",
+    [
+        (["--budget", "0"], "--budget '0'"),
+        (["--variant", "consmac"], "invalid choice"),
+        (["--consmac-steps", "0"], "--consmac-steps 0"),
+        (["--consmac-lr", "nan"], "--consmac-lr nan"),
+        (["--density", "0.5"], "--density 0.5"),
+        (["--pretrain-share", "1.5"], "--pretrain-share 1.5"),
+        (["--episode-steps", "45"], "--episode-steps 45: must be a multiple"),
+        (["--envs", "1", "--episode-steps", "50", "--minibatches", "8"], "--minibatches 8: must be at most the 5"),
+        (["--low-level", "no_such_policy"], "--low-level: no policy 'no_such_policy'"),
+        (["--low-level", "navigation"], "--low-level 'navigation'"),
+        (["--replay", "0"], "--replay 0"),
+        (["--policies-dir", str(paths.POLICIES_DIR)], "written only with --install"),
+        (["--resume"], "--resume: no run to continue"),
+    ],
+)
 def test_cli_bad_input_exits_2_with_one_line_and_writes_nothing(argv, needle, tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
     assert needle in usage_error(["highlevel", "--budget", "1", *argv], capsys)

@@ -16,7 +16,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import rerun as rr
 from rerun.chunk import RrdReader
 from rrd_reader import read_rrd
 
@@ -37,8 +36,6 @@ pytestmark = pytest.mark.usefixtures("one_torch_thread", "strict_rerun")
 
 STEPS, INTERVAL, SEED = 50, 10, 3
 K = STEPS // INTERVAL
-
-
 
 
 @pytest.fixture(scope="module")
@@ -164,11 +161,26 @@ def test_mappo_records_no_messages(game, tmp_path):
 def test_recording_holds_the_episode(consmac, recorded):
     _, ep = consmac
     _, data = recorded
-    expected = {"/world", "/world/arena", "/world/obstacles", "/world/anchor_grid", "/world/uavs", "/world/anchors",
-                "/world/anchors/lines", "/world/targets", "/world/targets/zone", "/world/adversary",
-                "/world/adversary/goal", "/world/adversary/chase", "/world/adversary/alert", "/messages/similarity",
-                "/decisions", "/episode", "/__properties/provenance",
-                *(f"/rewards/{name}" for name in ("R_H", *REWARD_PARTS))}
+    expected = {
+        "/world",
+        "/world/arena",
+        "/world/obstacles",
+        "/world/anchor_grid",
+        "/world/uavs",
+        "/world/anchors",
+        "/world/anchors/lines",
+        "/world/targets",
+        "/world/targets/zone",
+        "/world/adversary",
+        "/world/adversary/goal",
+        "/world/adversary/chase",
+        "/world/adversary/alert",
+        "/messages/similarity",
+        "/decisions",
+        "/episode",
+        "/__properties/provenance",
+        *(f"/rewards/{name}" for name in ("R_H", *REWARD_PARTS)),
+    }
     assert expected <= set(data)
     uavs = data["/world/uavs"]
     assert sorted(uavs["Points3D:positions"]) == list(range(STEPS + 1))
@@ -214,8 +226,12 @@ def test_rewards_per_step_and_provenance(consmac, recorded):
         np.testing.assert_allclose([logged[s][0] for s in range(1, STEPS + 1)], series)
     prov = {name: values[None][0] for name, values in data["/__properties/provenance"].items()}
     assert (prov["policy"], prov["policy_sha256"], prov["variant"]) == ("cihrl_test", "ab" * 32, "consmac-a")
-    assert (prov["low_level"], prov["seed"], prov["steps"], prov["adversary"]) == ("atm_student", SEED, STEPS,
-                                                                                     "nearest_group")
+    assert (prov["low_level"], prov["seed"], prov["steps"], prov["adversary"]) == (
+        "atm_student",
+        SEED,
+        STEPS,
+        "nearest_group",
+    )
     assert len(prov["low_level_sha256"]) == 64
     assert prov["R_H"] == pytest.approx(ep.returns["R_H"]) and prov["E"] == ep.metrics["E"]
     text = data["/episode"]["TextDocument:text"][None][0]

@@ -41,8 +41,10 @@ def pooled_figures(policies) -> tuple[float, float]:
     kind, adversary, _ = resolve_adversary(GAME_ADVERSARY)
     task = game_task(kind)
     low_level = load_low_level(HIERARCHY_LOWLEVEL, task)
-    results = [evaluate_highlevel(policy(task), task, low_level, EPISODES, seed=SEED, adversary_policy=adversary)
-               for policy in policies]
+    results = [
+        evaluate_highlevel(policy(task), task, low_level, EPISODES, seed=SEED, adversary_policy=adversary)
+        for policy in policies
+    ]
     return float(np.mean([r["R_t"] for r in results])) * DT, float(np.mean([r["E"] for r in results])) * DT
 
 

@@ -66,7 +66,8 @@ def _known(name: str, modules) -> str:
 
 def _is_type_checking(test: ast.expr) -> bool:
     return (isinstance(test, ast.Name) and test.id == "TYPE_CHECKING") or (
-        isinstance(test, ast.Attribute) and test.attr == "TYPE_CHECKING")
+        isinstance(test, ast.Attribute) and test.attr == "TYPE_CHECKING"
+    )
 
 
 def imports_in(source: str, module: str, is_package: bool, modules) -> list[tuple[str, int]]:
@@ -81,13 +82,16 @@ def imports_in(source: str, module: str, is_package: bool, modules) -> list[tupl
                 visit(child)
             return
         if isinstance(node, ast.Import):
-            found.extend((_known(alias.name, modules), node.lineno) for alias in node.names
-                         if alias.name.split(".")[0] == PACKAGE)
+            found.extend(
+                (_known(alias.name, modules), node.lineno)
+                for alias in node.names
+                if alias.name.split(".")[0] == PACKAGE
+            )
         elif isinstance(node, ast.ImportFrom):
             base = node.module or ""
             if node.level:
                 package = module.split(".") if is_package else module.split(".")[:-1]
-                package = package[:len(package) - (node.level - 1)]
+                package = package[: len(package) - (node.level - 1)]
                 base = ".".join(package + ([node.module] if node.module else []))
             if base.split(".")[0] == PACKAGE:
                 for alias in node.names:
@@ -167,8 +171,11 @@ def find_cycles(edges: list[Edge]) -> list[list[Edge]]:
 
 def upward_imports(edges: list[Edge], layer=layer_of) -> list[Edge]:
     """The edges that import from a higher layer than the importing module's."""
-    return [e for e in edges
-            if layer(e.source) is not None and layer(e.target) is not None and layer(e.target) > layer(e.source)]
+    return [
+        e
+        for e in edges
+        if layer(e.source) is not None and layer(e.target) is not None and layer(e.target) > layer(e.source)
+    ]
 
 
 def describe_cycle(cycle: list[Edge]) -> str:
@@ -179,8 +186,10 @@ def describe_cycle(cycle: list[Edge]) -> str:
 
 def describe_upward(edge: Edge, layer=layer_of, layers=LAYERS) -> str:
     """'file:line: module (its layer) imports module (its layer)'."""
-    return (f"{edge.where}: {edge.source} ({layers[layer(edge.source)][0]}) imports {edge.target} "
-            f"({layers[layer(edge.target)][0]})")
+    return (
+        f"{edge.where}: {edge.source} ({layers[layer(edge.source)][0]}) imports {edge.target} "
+        f"({layers[layer(edge.target)][0]})"
+    )
 
 
 # ---------------------------------------------------------------------------------- the package
@@ -214,12 +223,17 @@ def test_the_graph_is_read():
 # ---------------------------------------------------------------------------------- the checker itself
 def test_checker_reports_a_cycle_and_an_upward_import():
     layers = (("low", ("low",)), ("high", ("high",)))
-    edges = [Edge("cefc_mj.low.a", "cefc_mj.low.b", "a.py:1"), Edge("cefc_mj.low.b", "cefc_mj.low.c", "b.py:2"),
-             Edge("cefc_mj.low.c", "cefc_mj.low.a", "c.py:3"), Edge("cefc_mj.low.a", "cefc_mj.high.x", "a.py:4"),
-             Edge("cefc_mj.high.x", "cefc_mj.low.d", "x.py:5")]
+    edges = [
+        Edge("cefc_mj.low.a", "cefc_mj.low.b", "a.py:1"),
+        Edge("cefc_mj.low.b", "cefc_mj.low.c", "b.py:2"),
+        Edge("cefc_mj.low.c", "cefc_mj.low.a", "c.py:3"),
+        Edge("cefc_mj.low.a", "cefc_mj.high.x", "a.py:4"),
+        Edge("cefc_mj.high.x", "cefc_mj.low.d", "x.py:5"),
+    ]
     cycles = find_cycles(edges)
     assert [describe_cycle(c) for c in cycles] == [
-        "cefc_mj.low.a -> cefc_mj.low.b -> cefc_mj.low.c -> cefc_mj.low.a  (a.py:1, b.py:2, c.py:3)"]
+        "cefc_mj.low.a -> cefc_mj.low.b -> cefc_mj.low.c -> cefc_mj.low.a  (a.py:1, b.py:2, c.py:3)"
+    ]
 
     def layer(module):
         return layer_of(module, layers)
@@ -248,7 +262,14 @@ def later():
     from cefc_mj import make_env
 """
     assert imports_in(source, "cefc_mj.a.b", False, modules) == [
-        ("cefc_mj.d", 4), ("cefc_mj.a.c", 5), ("cefc_mj.d", 6), ("cefc_mj.a", 7), ("cefc_mj.a.c", 11),
-        ("cefc_mj", 14)]
+        ("cefc_mj.d", 4),
+        ("cefc_mj.a.c", 5),
+        ("cefc_mj.d", 6),
+        ("cefc_mj.a", 7),
+        ("cefc_mj.a.c", 11),
+        ("cefc_mj", 14),
+    ]
     assert imports_in("from . import b\nfrom .c import x", "cefc_mj.a", True, modules) == [
-        ("cefc_mj.a.b", 1), ("cefc_mj.a.c", 2)]
+        ("cefc_mj.a.b", 1),
+        ("cefc_mj.a.c", 2),
+    ]

@@ -22,10 +22,23 @@ import pytest
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import common as mavlink
 
-from cefc_mj.deploy.mavlink_link import (MODE_HOLD, MODE_OFFBOARD, MPC_XY_P, OFFBOARD_LOSS_TIMEOUT_S,
-                                         STATUSTEXT_REPEAT_S, TYPE_MASK_BITS, TYPE_MASK_FORCE_SET, MavlinkLink,
-                                         MavlinkLinkConfig, VehicleLink, attitude_ned, bind_udp, constrain_xy,
-                                         enu_to_ned, rotate_yaw)
+from cefc_mj.deploy.mavlink_link import (
+    MODE_HOLD,
+    MODE_OFFBOARD,
+    MPC_XY_P,
+    OFFBOARD_LOSS_TIMEOUT_S,
+    STATUSTEXT_REPEAT_S,
+    TYPE_MASK_BITS,
+    TYPE_MASK_FORCE_SET,
+    MavlinkLink,
+    MavlinkLinkConfig,
+    VehicleLink,
+    attitude_ned,
+    bind_udp,
+    constrain_xy,
+    enu_to_ned,
+    rotate_yaw,
+)
 from cefc_mj.errors import ConfigError
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -33,10 +46,16 @@ REAL_TIME_FACTOR = 3.0
 """Simulated seconds per wall second in the flight tests (the scripts pace themselves on the telemetry)."""
 FLIGHT_ALTITUDE = 2.0  # the world's fixed altitude: z = -2 in the local NED frame
 # MAVROS' acceleration offboard: position, velocity and yaw ignored; afx, afy, afz in use
-ACCEL_MASK = (mavlink.POSITION_TARGET_TYPEMASK_X_IGNORE | mavlink.POSITION_TARGET_TYPEMASK_Y_IGNORE
-              | mavlink.POSITION_TARGET_TYPEMASK_Z_IGNORE | mavlink.POSITION_TARGET_TYPEMASK_VX_IGNORE
-              | mavlink.POSITION_TARGET_TYPEMASK_VY_IGNORE | mavlink.POSITION_TARGET_TYPEMASK_VZ_IGNORE
-              | mavlink.POSITION_TARGET_TYPEMASK_YAW_IGNORE | mavlink.POSITION_TARGET_TYPEMASK_YAW_RATE_IGNORE)
+ACCEL_MASK = (
+    mavlink.POSITION_TARGET_TYPEMASK_X_IGNORE
+    | mavlink.POSITION_TARGET_TYPEMASK_Y_IGNORE
+    | mavlink.POSITION_TARGET_TYPEMASK_Z_IGNORE
+    | mavlink.POSITION_TARGET_TYPEMASK_VX_IGNORE
+    | mavlink.POSITION_TARGET_TYPEMASK_VY_IGNORE
+    | mavlink.POSITION_TARGET_TYPEMASK_VZ_IGNORE
+    | mavlink.POSITION_TARGET_TYPEMASK_YAW_IGNORE
+    | mavlink.POSITION_TARGET_TYPEMASK_YAW_RATE_IGNORE
+)
 VELOCITY_MASK = 0b110111000111  # PX4 docs' velocity mask: vx, vy, vz in use
 POSITION_MASK = 0b110111111000  # PX4's position mask (3576): x, y, z in use, velocity, acceleration, yaw ignored
 SETPOINT_HZ = 5.0  # position setpoints stream at 5 Hz of simulated time (PX4 needs more than 2 Hz)
@@ -96,19 +115,51 @@ class OffboardScript:
                     if self.n_positions % self.stream_every == 0:
                         yaw = self.attitude.yaw if self.attitude is not None else math.nan
                         self.conn.mav.set_position_target_local_ned_send(
-                            msg.time_boot_ms, self.conn.target_system, self.conn.target_component,
-                            *self.stream(self.pos, self.vel, yaw))
+                            msg.time_boot_ms,
+                            self.conn.target_system,
+                            self.conn.target_component,
+                            *self.stream(self.pos, self.vel, yaw),
+                        )
                         self.last_setpoint_t = self.t
                 elif self.controller is not None:
                     accel = self.controller(self.pos, self.vel)
                     self.conn.mav.set_position_target_local_ned_send(
-                        msg.time_boot_ms, self.conn.target_system, self.conn.target_component,
-                        mavlink.MAV_FRAME_LOCAL_NED, ACCEL_MASK, 0, 0, 0, 0, 0, 0, accel[0], accel[1], 0, 0, 0)
+                        msg.time_boot_ms,
+                        self.conn.target_system,
+                        self.conn.target_component,
+                        mavlink.MAV_FRAME_LOCAL_NED,
+                        ACCEL_MASK,
+                        0,
+                        0,
+                        0,
+                        0,
+                        0,
+                        0,
+                        accel[0],
+                        accel[1],
+                        0,
+                        0,
+                        0,
+                    )
                     self.last_setpoint_t = self.t
                 elif self.velocity is not None:
                     self.conn.mav.set_position_target_local_ned_send(
-                        msg.time_boot_ms, self.conn.target_system, self.conn.target_component,
-                        mavlink.MAV_FRAME_LOCAL_NED, VELOCITY_MASK, 0, 0, 0, *self.velocity, 0, 0, 0, 0, 0, 0)
+                        msg.time_boot_ms,
+                        self.conn.target_system,
+                        self.conn.target_component,
+                        mavlink.MAV_FRAME_LOCAL_NED,
+                        VELOCITY_MASK,
+                        0,
+                        0,
+                        0,
+                        *self.velocity,
+                        0,
+                        0,
+                        0,
+                        0,
+                        0,
+                        0,
+                    )
                     self.last_setpoint_t = self.t
             elif kind == "COMMAND_ACK":
                 self.acks.append(msg)
@@ -137,8 +188,9 @@ class OffboardScript:
             return any(a.command == command for a in self.acks)
 
         for confirmation in range(15):
-            self.conn.mav.command_long_send(self.conn.target_system, self.conn.target_component, command,
-                                            confirmation, *params)
+            self.conn.mav.command_long_send(
+                self.conn.target_system, self.conn.target_component, command, confirmation, *params
+            )
             if self.pump_until(acked, wall_timeout=2.0):
                 break
         assert acked(), "timed out waiting on the vehicle's COMMAND_ACK"
@@ -181,8 +233,23 @@ def vehicle(tmp_path_factory):
     conns = [mavutil.mavlink_connection("udpin:127.0.0.1:0") for _ in range(2)]
     ports = [str(c.port.getsockname()[1]) for c in conns]
     log = tmp_path_factory.mktemp("mavlink") / "vehicle.log"
-    argv = [sys.executable, "-m", "cefc_mj.deploy.mavlink_link", "--drones", "2", "--port", "0", "--origin", "world",
-            "--remote-port", *ports, "--real-time-factor", str(REAL_TIME_FACTOR), "--duration", "600"]
+    argv = [
+        sys.executable,
+        "-m",
+        "cefc_mj.deploy.mavlink_link",
+        "--drones",
+        "2",
+        "--port",
+        "0",
+        "--origin",
+        "world",
+        "--remote-port",
+        *ports,
+        "--real-time-factor",
+        str(REAL_TIME_FACTOR),
+        "--duration",
+        "600",
+    ]
     with open(log, "wb") as out:
         proc = subprocess.Popen(argv, cwd=REPO, stdin=subprocess.DEVNULL, stdout=out, stderr=out)
     try:
@@ -224,8 +291,12 @@ def test_offboard_script_flies_to_a_point_at_fixed_altitude(vehicle):
     script.wait_heartbeat_state("OFFBOARD", armed=True)
 
     t_armed = script.t
-    script.pump(lambda: (np.linalg.norm(script.pos[:2] - goal) < 0.1 and np.linalg.norm(script.vel[:2]) < 0.05)
-                or script.t > t_armed + 25.0)
+    script.pump(
+        lambda: (
+            (np.linalg.norm(script.pos[:2] - goal) < 0.1 and np.linalg.norm(script.vel[:2]) < 0.05)
+            or script.t > t_armed + 25.0
+        )
+    )
     track = np.array([row for row in script.track if row[0] >= t_armed])
     assert np.linalg.norm(script.pos[:2] - goal) < 0.1, f"ended at {script.pos} after {script.t - t_armed:.1f} s"
     assert script.t - t_armed < 15.0  # 3.6 m at the 1 m/s speed limit, then settling
@@ -307,8 +378,9 @@ def _fly_to(script, goal, frame: int, target, limit_s: float = 20.0) -> float:
         return (error < 0.1 and np.linalg.norm(script.vel[:2]) < 0.05) or script.t > t0 + limit_s
 
     script.pump(arrived)
-    assert near is not None and np.linalg.norm(script.pos[:2] - goal) < 0.1, \
+    assert near is not None and np.linalg.norm(script.pos[:2] - goal) < 0.1, (
         f"at {script.pos} (goal {goal}) after {script.t - t0:.1f} s"
+    )
     track = np.array([row for row in script.track if row[0] >= t0])
     assert np.abs(track[:, 3] + FLIGHT_ALTITUDE).max() < 0.05  # the altitude held all the way
     return near - t0
@@ -367,8 +439,7 @@ def test_unsupported_frame_is_refused_at_once_with_a_statustext(vehicle):
     script.run_for(OFFBOARD_LOSS_TIMEOUT_S + 0.2)  # whatever the drone did before: no stream now
     p0 = script.pos.copy()
     script.stream_every = 10
-    script.stream = lambda pos, vel, yaw: (mavlink.MAV_FRAME_BODY_FRD, POSITION_MASK, 2, 0, 0, 0, 0, 0, 0, 0, 0,
-                                           0, 0)
+    script.stream = lambda pos, vel, yaw: (mavlink.MAV_FRAME_BODY_FRD, POSITION_MASK, 2, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0)
     script.pump(lambda: script.last_setpoint_t is not None)
     t_sent = script.last_setpoint_t
     script.pump(lambda: script.statustexts or script.t > t_sent + 1.0)
@@ -431,7 +502,8 @@ def test_malformed_unknown_and_unsupported_messages_are_ignored_and_counted(link
     link, script = link_pair
     gcs = mavlink.MAVLink(None, srcSystem=255, srcComponent=190)
     accel = mavlink.MAVLink_set_position_target_local_ned_message(
-        0, 1, 1, mavlink.MAV_FRAME_LOCAL_NED, ACCEL_MASK, 0, 0, 0, 0, 0, 0, 1.0, 0.5, 0, 0, 0)
+        0, 1, 1, mavlink.MAV_FRAME_LOCAL_NED, ACCEL_MASK, 0, 0, 0, 0, 0, 0, 1.0, 0.5, 0, 0, 0
+    )
     good = accel.pack(gcs)
     bad_crc = bytearray(good)
     bad_crc[-1] ^= 0xFF
@@ -442,27 +514,84 @@ def test_malformed_unknown_and_unsupported_messages_are_ignored_and_counted(link
         (bytes(bad_crc), "bad data (framing or CRC)"),
         (good[:-5], "truncated frame"),
         (_frames(gcs, mavlink.MAVLink_param_request_list_message(1, 1)), "unsupported message PARAM_REQUEST_LIST"),
-        (_frames(gcs, mavlink.MAVLink_set_position_target_local_ned_message(
-            0, 1, 1, mavlink.MAV_FRAME_BODY_FRD, ACCEL_MASK, 0, 0, 0, 0, 0, 0, 1, 0, 0, 0, 0)),
-         "setpoint refused: frame 12 unsupported (BODY_FRD)"),
-        (_frames(gcs, mavlink.MAVLink_set_position_target_local_ned_message(
-            0, 1, 1, mavlink.MAV_FRAME_LOCAL_NED, POSITION_MASK | 0b11, 5, 5, -2, 0, 0, 0, 0, 0, 0, 0, 0)),
-         "setpoint refused: no x/y, vx/vy or afx/afy in use"),  # altitude only
-        (_frames(gcs, mavlink.MAVLink_set_position_target_local_ned_message(
-            0, 1, 1, mavlink.MAV_FRAME_LOCAL_NED, POSITION_MASK | 0b10, 5, 5, -2, 0, 0, 0, 0, 0, 0, 0, 0)),
-         "setpoint refused: x without y"),
-        (_frames(gcs, mavlink.MAVLink_set_position_target_local_ned_message(
-            0, 1, 1, mavlink.MAV_FRAME_LOCAL_NED, ACCEL_MASK | TYPE_MASK_FORCE_SET, 0, 0, 0, 0, 0, 0, 1, 0, 0, 0, 0)),
-         "setpoint refused: force setpoints unsupported"),
-        (_frames(gcs, mavlink.MAVLink_set_position_target_local_ned_message(
-            0, 1, 1, mavlink.MAV_FRAME_LOCAL_NED, ACCEL_MASK, 0, 0, 0, 0, 0, 0, math.nan, 0, 0, 0, 0)),
-         "setpoint refused: non-finite value"),
-        (_frames(gcs, mavlink.MAVLink_set_position_target_local_ned_message(
-            0, 1, 1, mavlink.MAV_FRAME_LOCAL_NED, POSITION_MASK, 5, 5, -2, 0, 0, 0, 0, 0, 0, 0, 0)),
-         "setpoint refused: no position estimate"),  # this VehicleLink flies no drone
-        (_frames(gcs, mavlink.MAVLink_set_position_target_local_ned_message(
-            0, 7, 1, mavlink.MAV_FRAME_LOCAL_NED, ACCEL_MASK, 0, 0, 0, 0, 0, 0, 1, 0, 0, 0, 0)),
-         "addressed to another system"),
+        (
+            _frames(
+                gcs,
+                mavlink.MAVLink_set_position_target_local_ned_message(
+                    0, 1, 1, mavlink.MAV_FRAME_BODY_FRD, ACCEL_MASK, 0, 0, 0, 0, 0, 0, 1, 0, 0, 0, 0
+                ),
+            ),
+            "setpoint refused: frame 12 unsupported (BODY_FRD)",
+        ),
+        (
+            _frames(
+                gcs,
+                mavlink.MAVLink_set_position_target_local_ned_message(
+                    0, 1, 1, mavlink.MAV_FRAME_LOCAL_NED, POSITION_MASK | 0b11, 5, 5, -2, 0, 0, 0, 0, 0, 0, 0, 0
+                ),
+            ),
+            "setpoint refused: no x/y, vx/vy or afx/afy in use",
+        ),  # altitude only
+        (
+            _frames(
+                gcs,
+                mavlink.MAVLink_set_position_target_local_ned_message(
+                    0, 1, 1, mavlink.MAV_FRAME_LOCAL_NED, POSITION_MASK | 0b10, 5, 5, -2, 0, 0, 0, 0, 0, 0, 0, 0
+                ),
+            ),
+            "setpoint refused: x without y",
+        ),
+        (
+            _frames(
+                gcs,
+                mavlink.MAVLink_set_position_target_local_ned_message(
+                    0,
+                    1,
+                    1,
+                    mavlink.MAV_FRAME_LOCAL_NED,
+                    ACCEL_MASK | TYPE_MASK_FORCE_SET,
+                    0,
+                    0,
+                    0,
+                    0,
+                    0,
+                    0,
+                    1,
+                    0,
+                    0,
+                    0,
+                    0,
+                ),
+            ),
+            "setpoint refused: force setpoints unsupported",
+        ),
+        (
+            _frames(
+                gcs,
+                mavlink.MAVLink_set_position_target_local_ned_message(
+                    0, 1, 1, mavlink.MAV_FRAME_LOCAL_NED, ACCEL_MASK, 0, 0, 0, 0, 0, 0, math.nan, 0, 0, 0, 0
+                ),
+            ),
+            "setpoint refused: non-finite value",
+        ),
+        (
+            _frames(
+                gcs,
+                mavlink.MAVLink_set_position_target_local_ned_message(
+                    0, 1, 1, mavlink.MAV_FRAME_LOCAL_NED, POSITION_MASK, 5, 5, -2, 0, 0, 0, 0, 0, 0, 0, 0
+                ),
+            ),
+            "setpoint refused: no position estimate",
+        ),  # this VehicleLink flies no drone
+        (
+            _frames(
+                gcs,
+                mavlink.MAVLink_set_position_target_local_ned_message(
+                    0, 7, 1, mavlink.MAV_FRAME_LOCAL_NED, ACCEL_MASK, 0, 0, 0, 0, 0, 0, 1, 0, 0, 0, 0
+                ),
+            ),
+            "addressed to another system",
+        ),
     ]
     for data, reason in cases:
         before = link.ignored[reason]
@@ -481,10 +610,15 @@ def test_malformed_unknown_and_unsupported_messages_are_ignored_and_counted(link
 
     # an unknown command is answered UNSUPPORTED
     _acks(script)
-    _deliver(link, script, _frames(gcs, mavlink.MAVLink_command_long_message(
-        1, 1, mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 0, 2)), t=0.5)
-    assert [(a.command, a.result) for a in _acks(script)] == [(mavlink.MAV_CMD_NAV_TAKEOFF,
-                                                              mavlink.MAV_RESULT_UNSUPPORTED)]
+    _deliver(
+        link,
+        script,
+        _frames(gcs, mavlink.MAVLink_command_long_message(1, 1, mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 0, 2)),
+        t=0.5,
+    )
+    assert [(a.command, a.result) for a in _acks(script)] == [
+        (mavlink.MAV_CMD_NAV_TAKEOFF, mavlink.MAV_RESULT_UNSUPPORTED)
+    ]
 
 
 def test_mode_logic_follows_px4(link_pair):
@@ -503,7 +637,8 @@ def test_mode_logic_follows_px4(link_pair):
     assert link.mode == MODE_HOLD and link.command(0.0) is None
     assert command(*set_offboard, t=0.0) == mavlink.MAV_RESULT_TEMPORARILY_REJECTED
     velocity = mavlink.MAVLink_set_position_target_local_ned_message(
-        0, 1, 1, mavlink.MAV_FRAME_LOCAL_NED, VELOCITY_MASK, 0, 0, 0, 0.4, -0.3, 0, 0, 0, 0, 0, 0)
+        0, 1, 1, mavlink.MAV_FRAME_LOCAL_NED, VELOCITY_MASK, 0, 0, 0, 0.4, -0.3, 0, 0, 0, 0, 0, 0
+    )
     _deliver(link, script, _frames(gcs, velocity), t=1.0)
     assert command(*set_offboard, t=1.0) == mavlink.MAV_RESULT_ACCEPTED and link.mode == MODE_OFFBOARD
     assert link.command(1.0) is None  # still disarmed: hold
@@ -530,8 +665,12 @@ def test_position_loop_frames_and_warnings_in_process(link_pair):
 
     def send(frame, mask, *fields, t):  # fields: x, y, z, vx, vy, vz, afx, afy, afz, yaw, yaw_rate
         fields = list(fields) + [0.0] * (11 - len(fields))
-        _deliver(link, script, _frames(gcs, mavlink.MAVLink_set_position_target_local_ned_message(
-            0, 1, 1, frame, mask, *fields)), t=t)
+        _deliver(
+            link,
+            script,
+            _frames(gcs, mavlink.MAVLink_set_position_target_local_ned_message(0, 1, 1, frame, mask, *fields)),
+            t=t,
+        )
 
     def command(cmd, *params, t):
         params = list(params) + [0.0] * (7 - len(params))
@@ -578,8 +717,10 @@ def test_position_loop_frames_and_warnings_in_process(link_pair):
     assert link.warnings["z"] == 2 and link.setpoint_kind == "position"  # flown all the same
     send(local, POSITION_MASK & ~TYPE_MASK_BITS["yaw"], 1.5, 2.0, -FLIGHT_ALTITUDE, 0, 0, 0, 0, 0, 0, 0.0, t=0.6)
     send(local, ACCEL_MASK & ~TYPE_MASK_BITS["vx"], 0, 0, 0, 0.3, 0, 0, 1.0, 0, 0, t=0.7)
-    assert [m.text for m in _received(script, "STATUSTEXT")] == ["yaw ignored: heading held at 90 deg",
-                                                                  "vx ignored: accel setpoint flown"]
+    assert [m.text for m in _received(script, "STATUSTEXT")] == [
+        "yaw ignored: heading held at 90 deg",
+        "vx ignored: accel setpoint flown",
+    ]
     send(local, POSITION_MASK, 1.5, 2.0, -5.0, t=0.3 + STATUSTEXT_REPEAT_S)
     assert [m.text for m in _received(script, "STATUSTEXT")] == ["z=-5.00 ignored: altitude held at z=-2.00"]
     # PX4 refuses force only with the acceleration in use: the common mask 0b111111000111 flies velocity
@@ -601,8 +742,12 @@ def test_position_loop_frames_and_warnings_in_process(link_pair):
     command(mavlink.MAV_CMD_DO_SET_MODE, 29, 6, 0, t=22.0)  # nothing for a while: PX4's "no stream" again
     assert [(a.result) for a in _acks(script)] == [mavlink.MAV_RESULT_TEMPORARILY_REJECTED]
     # a message a script flies with that the link does not handle: a warning too
-    _deliver(link, script, _frames(gcs, mavlink.MAVLink_set_attitude_target_message(
-        0, 1, 1, 0, [1, 0, 0, 0], 0, 0, 0, 0.5)), t=22.0)
+    _deliver(
+        link,
+        script,
+        _frames(gcs, mavlink.MAVLink_set_attitude_target_message(0, 1, 1, 0, [1, 0, 0, 0], 0, 0, 0, 0.5)),
+        t=22.0,
+    )
     assert [m.text for m in _received(script, "STATUSTEXT")] == ["SET_ATTITUDE_TARGET unsupported"]
 
 
@@ -619,8 +764,9 @@ def test_local_origin_defaults_to_each_drones_spawn_point():
             sockets[-1].bind(("127.0.0.1", p))
     except OSError:
         pytest.skip("no two adjacent free UDP ports")
-    link = MavlinkLink(MavlinkLinkConfig(n_drones=2, ports=(0,), remote_ports=(port,), real_time_factor=100.0,
-                                         duration_s=0.1))
+    link = MavlinkLink(
+        MavlinkLinkConfig(n_drones=2, ports=(0,), remote_ports=(port,), real_time_factor=100.0, duration_s=0.1)
+    )
     try:
         link.run()
         parser = mavlink.MAVLink(None)
@@ -628,8 +774,9 @@ def test_local_origin_defaults_to_each_drones_spawn_point():
             sock.settimeout(2.0)
             positions = []
             while not positions:
-                positions = [m for m in parser.parse_buffer(sock.recv(65535)) or []
-                             if m.get_type() == "LOCAL_POSITION_NED"]
+                positions = [
+                    m for m in parser.parse_buffer(sock.recv(65535)) or [] if m.get_type() == "LOCAL_POSITION_NED"
+                ]
             assert np.allclose([positions[0].x, positions[0].y, positions[0].z], [0, 0, -FLIGHT_ALTITUDE], atol=1e-3)
     finally:
         link.close()
@@ -648,8 +795,14 @@ def test_frame_conversions():
 
 # ====================================================================== command line
 def _run_cli(*args, timeout=60):
-    return subprocess.run([sys.executable, "-m", "cefc_mj.deploy.mavlink_link", *args], cwd=REPO,
-                          capture_output=True, text=True, timeout=timeout, check=False)
+    return subprocess.run(
+        [sys.executable, "-m", "cefc_mj.deploy.mavlink_link", *args],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        check=False,
+    )
 
 
 def test_cli_help_and_bad_input_exit_2_with_one_line():

@@ -20,7 +20,9 @@ ALL = np.ones(1, dtype=bool)
 
 
 def single_drone(wind=None, **config):
-    world = MujocoWorld(MujocoWorldConfig(**config), n_envs=1, n_agents=1, n_obstacles=0, with_adversary=False, wind=wind, seed=3)
+    world = MujocoWorld(
+        MujocoWorldConfig(**config), n_envs=1, n_agents=1, n_obstacles=0, with_adversary=False, wind=wind, seed=3
+    )
     world.reset(ALL, np.zeros((1, 1, 2)), np.zeros((1, 2)), np.zeros((1, 0, 2)))
     return world
 
@@ -132,8 +134,8 @@ def test_rotor_wrench_equals_mujoco_thrust_actuators():
     qpos, qvel = world.datas[0].qpos.reshape(1, 7).copy(), world.datas[0].qvel.reshape(1, 6).copy()
     state, xfrc = c.state[0].copy(), np.zeros((1, 6))
     C.cascade_step(1, qpos, qvel, xfrc, state, c.setpoint[0], world.wind.vector[0], c.prm, c.k, c.mix, c.eff, c.rotors)
-    thrusts = state[0, C.S_THRUST_N:C.S_THRUST_N + 4]
-    applied = xfrc[0] - state[0, C.S_DRAG:C.S_DRAG + 6]  # the thrust part of the wrench
+    thrusts = state[0, C.S_THRUST_N : C.S_THRUST_N + 4]
+    applied = xfrc[0] - state[0, C.S_DRAG : C.S_DRAG + 6]  # the thrust part of the wrench
     data = mujoco.MjData(world.models[0])
     data.qpos[:] = qpos[0]
     mujoco.mj_forward(world.models[0], data)
@@ -153,7 +155,9 @@ def test_rotor_actuators_are_live_in_the_scene():
     holds the lagged rotor thrusts, xfrc_applied only the rotor drag."""
     import mujoco
 
-    world = MujocoWorld(MujocoWorldConfig(), n_envs=1, n_agents=2, n_obstacles=0, wind=WindConfig(mean_speed=5.0), seed=0)
+    world = MujocoWorld(
+        MujocoWorldConfig(), n_envs=1, n_agents=2, n_obstacles=0, wind=WindConfig(mean_speed=5.0), seed=0
+    )
     world.reset(ALL, np.array([[[0.0, 0.0], [2.0, 0.0]]]), np.array([[0.0, 4.0]]), np.zeros((1, 0, 2)))
     model, data = world.models[0], world.datas[0]
     assert model.nu == 12
@@ -173,8 +177,17 @@ def test_rotor_actuators_are_live_in_the_scene():
 
 def twin_worlds(n_agents=3, wind=5.0):
     """The same scene with live actuators and with the rotor wrench in xfrc_applied."""
-    worlds = [MujocoWorld(MujocoWorldConfig(rotor_actuation=mode), n_envs=1, n_agents=n_agents, n_obstacles=0,
-                          wind=WindConfig(mean_speed=wind, direction=1.0), seed=4) for mode in ("actuators", "external")]
+    worlds = [
+        MujocoWorld(
+            MujocoWorldConfig(rotor_actuation=mode),
+            n_envs=1,
+            n_agents=n_agents,
+            n_obstacles=0,
+            wind=WindConfig(mean_speed=wind, direction=1.0),
+            seed=4,
+        )
+        for mode in ("actuators", "external")
+    ]
     start = np.stack([np.arange(n_agents) * 2.0, np.zeros(n_agents)], 1)[None]
     for world in worlds:
         world.reset(ALL, start, np.array([[0.0, 4.0]]), np.zeros((1, 0, 2)))
@@ -200,11 +213,29 @@ def test_actuators_and_external_rotor_forces_are_the_same_forces():
     applied = []
     for world in (live, external):
         c, (qpos, qvel, xfrc, ctrl, _) = world.cascade, world._views[0]
-        assert C.cascade_step(1, qpos, qvel, xfrc, c.state[0], c.setpoint[0], world.wind.vector[0], c.prm, c.k, c.mix, c.eff,
-                              c.rotors, ctrl) == -1
+        assert (
+            C.cascade_step(
+                1,
+                qpos,
+                qvel,
+                xfrc,
+                c.state[0],
+                c.setpoint[0],
+                world.wind.vector[0],
+                c.prm,
+                c.k,
+                c.mix,
+                c.eff,
+                c.rotors,
+                ctrl,
+            )
+            == -1
+        )
         model, data = world.models[0], world.datas[0]
         mujoco.mj_forward(model, data)
-        applied.append((data.qfrc_smooth + data.qfrc_bias - data.qfrc_passive).reshape(4, 6))  # actuators + xfrc_applied
+        applied.append(
+            (data.qfrc_smooth + data.qfrc_bias - data.qfrc_passive).reshape(4, 6)
+        )  # actuators + xfrc_applied
     np.testing.assert_array_equal(live.cascade.state, external.cascade.state)
     np.testing.assert_array_equal(live.datas[0].ctrl.reshape(4, 4), external.motor_thrusts[0])
     for a, b in zip(*applied):
@@ -237,8 +268,11 @@ def test_auto_rotor_actuation_is_actuators_up_to_the_cross_over_then_external():
     assert resolve_rotor_actuation("auto", AUTO_ACTUATORS_MAX_DRONES + 1) == "external"
     for mode in ("actuators", "external"):  # explicit choices are kept at any size
         assert resolve_rotor_actuation(mode, 1) == resolve_rotor_actuation(mode, 1000) == mode
-    for n_agents, with_adversary, used in ((8, False, "actuators"), (AUTO_ACTUATORS_MAX_DRONES - 1, True, "actuators"),
-                                           (AUTO_ACTUATORS_MAX_DRONES, True, "external")):
+    for n_agents, with_adversary, used in (
+        (8, False, "actuators"),
+        (AUTO_ACTUATORS_MAX_DRONES - 1, True, "actuators"),
+        (AUTO_ACTUATORS_MAX_DRONES, True, "external"),
+    ):
         world = MujocoWorld(MujocoWorldConfig(), 1, n_agents, 0, with_adversary=with_adversary)
         assert world.rotor_actuation_used == used, (n_agents, with_adversary)
         assert world.models[0].nu == (4 * world.n_drones if used == "actuators" else 0)
@@ -248,8 +282,9 @@ def fly_modes(modes, n_agents, steps=10, wind=5.0):
     """qpos [steps, nq] per rotor_actuation mode: the same scene, seed and random actions."""
     out = {}
     for mode in modes:
-        world = MujocoWorld(MujocoWorldConfig(rotor_actuation=mode), 1, n_agents, 2, wind=WindConfig(mean_speed=wind),
-                            seed=7)
+        world = MujocoWorld(
+            MujocoWorldConfig(rotor_actuation=mode), 1, n_agents, 2, wind=WindConfig(mean_speed=wind), seed=7
+        )
         rng = np.random.default_rng(1)
         start = np.stack([np.arange(n_agents) % 6 * 1.5, np.arange(n_agents) // 6 * 1.5], 1)[None]
         world.reset(ALL, start, np.array([[0.0, -4.0]]), np.array([[[12.0, 0.0], [0.0, 12.0]]]))
@@ -292,7 +327,9 @@ def test_strong_wind_is_rejected_by_the_velocity_loop():
 
 def test_strong_wind_drifts_the_drone_downwind_with_the_open_loop_interface():
     direction = 0.3
-    world = single_drone(wind=WindConfig(mean_speed=8.0, direction=direction), offboard="acceleration", wind_settle_s=0.0)
+    world = single_drone(
+        wind=WindConfig(mean_speed=8.0, direction=direction), offboard="acceleration", wind_settle_s=0.0
+    )
     downwind = np.array([math.cos(direction), math.sin(direction)])
     positions, speeds, tilts = [], [], []
     for _ in range(50):  # 5 s, zero setpoint
@@ -333,8 +370,15 @@ def test_an_episode_starts_from_drones_settled_in_the_wind(seed):
     start = np.array([[[-1.0, 0.0], [0.0, 0.0], [1.0, 0.0]]])
     worst = {}
     for settle in (0.0, 5.0):
-        world = MujocoWorld(MujocoWorldConfig(wind_settle_s=settle), n_envs=1, n_agents=3, n_obstacles=0,
-                            with_adversary=False, wind=WindConfig(mean_speed=8.0), seed=seed)
+        world = MujocoWorld(
+            MujocoWorldConfig(wind_settle_s=settle),
+            n_envs=1,
+            n_agents=3,
+            n_obstacles=0,
+            with_adversary=False,
+            wind=WindConfig(mean_speed=8.0),
+            seed=seed,
+        )
         world.reset(ALL, start, np.zeros((1, 2)), np.zeros((1, 0, 2)))
         assert np.array_equal(world.agent_pos, start) and world.sim_time[0] == 0.0
         tilted = world.tilt_deg()[0] > 5.0
@@ -347,8 +391,9 @@ def test_calm_air_starts_are_the_same_with_or_without_settling():
     start = np.array([[[-1.0, 0.0], [0.0, 0.0], [1.0, 0.0]]])
     states = []
     for settle in (0.0, 5.0):
-        world = MujocoWorld(MujocoWorldConfig(wind_settle_s=settle), n_envs=1, n_agents=3, n_obstacles=0,
-                            with_adversary=False, seed=0)
+        world = MujocoWorld(
+            MujocoWorldConfig(wind_settle_s=settle), n_envs=1, n_agents=3, n_obstacles=0, with_adversary=False, seed=0
+        )
         world.reset(ALL, start, np.zeros((1, 2)), np.zeros((1, 0, 2)))
         fly(world, (1.0, -0.5), 20)
         states.append(world.drone_positions.copy())
@@ -428,8 +473,9 @@ def analytic_ranges(origin, circles, n_rays, max_range):
 
 
 def layout_world(sees_agents=True):
-    world = MujocoWorld(MujocoWorldConfig(), n_envs=1, n_agents=3, n_obstacles=5, n_lidar_rays=36,
-                        lidar_sees_agents=sees_agents, seed=0)
+    world = MujocoWorld(
+        MujocoWorldConfig(), n_envs=1, n_agents=3, n_obstacles=5, n_lidar_rays=36, lidar_sees_agents=sees_agents, seed=0
+    )
     world.reset(ALL, LAYOUT_AGENTS, np.array([[0.0, 1.0]]), LAYOUT_OBSTACLES)  # adversary near agent 0: never seen
     return world
 
@@ -471,8 +517,8 @@ def test_contacts_with_obstacles_and_uavs_are_collisions_adversary_is_not():
     world.reset(ALL, agents, np.array([[3.0, -3.0]]), np.array([[[1.5, 0.0]]]))  # adversary on top of agent 3
     hits = np.zeros(4, dtype=bool)
     accel = np.zeros((1, 4, 2))
-    accel[0, 0] = (1.0, 0.0)   # into the obstacle
-    accel[0, 1] = (1.0, 0.0)   # towards agent 2
+    accel[0, 0] = (1.0, 0.0)  # into the obstacle
+    accel[0, 1] = (1.0, 0.0)  # towards agent 2
     accel[0, 2] = (-1.0, 0.0)  # towards agent 1
     for _ in range(20):
         world.step(accel, np.zeros((1, 2)))
@@ -497,9 +543,16 @@ def test_obstacles_moved_at_reset_collide_among_many():
 
 # ----------------------------------------------------------------------------- determinism
 def run_episode(seed, steps=10, **config):
-    world = MujocoWorld(MujocoWorldConfig(**config), n_envs=2, n_agents=3, n_obstacles=2, wind=WindConfig(mean_speed=3.0), seed=seed)
+    world = MujocoWorld(
+        MujocoWorldConfig(**config), n_envs=2, n_agents=3, n_obstacles=2, wind=WindConfig(mean_speed=3.0), seed=seed
+    )
     rng = np.random.default_rng(0)
-    world.reset(np.ones(2, bool), rng.uniform(-2, 2, (2, 3, 2)), np.array([[0.0, 6.0], [0.0, -6.0]]), np.array([[[4.0, 4.0], [-4.0, 4.0]]] * 2))
+    world.reset(
+        np.ones(2, bool),
+        rng.uniform(-2, 2, (2, 3, 2)),
+        np.array([[0.0, 6.0], [0.0, -6.0]]),
+        np.array([[[4.0, 4.0], [-4.0, 4.0]]] * 2),
+    )
     collisions = []
     for _ in range(steps):
         world.step(rng.uniform(-2, 2, (2, 3, 2)), rng.uniform(-2, 2, (2, 2)))
@@ -546,21 +599,35 @@ def test_nan_state_and_flipped_drone_raise_simulation_diverged():
         world.step(np.zeros((1, 1, 2)), np.zeros((1, 2)))
 
 
-@pytest.mark.parametrize("make, message", [
-    (lambda: WindConfig(mean_speed=-1.0), "wind.mean_speed must be a finite number >= 0"),
-    (lambda: WindConfig(mean_speed=3.0, speed_sigma=-0.1), "wind.speed_sigma must be >= 0"),
-    (lambda: MujocoWorld(MujocoWorldConfig(airframe="hexa"), 1, 1, 0), "unknown airframe 'hexa'"),
-    (lambda: MujocoWorld(MujocoWorldConfig(params="hexa"), 1, 1, 0), "unknown parameter file 'hexa'"),
-    (lambda: MujocoWorld(MujocoWorldConfig(physics_dt=0.004), 1, 1, 0), "physics_dt must be <= 0.002"),
-    (lambda: MujocoWorld(MujocoWorldConfig(rate_loop_hz=200), 1, 1, 0), "rate_loop_hz must be >= 250"),
-    (lambda: MujocoWorld(MujocoWorldConfig(position_loop_hz=300), 1, 1, 0), "position_loop_hz = 300 must divide"),
-    (lambda: MujocoWorld(MujocoWorldConfig(), 1, 1, -1), "n_obstacles must be an integer >= 0"),
-    (lambda: MujocoWorld(MujocoWorldConfig(offboard="position"), 1, 1, 0), "mujoco.offboard must be one of velocity, acceleration"),
-    (lambda: MujocoWorld(MujocoWorldConfig(decision_dt=0.002), 1, 1, 0), "mujoco.decision_dt = 0.002 must be a whole number of position-loop periods"),
-    (lambda: MujocoWorld(MujocoWorldConfig(physics_loop="c"), 1, 1, 0), "mujoco.physics_loop must be one of compiled, python"),
-    (lambda: MujocoWorld(MujocoWorldConfig(rotor_actuation="motors"), 1, 1, 0),
-     "mujoco.rotor_actuation must be one of auto, actuators, external"),
-])
+@pytest.mark.parametrize(
+    "make, message",
+    [
+        (lambda: WindConfig(mean_speed=-1.0), "wind.mean_speed must be a finite number >= 0"),
+        (lambda: WindConfig(mean_speed=3.0, speed_sigma=-0.1), "wind.speed_sigma must be >= 0"),
+        (lambda: MujocoWorld(MujocoWorldConfig(airframe="hexa"), 1, 1, 0), "unknown airframe 'hexa'"),
+        (lambda: MujocoWorld(MujocoWorldConfig(params="hexa"), 1, 1, 0), "unknown parameter file 'hexa'"),
+        (lambda: MujocoWorld(MujocoWorldConfig(physics_dt=0.004), 1, 1, 0), "physics_dt must be <= 0.002"),
+        (lambda: MujocoWorld(MujocoWorldConfig(rate_loop_hz=200), 1, 1, 0), "rate_loop_hz must be >= 250"),
+        (lambda: MujocoWorld(MujocoWorldConfig(position_loop_hz=300), 1, 1, 0), "position_loop_hz = 300 must divide"),
+        (lambda: MujocoWorld(MujocoWorldConfig(), 1, 1, -1), "n_obstacles must be an integer >= 0"),
+        (
+            lambda: MujocoWorld(MujocoWorldConfig(offboard="position"), 1, 1, 0),
+            "mujoco.offboard must be one of velocity, acceleration",
+        ),
+        (
+            lambda: MujocoWorld(MujocoWorldConfig(decision_dt=0.002), 1, 1, 0),
+            "mujoco.decision_dt = 0.002 must be a whole number of position-loop periods",
+        ),
+        (
+            lambda: MujocoWorld(MujocoWorldConfig(physics_loop="c"), 1, 1, 0),
+            "mujoco.physics_loop must be one of compiled, python",
+        ),
+        (
+            lambda: MujocoWorld(MujocoWorldConfig(rotor_actuation="motors"), 1, 1, 0),
+            "mujoco.rotor_actuation must be one of auto, actuators, external",
+        ),
+    ],
+)
 def test_bad_configuration_is_one_clear_line(make, message):
     with pytest.raises(ConfigError, match=message) as info:
         make()

@@ -130,9 +130,15 @@ def test_bad_files_raise_one_line_checkpoint_errors(tmp_path):
     torch.save({"format": "something-else"}, tmp_path / "foreign.pt")
 
     torch.save({"format": POLICY_FORMAT, "obj": Evil()}, tmp_path / "evil.pt")
-    for name, pattern in (("edited", "SHA-256"), ("reshaped", "do not fit"), ("garbage", "not a readable"),
-                          ("truncated", "not a readable"), ("foreign", "not an AT-M policy"), ("evil", "not a readable"),
-                          ("missing", "no such")):
+    for name, pattern in (
+        ("edited", "SHA-256"),
+        ("reshaped", "do not fit"),
+        ("garbage", "not a readable"),
+        ("truncated", "not a readable"),
+        ("foreign", "not an AT-M policy"),
+        ("evil", "not a readable"),
+        ("missing", "no such"),
+    ):
         with pytest.raises(CheckpointError, match=pattern) as err:
             load_actor(tmp_path / f"{name}.pt")
         assert "\n" not in str(err.value), name

@@ -8,7 +8,11 @@ import pytest
 pytest.importorskip("pyrvo", reason="ORCA-F needs the RVO2 binding: pip install 'pyrvo>=0.4.3'")
 
 from cefc_mj.baselines.orca import (  # noqa: E402
-    OrcaConfig, OrcaFormationPolicy, cylinder_polygon, evaluate_orca, evaluate_orca_episodes,
+    OrcaConfig,
+    OrcaFormationPolicy,
+    cylinder_polygon,
+    evaluate_orca,
+    evaluate_orca_episodes,
 )
 from cefc_mj.env import BatchedCEFCEnv  # noqa: E402
 from cefc_mj.errors import ConfigError  # noqa: E402
@@ -46,9 +50,11 @@ def _fly(env, act, steps):
 
 def _bare(policy):
     """The same formation controller without ORCA: u = clip(5 (v_pref - v), +-2)."""
+
     def act(env):
         pref = policy.preferred_velocity(env.world.agent_pos, env.anchor, env.t == 0)
         return np.clip(5.0 * (pref - env.world.agent_vel), -2.0, 2.0)
+
     return act
 
 
@@ -93,14 +99,21 @@ def test_orca_agents_avoid_each_other():
     # control: flown straight at each other they collide
     cfg, env = _scene(3, starts, [0.0, 3.0], [])
     swap = _Swap(cfg)
-    collided, min_agents, _ = _fly(env, lambda e: np.clip(5.0 * (swap.preferred_velocity(
-        e.world.agent_pos[0], None, None)[None] - e.world.agent_vel), -2.0, 2.0), 80)
+    collided, min_agents, _ = _fly(
+        env,
+        lambda e: np.clip(
+            5.0 * (swap.preferred_velocity(e.world.agent_pos[0], None, None)[None] - e.world.agent_vel), -2.0, 2.0
+        ),
+        80,
+    )
     assert collided and min_agents < 2 * cfg.uav_radius
 
 
 def test_orca_reaches_formation_and_anchor_in_free_space():
     per_episode = evaluate_orca_episodes(6, episodes=4, seed=1, steps=100, density=0.0)
-    assert sorted(per_episode) == ["C", "F", "N", "R_L", "R_L_agents"] and all(v.shape == (4,) for v in per_episode.values())
+    assert sorted(per_episode) == ["C", "F", "N", "R_L", "R_L_agents"] and all(
+        v.shape == (4,) for v in per_episode.values()
+    )
     assert (per_episode["C"] == 0).all()
     assert (per_episode["F"] > 90).all() and (per_episode["N"] > 40).all()
     # and the final shape is the template

@@ -50,9 +50,14 @@ def _artifact_state() -> dict[str, int | None]:
 
 def _shipped_data() -> set[str]:
     """The wheel paths of the checkout's data the code reads at run time (not eval/reports/)."""
-    files = [*(REPO / "assets" / "mjcf").glob("*.xml"), *(REPO / "controllers").glob("*.params"),
-             *(REPO / "policies").glob("*.pt"), *(REPO / "policies").glob("*.json"),
-             REPO / "eval" / "paper_tables.json", REPO / "eval" / "table8_bands.json"]
+    files = [
+        *(REPO / "assets" / "mjcf").glob("*.xml"),
+        *(REPO / "controllers").glob("*.params"),
+        *(REPO / "policies").glob("*.pt"),
+        *(REPO / "policies").glob("*.json"),
+        REPO / "eval" / "paper_tables.json",
+        REPO / "eval" / "table8_bands.json",
+    ]
     return {f"{SHIPPED}/{f.relative_to(REPO).as_posix()}" for f in files}
 
 
@@ -86,13 +91,16 @@ def venv(built, tmp_path_factory) -> Path:
     root = tmp_path_factory.mktemp("venv") / "venv"
     _run([sys.executable, "-m", "venv", "--without-pip", root], cwd=root.parent)
     python = root / "bin" / "python"
-    purelib = Path(_run([python, "-c", "import sysconfig; print(sysconfig.get_path('purelib'))"],
-                        cwd=root.parent).stdout.strip())
+    purelib = Path(
+        _run([python, "-c", "import sysconfig; print(sysconfig.get_path('purelib'))"], cwd=root.parent).stdout.strip()
+    )
     # the running interpreter's site-packages, after the venv's own: torch etc. without a second copy
     deps = [p for p in site.getsitepackages() if Path(p).is_dir()] or [sysconfig.get_path("purelib")]
     (purelib / "_cefc_test_deps.pth").write_text("\n".join(deps) + "\n")
-    _run([sys.executable, "-m", "pip", "--python", python, "install", "--no-deps", "--no-index", "-q", built.wheel],
-         cwd=root.parent)
+    _run(
+        [sys.executable, "-m", "pip", "--python", python, "install", "--no-deps", "--no-index", "-q", built.wheel],
+        cwd=root.parent,
+    )
     return root
 
 
@@ -102,8 +110,11 @@ def _clean_env() -> dict[str, str]:
 
 
 def _purelib(venv: Path) -> Path:
-    return Path(_run([venv / "bin" / "python", "-c", "import sysconfig; print(sysconfig.get_path('purelib'))"],
-                     cwd=venv).stdout.strip()).resolve()
+    return Path(
+        _run(
+            [venv / "bin" / "python", "-c", "import sysconfig; print(sysconfig.get_path('purelib'))"], cwd=venv
+        ).stdout.strip()
+    ).resolve()
 
 
 # ---------------------------------------------------------------------------- fast: file lists
@@ -128,7 +139,9 @@ def test_wheel_from_sdist_matches_wheel_from_tree(built):
     """MANIFEST.in is complete: `python -m build` (sdist -> wheel) ships what a tree build does."""
     tree = set(zipfile.ZipFile(built.wheel).namelist())
     via_sdist = set(zipfile.ZipFile(built.wheel_from_sdist).namelist())
-    assert tree == via_sdist, f"only from the tree: {sorted(tree - via_sdist)}; only via sdist: {sorted(via_sdist - tree)}"
+    assert tree == via_sdist, (
+        f"only from the tree: {sorted(tree - via_sdist)}; only via sdist: {sorted(via_sdist - tree)}"
+    )
 
 
 def test_sdist_carries_the_top_level_data_folders(built):
@@ -156,7 +169,8 @@ def test_installed_wheel_finds_its_data_outside_the_checkout(venv, tmp_path):
         "from cefc_mj.eval.bands import load_bands\n"
         "print(json.dumps({'package': cefc_mj.__file__, 'source': p.DATA_SOURCE, 'policies': str(p.POLICIES_DIR),\n"
         "    'checkout': p.CHECKOUT_ROOT, 'mass': load_airframe('iris').mass, 'gains': len(load_params('iris')),\n"
-        "    'obs_dim': load_policy('atm_c5_step3').obs_dim, 'paper': bool(paper_table8()), 'bands': bool(load_bands())}))\n"
+        "    'obs_dim': load_policy('atm_c5_step3').obs_dim, 'paper': bool(paper_table8()), "
+        "'bands': bool(load_bands())}))\n"
     )
     out = json.loads(_run([venv / "bin" / "python", "-c", script], cwd=tmp_path, env=_clean_env()).stdout)
     purelib = _purelib(venv)
@@ -169,8 +183,9 @@ def test_installed_wheel_finds_its_data_outside_the_checkout(venv, tmp_path):
 def test_cefc_mj_home_overrides_the_installed_copy(venv, tmp_path):
     home = tmp_path / "home"
     shutil.copytree(REPO / "policies", home / "policies")
-    out = _run([venv / "bin" / "python", "-m", "cefc_mj.paths"], cwd=tmp_path,
-               env={**_clean_env(), "CEFC_MJ_HOME": str(home)}).stdout
+    out = _run(
+        [venv / "bin" / "python", "-m", "cefc_mj.paths"], cwd=tmp_path, env={**_clean_env(), "CEFC_MJ_HOME": str(home)}
+    ).stdout
     lines = dict(line.split(": ", 1) for line in out.splitlines())
     assert lines["source"] == "CEFC_MJ_HOME" and Path(lines["root"]) == home
     assert lines["policies"] == str(home / "policies")
@@ -183,15 +198,36 @@ def test_editable_install_uses_the_checkout_folders(tmp_path):
     shutil.copytree(REPO, src, ignore=NOT_COPIED)
     root = tmp_path / "venv-e"
     _run([sys.executable, "-m", "venv", "--without-pip", root], cwd=tmp_path)
-    purelib = Path(_run([root / "bin" / "python", "-c", "import sysconfig; print(sysconfig.get_path('purelib'))"],
-                        cwd=tmp_path).stdout.strip())
+    purelib = Path(
+        _run(
+            [root / "bin" / "python", "-c", "import sysconfig; print(sysconfig.get_path('purelib'))"], cwd=tmp_path
+        ).stdout.strip()
+    )
     (purelib / "_cefc_test_deps.pth").write_text("\n".join(site.getsitepackages()) + "\n")
-    _run([sys.executable, "-m", "pip", "--python", root / "bin" / "python", "install", "--no-deps", "--no-index",
-          "--no-build-isolation", "-q", "-e", src], cwd=tmp_path)
+    _run(
+        [
+            sys.executable,
+            "-m",
+            "pip",
+            "--python",
+            root / "bin" / "python",
+            "install",
+            "--no-deps",
+            "--no-index",
+            "--no-build-isolation",
+            "-q",
+            "-e",
+            src,
+        ],
+        cwd=tmp_path,
+    )
     elsewhere = tmp_path / "elsewhere"
     elsewhere.mkdir()
-    out = _run([root / "bin" / "python", "-c", "import cefc_mj.paths as p; print(p.DATA_SOURCE, p.POLICIES_DIR)"],
-               cwd=elsewhere, env=_clean_env()).stdout.split()
+    out = _run(
+        [root / "bin" / "python", "-c", "import cefc_mj.paths as p; print(p.DATA_SOURCE, p.POLICIES_DIR)"],
+        cwd=elsewhere,
+        env=_clean_env(),
+    ).stdout.split()
     assert out == ["checkout", str(src / "policies")]
 
 
@@ -210,8 +246,11 @@ def test_installed_wheel_flies_an_episode_and_the_cli(venv, tmp_path):
         "    'moved': float(np.linalg.norm(pos[-1, :, :2] - pos[0, :, :2], axis=-1).max()),\n"
         "    'airframe_parts': len(r.record.airframe_parts)}))\n"
     )
-    out = json.loads(_run([venv / "bin" / "python", "-c", script], cwd=tmp_path, env=_clean_env(),
-                          timeout=600).stdout.splitlines()[-1])
+    out = json.loads(
+        _run([venv / "bin" / "python", "-c", script], cwd=tmp_path, env=_clean_env(), timeout=600).stdout.splitlines()[
+            -1
+        ]
+    )
     assert Path(out["package"]).resolve().is_relative_to(_purelib(venv))
     assert out["steps"] == 20 and out["diverged"] is None
     assert 0 <= out["F"] <= 20 and 0 <= out["N"] <= 20 and 0 <= out["C"] <= 100
@@ -219,8 +258,12 @@ def test_installed_wheel_flies_an_episode_and_the_cli(venv, tmp_path):
     assert out["moved"] > 0.01, "the policy moves the quadrotors"
     assert out["airframe_parts"] > 0, "the record drew the airframe from the shipped MJCF"
 
-    result = _run([venv / "bin" / "cefc-eval", "--steps", "10", "--formation", "5", "--json", tmp_path / "r.json"],
-                  cwd=tmp_path, env=_clean_env(), timeout=600)
+    result = _run(
+        [venv / "bin" / "cefc-eval", "--steps", "10", "--formation", "5", "--json", tmp_path / "r.json"],
+        cwd=tmp_path,
+        env=_clean_env(),
+        timeout=600,
+    )
     episode = json.loads((tmp_path / "r.json").read_text())["rows"]["5"]["SITL-S"]["episodes_detail"][0]
     assert episode["steps"] == 10 and episode["diverged"] is None
     row = next(line for line in result.stdout.splitlines() if line.split()[:1] == ["5"])

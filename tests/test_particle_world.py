@@ -117,8 +117,9 @@ def test_particle_only_settings_are_refused_by_mujoco():
 
 
 def test_uniform_deviation_sampling_draws_each_env_its_own_level():
-    env = BatchedCEFCEnv(TaskConfig(n_agents=4, mode="formation", deviation=0.8, deviation_sampling="uniform"),
-                         n_envs=64, seed=0)
+    env = BatchedCEFCEnv(
+        TaskConfig(n_agents=4, mode="formation", deviation=0.8, deviation_sampling="uniform"), n_envs=64, seed=0
+    )
     env.reset()
     first = env.env_deviation.copy()
     assert ((first >= 0) & (first <= 0.8)).all() and first.std() > 0.15

@@ -30,17 +30,21 @@ EXAMPLE = REPO / "examples" / "fly_shipped_policy.py"
 
 
 # ------------------------------------------------------------------------------------ spaces
-@pytest.mark.parametrize("backend, mode, options", [
-    ("particle", "formation", dict(deviation=0.5)),
-    ("particle", "cefc", dict(deviation=0.8, velocity_noise=0.3, response_time=0.2)),
-    ("mujoco", "formation", dict(wind=8.0, deviation=0.5)),
-    ("mujoco", "cefc", dict(wind=8.0)),
-])
+@pytest.mark.parametrize(
+    "backend, mode, options",
+    [
+        ("particle", "formation", dict(deviation=0.5)),
+        ("particle", "cefc", dict(deviation=0.8, velocity_noise=0.3, response_time=0.2)),
+        ("mujoco", "formation", dict(wind=8.0, deviation=0.5)),
+        ("mujoco", "cefc", dict(wind=8.0)),
+    ],
+)
 def test_real_episodes_stay_inside_the_finite_boxes(backend, mode, options):
     """300 steps of bang-bang random actions (the hardest push on speeds and positions) in a dense
     obstacle field: every observation and state lies in its Box, and the Boxes are finite."""
-    env = cefc_mj.make_env(backend=backend, n_agents=5, mode=mode, obstacle_density=0.05, seed=3,
-                           episode_steps=300, **options)
+    env = cefc_mj.make_env(
+        backend=backend, n_agents=5, mode=mode, obstacle_density=0.05, seed=3, episode_steps=300, **options
+    )
     obs_space, state_space = env.observation_space("uav_0"), env.state_space
     assert np.isfinite(obs_space.low).all() and np.isfinite(obs_space.high).all()
     assert np.isfinite(state_space.low).all() and np.isfinite(state_space.high).all()
@@ -119,8 +123,9 @@ def test_misuse_raises_clear_errors():
 # ------------------------------------------------------------------------------------ rendering
 @pytest.mark.parametrize("backend", ["particle", "mujoco"])
 def test_rgb_array_frames(backend):
-    env = cefc_mj.make_env(backend=backend, n_agents=4, mode="formation", obstacle_density=0.03, seed=0,
-                           render_mode="rgb_array")
+    env = cefc_mj.make_env(
+        backend=backend, n_agents=4, mode="formation", obstacle_density=0.03, seed=0, render_mode="rgb_array"
+    )
     env.reset(seed=0)
     first = env.render()
     assert first.shape == (480, 480, 3) and first.dtype == np.uint8
@@ -143,11 +148,13 @@ def test_rgb_array_frames(backend):
 
 
 def test_mujoco_frames_without_opengl_fail_at_construction():
-    code = ("import cefc_mj\n"
-            "try:\n"
-            "    cefc_mj.make_env(backend='mujoco', n_agents=3, mode='formation', render_mode='rgb_array')\n"
-            "except cefc_mj.ConfigError as e:\n"
-            "    print('ConfigError:', e)\n")
+    code = (
+        "import cefc_mj\n"
+        "try:\n"
+        "    cefc_mj.make_env(backend='mujoco', n_agents=3, mode='formation', render_mode='rgb_array')\n"
+        "except cefc_mj.ConfigError as e:\n"
+        "    print('ConfigError:', e)\n"
+    )
     env = {**os.environ, "MUJOCO_GL": "disable"}  # MuJoCo without any GL platform
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, env=env)
     assert result.returncode == 0, result.stderr
@@ -169,8 +176,9 @@ def test_human_mode_streams_every_step_to_the_viewer(tmp_path):
     """A headless `rerun --save` listens where the viewer would, so the env connects to it."""
     live = tmp_path / "live.rrd"
     with rerun_listener(RERUN_VIEWER_PORT, live):
-        env = cefc_mj.make_env(n_agents=3, mode="formation", obstacle_density=0.03, seed=0, episode_steps=8,
-                               render_mode="human")
+        env = cefc_mj.make_env(
+            n_agents=3, mode="formation", obstacle_density=0.03, seed=0, episode_steps=8, render_mode="human"
+        )
         env.reset(seed=0)
         while env.agents:
             env.step({a: np.array([1.0, 0.0]) for a in env.agents})
@@ -182,8 +190,9 @@ def test_human_mode_streams_every_step_to_the_viewer(tmp_path):
 
 
 def test_rerun_recorder_writes_one_file_per_episode(tmp_path):
-    env = cefc_mj.make_env(backend="mujoco", n_agents=3, mode="formation", obstacle_density=0.03, seed=0,
-                           episode_steps=5)
+    env = cefc_mj.make_env(
+        backend="mujoco", n_agents=3, mode="formation", obstacle_density=0.03, seed=0, episode_steps=5
+    )
     with RerunRecorder(env, rrd_path=tmp_path / "ep.rrd") as recorder:
         for seed in (0, 1):
             env.reset(seed=seed)
@@ -209,16 +218,22 @@ def test_policy_acts_on_pettingzoo_observations():
     observations, _ = env.reset(seed=0)
     actions = policy.act(observations)
     assert list(actions) == env.possible_agents
-    assert all(a.shape == (2,) and a.dtype == np.float32 and env.action_space(k).contains(a) for k, a in actions.items())
+    assert all(
+        a.shape == (2,) and a.dtype == np.float32 and env.action_space(k).contains(a) for k, a in actions.items()
+    )
     one_env = np.stack([observations[a] for a in env.possible_agents])  # [N, D]
     np.testing.assert_array_equal(np.stack(list(actions.values())), policy.act(one_env))
     assert policy.act(one_env).shape == (6, 2)
     np.testing.assert_array_equal(policy.act(one_env[None])[0], policy.act(one_env))  # [1, N, D]
     assert policy.act({}) == {}
     d = policy.obs_dim
-    for bad, pattern in ((one_env[0], rf"\[N, {d}\].*got \[{d}\]"), (one_env[:, :-1], rf"got \[6, {d - 1}\]"),
-                         (np.zeros((1, 1, 6, d)), rf"got \[1, 1, 6, {d}\]"), ([["a"] * d], "not an array of numbers"),
-                         ({**observations, "uav_3": observations["uav_3"][:10]}, rf"obs\['uav_3'\]: expected shape \[{d}\], got \[10\]")):
+    for bad, pattern in (
+        (one_env[0], rf"\[N, {d}\].*got \[{d}\]"),
+        (one_env[:, :-1], rf"got \[6, {d - 1}\]"),
+        (np.zeros((1, 1, 6, d)), rf"got \[1, 1, 6, {d}\]"),
+        ([["a"] * d], "not an array of numbers"),
+        ({**observations, "uav_3": observations["uav_3"][:10]}, rf"obs\['uav_3'\]: expected shape \[{d}\], got \[10\]"),
+    ):
         with pytest.raises(ConfigError, match=pattern):
             policy.act(bad)
     while env.agents:  # and it flies the env directly
@@ -239,9 +254,12 @@ def test_example_script_records_a_flight(tmp_path, capsys):
     with pytest.raises(SystemExit) as done:
         example.main(["--help"])
     assert done.value.code == 0 and "--out" in capsys.readouterr().out
-    for argv, pattern in ((["--steps", "0"], "--steps 0"), (["--policy", "nope"], "no policy 'nope'"),
-                          (["--out", str(tmp_path / "x.png")], "must end in .gif or .rrd"),
-                          (["--out", str(tmp_path / "missing" / "x.gif")], "cannot write")):
+    for argv, pattern in (
+        (["--steps", "0"], "--steps 0"),
+        (["--policy", "nope"], "no policy 'nope'"),
+        (["--out", str(tmp_path / "x.png")], "must end in .gif or .rrd"),
+        (["--out", str(tmp_path / "missing" / "x.gif")], "cannot write"),
+    ):
         with pytest.raises(SystemExit) as done:
             example.main(argv)
         err = capsys.readouterr().err
@@ -252,8 +270,14 @@ def test_example_script_records_a_flight(tmp_path, capsys):
     # As a user runs it: its own process, MuJoCo frames headless without MUJOCO_GL set, a GIF.
     gif = tmp_path / "fly.gif"
     env = {k: v for k, v in os.environ.items() if k not in ("MUJOCO_GL", "PYOPENGL_PLATFORM", "DISPLAY")}
-    result = subprocess.run([sys.executable, str(EXAMPLE), "--backend", "mujoco", "--steps", "2", "--out", str(gif)],
-                            capture_output=True, text=True, timeout=300, env=env, cwd=tmp_path)
+    result = subprocess.run(
+        [sys.executable, str(EXAMPLE), "--backend", "mujoco", "--steps", "2", "--out", str(gif)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env=env,
+        cwd=tmp_path,
+    )
     assert result.returncode == 0, result.stderr
     assert f"wrote {gif}" in result.stdout
     from PIL import Image

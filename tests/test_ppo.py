@@ -39,7 +39,7 @@ def test_gae_batched_columns_are_independent():
     end = torch.zeros(5, 3, dtype=torch.bool)
     adv, _ = compute_gae(r, v, nv, end, 0.8, 0.95)
     for b in range(3):
-        col, _ = compute_gae(r[:, b:b + 1], v[:, b:b + 1], nv[:, b:b + 1], end[:, b:b + 1], 0.8, 0.95)
+        col, _ = compute_gae(r[:, b : b + 1], v[:, b : b + 1], nv[:, b : b + 1], end[:, b : b + 1], 0.8, 0.95)
         assert torch.allclose(adv[:, b], col[:, 0])
 
 

@@ -34,8 +34,20 @@ RAY_ENV = ("RAY_TMPDIR", "RAY_AUTH_TOKEN", "RAY_AUTH_MODE", "RAY_USAGE_STATS_ENA
 # one c, the 7 conditions, one seed; 150 steps give non-zero F and C to compare
 # without the separation guard, so that some cells collide and C travels through the cache too
 TABLE8 = ["--protocol", "table8", "--formation", "5", "--episodes", "1", "--steps", "150", "--guard", "off"]
-SWEEP = ["lowlevel", "--formation", "3", "--step", "1", "--budget", "2it", "--envs", "2", "--threads", "1",
-         "--no-progress"]
+SWEEP = [
+    "lowlevel",
+    "--formation",
+    "3",
+    "--step",
+    "1",
+    "--budget",
+    "2it",
+    "--envs",
+    "2",
+    "--threads",
+    "1",
+    "--no-progress",
+]
 
 
 def ray_processes(tmp: str) -> list:
@@ -82,12 +94,28 @@ def ray_head(ray_tmp):
     log = Path(ray_tmp) / "head.log"
     with open(log, "w") as fh:
         head = subprocess.Popen(
-            [str(Path(sys.executable).parent / "ray"), "start", "--head", "--node-ip-address", "127.0.0.1",
-             "--port", str(port), "--num-cpus", "1", "--include-dashboard", "false", "--disable-usage-stats",
-             "--block"], stdout=fh, stderr=subprocess.STDOUT, start_new_session=True,
+            [
+                str(Path(sys.executable).parent / "ray"),
+                "start",
+                "--head",
+                "--node-ip-address",
+                "127.0.0.1",
+                "--port",
+                str(port),
+                "--num-cpus",
+                "1",
+                "--include-dashboard",
+                "false",
+                "--disable-usage-stats",
+                "--block",
+            ],
+            stdout=fh,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
             # a driver that names an --address uses token authentication only when RAY_AUTH_MODE=token is
             # set before ray is imported, which this process is past: a cluster without tokens
-            env={**os.environ, "RAY_AUTH_MODE": "disabled"})
+            env={**os.environ, "RAY_AUTH_MODE": "disabled"},
+        )
     try:
         deadline = time.monotonic() + 90
         while "Ray runtime started" not in log.read_text():
@@ -109,15 +137,18 @@ def cells(report_dir: Path) -> dict[str, dict]:
 
 
 # ---------------------------------------------------------------------------- bad flags
-@pytest.mark.parametrize("argv, needle", [
-    (["--executor", "ray"], "--executor ray: only --protocol table8"),
-    (["--protocol", "table8", "--address", "127.0.0.1:6379"], "add --executor ray"),
-    (["--protocol", "table8", "--executor", "ray", "--address", "head"], "--address head: expected HOST:PORT"),
-    (["--protocol", "table8", "--executor", "ray", "--address", "head:0"], "--address head:0: expected HOST:PORT"),
-    (["--protocol", "table8", "--executor", "ray", "--address", "a b:1"], "expected HOST:PORT"),
-    (["--protocol", "table8", "--executor", "ray", "--address", "h:6379", "--workers", "2"], "drop --workers"),
-    (["--protocol", "table8", "--executor", "dask"], "invalid choice: 'dask'"),
-])
+@pytest.mark.parametrize(
+    "argv, needle",
+    [
+        (["--executor", "ray"], "--executor ray: only --protocol table8"),
+        (["--protocol", "table8", "--address", "127.0.0.1:6379"], "add --executor ray"),
+        (["--protocol", "table8", "--executor", "ray", "--address", "head"], "--address head: expected HOST:PORT"),
+        (["--protocol", "table8", "--executor", "ray", "--address", "head:0"], "--address head:0: expected HOST:PORT"),
+        (["--protocol", "table8", "--executor", "ray", "--address", "a b:1"], "expected HOST:PORT"),
+        (["--protocol", "table8", "--executor", "ray", "--address", "h:6379", "--workers", "2"], "drop --workers"),
+        (["--protocol", "table8", "--executor", "dask"], "invalid choice: 'dask'"),
+    ],
+)
 def test_bad_eval_flags_exit_2_with_one_line(argv, needle, capsys):
     with pytest.raises(SystemExit) as exit_:
         eval_main(argv)
@@ -125,15 +156,18 @@ def test_bad_eval_flags_exit_2_with_one_line(argv, needle, capsys):
     assert exit_.value.code == 2 and needle in err and err.count("\n") == 1, err
 
 
-@pytest.mark.parametrize("argv, needle", [
-    (["--seeds", "0,1", "--install"], "--install: a --seeds sweep"),
-    (["--seeds", "0,1", "--seed", "3"], "--seed 3: give either --seed"),
-    (["--seeds", "0,x"], "--seeds 0,x: expected comma-separated seeds"),
-    (["--seeds", "1,1"], "a seed is listed twice"),
-    (["--executor", "ray"], "--executor ray: runs the seeds of a sweep; add --seeds"),
-    (["--seeds", "0,1", "--address", "h:6379"], "add --executor ray"),
-    (["--seeds", "0,1", "--executor", "ray", "--address", "h:x"], "--address h:x: expected HOST:PORT"),
-])
+@pytest.mark.parametrize(
+    "argv, needle",
+    [
+        (["--seeds", "0,1", "--install"], "--install: a --seeds sweep"),
+        (["--seeds", "0,1", "--seed", "3"], "--seed 3: give either --seed"),
+        (["--seeds", "0,x"], "--seeds 0,x: expected comma-separated seeds"),
+        (["--seeds", "1,1"], "a seed is listed twice"),
+        (["--executor", "ray"], "--executor ray: runs the seeds of a sweep; add --seeds"),
+        (["--seeds", "0,1", "--address", "h:6379"], "add --executor ray"),
+        (["--seeds", "0,1", "--executor", "ray", "--address", "h:x"], "--address h:x: expected HOST:PORT"),
+    ],
+)
 def test_bad_sweep_flags_exit_2_with_one_line(argv, needle, tmp_path, capsys):
     with pytest.raises(SystemExit) as exit_:
         train_main(SWEEP + ["--out", str(tmp_path / "out")] + argv)
@@ -186,10 +220,27 @@ def test_ctrl_c_stops_the_local_ray_instance(ray_tmp, tmp_path):
     terminal sends it) ends the command with 130 and takes every Ray process with it."""
     # 35 episodes: far more than can finish between the first task starting and the Ctrl-C, however
     # fast an episode flies
-    argv = ["--protocol", "table8", "--formation", "5", "--episodes", "5", "--steps", "1000", "--executor", "ray",
-            "--report-dir", str(tmp_path / "r")]
-    proc = subprocess.Popen([sys.executable, "-m", "cefc_mj.cli.eval", *argv], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, start_new_session=True)
+    argv = [
+        "--protocol",
+        "table8",
+        "--formation",
+        "5",
+        "--episodes",
+        "5",
+        "--steps",
+        "1000",
+        "--executor",
+        "ray",
+        "--report-dir",
+        str(tmp_path / "r"),
+    ]
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "cefc_mj.cli.eval", *argv],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
     seen: dict[int, tuple[psutil.Process, str]] = {}  # every descendant seen: (process, command line)
     try:
         deadline = time.monotonic() + 90

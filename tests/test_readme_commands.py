@@ -28,8 +28,10 @@ COMMANDS = [
     ("cefc-eval --backend particle --protocol table3", "--formation 6 --episodes 2"),
     ("cefc-eval --formation 6 --rrd run.rrd --png plots/", "--steps 5"),
     ("cefc-train lowlevel --formation 6 --step 3 --init-from atm_c6_step3", "--budget 1it --envs 4 --threads 1"),
-    ("cefc-train lowlevel --formation 6 --step 1 --budget 150it --out runs/mine --policies-dir my_policies",
-     "--budget 1it --envs 4 --threads 1"),
+    (
+        "cefc-train lowlevel --formation 6 --step 1 --budget 150it --out runs/mine --policies-dir my_policies",
+        "--budget 1it --envs 4 --threads 1",
+    ),
 ]
 
 
@@ -46,8 +48,9 @@ def _run(command: str, extra: str, cwd) -> subprocess.CompletedProcess:
     argv = shlex.split(command) + shlex.split(extra)
     module = {"cefc-eval": "cefc_mj.cli.eval", "cefc-train": "cefc_mj.cli.train"}[argv[0]]
     env = {**os.environ, "CEFC_MJ_HOME": str(cwd), "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
-    return subprocess.run([sys.executable, "-m", module, *argv[1:]], cwd=cwd, env=env, capture_output=True,
-                          text=True, timeout=600)
+    return subprocess.run(
+        [sys.executable, "-m", module, *argv[1:]], cwd=cwd, env=env, capture_output=True, text=True, timeout=600
+    )
 
 
 @pytest.mark.parametrize("command, extra", COMMANDS, ids=[c for c, _ in COMMANDS])
@@ -55,6 +58,7 @@ def test_readme_command_leaves_tracked_files_alone(command, extra, clone):
     assert command in " ".join(README.replace("\\\n", " ").split()), f"no longer in the README: {command}"
     done = _run(command, extra, clone)
     assert done.returncode == 0, f"{command} {extra}: exit {done.returncode}\n{done.stderr[-2000:]}"
-    status = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=clone,
-                            capture_output=True, text=True, check=True).stdout
+    status = subprocess.run(
+        ["git", "status", "--porcelain", "--untracked-files=no"], cwd=clone, capture_output=True, text=True, check=True
+    ).stdout
     assert status == "", f"{command} changed tracked files:\n{status}"

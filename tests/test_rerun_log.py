@@ -48,8 +48,18 @@ def episode(tmp_path_factory):
 def test_entity_paths_name_what_they_hold(episode):
     record, _, data = episode
     expected = {
-        "/world", "/world/obstacles", "/world/anchor", "/world/anchor/zone", "/world/targets", "/world/adversary",
-        "/world/trails", "/world/template", "/world/collisions", "/world/wind", "/events/collisions", "/episode",
+        "/world",
+        "/world/obstacles",
+        "/world/anchor",
+        "/world/anchor/zone",
+        "/world/targets",
+        "/world/adversary",
+        "/world/trails",
+        "/world/template",
+        "/world/collisions",
+        "/world/wind",
+        "/events/collisions",
+        "/episode",
         "/__properties/provenance",
         *(f"/metrics/{name}" for name in record.scalars),
         *(f"/world/uav_{i}{sub}" for i in range(N) for sub in ("", "/body", "/lidar", "/lidar/hits")),

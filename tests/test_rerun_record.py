@@ -23,8 +23,18 @@ def test_save_load_round_trip(tmp_path):
     loaded = EpisodeRecord.load(path)
     for name in ("backend", "condition", "formation", "seed", "dt", "flight_altitude", "obstacle_radius"):
         assert getattr(loaded, name) == getattr(record, name)
-    for name in ("agent_pos", "agent_quat", "anchor", "lidar_ranges", "group_id", "template_world",
-                 "collision", "adversary_pos", "targets", "obstacles"):
+    for name in (
+        "agent_pos",
+        "agent_quat",
+        "anchor",
+        "lidar_ranges",
+        "group_id",
+        "template_world",
+        "collision",
+        "adversary_pos",
+        "targets",
+        "obstacles",
+    ):
         np.testing.assert_array_equal(getattr(loaded, name), getattr(record, name))
     assert loaded.scalars.keys() == record.scalars.keys()
     np.testing.assert_array_equal(loaded.scalars["hd_error"], record.scalars["hd_error"])
@@ -47,7 +57,8 @@ def test_provenance_is_gathered_when_the_record_is_built():
     prov = synthetic_record(n_steps=5, n_agents=3).provenance
     assert prov["code_version"] == code_version()
     assert {k: prov[k] for k in ("numpy", "numba", "mujoco", "torch")} == {
-        k: library_versions()[k] for k in ("numpy", "numba", "mujoco", "torch")}
+        k: library_versions()[k] for k in ("numpy", "numba", "mujoco", "torch")
+    }
     assert "git_commit" in prov
 
 
@@ -70,8 +81,12 @@ def test_runner_fills_policy_condition_and_wind():
 def test_file_saved_before_provenance_loads_with_defaults(tmp_path):
     path = synthetic_record(n_steps=10, n_agents=3).save(tmp_path / "new.npz")
     with np.load(path) as npz:
-        old = {k: npz[k] for k in npz.files if not k.startswith("provenance/") and k not in (
-            "wind_vector", "policy", "policy_sha256", "wind", "deviation")}
+        old = {
+            k: npz[k]
+            for k in npz.files
+            if not k.startswith("provenance/")
+            and k not in ("wind_vector", "policy", "policy_sha256", "wind", "deviation")
+        }
     np.savez_compressed(tmp_path / "old.npz", **old)
     loaded = EpisodeRecord.load(tmp_path / "old.npz")
     assert loaded.provenance == {} and loaded.policy == "" and loaded.wind == 0.0
@@ -114,8 +129,10 @@ def test_airframe_parts_in_the_root_body_frame():
 
 def test_airframe_without_visual_geoms_draws_its_collision_geoms(tmp_path):
     path = tmp_path / "ball.xml"
-    path.write_text('<mujoco><worldbody><body name="b"><freejoint/><geom name="ball" size="0.2"/>'
-                    '<geom name="rod" type="box" size="0.3 0.01 0.01"/></body></worldbody></mujoco>')
+    path.write_text(
+        '<mujoco><worldbody><body name="b"><freejoint/><geom name="ball" size="0.2"/>'
+        '<geom name="rod" type="box" size="0.3 0.01 0.01"/></body></worldbody></mujoco>'
+    )
     parts = airframe_parts_from_mjcf(path)
     assert [(p.name, p.kind) for p in parts] == [("ball", "sphere"), ("rod", "box")]
 

@@ -11,19 +11,30 @@ from cefc_mj.env import BatchedCEFCEnv
 from cefc_mj.errors import ConfigError
 from cefc_mj.task.config import TaskConfig
 from cefc_mj.task.scenario import (
-    START_DISC_MARGIN, Scenario, near_path_fraction, obstacle_near_path, sample_obstacles, sample_scenario,
+    START_DISC_MARGIN,
+    Scenario,
+    near_path_fraction,
+    obstacle_near_path,
+    sample_obstacles,
+    sample_scenario,
 )
 
 # sha256 of sample_scenario(cfg, default_rng(123), 32) (agent_pos, adversary_pos, obstacles, targets,
 # anchor as little-endian float64), computed with the sampler as it was before obstacle_layout existed
 # (and before the start spacing grew to 0.6 m, hence start_min_spacing=0.5).
 CLEAR_START_DIGESTS = [
-    (dict(n_agents=6, mode="formation", obstacle_density=0.05),
-     "cb4020120fa7df8bef7eb478b45637d746a15a67e1cbfc0a80d4c11b51e22a7f"),
-    (dict(n_agents=8, mode="cefc", obstacle_density=0.03),
-     "6147806e2f2d03fc1cf57097fc4145082f6889e4489c9edd8075bd4dd0cea706"),
-    (dict(n_agents=3, mode="formation", obstacle_density=0.0),
-     "d28100f98f61bb815043bb9c37fe088eba42cd62392c80ad4c54a277ed7e85f3"),
+    (
+        dict(n_agents=6, mode="formation", obstacle_density=0.05),
+        "cb4020120fa7df8bef7eb478b45637d746a15a67e1cbfc0a80d4c11b51e22a7f",
+    ),
+    (
+        dict(n_agents=8, mode="cefc", obstacle_density=0.03),
+        "6147806e2f2d03fc1cf57097fc4145082f6889e4489c9edd8075bd4dd0cea706",
+    ),
+    (
+        dict(n_agents=3, mode="formation", obstacle_density=0.0),
+        "d28100f98f61bb815043bb9c37fe088eba42cd62392c80ad4c54a277ed7e85f3",
+    ),
 ]
 
 
@@ -72,8 +83,11 @@ def test_paper_layout_rejects_only_overlaps(mode):
     old_keep_out = cfg.start_half_size + cfg.obstacle_radius + cfg.uav_radius
     assert (np.abs(obs).max(-1) <= old_keep_out).any()
     # same draw order as clear-start: starts, targets and anchor come out the same
-    ref = sample_scenario(TaskConfig(n_agents=8, mode=mode, obstacle_density=0.05, obstacle_layout="clear-start"),
-                          np.random.default_rng(1), 400)
+    ref = sample_scenario(
+        TaskConfig(n_agents=8, mode=mode, obstacle_density=0.05, obstacle_layout="clear-start"),
+        np.random.default_rng(1),
+        400,
+    )
     np.testing.assert_array_equal(sc.agent_pos, ref.agent_pos)
     np.testing.assert_array_equal(sc.anchor, ref.anchor)
     np.testing.assert_array_equal(sc.targets, ref.targets)
@@ -86,8 +100,14 @@ def test_paper_layout_needs_the_starts():
 
 
 def test_paper_layout_anchor_redraws_keep_clear_of_obstacles():
-    cfg = TaskConfig(n_agents=6, mode="formation", obstacle_density=0.05, obstacle_layout="paper",
-                     anchor_redraw_steps=1, episode_steps=20)
+    cfg = TaskConfig(
+        n_agents=6,
+        mode="formation",
+        obstacle_density=0.05,
+        obstacle_layout="paper",
+        anchor_redraw_steps=1,
+        episode_steps=20,
+    )
     env = BatchedCEFCEnv(cfg, n_envs=32, seed=3)
     env.reset()
     anchors = [env.anchor.copy()]
@@ -126,10 +146,13 @@ def test_obstacle_near_path_geometry():
 
 # Bands around the measured fractions (docs/layouts.md: 5000 layouts, seed 0) wide enough for
 # 2000 layouts of another seed (binomial std about 1 point).
-@pytest.mark.parametrize("density,clear_band,paper_band", [
-    (0.05, (0.015, 0.07), (0.19, 0.31)),  # Table III: measured 3.8 % and 24.7 % for c = 6
-    (0.03, (0.005, 0.05), (0.11, 0.21)),  # Table VIII / training: measured 2.4 % and 15.7 %
-])
+@pytest.mark.parametrize(
+    "density,clear_band,paper_band",
+    [
+        (0.05, (0.015, 0.07), (0.19, 0.31)),  # Table III: measured 3.8 % and 24.7 % for c = 6
+        (0.03, (0.005, 0.05), (0.11, 0.21)),  # Table VIII / training: measured 2.4 % and 15.7 %
+    ],
+)
 def test_paper_layout_obstructs_the_path_tens_of_percent(density, clear_band, paper_band):
     clear = near_path_fraction(
         TaskConfig(n_agents=6, mode="formation", obstacle_density=density, obstacle_layout="clear-start"), 2000, seed=7

@@ -18,8 +18,15 @@ import psutil
 import pytest
 import zmq
 
-from cefc_mj.deploy import (AgentFault, SitlConfig, parse_drop, run_dropout_episode, run_latency_model_episode,
-                            run_sitl_episode, wire)
+from cefc_mj.deploy import (
+    AgentFault,
+    SitlConfig,
+    parse_drop,
+    run_dropout_episode,
+    run_latency_model_episode,
+    run_sitl_episode,
+    wire,
+)
 from cefc_mj.deploy.agent import EXIT_LOST, observation_from_packet
 from cefc_mj.deploy.dropout import DropoutCEFCEnv
 from cefc_mj.deploy.sim_server import sensor_packets
@@ -81,8 +88,18 @@ def test_agent_builds_the_lockstep_observation_from_its_packet():
         for _ in range(6):
             obs, *_ = env.step(rng.uniform(-2, 2, (1, 8, 2)))
             world = env.world
-            packets = sensor_packets(7, 0.7, env.perceived_pos[0], world.agent_vel[0], env.lidar[0], env.anchor[0],
-                                     world.agent_pos[0], cfg.observation_distance, np.ones(8, bool), list(range(8)))
+            packets = sensor_packets(
+                7,
+                0.7,
+                env.perceived_pos[0],
+                world.agent_vel[0],
+                env.lidar[0],
+                env.anchor[0],
+                world.agent_pos[0],
+                cfg.observation_distance,
+                np.ones(8, bool),
+                list(range(8)),
+            )
             for i, packet in enumerate(packets):
                 packet = wire.decode(wire.encode({"v": wire.WIRE_VERSION, **packet}), wire.SIM_TO_AGENT)
                 wire.check_sensor(packet, cfg.n_lidar_rays, cfg.n_agents, i)
@@ -101,10 +118,15 @@ def _binary_garbage(good_action: bytes, good_sensor: bytes) -> list[bytes]:
     disagrees with the header, NaN, a fractional neighbour id."""
     nan = struct.pack("<d", float("nan"))
     header = 12
-    return [good_action[:8], good_action[:2] + b"\x01" + good_action[3:], good_action[:3] + b"\x09" + good_action[4:],
-            good_action + b"\x00" * 8, good_action[:header] + nan + good_action[header + 8:],
-            good_sensor[:-40] + struct.pack("<d", 1.5) + good_sensor[-32:],  # the last neighbour's id
-            good_sensor]  # a sensor packet is not a message an agent sends
+    return [
+        good_action[:8],
+        good_action[:2] + b"\x01" + good_action[3:],
+        good_action[:3] + b"\x09" + good_action[4:],
+        good_action + b"\x00" * 8,
+        good_action[:header] + nan + good_action[header + 8 :],
+        good_sensor[:-40] + struct.pack("<d", 1.5) + good_sensor[-32:],  # the last neighbour's id
+        good_sensor,
+    ]  # a sensor packet is not a message an agent sends
 
 
 def test_wire_validation_refuses_garbage():
@@ -115,18 +137,33 @@ def test_wire_validation_refuses_garbage():
     assert wire.decode(frame, wire.AGENT_TO_SIM) == good
     as_json = json.dumps(good).encode()  # the same message as JSON is accepted too
     assert wire.decode(as_json, wire.AGENT_TO_SIM) == good
-    packet = {"v": v, "type": "sensor", "seq": 0, "t": 0.0, "pos": [0.5, 0.0], "vel": [0.0, 0.25], "anchor": [1.0, 1.0],
-              "lidar": [3.0] * 24, "neighbours": [[2, 1.0, 0.0, 0.0, 0.0], [5, -1.0, 2.0, 0.5, 0.0]]}
+    packet = {
+        "v": v,
+        "type": "sensor",
+        "seq": 0,
+        "t": 0.0,
+        "pos": [0.5, 0.0],
+        "vel": [0.0, 0.25],
+        "anchor": [1.0, 1.0],
+        "lidar": [3.0] * 24,
+        "neighbours": [[2, 1.0, 0.0, 0.0, 0.0], [5, -1.0, 2.0, 0.5, 0.0]],
+    }
     sensor = wire.encode(packet)
     assert wire.decode(sensor, wire.SIM_TO_AGENT) == packet and len(sensor) == 12 + 8 * (7 + 24 + 10)
-    bad = [b"\xff\xfe", b"not json", b"[1, 2]", b'{"v": 1, "type": "action", "uav": 1, "seq": 3, "accel": [0, 0], "latency_ms": 0.3}',
-           b'{"v": 2, "type": "action"}', b'{"v": 2, "type": "launch"}',
-           b'{"v": 2, "type": "action", "uav": 1, "seq": 3, "accel": [NaN, 0], "latency_ms": 0.3}',
-           b'{"v": 2, "type": "action", "uav": 1, "seq": 3, "accel": [1e999, 0], "latency_ms": 0.3}',
-           b'{"v": 2, "type": "action", "uav": true, "seq": 3, "accel": [0, 0], "latency_ms": 0.3}',
-           b'{"v": 2, "type": "action", "uav": 1, "seq": -1, "accel": [0, 0], "latency_ms": 0.3}',
-           b'{"v": 2, "type": "action", "uav": 1, "seq": 3, "accel": [0], "latency_ms": 0.3}',
-           b" " * (wire.MAX_FRAME_BYTES + 1)] + _binary_garbage(frame, sensor)
+    bad = [
+        b"\xff\xfe",
+        b"not json",
+        b"[1, 2]",
+        b'{"v": 1, "type": "action", "uav": 1, "seq": 3, "accel": [0, 0], "latency_ms": 0.3}',
+        b'{"v": 2, "type": "action"}',
+        b'{"v": 2, "type": "launch"}',
+        b'{"v": 2, "type": "action", "uav": 1, "seq": 3, "accel": [NaN, 0], "latency_ms": 0.3}',
+        b'{"v": 2, "type": "action", "uav": 1, "seq": 3, "accel": [1e999, 0], "latency_ms": 0.3}',
+        b'{"v": 2, "type": "action", "uav": true, "seq": 3, "accel": [0, 0], "latency_ms": 0.3}',
+        b'{"v": 2, "type": "action", "uav": 1, "seq": -1, "accel": [0, 0], "latency_ms": 0.3}',
+        b'{"v": 2, "type": "action", "uav": 1, "seq": 3, "accel": [0], "latency_ms": 0.3}',
+        b" " * (wire.MAX_FRAME_BYTES + 1),
+    ] + _binary_garbage(frame, sensor)
     for frame in bad:
         with pytest.raises(wire.WireError):
             wire.decode(frame, wire.AGENT_TO_SIM)
@@ -141,9 +178,13 @@ def test_wire_validation_refuses_garbage():
 
 def test_bad_config_fails_before_any_process_starts():
     spec = EpisodeSpec(formation=5, seed=0, steps=50)
-    for sitl, needle in ((SitlConfig(link_delay_ms=-1), "link_delay_ms"), (SitlConfig(drop=(3, 10)), "drop"),
-                         (SitlConfig(drop=(1, 50)), "drop"), (SitlConfig(bind="localhost"), "bind"),
-                         (SitlConfig(faults=(AgentFault(7, 3),)), "faults")):
+    for sitl, needle in (
+        (SitlConfig(link_delay_ms=-1), "link_delay_ms"),
+        (SitlConfig(drop=(3, 10)), "drop"),
+        (SitlConfig(drop=(1, 50)), "drop"),
+        (SitlConfig(bind="localhost"), "bind"),
+        (SitlConfig(faults=(AgentFault(7, 3),)), "faults"),
+    ):
         with pytest.raises(ConfigError, match=needle):
             run_sitl_episode(spec, sitl)
     with pytest.raises(CefcError, match="no_such_policy"):  # CheckpointError, as in the lock-step runner
@@ -197,12 +238,18 @@ def test_sitl_episode_close_to_lockstep_and_garbage_is_dropped():
     rogue.setsockopt(zmq.LINGER, 0)
     rogue.connect(f"tcp://127.0.0.1:{port}")  # frames wait in the queue until the simulator binds
     action = wire.encode({"type": "action", "uav": 0, "seq": 0, "accel": [0.0, 0.0], "latency_ms": 1.0})
-    garbage = [[b"\xff\xfe"], [b"not json"], [b'{"v": 1, "type": "ready", "uav": 0}'], [b'{"v": 2, "type": "launch", "uav": 0}'],
-               [action],  # not registered
-               [action[:2] + b"\x01" + action[3:]], [action[:20]],
-               [b'{"v": 2, "type": "hello", "uav": 99, "policy": "x", "pid": 1, "host": "h"}'],
-               [b'{"v": 2, "type": "action", "uav": 0, "seq": 0, "accel": [NaN, 0], "latency_ms": 1}'],
-               [b"two", b"frames"]]
+    garbage = [
+        [b"\xff\xfe"],
+        [b"not json"],
+        [b'{"v": 1, "type": "ready", "uav": 0}'],
+        [b'{"v": 2, "type": "launch", "uav": 0}'],
+        [action],  # not registered
+        [action[:2] + b"\x01" + action[3:]],
+        [action[:20]],
+        [b'{"v": 2, "type": "hello", "uav": 99, "policy": "x", "pid": 1, "host": "h"}'],
+        [b'{"v": 2, "type": "action", "uav": 0, "seq": 0, "accel": [NaN, 0], "latency_ms": 1}'],
+        [b"two", b"frames"],
+    ]
     for frames in garbage:
         rogue.send_multipart(frames)
     try:
@@ -237,11 +284,25 @@ def test_lockstep_over_the_wire_with_a_remote_agent_and_a_dropout():
     reference = run_dropout_episode(spec, (1, 20))
     assert reference.dropout.uavs == [3]
     port = _free_port()
-    remote = subprocess.Popen([sys.executable, "-m", "cefc_mj.deploy.agent", "--connect", f"tcp://127.0.0.1:{port}",
-                               "--uav", "3", "--policy", "student"], cwd=REPO, stderr=subprocess.PIPE)
+    remote = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "cefc_mj.deploy.agent",
+            "--connect",
+            f"tcp://127.0.0.1:{port}",
+            "--uav",
+            "3",
+            "--policy",
+            "student",
+        ],
+        cwd=REPO,
+        stderr=subprocess.PIPE,
+    )
     try:
-        result = run_sitl_episode(spec, SitlConfig(bind=f"tcp://127.0.0.1:{port}", remote_agents=(3,), lockstep=True,
-                                                   drop=(1, 20)))
+        result = run_sitl_episode(
+            spec, SitlConfig(bind=f"tcp://127.0.0.1:{port}", remote_agents=(3,), lockstep=True, drop=(1, 20))
+        )
         assert remote.wait(timeout=10) == 0  # told to stop when it dropped out
     finally:
         if remote.poll() is None:
@@ -308,13 +369,14 @@ _BARE_PARENT = textwrap.dedent("""
     print("ready", flush=True)
     while True:
         server.receive(1.0)
-""")
+""")  # noqa: E501 (the script's text is kept as it was)
 
 
 def _start_parent(script):
     """A simulator process running `script`, once its agents are ready, and all its descendants."""
-    parent = subprocess.Popen([sys.executable, "-c", script], cwd=REPO, stdout=subprocess.PIPE,
-                              stderr=subprocess.PIPE, text=True)
+    parent = subprocess.Popen(
+        [sys.executable, "-c", script], cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )
     line = parent.stdout.readline()  # blocks until "ready" (or EOF if the parent failed)
     if line.strip() != "ready":
         parent.kill()
@@ -348,15 +410,35 @@ def test_remote_agent_exits_when_the_simulator_goes_silent():
     router = context.socket(zmq.ROUTER)
     router.setsockopt(zmq.LINGER, 0)
     port = router.bind_to_random_port("tcp://127.0.0.1")
-    agent = subprocess.Popen([sys.executable, "-m", "cefc_mj.deploy.agent", "--connect", f"tcp://127.0.0.1:{port}",
-                              "--uav", "1", "--policy", "atm", "--heartbeat-timeout", "1"],
-                             cwd=REPO, stderr=subprocess.PIPE)
+    agent = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "cefc_mj.deploy.agent",
+            "--connect",
+            f"tcp://127.0.0.1:{port}",
+            "--uav",
+            "1",
+            "--policy",
+            "atm",
+            "--heartbeat-timeout",
+            "1",
+        ],
+        cwd=REPO,
+        stderr=subprocess.PIPE,
+    )
     try:
         assert router.poll(60000)
         identity, frame = router.recv_multipart()
         assert wire.decode(frame, wire.AGENT_TO_SIM)["type"] == "hello"
-        welcome = {"v": wire.WIRE_VERSION, "type": "welcome", "uav": 1, "formation": 3, "heartbeat_timeout_s": 30.0,
-                   "task": EpisodeSpec(formation=3, seed=0).task_config().to_dict()}
+        welcome = {
+            "v": wire.WIRE_VERSION,
+            "type": "welcome",
+            "uav": 1,
+            "formation": 3,
+            "heartbeat_timeout_s": 30.0,
+            "task": EpisodeSpec(formation=3, seed=0).task_config().to_dict(),
+        }
         router.send_multipart([identity, wire.encode(welcome)])
         assert router.poll(60000)
         assert wire.decode(router.recv_multipart()[1], wire.AGENT_TO_SIM)["type"] == "ready"
@@ -373,6 +455,11 @@ def test_remote_agent_exits_when_the_simulator_goes_silent():
 
 
 def test_agent_command_line_errors_are_one_line():
-    out = subprocess.run([sys.executable, "-m", "cefc_mj.deploy.agent", "--connect", "nowhere", "--uav", "1"],
-                         cwd=REPO, capture_output=True, text=True, timeout=60)
+    out = subprocess.run(
+        [sys.executable, "-m", "cefc_mj.deploy.agent", "--connect", "nowhere", "--uav", "1"],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert out.returncode == 2 and out.stderr.count("\n") == 1 and "--connect" in out.stderr

@@ -10,19 +10,22 @@ import pytest
 from cefc_mj.cli.eval import main
 
 
-@pytest.mark.parametrize("argv, needle", [
-    (["--link-delay", "5"], "--link-delay: applies to SITL-M only"),
-    (["--jitter", "2"], "--jitter: applies to SITL-M only"),
-    (["--sitl-m", "--link-delay", "-1"], "--link-delay -1"),
-    (["--sitl-m", "--jitter", "nan"], "--jitter nan"),
-    (["--sitl-m", "--link-delay", "1e9"], "--link-delay 1e+09"),
-    (["--sitl-m", "--workers", "2"], "SITL-M episodes fly one at a time"),
-    (["--sitl-m", "--backend", "particle", "--protocol", "table3"], "--sitl-m: Table III"),
-    (["--drop", "two@5"], "must be K@STEP"),
-    (["--drop", "3@100", "--formation", "5"], "k must be in 1..2"),
-    (["--drop", "1@1000", "--formation", "5"], "step must be in 1..999"),
-    (["--drop", "1@10", "--protocol", "table8"], "--drop: agent dropout is a --protocol single experiment"),
-])
+@pytest.mark.parametrize(
+    "argv, needle",
+    [
+        (["--link-delay", "5"], "--link-delay: applies to SITL-M only"),
+        (["--jitter", "2"], "--jitter: applies to SITL-M only"),
+        (["--sitl-m", "--link-delay", "-1"], "--link-delay -1"),
+        (["--sitl-m", "--jitter", "nan"], "--jitter nan"),
+        (["--sitl-m", "--link-delay", "1e9"], "--link-delay 1e+09"),
+        (["--sitl-m", "--workers", "2"], "SITL-M episodes fly one at a time"),
+        (["--sitl-m", "--backend", "particle", "--protocol", "table3"], "--sitl-m: Table III"),
+        (["--drop", "two@5"], "must be K@STEP"),
+        (["--drop", "3@100", "--formation", "5"], "k must be in 1..2"),
+        (["--drop", "1@1000", "--formation", "5"], "step must be in 1..999"),
+        (["--drop", "1@10", "--protocol", "table8"], "--drop: agent dropout is a --protocol single experiment"),
+    ],
+)
 def test_bad_sitl_and_dropout_flags(argv, needle, capsys, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     with pytest.raises(SystemExit) as exit_info:
@@ -35,8 +38,12 @@ def test_bad_sitl_and_dropout_flags(argv, needle, capsys, tmp_path, monkeypatch)
 def test_single_sitl_m_flies_beside_the_calm_reference(tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
     before = set(psutil.Process().children(recursive=True))
-    assert main(["--sitl-m", "--formation", "5", "--steps", "20", "--link-delay", "5",
-                 "--json", str(tmp_path / "out.json")]) == 0
+    assert (
+        main(
+            ["--sitl-m", "--formation", "5", "--steps", "20", "--link-delay", "5", "--json", str(tmp_path / "out.json")]
+        )
+        == 0
+    )
     out = capsys.readouterr().out
     assert "SITL-M" in out and "round trip p50" in out
     rows = json.loads((tmp_path / "out.json").read_text())["rows"]["5"]
@@ -49,8 +56,25 @@ def test_single_sitl_m_flies_beside_the_calm_reference(tmp_path, monkeypatch, ca
 
 def test_lockstep_dropout_reports_before_and_after(tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
-    assert main(["--drop", "2@10", "--policy", "student", "--formation", "6", "--backend", "particle",
-                 "--steps", "30", "--json", str(tmp_path / "out.json")]) == 0
+    assert (
+        main(
+            [
+                "--drop",
+                "2@10",
+                "--policy",
+                "student",
+                "--formation",
+                "6",
+                "--backend",
+                "particle",
+                "--steps",
+                "30",
+                "--json",
+                str(tmp_path / "out.json"),
+            ]
+        )
+        == 0
+    )
     assert "dropout at step 10: before (6 UAVs" in capsys.readouterr().out
     episode = json.loads((tmp_path / "out.json").read_text())["rows"]["6"]["SITL-S"]["episodes_detail"][0]
     assert episode["dropout"]["phases"]["after"]["group_size"] == 4 and len(episode["dropout"]["uavs"]) == 2
@@ -58,8 +82,19 @@ def test_lockstep_dropout_reports_before_and_after(tmp_path, monkeypatch, capsys
 
 def test_table8_sitl_m_row_is_cached_under_its_own_key(tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
-    argv = ["--protocol", "table8", "--sitl-m", "--formation", "5", "--episodes", "1", "--steps", "5",
-            "--report-dir", str(tmp_path / "r")]
+    argv = [
+        "--protocol",
+        "table8",
+        "--sitl-m",
+        "--formation",
+        "5",
+        "--episodes",
+        "1",
+        "--steps",
+        "5",
+        "--report-dir",
+        str(tmp_path / "r"),
+    ]
     assert main(argv) == 0
     report = json.loads((tmp_path / "r" / "table8.json").read_text())
     assert "SITL-M" in report["rows"]["5"] and "SITL-S" in report["rows"]["5"]

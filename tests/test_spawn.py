@@ -65,8 +65,15 @@ def _fly_first_step(cfg: TaskConfig, starts: np.ndarray) -> np.ndarray:
     far = np.tile([[9.0, 9.0]], (n, 1))  # keep the obstacles and the anchor out of the way
     obstacles = np.zeros((n, cfg.n_obstacles, 2))
     obstacles[:] = np.stack([np.linspace(-9.0, 9.0, cfg.n_obstacles), np.full(cfg.n_obstacles, -9.0)], -1)
-    env.reset(scenario=Scenario(agent_pos=starts, adversary_pos=far.copy(), obstacles=obstacles,
-                                targets=np.zeros((n, 0, 2)), anchor=far.copy()))
+    env.reset(
+        scenario=Scenario(
+            agent_pos=starts,
+            adversary_pos=far.copy(),
+            obstacles=obstacles,
+            targets=np.zeros((n, 0, 2)),
+            anchor=far.copy(),
+        )
+    )
     env.step(_towards_nearest(starts, cfg.accel_max))
     return world.collisions()
 

@@ -90,7 +90,9 @@ def test_notice_once_only_for_cefc_mj_kernels_and_above_a_progress_bar(monkeypat
 
     def compile_of(module: str) -> event.Event:
         py_func = SimpleNamespace(__module__=module)
-        return event.Event("numba:compile", event.EventStatus.START, data={"dispatcher": SimpleNamespace(py_func=py_func)})
+        return event.Event(
+            "numba:compile", event.EventStatus.START, data={"dispatcher": SimpleNamespace(py_func=py_func)}
+        )
 
     jit.compile_notice.on_start(compile_of("my_numba_code"))
     assert capsys.readouterr().err == ""
@@ -107,9 +109,10 @@ def _read_only_package(code: str, env: dict[str, str], read_only: list[Path]) ->
     """Run `code` with the package folder (and `read_only`) mounted read-only, in a private mount
     namespace (the rest of the machine keeps its writable tree)."""
     mounts = " && ".join(f"mount --bind {p} {p} && mount -o remount,ro,bind {p}" for p in [PACKAGE_DIR, *read_only])
-    script = f"{mounts} && exec {sys.executable} -c \"$CODE\""
-    out = subprocess.run(["unshare", "-m", "sh", "-c", script], env={**env, "CODE": code},
-                         capture_output=True, text=True, timeout=300)
+    script = f'{mounts} && exec {sys.executable} -c "$CODE"'
+    out = subprocess.run(
+        ["unshare", "-m", "sh", "-c", script], env={**env, "CODE": code}, capture_output=True, text=True, timeout=300
+    )
     assert out.returncode == 0, out.stderr[-2000:]
     return out
 
@@ -121,9 +124,17 @@ def can_mount_read_only(tmp_path):
     probe = tmp_path / "probe"
     probe.mkdir()
     try:
-        out = subprocess.run(["unshare", "-m", "sh", "-c", f"mount --bind {probe} {probe} && "
-                              f"mount -o remount,ro,bind {probe} && ! touch {probe}/x"],
-                             capture_output=True, timeout=30)
+        out = subprocess.run(
+            [
+                "unshare",
+                "-m",
+                "sh",
+                "-c",
+                f"mount --bind {probe} {probe} && mount -o remount,ro,bind {probe} && ! touch {probe}/x",
+            ],
+            capture_output=True,
+            timeout=30,
+        )
     except (OSError, subprocess.TimeoutExpired):
         pytest.skip("unshare does not run here")
     if out.returncode != 0:

@@ -16,8 +16,17 @@ import os
 import pytest
 import torch
 
-from cefc_mj.eval.bands import (BANDS_FILE, FORMATIONS, cell_means, cell_specs, fact_statistic, fly, load_bands,
-                                policy_checksums, violations)
+from cefc_mj.eval.bands import (
+    BANDS_FILE,
+    FORMATIONS,
+    cell_means,
+    cell_specs,
+    fact_statistic,
+    fly,
+    load_bands,
+    policy_checksums,
+    violations,
+)
 from cefc_mj.eval.runner import CONDITIONS, EpisodeSpec, policy_name_for
 
 BANDS = load_bands()
@@ -52,7 +61,8 @@ def test_bands_were_set_for_the_shipped_policy():
     now = policy_checksums(BANDS["policy"], FORMATIONS)
     assert now == BANDS["policy_sha256"], (
         f"the shipped {BANDS['policy']!r} policies changed since {BANDS_FILE.name} was set; re-measure the bands "
-        "(python -m cefc_mj.eval.bands measure ... && ... make, docs/reproducibility.md)")
+        "(python -m cefc_mj.eval.bands measure ... && ... make, docs/reproducibility.md)"
+    )
 
 
 def test_a_nudged_path_moves_the_actions_by_one_ulp(tmp_path):
@@ -67,14 +77,16 @@ def test_a_nudged_path_moves_the_actions_by_one_ulp(tmp_path):
 
 def test_bands_were_set_with_the_agent_the_evaluators_fly():
     assert BANDS.get("guard", False) == EpisodeSpec.guard, (
-        "the bands were measured with another separation-guard setting than cefc-eval's default; re-measure them")
+        "the bands were measured with another separation-guard setting than cefc-eval's default; re-measure them"
+    )
 
 
 @pytest.mark.parametrize("c", FORMATIONS)
 @pytest.mark.parametrize("cond", BANDS["default_conditions"])
 def test_cell_means_within_bands(c, cond, flown):
     assert not violations(flown[str(c)][cond], BANDS["cells"][str(c)][cond]), (
-        f"c={c} {cond}: {violations(flown[str(c)][cond], BANDS['cells'][str(c)][cond])}")
+        f"c={c} {cond}: {violations(flown[str(c)][cond], BANDS['cells'][str(c)][cond])}"
+    )
 
 
 @pytest.mark.slow
@@ -86,12 +98,20 @@ def test_cell_means_within_bands_all_conditions(c, cond, flown_slow):
 
 def _fact_param(name: str, fact: dict):
     if fact["verdict"] == "broken":
-        return pytest.param(name, marks=pytest.mark.xfail(
-            strict=True, reason=f"known gap: {name} broken by {-fact['margin']:.2f} (noise {fact['noise']:.2f})"))
+        return pytest.param(
+            name,
+            marks=pytest.mark.xfail(
+                strict=True, reason=f"known gap: {name} broken by {-fact['margin']:.2f} (noise {fact['noise']:.2f})"
+            ),
+        )
     if fact["verdict"] == "undecided":
-        return pytest.param(name, marks=pytest.mark.skip(
-            reason=f"{name}: margin {fact['margin']:.2f} is within the floating-point noise ({fact['noise']:.2f}) "
-                   "of the measured means; neither asserted nor listed as a gap"))
+        return pytest.param(
+            name,
+            marks=pytest.mark.skip(
+                reason=f"{name}: margin {fact['margin']:.2f} is within the floating-point noise ({fact['noise']:.2f}) "
+                "of the measured means; neither asserted nor listed as a gap"
+            ),
+        )
     return name
 
 

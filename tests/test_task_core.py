@@ -3,15 +3,15 @@
 import numpy as np
 import pytest
 
+from cefc_mj.errors import ConfigError
+from cefc_mj.task import rewards as R
+from cefc_mj.task.adversary import adversary_goal
 from cefc_mj.task.config import RewardConfig, TaskConfig
 from cefc_mj.task.deviation import sample_deviation
 from cefc_mj.task.formation import connected_groups, directed_hausdorff, formation_template, group_formation_error
-from cefc_mj.task import rewards as R
-from cefc_mj.task.adversary import adversary_goal
 from cefc_mj.task.lidar import lidar_ranges, lidar_ranges_reference
 from cefc_mj.task.observation import build_cefc_observation, build_low_level_observation, cefc_layout, low_level_layout
 from cefc_mj.task.scenario import sample_scenario
-from cefc_mj.errors import ConfigError
 
 
 # ---------------------------------------------------------------- formations
@@ -171,7 +171,9 @@ def test_observation_shapes_finite(n):
     sc = sample_scenario(cfg, rng, 2)
     lidar = np.full((2, n, 24), 3.0)
     vel = rng.normal(size=(2, n, 2))
-    obs = build_cefc_observation(cfg, sc.agent_pos, vel, sc.targets, np.ones((2, 2)), sc.adversary_pos, np.zeros((2, 2)), lidar)
+    obs = build_cefc_observation(
+        cfg, sc.agent_pos, vel, sc.targets, np.ones((2, 2)), sc.adversary_pos, np.zeros((2, 2)), lidar
+    )
     assert obs.shape == (2, n, cefc_layout(cfg).size) and np.isfinite(obs).all()
     low_cfg = TaskConfig(n_agents=n, mode="formation")
     low = build_low_level_observation(low_cfg, sc.agent_pos, vel, sc.anchor, lidar)
@@ -236,8 +238,13 @@ def test_deviation_distribution():
 
 # ---------------------------------------------------------------- compiled kernels vs references
 def test_kernels_match_numpy_references():
-    from reference_impl import (connected_groups_reference, group_formation_error_reference,
-                                low_level_observation_reference, neighbour_features_reference)
+    from reference_impl import (
+        connected_groups_reference,
+        group_formation_error_reference,
+        low_level_observation_reference,
+        neighbour_features_reference,
+    )
+
     from cefc_mj.task.observation import neighbour_features
 
     rng = np.random.default_rng(5)
@@ -261,8 +268,9 @@ def test_kernels_match_numpy_references():
         lidar = rng.uniform(0.0, 3.0, (20, n, cfg.n_lidar_rays))
         for anchor in (rng.uniform(-5, 5, (20, 2)), rng.uniform(-5, 5, (20, n, 2))):
             obs = build_low_level_observation(cfg, pos, vel, anchor, lidar)
-            ref = low_level_observation_reference(pos, vel, anchor, lidar, cfg.neighbour_slots,
-                                                  cfg.observation_distance)
+            ref = low_level_observation_reference(
+                pos, vel, anchor, lidar, cfg.neighbour_slots, cfg.observation_distance
+            )
             assert obs.dtype == np.float32 and obs.tobytes() == ref.tobytes()
 
 
@@ -274,8 +282,14 @@ def test_rule_adversary_goes_around_obstacles_when_asked(backend):
     from cefc_mj.env import BatchedCEFCEnv
 
     def fly(avoid: bool) -> tuple[float, float]:
-        task = TaskConfig(n_agents=3, mode="cefc", obstacle_density=1 / 400, adversary="r_nearest",  # one obstacle
-                          adversary_avoids_obstacles=avoid, episode_steps=200)
+        task = TaskConfig(
+            n_agents=3,
+            mode="cefc",
+            obstacle_density=1 / 400,
+            adversary="r_nearest",  # one obstacle
+            adversary_avoids_obstacles=avoid,
+            episode_steps=200,
+        )
         env = BatchedCEFCEnv(task, n_envs=1, seed=0, world=make_world(backend, task, 1, seed=0))
         env.reset()
         w = env.world

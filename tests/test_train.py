@@ -100,8 +100,10 @@ def test_budget_and_config_validation():
         LowLevelConfig(formation=6, step=3, straggler_fraction=0.2, budget=Budget(iterations=1))
     # The LiDAR sees obstacles and UAVs unless asked; an obstacles-only stage has its own name.
     one = Budget(iterations=1)
-    blind = [LowLevelConfig(formation=6, step=1, lidar_sees_uavs=False, budget=one),
-             LowLevelConfig(formation=6, step=3, safe=True, lidar_sees_uavs=False, budget=one)]
+    blind = [
+        LowLevelConfig(formation=6, step=1, lidar_sees_uavs=False, budget=one),
+        LowLevelConfig(formation=6, step=3, safe=True, lidar_sees_uavs=False, budget=one),
+    ]
     assert [c.name for c in blind] == ["atm_c6_step1_obstacle_lidar", "atm_c6_safe_obstacle_lidar"]
     assert [task_config_for(c).lidar_sees_agents for c in (*blind, quad)] == [False, False, True]
     with pytest.raises(ConfigError, match="lidar_sees_uavs"):
@@ -151,8 +153,10 @@ def test_every_stage_trains_and_exports(tmp_path):
     assert card3["init"]["critic"] == "atm_c3_step2"
     step3, _ = load_actor(pol / "atm_c3_step3.pt")
     for module, parent in (("formation", step1), ("obstacle", step2), ("output", step1)):
-        moved = [(p - q).abs().max().item() for p, q in zip(getattr(step3, module).parameters(),
-                                                             getattr(parent, module).parameters())]
+        moved = [
+            (p - q).abs().max().item()
+            for p, q in zip(getattr(step3, module).parameters(), getattr(parent, module).parameters())
+        ]
         assert 0 < max(moved) < 0.2, module  # fine-tuned from its parent, not re-initialised
     assert float(rows(out / "atm_c3_step3")[-1]["approx_kl"]) > 0
 
@@ -161,8 +165,9 @@ def test_every_stage_trains_and_exports(tmp_path):
     safe = load_policy("atm_c3_safe", pol)
     assert safe.safe and not load_policy("atm_c3_step3", pol).safe
     assert read_state(out / "atm_c3_safe" / "state.pt")["origin"]["actor"] == "atm_c3_step3"
-    cfg_quad = LowLevelConfig(formation=3, step=3, response_time=0.15, velocity_noise=0.1, budget=Budget(iterations=1),
-                              ppo=TINY)
+    cfg_quad = LowLevelConfig(
+        formation=3, step=3, response_time=0.15, velocity_noise=0.1, budget=Budget(iterations=1), ppo=TINY
+    )
     assert train_lowlevel(cfg_quad, out, pol, show_progress=False, evaluate=False)["init"]["actor"] == "atm_c3_step3"
     assert json.loads((pol / "atm_c3_quad.json").read_text())["task"]["velocity_noise"] == 0.1
 
@@ -194,8 +199,12 @@ def test_resume_reproduces_the_uninterrupted_run(tmp_path):
         train_lowlevel(other, tmp_path / "b", tmp_path / "pb", resume=True, show_progress=False, evaluate=False)
     # Thread counts are how a run executes, not what it learns: a resume may change them.
     threads = LowLevelConfig(formation=3, step=2, budget=Budget(iterations=3), ppo=replace(ppo, update_threads=2))
-    assert train_lowlevel(threads, tmp_path / "b", tmp_path / "pb", resume=True, show_progress=False,
-                          evaluate=False)["iterations"] == 3
+    assert (
+        train_lowlevel(threads, tmp_path / "b", tmp_path / "pb", resume=True, show_progress=False, evaluate=False)[
+            "iterations"
+        ]
+        == 3
+    )
 
 
 def test_student_reproduces_teachers_on_held_out_observations(tmp_path):
@@ -205,10 +214,17 @@ def test_student_reproduces_teachers_on_held_out_observations(tmp_path):
         teacher = ATMActor(ATMConfig.from_task(TaskConfig(n_agents=c, mode="formation")))
         torch.nn.init.orthogonal_(teacher.output[-1].weight, 1.0)
         save_policy(teacher, tmp_path / "teachers" / f"atm_c{c}_step3.pt")
-    cfg = DistillConfig(budget=Budget(iterations=1000), formations=(3, 4), tuples_per_formation=4000, lr=1e-3,
-                        hidden=128, seed=0)
-    card = train_student(cfg, tmp_path / "pol", tmp_path / "runs", show_progress=False, evaluate=False,
-                         teachers_dir=tmp_path / "teachers")
+    cfg = DistillConfig(
+        budget=Budget(iterations=1000), formations=(3, 4), tuples_per_formation=4000, lr=1e-3, hidden=128, seed=0
+    )
+    card = train_student(
+        cfg,
+        tmp_path / "pol",
+        tmp_path / "runs",
+        show_progress=False,
+        evaluate=False,
+        teachers_dir=tmp_path / "teachers",
+    )
     err = card["held_out_error"]
     # Stated error: on held-out episodes the student's MSE is below 40 % of the teachers' action
     # variance for every formation (an untrained student scores about 100 %).
@@ -239,14 +255,36 @@ def test_cli_bad_input_is_one_line_and_exit_2(tmp_path, capsys):
 
 
 def test_cli_lowlevel_runs_and_reports(tmp_path, capsys):
-    argv = ["lowlevel", "--formation", "3", "--step", "1", "--budget", "1", "--envs", "2", "--no-progress",
-            "--out", str(tmp_path / "runs"), "--policies-dir", str(tmp_path / "pol")]
+    argv = [
+        "lowlevel",
+        "--formation",
+        "3",
+        "--step",
+        "1",
+        "--budget",
+        "1",
+        "--envs",
+        "2",
+        "--no-progress",
+        "--out",
+        str(tmp_path / "runs"),
+        "--policies-dir",
+        str(tmp_path / "pol"),
+    ]
     assert main(argv) == 0
     out = capsys.readouterr().out
     assert "atm_c3_step1: 1 iterations" in out and "Table III protocol" in out
     card = json.loads((tmp_path / "pol" / "atm_c3_step1.json").read_text())
-    assert {"config", "seed", "git_commit", "versions", "command", "train_wall_clock_s", "agent_steps",
-            "table3"} <= set(card)
+    assert {
+        "config",
+        "seed",
+        "git_commit",
+        "versions",
+        "command",
+        "train_wall_clock_s",
+        "agent_steps",
+        "table3",
+    } <= set(card)
     assert set(card["table3"]["ours"]) == {"R_L", "R_L_agents", "F", "N", "C"}
 
 
@@ -301,5 +339,8 @@ def test_agent_collision_credit_splits_the_team_collision_term():
     np.testing.assert_allclose(per_agent.sum(1), 5 * shared + w.collision_weight * terms["R_c"], rtol=1e-4, atol=1e-2)
     assert (terms["R_c"] < 0).any()  # the check above is not vacuous
     team = MAPPO(task, PPOConfig(n_envs=6, collision_credit="team"), actor, Critic(5 * 28 + 63), seed=0)
-    np.testing.assert_allclose(team.agent_rewards(reward, terms["R_c"], env.agent_collision_penalty, w),
-                               np.repeat(reward[:, None], 5, 1), rtol=1e-6)
+    np.testing.assert_allclose(
+        team.agent_rewards(reward, terms["R_c"], env.agent_collision_penalty, w),
+        np.repeat(reward[:, None], 5, 1),
+        rtol=1e-6,
+    )

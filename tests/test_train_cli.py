@@ -62,50 +62,56 @@ LOW = ["lowlevel", "--formation", "3", "--step", "1"]
 ROBUST = ["lowlevel", "--formation", "3", "--step", "3", "--init-from", "atm_c3_step3"]
 
 
-@pytest.mark.parametrize("argv, needle", [
-    (LOW + ["--budget", "0"], "--budget '0': must be more than zero"),
-    (LOW + ["--budget=-5m"], "--budget '-5m': expected iterations"),
-    (LOW + ["--budget", "-5m"], "argument --budget: expected one argument"),
-    (LOW + ["--budget", "abc"], "--budget 'abc'"),
-    (LOW + ["--budget", "1e99it"], "--budget '1e99it'"),
-    (LOW + ["--budget", "99999999999it"], "at most 10000000 iterations"),
-    (LOW + ["--budget", "99999h"], "at most 30 days"),
-    (LOW + ["--envs", "0"], "--envs 0: must be an integer >= 1"),
-    (LOW + ["--envs", "100000"], "--envs 100000: must be at most"),
-    (LOW + ["--epochs", "0"], "--epochs 0"),
-    (LOW + ["--minibatches", "0"], "--minibatches 0"),
-    (LOW + ["--envs", "2", "--minibatches", "5000"], "--minibatches 5000: must be at most the 200 env-steps"),
-    (LOW + ["--lr", "0"], "--lr 0.0: must be a positive number"),
-    (LOW + ["--lr", "nan"], "--lr nan"),
-    (LOW + ["--lr", "3"], "--lr 3.0: must be at most"),
-    (LOW + ["--threads", "0"], "--threads 0"),
-    (LOW + ["--threads", "100000"], "--threads 100000: must be at most"),
-    (LOW + ["--seed", "-1"], "--seed -1: must be an integer >= 0"),
-    (LOW + ["--density", "0.5"], "--density 0.5"),
-    (LOW + ["--density", "-0.1"], "--density -0.1"),
-    (ROBUST + ["--deviation", "-0.5"], "--deviation -0.5"),
-    (ROBUST + ["--deviation", "nan"], "--deviation nan"),
-    # Quadrotor-like dynamics only fine-tune Step 3.
-    (LOW + ["--velocity-noise", "0.1"], "--response-time/--velocity-noise (0.0, 0.1)"),
-    (LOW + ["--collision-margin", "0.7"], "--collision-margin 0.7: must be in [0, 0.5] m"),
-    (LOW + ["--collision-margin", "nan"], "--collision-margin nan"),
-    (LOW + ["--navigation-weight", "8"], "--navigation-weight 8.0: another navigation weight fine-tunes the Step 3"),
-    (ROBUST + ["--navigation-weight", "0"], "--navigation-weight 0.0: must be in (0, 50]"),
-    (ROBUST + ["--navigation-weight", "inf"], "--navigation-weight inf"),
-    (LOW + ["--anchor-periods", "2"], "--anchor-periods 2: longer episodes with anchor redraws fine-tune"),
-    (ROBUST + ["--anchor-periods", "0"], "--anchor-periods 0: must be an integer >= 1"),
-    (LOW + ["--straggler-fraction", "0.3"], "--straggler-fraction 0.3: starts away from the group fine-tune"),
-    (ROBUST + ["--straggler-fraction", "1.5"], "--straggler-fraction 1.5: must be in [0, 1]"),
-    (ROBUST + ["--straggler-fraction", "nan"], "--straggler-fraction nan"),
-    (["lowlevel-all", "--workers", "0"], "--workers 0"),
-    (["lowlevel-all", "--workers", "7"], "--workers 7"),
-    (["lowlevel-all", "--seed", "-3"], "--seed -3"),
-    (["distill", "--tuples", "10000000000"], "--tuples 10000000000: must be at most"),
-    (["distill", "--tuples", "0"], "--tuples 0"),
-    (LOW + ["--formation", "9"], "invalid choice: 9"),
-    (["lowlevel", "--step", "1"], "required: --formation"),
-    (LOW + ["--envs", "two"], "--envs: invalid int value"),
-])
+@pytest.mark.parametrize(
+    "argv, needle",
+    [
+        (LOW + ["--budget", "0"], "--budget '0': must be more than zero"),
+        (LOW + ["--budget=-5m"], "--budget '-5m': expected iterations"),
+        (LOW + ["--budget", "-5m"], "argument --budget: expected one argument"),
+        (LOW + ["--budget", "abc"], "--budget 'abc'"),
+        (LOW + ["--budget", "1e99it"], "--budget '1e99it'"),
+        (LOW + ["--budget", "99999999999it"], "at most 10000000 iterations"),
+        (LOW + ["--budget", "99999h"], "at most 30 days"),
+        (LOW + ["--envs", "0"], "--envs 0: must be an integer >= 1"),
+        (LOW + ["--envs", "100000"], "--envs 100000: must be at most"),
+        (LOW + ["--epochs", "0"], "--epochs 0"),
+        (LOW + ["--minibatches", "0"], "--minibatches 0"),
+        (LOW + ["--envs", "2", "--minibatches", "5000"], "--minibatches 5000: must be at most the 200 env-steps"),
+        (LOW + ["--lr", "0"], "--lr 0.0: must be a positive number"),
+        (LOW + ["--lr", "nan"], "--lr nan"),
+        (LOW + ["--lr", "3"], "--lr 3.0: must be at most"),
+        (LOW + ["--threads", "0"], "--threads 0"),
+        (LOW + ["--threads", "100000"], "--threads 100000: must be at most"),
+        (LOW + ["--seed", "-1"], "--seed -1: must be an integer >= 0"),
+        (LOW + ["--density", "0.5"], "--density 0.5"),
+        (LOW + ["--density", "-0.1"], "--density -0.1"),
+        (ROBUST + ["--deviation", "-0.5"], "--deviation -0.5"),
+        (ROBUST + ["--deviation", "nan"], "--deviation nan"),
+        # Quadrotor-like dynamics only fine-tune Step 3.
+        (LOW + ["--velocity-noise", "0.1"], "--response-time/--velocity-noise (0.0, 0.1)"),
+        (LOW + ["--collision-margin", "0.7"], "--collision-margin 0.7: must be in [0, 0.5] m"),
+        (LOW + ["--collision-margin", "nan"], "--collision-margin nan"),
+        (
+            LOW + ["--navigation-weight", "8"],
+            "--navigation-weight 8.0: another navigation weight fine-tunes the Step 3",
+        ),
+        (ROBUST + ["--navigation-weight", "0"], "--navigation-weight 0.0: must be in (0, 50]"),
+        (ROBUST + ["--navigation-weight", "inf"], "--navigation-weight inf"),
+        (LOW + ["--anchor-periods", "2"], "--anchor-periods 2: longer episodes with anchor redraws fine-tune"),
+        (ROBUST + ["--anchor-periods", "0"], "--anchor-periods 0: must be an integer >= 1"),
+        (LOW + ["--straggler-fraction", "0.3"], "--straggler-fraction 0.3: starts away from the group fine-tune"),
+        (ROBUST + ["--straggler-fraction", "1.5"], "--straggler-fraction 1.5: must be in [0, 1]"),
+        (ROBUST + ["--straggler-fraction", "nan"], "--straggler-fraction nan"),
+        (["lowlevel-all", "--workers", "0"], "--workers 0"),
+        (["lowlevel-all", "--workers", "7"], "--workers 7"),
+        (["lowlevel-all", "--seed", "-3"], "--seed -3"),
+        (["distill", "--tuples", "10000000000"], "--tuples 10000000000: must be at most"),
+        (["distill", "--tuples", "0"], "--tuples 0"),
+        (LOW + ["--formation", "9"], "invalid choice: 9"),
+        (["lowlevel", "--step", "1"], "required: --formation"),
+        (LOW + ["--envs", "two"], "--envs: invalid int value"),
+    ],
+)
 def test_bad_flag_values(argv, needle, tmp_path, capsys):
     assert needle in usage_error(argv, capsys)
     assert files_under(tmp_path) == []  # nothing written, not even the default runs/ folder
@@ -192,15 +198,23 @@ def test_init_from_shipped_policy_then_resume(tmp_path, capsys):
     assert sorted(p.name for p in (out / "policies").iterdir()) == ["atm_c3_robust.json", "atm_c3_robust.pt"]
 
     card = json.loads((out / "policies" / "atm_c3_robust.json").read_text())
-    assert card["init_from"] == {"path": "policies/atm_c3_step3.pt", "sha256": sha256(shipped),
-                                 "name": "atm_c3_step3", "iterations": card["init_from"]["iterations"]}
+    assert card["init_from"] == {
+        "path": "policies/atm_c3_step3.pt",
+        "sha256": sha256(shipped),
+        "name": "atm_c3_step3",
+        "iterations": card["init_from"]["iterations"],
+    }
     assert card["init"]["critic"].startswith("fresh") and card["method"] == "AT-M-Robust"
     assert card["differs_from_paper"] == ["sensing deviation up to 0.5 m (fixed)"]
     assert {"numpy", "numba", "mujoco", "torch", "python", "cpu", "code_version"} <= set(card["versions"])
     assert card["git_commit"] == git_commit() and card["command"].startswith("cefc-train lowlevel --formation 3")
     run_config = json.loads((out / "atm_c3_robust" / "config.json").read_text())
-    assert run_config == {"stage": card["config"], "task": card["task"], "init": card["init"],
-                          "command": card["command"]}
+    assert run_config == {
+        "stage": card["config"],
+        "task": card["task"],
+        "init": card["init"],
+        "command": card["command"],
+    }
     # The actor was fine-tuned from the shipped weights: moved by one update, but not re-initialised.
     start, _ = load_actor(shipped)
     tuned, _ = load_actor(out / "policies" / "atm_c3_robust.pt")
@@ -216,16 +230,18 @@ def test_init_from_shipped_policy_then_resume(tmp_path, capsys):
 
     # AT-M-Nav: the same fine-tune with another omega_n, here on episodes of two anchor periods, trained
     # with both and saying so on its card.
-    assert main(ROBUST + ["--navigation-weight", "10", "--anchor-periods", "2", "--straggler-fraction", "0.5"]
-                + TINY) == 0
+    assert (
+        main(ROBUST + ["--navigation-weight", "10", "--anchor-periods", "2", "--straggler-fraction", "0.5"] + TINY) == 0
+    )
     card = json.loads((out / "policies" / "atm_c3_nav.json").read_text())
     assert (card["method"], card["task"]["rewards"]["navigation_weight_low"]) == ("AT-M-Nav", 10.0)
     assert (card["task"]["episode_steps"], card["task"]["anchor_redraw_steps"]) == (200, 100)
     assert (card["task"]["straggler_fraction"], card["config"]["straggler_fraction"]) == (0.5, 0.5)
-    assert card["differs_from_paper"] == ["navigation weight omega_n = 10 (paper 4)", "episodes of 2 anchor periods "
-                                          "of 100 steps, the anchor redrawn at each (paper: one anchor per episode)",
-                                          "in 50% of the episodes one agent starts 3-7 m from the others (paper: "
-                                          "every agent in the start square)"]
+    assert card["differs_from_paper"] == [
+        "navigation weight omega_n = 10 (paper 4)",
+        "episodes of 2 anchor periods of 100 steps, the anchor redrawn at each (paper: one anchor per episode)",
+        "in 50% of the episodes one agent starts 3-7 m from the others (paper: every agent in the start square)",
+    ]
 
 
 def test_interrupted_before_the_first_checkpoint_resumes_exactly(tmp_path, monkeypatch, capsys):
@@ -271,8 +287,11 @@ def test_install_copies_into_the_shipped_folder(tmp_path, monkeypatch, capsys):
 def git_status() -> set[str] | None:
     """`git status --porcelain` lines of the checkout (None outside one), without Python sources and
     docs: a training run writes neither, and others may be editing them in a shared working tree."""
-    status = subprocess.run(["git", "--no-optional-locks", "-C", str(paths.PROJECT_ROOT), "status", "--porcelain"],
-                            capture_output=True, text=True)
+    status = subprocess.run(
+        ["git", "--no-optional-locks", "-C", str(paths.PROJECT_ROOT), "status", "--porcelain"],
+        capture_output=True,
+        text=True,
+    )
     if status.returncode != 0:
         return None
     return {line for line in status.stdout.splitlines() if not line.endswith((".py", ".md"))}

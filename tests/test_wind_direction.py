@@ -48,11 +48,14 @@ def test_bad_wind_direction_is_refused():
         cefc_mj.make_env(backend="mujoco", n_agents=3, wind=3.0, wind_direction=float("nan"))
 
 
-@pytest.mark.parametrize("argv, message", [
-    (["--wind-direction", "90"], "no wind to point"),
-    (["--backend", "particle", "--wind-direction", "90"], "particle backend"),
-    (["--wind", "3", "--wind-direction", "inf"], "finite angle"),
-])
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["--wind-direction", "90"], "no wind to point"),
+        (["--backend", "particle", "--wind-direction", "90"], "particle backend"),
+        (["--wind", "3", "--wind-direction", "inf"], "finite angle"),
+    ],
+)
 def test_cli_refuses_bad_wind_direction(argv, message, capsys):
     with pytest.raises(SystemExit) as exit_info:
         main(argv)
@@ -63,8 +66,25 @@ def test_cli_refuses_bad_wind_direction(argv, message, capsys):
 
 def test_cli_flies_the_given_direction_and_names_the_airframe(tmp_path, capsys):
     out = tmp_path / "r.json"
-    assert main(["--formation", "3", "--steps", "3", "--wind", "4", "--wind-direction", "135", "--airframe",
-                 "crazyflie", "--json", str(out)]) == 0
+    assert (
+        main(
+            [
+                "--formation",
+                "3",
+                "--steps",
+                "3",
+                "--wind",
+                "4",
+                "--wind-direction",
+                "135",
+                "--airframe",
+                "crazyflie",
+                "--json",
+                str(out),
+            ]
+        )
+        == 0
+    )
     printed = capsys.readouterr().out
     assert "crazyflie airframe" in printed and "wind towards 135° (ENU)" in printed
     summary = json.loads(out.read_text())

@@ -25,7 +25,6 @@ from cefc_mj.table3_protocol import TABLE3_DENSITY, TABLE3_EPISODES, TABLE3_STEP
 from cefc_mj.task.config import TaskConfig
 from cefc_mj.task.formation import formation_template
 
-
 PYRVO_MISSING = "ORCA-F needs the RVO2 binding pyrvo, an optional extra: pip install -e '.[baselines]'"
 """The one line that says how to get the ORCA-F baseline's optional dependency."""
 
@@ -76,13 +75,22 @@ class OrcaConfig:
 
     def validate(self) -> None:
         """Raise ConfigError naming the first invalid field."""
-        for name in ("neighbour_distance", "time_horizon", "obstacle_time_horizon", "lookahead",
-                     "formation_gain", "velocity_gain"):
+        for name in (
+            "neighbour_distance",
+            "time_horizon",
+            "obstacle_time_horizon",
+            "lookahead",
+            "formation_gain",
+            "velocity_gain",
+        ):
             value = getattr(self, name)
             if not isinstance(value, (int, float)) or not np.isfinite(value) or value <= 0:
                 raise ConfigError(f"{name}={value!r}: must be a finite number > 0")
-        if not isinstance(self.radius_margin, (int, float)) or not np.isfinite(self.radius_margin) \
-                or self.radius_margin < 0:
+        if (
+            not isinstance(self.radius_margin, (int, float))
+            or not np.isfinite(self.radius_margin)
+            or self.radius_margin < 0
+        ):
             raise ConfigError(f"radius_margin={self.radius_margin!r}: must be a finite number >= 0")
         if not isinstance(self.obstacle_sides, int) or self.obstacle_sides < 3:
             raise ConfigError(f"obstacle_sides={self.obstacle_sides!r}: must be an integer >= 3")
@@ -117,7 +125,7 @@ class OrcaFormationPolicy:
         self.template = np.asarray(formation_template(config.n_agents, config.formation_spacing))  # [N, 2]
         self._sims: list = []
         self._obstacles: np.ndarray | None = None  # [B, K, 2] the simulators were built for
-        self._slots: np.ndarray | None = None      # [B, N] template slot of each agent (fixed assignment)
+        self._slots: np.ndarray | None = None  # [B, N] template slot of each agent (fixed assignment)
 
     # ------------------------------------------------------------------ simulators
     def _build(self, obstacles: np.ndarray):
@@ -125,8 +133,14 @@ class OrcaFormationPolicy:
         cfg, orca = self.config, self.orca
         sim = _pyrvo().RVOSimulator()
         sim.set_time_step(cfg.dt)
-        sim.set_agent_defaults(orca.neighbour_distance, cfg.n_agents, orca.time_horizon, orca.obstacle_time_horizon,
-                               cfg.uav_radius + orca.radius_margin, cfg.speed_max)
+        sim.set_agent_defaults(
+            orca.neighbour_distance,
+            cfg.n_agents,
+            orca.time_horizon,
+            orca.obstacle_time_horizon,
+            cfg.uav_radius + orca.radius_margin,
+            cfg.speed_max,
+        )
         for _ in range(cfg.n_agents):
             sim.add_agent((0.0, 0.0))
         for centre in obstacles:
@@ -145,9 +159,9 @@ class OrcaFormationPolicy:
         """[B, N, 2] preferred velocities: toward each agent's slot in the template placed at the
         swarm centre moved up to `lookahead` toward the anchor, clipped to the speed limit."""
         orca = self.orca
-        centre = pos.mean(axis=1)                                          # [B, 2]
-        goal = centre + clip_speed(anchor - centre, orca.lookahead)        # template centre [B, 2]
-        rel = pos - centre[:, None]                                        # [B, N, 2]
+        centre = pos.mean(axis=1)  # [B, 2]
+        goal = centre + clip_speed(anchor - centre, orca.lookahead)  # template centre [B, 2]
+        rel = pos - centre[:, None]  # [B, N, 2]
         if self._slots is None or self._slots.shape != pos.shape[:2]:
             self._slots = np.zeros(pos.shape[:2], dtype=int)
             new_episode = np.ones(pos.shape[0], dtype=bool)
@@ -155,7 +169,7 @@ class OrcaFormationPolicy:
             cost = ((rel[b][:, None] - self.template[None]) ** 2).sum(-1)  # [agent, slot]
             agents, slots = linear_sum_assignment(cost)
             self._slots[b, agents] = slots
-        target = goal[:, None] + self.template[self._slots]                # [B, N, 2]
+        target = goal[:, None] + self.template[self._slots]  # [B, N, 2]
         return clip_speed(orca.formation_gain * (target - pos), self.config.speed_max)
 
     def act(self, env: BatchedCEFCEnv) -> np.ndarray:
@@ -187,9 +201,15 @@ class OrcaFormationPolicy:
         return np.clip(orca.velocity_gain * (v_orca - vel), -cfg.accel_max, cfg.accel_max)
 
 
-def evaluate_orca_episodes(formation: int, episodes: int = TABLE3_EPISODES, seed: int = 0, steps: int = TABLE3_STEPS,
-                           density: float = TABLE3_DENSITY, orca: OrcaConfig | None = None,
-                           obstacle_layout: str = "paper") -> dict[str, np.ndarray]:
+def evaluate_orca_episodes(
+    formation: int,
+    episodes: int = TABLE3_EPISODES,
+    seed: int = 0,
+    steps: int = TABLE3_STEPS,
+    density: float = TABLE3_DENSITY,
+    orca: OrcaConfig | None = None,
+    obstacle_layout: str = "paper",
+) -> dict[str, np.ndarray]:
     """Per-episode R_L (per step), F, N, C [episodes] of ORCA-F for one group of `formation` agents,
     on the episodes cefc_mj.eval.table3.evaluate_lowlevel_episodes flies (same config, batch, seed)."""
     if not isinstance(formation, int) or formation < 3:
@@ -198,8 +218,13 @@ def evaluate_orca_episodes(formation: int, episodes: int = TABLE3_EPISODES, seed
         raise ConfigError(f"episodes={episodes!r}: must be an integer >= 1")
     if not isinstance(steps, int) or steps < 1:
         raise ConfigError(f"steps={steps!r}: must be an integer >= 1")
-    task = TaskConfig(n_agents=formation, mode="formation", obstacle_density=density, episode_steps=steps,
-                      obstacle_layout=obstacle_layout)
+    task = TaskConfig(
+        n_agents=formation,
+        mode="formation",
+        obstacle_density=density,
+        episode_steps=steps,
+        obstacle_layout=obstacle_layout,
+    )
     env = BatchedCEFCEnv(task, n_envs=episodes, seed=seed)
     policy = OrcaFormationPolicy(task, orca)
     obs = env.reset(seed=seed)
@@ -207,9 +232,15 @@ def evaluate_orca_episodes(formation: int, episodes: int = TABLE3_EPISODES, seed
     return roll_out(env, obs, lambda _obs: policy.act(env), steps)  # ORCA reads the env's true state
 
 
-def evaluate_orca(formation: int, episodes: int = TABLE3_EPISODES, seed: int = 0, steps: int = TABLE3_STEPS,
-                  density: float = TABLE3_DENSITY, orca: OrcaConfig | None = None,
-                  obstacle_layout: str = "paper") -> dict[str, float]:
+def evaluate_orca(
+    formation: int,
+    episodes: int = TABLE3_EPISODES,
+    seed: int = 0,
+    steps: int = TABLE3_STEPS,
+    density: float = TABLE3_DENSITY,
+    orca: OrcaConfig | None = None,
+    obstacle_layout: str = "paper",
+) -> dict[str, float]:
     """R_L (per step), F, N (steps), C (% of agent-steps) of ORCA-F averaged over `episodes` episodes:
     the keys and protocol of cefc_mj.eval.table3.evaluate_lowlevel."""
     per_episode = evaluate_orca_episodes(formation, episodes, seed, steps, density, orca, obstacle_layout)

@@ -26,16 +26,32 @@ from cefc_mj.cli.eval_table8 import is_shipped_reports
 from cefc_mj.errors import CefcError, ConfigError
 from cefc_mj.eval.conditions import MAX_DEVIATION, Conditions
 from cefc_mj.eval.requests import (
-    GAME_TABLES, MAX_EPISODES, MAX_STEPS, MAX_WORKERS, Flight, GameTablesRequest, SingleRequest, SitlM, Table3Request,
-    Table8Request, adversary_refused, default_report_dir, parse_drop, recording_refused,
+    GAME_TABLES,
+    MAX_EPISODES,
+    MAX_STEPS,
+    MAX_WORKERS,
+    Flight,
+    GameTablesRequest,
+    SingleRequest,
+    SitlM,
+    Table3Request,
+    Table8Request,
+    adversary_refused,
+    default_report_dir,
+    parse_drop,
+    recording_refused,
 )
 from cefc_mj.executors import ExecutorConfig
 from cefc_mj.sim.wind import MAX_WIND_SPEED
 
 __all__ = ["build_parser", "default_report_dir", "is_shipped_reports", "main", "single_table", "to_request"]
 
-RUNNERS = {SingleRequest: eval_single, Table8Request: eval_table8, Table3Request: eval_table3,
-           GameTablesRequest: eval_game}
+RUNNERS = {
+    SingleRequest: eval_single,
+    Table8Request: eval_table8,
+    Table3Request: eval_table3,
+    GameTablesRequest: eval_game,
+}
 """The module that checks and runs each request (`check(request)`, then `run(request, provenance, command)`)."""
 
 
@@ -62,96 +78,206 @@ class _VersionAction(argparse.Action):
 def build_parser() -> argparse.ArgumentParser:
     p = _Parser(prog=PROG, description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--version", action=_VersionAction, help="print the version, code digest and libraries, then exit")
-    p.add_argument("--backend", choices=["mujoco", "particle"], default=None,
-                   help="physics: MuJoCo quadrotors with the PX4-like controller (default) or the particle world")
-    p.add_argument("--protocol", choices=["single", "table8", "table3", "table5", "table6", "table7"],
-                   default="single",
-                   help="single: one condition (from --wind/--deviation) vs calm; table8: the paper's 7 conditions "
-                        "(MuJoCo); table3: the paper's MPE Table III (particle backend); table5 / table6 / table7: "
-                        "the high level's game, CI-HRL against the baselines / against adversary strategies / with "
-                        "N = 8, 9, 10, 12, 15 UAVs (the paper's on --backend particle; also on quadrotors, with "
-                        "--wind and --deviation)")
-    p.add_argument("--wind", type=float, default=None, metavar="MPS",
-                   help=f"mean wind speed in m/s, 0..{MAX_WIND_SPEED:g} (single, table5-7; MuJoCo; default 0)")
-    p.add_argument("--wind-direction", type=float, default=None, metavar="DEG",
-                   help="the direction the wind blows towards, degrees, ENU (0 = +x, east; 90 = +y, north); default: "
-                        "drawn per episode from the seed (single and table5-7 with --wind; table8's Wind rows; MuJoCo)")
-    p.add_argument("--deviation", type=float, default=None, metavar="M",
-                   help=f"sensing deviation in m, 0..{MAX_DEVIATION:g} (single, table5-7; default 0)")
-    p.add_argument("--formation", type=int, nargs="+", metavar="C",
-                   help="formation sizes c in 3..8 (default 5 6 7 8; table3: 6 7 8)")
-    p.add_argument("--episodes", type=int, metavar="K",
-                   help=f"seeds per cell, 1..{MAX_EPISODES} (default 1; table8 5; table3, table5-7 50)")
-    p.add_argument("--steps", type=int, metavar="T",
-                   help=f"decision steps per episode, 1..{MAX_STEPS} (default 1000; table3 100); F and N are "
-                        "comparable to the paper only at the default")
-    p.add_argument("--seed", type=int, default=None, metavar="S",
-                   help="first seed (>= 0); episode k uses S+k (default 0)")
-    p.add_argument("--policy", default=None, metavar="NAME|PATH",
-                   help="nav (AT-M-Nav of each c, the default), atm (AT-M Step 3 of each c, the paper's), safe, "
-                        "clm (the CL-M baseline, where trained), student, orca (the ORCA-F baseline, table3 "
-                        "only), a name in policies/, or a .pt path; "
-                        "table3 without it evaluates every method; table5: one high-level policy (default every "
-                        "method); table6, table7: the high-level policy to play (default cihrl_consmac_a)")
-    p.add_argument("--adversary", default=None, metavar="RULE|NAME|PATH",
-                   help="table5, table7: the game's adversary, a rule (nearest_group, r_nearest, r_largest, none) "
-                        "or a trained adversary's policy name or file (default adversary_ppo, the PPO adversary); "
-                        "table6 plays each adversary in turn")
-    p.add_argument("--sitl-m", action="store_true",
-                   help="SITL-M: every UAV's policy in its own OS process over ZeroMQ, asynchronous (single: the "
-                        "asked condition flown that way, vs the one-process calm reference; table8: adds the SITL-M "
-                        "row); docs/sitl_m.md")
-    p.add_argument("--link-delay", type=float, default=None, metavar="MS",
-                   help="SITL-M: one-way network delay in simulated ms, each way (default 0)")
-    p.add_argument("--jitter", type=float, default=None, metavar="MS",
-                   help="SITL-M: each direction adds a uniform draw from [0, MS] ms (default 0)")
-    p.add_argument("--drop", default=None, metavar="K@STEP",
-                   help="agent dropout (single): K UAVs leave the swarm before decision step STEP, the rest re-form "
-                        "with c - K (fly --policy student for the paper's experiment); lock-step, or SITL-M with "
-                        "--sitl-m (their processes are killed); prints F/N/C before and after")
-    p.add_argument("--airframe", default=None, metavar="NAME|PATH",
-                   help="MuJoCo airframe: iris (default), crazyflie (a 27 g micro quad), or your own MJCF quadrotor "
-                        "with four site-mounted thrust motors and a PX4-style .params file (docs/mujoco_world.md)")
-    p.add_argument("--estimator", choices=("fused", "raw"), default=None,
-                   help="the agents' position estimate: fused (default; an onboard filter of the noisy fixes with the "
-                        "agent's own velocity) or raw (each fix as it is, the paper's memoryless agent); "
-                        "docs/design.md")
-    p.add_argument("--guard", choices=("on", "off"), default=None,
-                   help="the agents' separation guard: on (default; each agent limits its closing speed towards "
-                        "neighbours and LiDAR hits so that a lagging quadrotor stops in time; docs/decisions.md) or "
-                        "off (the policy's actions as they are, the paper's agent); single and table8")
-    p.add_argument("--offboard", choices=("velocity", "acceleration"), default=None,
-                   help="MuJoCo: what the PX4-like offboard interface makes of the policy's acceleration setpoint: "
-                        "velocity (default; integrated into a velocity setpoint) or acceleration (sent as PX4 "
-                        "acceleration setpoints, as the paper does); single and table8, not with --sitl-m or --drop")
-    p.add_argument("--rotor-actuation", choices=("auto", "actuators", "external"), default=None,
-                   help="MuJoCo: how the rotor thrusts reach the physics: auto (default; live actuators up to 16 "
-                        "drones per env, the same forces through xfrc_applied above, where the actuators' cost grows "
-                        "with the square of the swarm), actuators or external (docs/mujoco_world.md); single, "
-                        "table8")
-    p.add_argument("--rrd", type=Path, metavar="PATH",
-                   help="record the episodes to a Rerun .rrd file (single; table5 with --policy: one game)")
+    p.add_argument(
+        "--backend",
+        choices=["mujoco", "particle"],
+        default=None,
+        help="physics: MuJoCo quadrotors with the PX4-like controller (default) or the particle world",
+    )
+    p.add_argument(
+        "--protocol",
+        choices=["single", "table8", "table3", "table5", "table6", "table7"],
+        default="single",
+        help="single: one condition (from --wind/--deviation) vs calm; table8: the paper's 7 conditions "
+        "(MuJoCo); table3: the paper's MPE Table III (particle backend); table5 / table6 / table7: "
+        "the high level's game, CI-HRL against the baselines / against adversary strategies / with "
+        "N = 8, 9, 10, 12, 15 UAVs (the paper's on --backend particle; also on quadrotors, with "
+        "--wind and --deviation)",
+    )
+    p.add_argument(
+        "--wind",
+        type=float,
+        default=None,
+        metavar="MPS",
+        help=f"mean wind speed in m/s, 0..{MAX_WIND_SPEED:g} (single, table5-7; MuJoCo; default 0)",
+    )
+    p.add_argument(
+        "--wind-direction",
+        type=float,
+        default=None,
+        metavar="DEG",
+        help="the direction the wind blows towards, degrees, ENU (0 = +x, east; 90 = +y, north); default: "
+        "drawn per episode from the seed (single and table5-7 with --wind; table8's Wind rows; MuJoCo)",
+    )
+    p.add_argument(
+        "--deviation",
+        type=float,
+        default=None,
+        metavar="M",
+        help=f"sensing deviation in m, 0..{MAX_DEVIATION:g} (single, table5-7; default 0)",
+    )
+    p.add_argument(
+        "--formation",
+        type=int,
+        nargs="+",
+        metavar="C",
+        help="formation sizes c in 3..8 (default 5 6 7 8; table3: 6 7 8)",
+    )
+    p.add_argument(
+        "--episodes",
+        type=int,
+        metavar="K",
+        help=f"seeds per cell, 1..{MAX_EPISODES} (default 1; table8 5; table3, table5-7 50)",
+    )
+    p.add_argument(
+        "--steps",
+        type=int,
+        metavar="T",
+        help=f"decision steps per episode, 1..{MAX_STEPS} (default 1000; table3 100); F and N are "
+        "comparable to the paper only at the default",
+    )
+    p.add_argument(
+        "--seed", type=int, default=None, metavar="S", help="first seed (>= 0); episode k uses S+k (default 0)"
+    )
+    p.add_argument(
+        "--policy",
+        default=None,
+        metavar="NAME|PATH",
+        help="nav (AT-M-Nav of each c, the default), atm (AT-M Step 3 of each c, the paper's), safe, "
+        "clm (the CL-M baseline, where trained), student, orca (the ORCA-F baseline, table3 "
+        "only), a name in policies/, or a .pt path; "
+        "table3 without it evaluates every method; table5: one high-level policy (default every "
+        "method); table6, table7: the high-level policy to play (default cihrl_consmac_a)",
+    )
+    p.add_argument(
+        "--adversary",
+        default=None,
+        metavar="RULE|NAME|PATH",
+        help="table5, table7: the game's adversary, a rule (nearest_group, r_nearest, r_largest, none) "
+        "or a trained adversary's policy name or file (default adversary_ppo, the PPO adversary); "
+        "table6 plays each adversary in turn",
+    )
+    p.add_argument(
+        "--sitl-m",
+        action="store_true",
+        help="SITL-M: every UAV's policy in its own OS process over ZeroMQ, asynchronous (single: the "
+        "asked condition flown that way, vs the one-process calm reference; table8: adds the SITL-M "
+        "row); docs/sitl_m.md",
+    )
+    p.add_argument(
+        "--link-delay",
+        type=float,
+        default=None,
+        metavar="MS",
+        help="SITL-M: one-way network delay in simulated ms, each way (default 0)",
+    )
+    p.add_argument(
+        "--jitter",
+        type=float,
+        default=None,
+        metavar="MS",
+        help="SITL-M: each direction adds a uniform draw from [0, MS] ms (default 0)",
+    )
+    p.add_argument(
+        "--drop",
+        default=None,
+        metavar="K@STEP",
+        help="agent dropout (single): K UAVs leave the swarm before decision step STEP, the rest re-form "
+        "with c - K (fly --policy student for the paper's experiment); lock-step, or SITL-M with "
+        "--sitl-m (their processes are killed); prints F/N/C before and after",
+    )
+    p.add_argument(
+        "--airframe",
+        default=None,
+        metavar="NAME|PATH",
+        help="MuJoCo airframe: iris (default), crazyflie (a 27 g micro quad), or your own MJCF quadrotor "
+        "with four site-mounted thrust motors and a PX4-style .params file (docs/mujoco_world.md)",
+    )
+    p.add_argument(
+        "--estimator",
+        choices=("fused", "raw"),
+        default=None,
+        help="the agents' position estimate: fused (default; an onboard filter of the noisy fixes with the "
+        "agent's own velocity) or raw (each fix as it is, the paper's memoryless agent); "
+        "docs/design.md",
+    )
+    p.add_argument(
+        "--guard",
+        choices=("on", "off"),
+        default=None,
+        help="the agents' separation guard: on (default; each agent limits its closing speed towards "
+        "neighbours and LiDAR hits so that a lagging quadrotor stops in time; docs/decisions.md) or "
+        "off (the policy's actions as they are, the paper's agent); single and table8",
+    )
+    p.add_argument(
+        "--offboard",
+        choices=("velocity", "acceleration"),
+        default=None,
+        help="MuJoCo: what the PX4-like offboard interface makes of the policy's acceleration setpoint: "
+        "velocity (default; integrated into a velocity setpoint) or acceleration (sent as PX4 "
+        "acceleration setpoints, as the paper does); single and table8, not with --sitl-m or --drop",
+    )
+    p.add_argument(
+        "--rotor-actuation",
+        choices=("auto", "actuators", "external"),
+        default=None,
+        help="MuJoCo: how the rotor thrusts reach the physics: auto (default; live actuators up to 16 "
+        "drones per env, the same forces through xfrc_applied above, where the actuators' cost grows "
+        "with the square of the swarm), actuators or external (docs/mujoco_world.md); single, "
+        "table8",
+    )
+    p.add_argument(
+        "--rrd",
+        type=Path,
+        metavar="PATH",
+        help="record the episodes to a Rerun .rrd file (single; table5 with --policy: one game)",
+    )
     p.add_argument("--spawn", action="store_true", help="stream the episodes to a live Rerun viewer (single)")
-    p.add_argument("--png", type=Path, metavar="DIR",
-                   help="write a top-down PNG of each episode into DIR (single; table5 with --policy: the game's "
-                        "message-similarity matrices)")
+    p.add_argument(
+        "--png",
+        type=Path,
+        metavar="DIR",
+        help="write a top-down PNG of each episode into DIR (single; table5 with --policy: the game's "
+        "message-similarity matrices)",
+    )
     p.add_argument("--json", type=Path, metavar="PATH", help="also write the results as JSON (docs/evaluation.md)")
-    p.add_argument("--workers", type=int, default=None, metavar="W",
-                   help=f"processes flying episodes, 1..{MAX_WORKERS} (single without recording, table8; default 1)")
-    p.add_argument("--executor", choices=["local", "ray"], default=None,
-                   help="table8 only: local flies the grid on --workers processes here (default); ray flies each "
-                        "episode as a Ray task, on the cluster at --address or on a Ray instance started here with "
-                        "--workers CPUs (needs the ray extra; docs/scaling.md)")
-    p.add_argument("--address", default=None, metavar="HOST:PORT",
-                   help="with --executor ray: the head of a running Ray cluster (`ray start --head`); its CPUs "
-                        "decide how many episodes fly at once")
-    p.add_argument("--report-dir", type=Path, default=None, metavar="DIR",
-                   help="table8: where table8.md/.csv/.json/.png and the resumable cell file go (default a new "
-                        "folder ./cefc-eval-reports/table8-<policy>-<backend>-<time>/); give the folder of an "
-                        "interrupted run to resume it. table5-7: where table<k>.md/.json/.png go (none by "
-                        "default)")
-    p.add_argument("--fresh", action="store_true",
-                   help="table8 only: fly every episode anew; an existing cell file is moved aside, not reused")
+    p.add_argument(
+        "--workers",
+        type=int,
+        default=None,
+        metavar="W",
+        help=f"processes flying episodes, 1..{MAX_WORKERS} (single without recording, table8; default 1)",
+    )
+    p.add_argument(
+        "--executor",
+        choices=["local", "ray"],
+        default=None,
+        help="table8 only: local flies the grid on --workers processes here (default); ray flies each "
+        "episode as a Ray task, on the cluster at --address or on a Ray instance started here with "
+        "--workers CPUs (needs the ray extra; docs/scaling.md)",
+    )
+    p.add_argument(
+        "--address",
+        default=None,
+        metavar="HOST:PORT",
+        help="with --executor ray: the head of a running Ray cluster (`ray start --head`); its CPUs "
+        "decide how many episodes fly at once",
+    )
+    p.add_argument(
+        "--report-dir",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="table8: where table8.md/.csv/.json/.png and the resumable cell file go (default a new "
+        "folder ./cefc-eval-reports/table8-<policy>-<backend>-<time>/); give the folder of an "
+        "interrupted run to resume it. table5-7: where table<k>.md/.json/.png go (none by "
+        "default)",
+    )
+    p.add_argument(
+        "--fresh",
+        action="store_true",
+        help="table8 only: fly every episode anew; an existing cell file is moved aside, not reused",
+    )
     return p
 
 
@@ -175,14 +301,26 @@ def refuse_flags(args: argparse.Namespace) -> None:
     if args.adversary is not None and not game:
         raise adversary_refused(args.adversary)
     if game:
-        given = [flag for flag, on in (
-            ("--formation", args.formation is not None), ("--steps", args.steps is not None),
-            ("--sitl-m", args.sitl_m), ("--drop", args.drop is not None), ("--airframe", args.airframe is not None),
-            ("--estimator", args.estimator is not None), ("--offboard", args.offboard is not None),
-            ("--guard", args.guard is not None), ("--fresh", args.fresh)) if on]
+        given = [
+            flag
+            for flag, on in (
+                ("--formation", args.formation is not None),
+                ("--steps", args.steps is not None),
+                ("--sitl-m", args.sitl_m),
+                ("--drop", args.drop is not None),
+                ("--airframe", args.airframe is not None),
+                ("--estimator", args.estimator is not None),
+                ("--offboard", args.offboard is not None),
+                ("--guard", args.guard is not None),
+                ("--fresh", args.fresh),
+            )
+            if on
+        ]
         if given:
-            raise ConfigError(f"{given[0]}: --protocol {proto} plays the paper's game as it is (8 UAVs, 400 steps, "
-                              "the fused estimate); docs/high_level.md")
+            raise ConfigError(
+                f"{given[0]}: --protocol {proto} plays the paper's game as it is (8 UAVs, 400 steps, "
+                "the fused estimate); docs/high_level.md"
+            )
         if args.workers not in (None, 1):
             raise ConfigError(f"--workers: {proto} flies all its episodes as one batch in one process")
     for flag, value in (("--link-delay", args.link_delay), ("--jitter", args.jitter)):
@@ -195,8 +333,11 @@ def refuse_flags(args: argparse.Namespace) -> None:
     if args.offboard is not None:
         if particle:
             raise ConfigError("--offboard: the particle backend has no offboard interface; use --backend mujoco")
-        for flag, on in (("--sitl-m", args.sitl_m), ("--drop", args.drop is not None),
-                         ("--protocol table3", proto == "table3")):
+        for flag, on in (
+            ("--sitl-m", args.sitl_m),
+            ("--drop", args.drop is not None),
+            ("--protocol table3", proto == "table3"),
+        ):
             if on:
                 raise ConfigError(f"--offboard: not available with {flag} (single and table8 in one process only)")
     if args.rotor_actuation is not None:
@@ -218,29 +359,35 @@ def refuse_flags(args: argparse.Namespace) -> None:
         if args.wind_direction is not None and proto == "table3":
             raise ConfigError("--wind-direction: Table III is flown in the particle world, without wind")
     if args.report_dir is not None and proto not in ("table8", *GAME_TABLES):
-        raise ConfigError(f"--report-dir: only --protocol table8, table5, table6 and table7 write a report folder "
-                          f"({proto} writes --json only)")
+        raise ConfigError(
+            f"--report-dir: only --protocol table8, table5, table6 and table7 write a report folder "
+            f"({proto} writes --json only)"
+        )
     if args.fresh and proto != "table8":
         raise ConfigError("--fresh: only --protocol table8 keeps a cell cache")
     if proto != "table8":
         if args.executor not in (None, "local"):
-            raise ConfigError(f"--executor {args.executor}: only --protocol table8 runs on an executor "
-                              f"({proto} flies here; use --workers)")
+            raise ConfigError(
+                f"--executor {args.executor}: only --protocol table8 runs on an executor "
+                f"({proto} flies here; use --workers)"
+            )
         if args.address is not None:
             ExecutorConfig(address=args.address).validate()  # its error: an address needs --executor ray
     if proto == "table8":
         if args.wind is not None or args.deviation is not None:
             flag = "--wind" if args.wind is not None else "--deviation"
-            raise ConfigError(f"{flag}: --protocol table8 flies its own 7 conditions; "
-                              "use --protocol single for one condition")
+            raise ConfigError(
+                f"{flag}: --protocol table8 flies its own 7 conditions; use --protocol single for one condition"
+            )
         if particle:
             raise ConfigError("--protocol table8 needs --backend mujoco (its Wind conditions need the wind model)")
     if proto == "table3":
         if not particle:
             raise ConfigError("--protocol table3 is the paper's MPE protocol: add --backend particle")
         if args.deviation is not None:
-            raise ConfigError("--deviation: Table III is flown with exact sensing; use --protocol single --backend "
-                              "particle")
+            raise ConfigError(
+                "--deviation: Table III is flown with exact sensing; use --protocol single --backend particle"
+            )
         if args.workers not in (None, 1):
             raise ConfigError("--workers: table3 flies all its episodes as one batch in one process")
     recording = [flag for flag, on in (("--rrd", args.rrd), ("--png", args.png), ("--spawn", args.spawn)) if on]
@@ -255,29 +402,61 @@ def to_request(args: argparse.Namespace) -> SingleRequest | Table8Request | Tabl
     proto = args.protocol
     sitl = SitlM(**_given(link_delay_ms=args.link_delay, jitter_ms=args.jitter)) if args.sitl_m else None
     if proto in GAME_TABLES:
-        return GameTablesRequest(protocol=proto, conditions=_conditions(args), rrd=args.rrd, png=args.png,
-                                 report_dir=args.report_dir, json=args.json,
-                                 **_given(episodes=args.episodes, seed=args.seed, policy=args.policy,
-                                          adversary=args.adversary))
-    grid = _given(formations=args.formation, episodes=args.episodes, steps=args.steps, seed=args.seed,
-                  policy=args.policy)
+        return GameTablesRequest(
+            protocol=proto,
+            conditions=_conditions(args),
+            rrd=args.rrd,
+            png=args.png,
+            report_dir=args.report_dir,
+            json=args.json,
+            **_given(episodes=args.episodes, seed=args.seed, policy=args.policy, adversary=args.adversary),
+        )
+    grid = _given(
+        formations=args.formation, episodes=args.episodes, steps=args.steps, seed=args.seed, policy=args.policy
+    )
     if proto == "table3":
         return Table3Request(json=args.json, **grid)
-    flight = Flight(**_given(estimator=args.estimator, guard=None if args.guard is None else args.guard == "on",
-                             airframe=args.airframe, offboard=args.offboard, rotor_actuation=args.rotor_actuation))
+    flight = Flight(
+        **_given(
+            estimator=args.estimator,
+            guard=None if args.guard is None else args.guard == "on",
+            airframe=args.airframe,
+            offboard=args.offboard,
+            rotor_actuation=args.rotor_actuation,
+        )
+    )
     if proto == "table8":
         executor = ExecutorConfig(**_given(kind=args.executor, workers=args.workers, address=args.address))
-        return Table8Request(flight=flight, wind_direction=args.wind_direction, sitl=sitl, executor=executor,
-                             report_dir=args.report_dir, fresh=args.fresh, json=args.json, **grid)
+        return Table8Request(
+            flight=flight,
+            wind_direction=args.wind_direction,
+            sitl=sitl,
+            executor=executor,
+            report_dir=args.report_dir,
+            fresh=args.fresh,
+            json=args.json,
+            **grid,
+        )
     conditions = _conditions(args)
     drop = parse_drop(args.drop) if args.drop is not None else None
-    return SingleRequest(conditions=conditions, flight=flight, sitl=sitl, drop=drop, rrd=args.rrd, png=args.png,
-                         spawn=args.spawn, json=args.json, **grid, **_given(workers=args.workers))
+    return SingleRequest(
+        conditions=conditions,
+        flight=flight,
+        sitl=sitl,
+        drop=drop,
+        rrd=args.rrd,
+        png=args.png,
+        spawn=args.spawn,
+        json=args.json,
+        **grid,
+        **_given(workers=args.workers),
+    )
 
 
 def _conditions(args: argparse.Namespace) -> Conditions:
-    return Conditions(**_given(backend=args.backend, wind=args.wind, deviation=args.deviation,
-                               wind_direction=args.wind_direction))
+    return Conditions(
+        **_given(backend=args.backend, wind=args.wind, deviation=args.deviation, wind_direction=args.wind_direction)
+    )
 
 
 # ---------------------------------------------------------------------------- main

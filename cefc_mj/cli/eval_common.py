@@ -63,7 +63,7 @@ def sitl_config(sitl: SitlM | None, drop: tuple[int, int] | None = None):
 
 
 def rotor_text(mode: str, formations) -> str:
-    """"auto: actuators" (the rotor path each size flies, as `resolve_rotor_actuation` picks it)."""
+    """ "auto: actuators" (the rotor path each size flies, as `resolve_rotor_actuation` picks it)."""
     from cefc_mj.sim.mujoco_world import resolve_rotor_actuation  # imports mujoco
 
     used = sorted({resolve_rotor_actuation(mode, c) for c in formations})
@@ -71,7 +71,7 @@ def rotor_text(mode: str, formations) -> str:
 
 
 def wind_direction_text(summary: dict) -> str:
-    """", wind towards 90°" or ", wind direction drawn per episode" where the run has wind; "" otherwise."""
+    """ ", wind towards 90°" or ", wind direction drawn per episode" where the run has wind; "" otherwise."""
     if not summary.get("wind"):
         return ""
     given = summary.get("wind_direction")

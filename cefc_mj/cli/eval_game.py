@@ -10,8 +10,18 @@ from pathlib import Path
 from cefc_mj.cli.eval_common import PROG, wind_direction_text, write_outputs
 from cefc_mj.errors import ConfigError
 from cefc_mj.eval.highlevel import (
-    GAME_AGENTS, GAME_STEPS, LOW_LEVEL, TABLE7_SIZES, format_highlevel_table, game_task, highlevel_policy_path,
-    plot_highlevel_table, resolve_adversary, run_table5, run_table6, run_table7,
+    GAME_AGENTS,
+    GAME_STEPS,
+    LOW_LEVEL,
+    TABLE7_SIZES,
+    format_highlevel_table,
+    game_task,
+    highlevel_policy_path,
+    plot_highlevel_table,
+    resolve_adversary,
+    run_table5,
+    run_table6,
+    run_table7,
 )
 from cefc_mj.eval.requests import GameTablesRequest
 from cefc_mj.eval.runner import provenance
@@ -26,8 +36,10 @@ def check(request: GameTablesRequest) -> dict:
     if request.played_policy is not None:
         path = highlevel_policy_path(request.played_policy)  # a missing file fails before any episode
         if request.png is not None and load_highlevel_policy(path)[0].comm is None:
-            raise ConfigError(f"--png: {request.policy} sends no messages (no communication), so there is no "
-                              "similarity to draw; drop --png")
+            raise ConfigError(
+                f"--png: {request.policy} sends no messages (no communication), so there is no "
+                "similarity to draw; drop --png"
+            )
     if request.protocol in ("table5", "table7"):  # a missing or broken adversary file fails before any episode
         resolve_adversary(request.played_adversary)
     return provenance("atm", [])  # the tables record each row's file and sha256 themselves
@@ -43,8 +55,10 @@ def run(request: GameTablesRequest, prov: dict, command: str) -> int:
     uavs = "N = " + ", ".join(map(str, TABLE7_SIZES)) if proto == "table7" else str(GAME_AGENTS)
     wind = {"wind": where.wind, "wind_direction": where.wind_direction}
     world = f"mujoco (iris airframe{wind_direction_text(wind)})" if where.backend == "mujoco" else where.backend
-    print(f"{PROG} {proto}: {world}, wind {where.wind:g} m/s, deviation {where.deviation:g} m, {uavs} UAVs, "
-          f"{request.episodes} episodes x {GAME_STEPS} steps, seed {request.seed}, {playing}")
+    print(
+        f"{PROG} {proto}: {world}, wind {where.wind:g} m/s, deviation {where.deviation:g} m, {uavs} UAVs, "
+        f"{request.episodes} episodes x {GAME_STEPS} steps, seed {request.seed}, {playing}"
+    )
     prov = {k: v for k, v in prov.items() if k != "policies"}
     common = {"episodes": request.episodes, "seed": request.seed, "provenance": prov, "where": where}
     if proto == "table5":
@@ -60,9 +74,11 @@ def run(request: GameTablesRequest, prov: dict, command: str) -> int:
     writes: list[tuple[Path, object]] = []
     if request.report_dir is not None:
         out = request.report_dir
-        writes += [(out / f"{proto}.md", f"# {proto}\n\n```\n{text}\n```\n\nCommand: `{command}`\n"),
-                   (out / f"{proto}.json", data),
-                   (out / f"{proto}.png", lambda path: plot_highlevel_table(result, path))]
+        writes += [
+            (out / f"{proto}.md", f"# {proto}\n\n```\n{text}\n```\n\nCommand: `{command}`\n"),
+            (out / f"{proto}.json", data),
+            (out / f"{proto}.png", lambda path: plot_highlevel_table(result, path)),
+        ]
     if request.json is not None:
         writes.append((request.json, data))
     write_outputs(writes)
@@ -76,7 +92,9 @@ def _record_game(request: GameTablesRequest) -> list[Path]:
     """--rrd / --png of table5: one game with --seed, flown by the evaluated policy, recorded (the
     same game as a one-episode evaluation with that seed)."""
     from cefc_mj.viz.highlevel_log import (  # imports rerun
-        play_highlevel_episode, plot_similarity_matrices, record_highlevel_episode,
+        play_highlevel_episode,
+        plot_similarity_matrices,
+        record_highlevel_episode,
     )
 
     seed = request.seed
@@ -85,10 +103,15 @@ def _record_game(request: GameTablesRequest) -> list[Path]:
     adversary = request.played_adversary
     kind, adversary_policy, _ = resolve_adversary(adversary)
     task = game_task(kind, deviation=request.conditions.deviation)
-    episode = play_highlevel_episode(policy, task, load_low_level(LOW_LEVEL, task), seed=seed,
-                                     world=request.conditions.world(task, 1, seed),
-                                     decision_interval=int(meta.get("decision_interval", DECISION_INTERVAL)),
-                                     adversary_policy=adversary_policy)
+    episode = play_highlevel_episode(
+        policy,
+        task,
+        load_low_level(LOW_LEVEL, task),
+        seed=seed,
+        world=request.conditions.world(task, 1, seed),
+        decision_interval=int(meta.get("decision_interval", DECISION_INTERVAL)),
+        adversary_policy=adversary_policy,
+    )
     episode.policy, episode.policy_sha256 = path.stem, file_sha256(path)
     episode.adversary_rule = adversary if adversary_policy is None else f"{adversary} (trained)"
     written: list[Path] = []

@@ -12,11 +12,24 @@ import numpy as np
 from tqdm import tqdm
 
 from cefc_mj.cli.eval_common import (
-    EXIT_INTERRUPTED, PROG, deploy_runners, rotor_text, sitl_config, wind_direction_text, write_outputs,
+    EXIT_INTERRUPTED,
+    PROG,
+    deploy_runners,
+    rotor_text,
+    sitl_config,
+    wind_direction_text,
+    write_outputs,
 )
 from cefc_mj.eval.requests import SingleRequest
-from cefc_mj.eval.runner import TABLE8_STEPS as PAPER_STEPS
-from cefc_mj.eval.runner import EpisodeSpec, condition_name, format_mean_std, provenance, retention, summarize
+from cefc_mj.eval.runner import (
+    TABLE8_STEPS as PAPER_STEPS,
+    EpisodeSpec,
+    condition_name,
+    format_mean_std,
+    provenance,
+    retention,
+    summarize,
+)
 from cefc_mj.eval.table8 import cached_policy, fly_episodes, guard_text, paper_cell
 
 
@@ -44,24 +57,53 @@ def run(request: SingleRequest, prov: dict, command: str) -> int:
     condition = base if sitl is None else ("SITL-M" if base == "SITL-S" else f"SITL-M+{base}")
     conditions = [(where.wind, where.deviation)] + ([(0.0, 0.0)] if condition != "SITL-S" else [])
     seeds = list(range(request.seed, request.seed + episodes))
-    specs = [EpisodeSpec(formation=c, seed=seed, backend=where.backend, wind=wind, deviation=dev, steps=steps,
-                         policy=request.policy, airframe=flight.airframe, estimator=flight.estimator,
-                         offboard=flight.offboard, guard=flight.guard,
-                         wind_direction=where.wind_direction if wind else None,
-                         rotor_actuation=flight.rotor_actuation)
-             for wind, dev in conditions for c in formations for seed in seeds]
+    specs = [
+        EpisodeSpec(
+            formation=c,
+            seed=seed,
+            backend=where.backend,
+            wind=wind,
+            deviation=dev,
+            steps=steps,
+            policy=request.policy,
+            airframe=flight.airframe,
+            estimator=flight.estimator,
+            offboard=flight.offboard,
+            guard=flight.guard,
+            wind_direction=where.wind_direction if wind else None,
+            rotor_actuation=flight.rotor_actuation,
+        )
+        for wind, dev in conditions
+        for c in formations
+        for seed in seeds
+    ]
     asked = list(range(len(formations) * len(seeds)))  # the first condition's episodes
     calm = list(range(len(asked), len(specs)))
     # (indices into specs, how they fly): the asked condition carries the deployment and the dropout
-    batches = [(asked, {"sitl": sitl, "drop": None if sitl is not None else request.drop,
-                        "runners": deploy_runners(sitl is not None, request.drop is not None)}), (calm, {})]
+    batches = [
+        (
+            asked,
+            {
+                "sitl": sitl,
+                "drop": None if sitl is not None else request.drop,
+                "runners": deploy_runners(sitl is not None, request.drop is not None),
+            },
+        ),
+        (calm, {}),
+    ]
     wind = {"wind": where.wind, "wind_direction": where.wind_direction}
     vs = " vs calm air (SITL-S)" if condition != "SITL-S" else ""
-    world = (f"mujoco ({flight.airframe} airframe{wind_direction_text(wind)}, rotors "
-             f"{rotor_text(flight.rotor_actuation, formations)})" if where.backend == "mujoco" else where.backend)
-    print(f"{PROG}: {condition}{vs}; policy {request.policy}; {world}; c = {', '.join(map(str, formations))}; "
-          f"seeds {_seed_range(seeds)} ({episodes} per cell); {steps} steps per episode; {len(specs)} episodes"
-          + (f" on {request.workers} workers" if request.workers > 1 else ""))
+    world = (
+        f"mujoco ({flight.airframe} airframe{wind_direction_text(wind)}, rotors "
+        f"{rotor_text(flight.rotor_actuation, formations)})"
+        if where.backend == "mujoco"
+        else where.backend
+    )
+    print(
+        f"{PROG}: {condition}{vs}; policy {request.policy}; {world}; c = {', '.join(map(str, formations))}; "
+        f"seeds {_seed_range(seeds)} ({episodes} per cell); {steps} steps per episode; {len(specs)} episodes"
+        + (f" on {request.workers} workers" if request.workers > 1 else "")
+    )
     finished: dict[int, dict] = {}
     recorded: list[Path] = []
     interrupted = False
@@ -69,21 +111,28 @@ def run(request: SingleRequest, prov: dict, command: str) -> int:
         with tqdm(total=len(specs), desc="episodes", unit="ep", file=sys.stderr) as bar:
             for indices, how in batches:
                 record = (lambda s: True) if request.recording and indices is asked else None
-                for j, result in fly_episodes([specs[i] for i in indices], workers=request.workers, record=record,
-                                              **how):
+                for j, result in fly_episodes(
+                    [specs[i] for i in indices], workers=request.workers, record=record, **how
+                ):
                     i = indices[j]
                     spec = specs[i]
                     if result.diverged:
-                        tqdm.write(f"c={spec.formation} seed={spec.seed} {spec.condition}: simulation diverged at "
-                                   f"step {result.steps} ({result.diverged}); episode stopped", file=sys.stderr)
+                        tqdm.write(
+                            f"c={spec.formation} seed={spec.seed} {spec.condition}: simulation diverged at "
+                            f"step {result.steps} ({result.diverged}); episode stopped",
+                            file=sys.stderr,
+                        )
                     if result.record is not None:
                         recorded += _emit_record(result.record, request, many=len(formations) * episodes > 1)
                     finished[i] = result.to_dict()
                     bar.update(1)
     except KeyboardInterrupt:
         interrupted = True
-        print(f"\n{PROG}: interrupted after {len(finished)} of {len(specs)} episodes; the table below holds "
-              "the finished ones", file=sys.stderr)
+        print(
+            f"\n{PROG}: interrupted after {len(finished)} of {len(specs)} episodes; the table below holds "
+            "the finished ones",
+            file=sys.stderr,
+        )
     rows_by_cell: dict[str, dict[str, list]] = {str(c): {} for c in formations}
     for i in sorted(finished):
         row = finished[i]
@@ -95,13 +144,27 @@ def run(request: SingleRequest, prov: dict, command: str) -> int:
             cell["retention"], cell["retention_note"] = retention(cell, table[c].get("SITL-S"))
             cell["paper"] = paper_cell(c, cond)
     summary = {
-        "schema": "cefc-eval/single", "schema_version": 2, "protocol": "single", "command": command,
-        "complete": not interrupted, "backend": where.backend, "policy": request.policy,
-        "estimator": flight.estimator, "offboard": flight.offboard, "guard": flight.guard,
-        "airframe": flight.airframe, "rotor_actuation": flight.rotor_actuation,
-        "wind_direction": where.wind_direction if where.wind else None, "condition": condition,
-        "wind": where.wind, "deviation": where.deviation, "steps": steps, "seeds": seeds,
-        "comparable_to_paper": steps == PAPER_STEPS, "provenance": prov, "rows": table,
+        "schema": "cefc-eval/single",
+        "schema_version": 2,
+        "protocol": "single",
+        "command": command,
+        "complete": not interrupted,
+        "backend": where.backend,
+        "policy": request.policy,
+        "estimator": flight.estimator,
+        "offboard": flight.offboard,
+        "guard": flight.guard,
+        "airframe": flight.airframe,
+        "rotor_actuation": flight.rotor_actuation,
+        "wind_direction": where.wind_direction if where.wind else None,
+        "condition": condition,
+        "wind": where.wind,
+        "deviation": where.deviation,
+        "steps": steps,
+        "seeds": seeds,
+        "comparable_to_paper": steps == PAPER_STEPS,
+        "provenance": prov,
+        "rows": table,
     }
     print(single_table(summary))
     for line in _sitl_and_dropout_lines(table, condition):
@@ -122,16 +185,22 @@ def single_table(summary: dict) -> str:
     lines = [
         "",
         f"Table VIII metrics, condition {cond}" + (" vs calm air (SITL-S)" if components else ""),
-        (f"  F = decision steps in formation, N = decision steps with the swarm centre within 1 m of the anchor "
-         f"(each out of {steps}),"),
+        (
+            f"  F = decision steps in formation, N = decision steps with the swarm centre within 1 m of the anchor "
+            f"(each out of {steps}),"
+        ),
         "  C = % of agent-steps in collision, retention = (F+N) / (F+N of the calm row above it: same c, same seeds).",
         f"  ours: {summary['backend']}"
-        + (f" ({summary.get('airframe', 'iris')} airframe, rotors {summary.get('rotor_actuation', 'auto')}"
-           f"{wind_direction_text(summary)})" if summary['backend'] == "mujoco" else "")
+        + (
+            f" ({summary.get('airframe', 'iris')} airframe, rotors {summary.get('rotor_actuation', 'auto')}"
+            f"{wind_direction_text(summary)})"
+            if summary["backend"] == "mujoco"
+            else ""
+        )
         + f", policy {summary['policy']}, "
         f"{summary.get('estimator', 'raw')} position estimate"
         + guard_text(summary)
-        + (f", {summary.get('offboard', 'velocity')} offboard setpoints, " if summary['backend'] == "mujoco" else ", ")
+        + (f", {summary.get('offboard', 'velocity')} offboard setpoints, " if summary["backend"] == "mujoco" else ", ")
         + (f"mean ± sample std over {k} seeds" if k > 1 else "1 seed (no spread; --episodes K gives mean ± std)")
         + "; paper: its Table VIII (Gazebo + PX4 SITL, 1000 steps).",
     ]
@@ -144,11 +213,18 @@ def single_table(summary: dict) -> str:
     def add(c, source, name, cell, ret, note):
         if ret is None and note:
             notes.append(f"c = {c} {source} {name}: retention - ({note})")
-        rows.append([c, source, name, format_mean_std(cell.get("F"), cell.get("F_std")),
-                     format_mean_std(cell.get("N"), cell.get("N_std")),
-                     format_mean_std(cell.get("FN", _fn(cell)), cell.get("FN_std")),
-                     format_mean_std(cell.get("C"), cell.get("C_std"), ".2f"),
-                     "-" if ret is None else f"{ret:.1%}"])
+        rows.append(
+            [
+                c,
+                source,
+                name,
+                format_mean_std(cell.get("F"), cell.get("F_std")),
+                format_mean_std(cell.get("N"), cell.get("N_std")),
+                format_mean_std(cell.get("FN", _fn(cell)), cell.get("FN_std")),
+                format_mean_std(cell.get("C"), cell.get("C_std"), ".2f"),
+                "-" if ret is None else f"{ret:.1%}",
+            ]
+        )
 
     for c, cells in summary["rows"].items():
         if not cells:
@@ -186,9 +262,12 @@ def _fn(cell: dict) -> float | None:
 def _render(rows: list[list[str]], right: set[int]) -> list[str]:
     """Rows of cells as aligned text columns (columns in `right` right-aligned)."""
     widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
-    return ["  ".join(cell.rjust(w) if i in right else cell.ljust(w)
-                      for i, (cell, w) in enumerate(zip(row, widths))).rstrip()
-            for row in rows]
+    return [
+        "  ".join(
+            cell.rjust(w) if i in right else cell.ljust(w) for i, (cell, w) in enumerate(zip(row, widths))
+        ).rstrip()
+        for row in rows
+    ]
 
 
 def _sitl_and_dropout_lines(table: dict, condition: str) -> list[str]:
@@ -199,25 +278,31 @@ def _sitl_and_dropout_lines(table: dict, condition: str) -> list[str]:
         rows = cells.get(condition, {}).get("episodes_detail", [])
         sitl = [r["sitl"] for r in rows if r.get("sitl")]
         if sitl:
+
             def pct(name, q, sitl=sitl):
                 return max((s[name]["all"][q] or 0.0) for s in sitl)
 
             rtf = np.mean([s["real_time_factor"] for s in sitl])
             events = sum(len(s["events"]) for s in sitl)
-            lines.append(f"  c = {c} SITL-M: decision latency p50 {pct('decision_latency_ms', 'p50'):.2f} ms, round "
-                         f"trip p50 {pct('round_trip_ms', 'p50'):.2f} / p99 {pct('round_trip_ms', 'p99'):.2f} ms, "
-                         f"command age p99 {pct('command_age_ms', 'p99'):.1f} ms (worst seed); {rtf:.1f}x real "
-                         f"time; {events} fault event(s)")
+            lines.append(
+                f"  c = {c} SITL-M: decision latency p50 {pct('decision_latency_ms', 'p50'):.2f} ms, round "
+                f"trip p50 {pct('round_trip_ms', 'p50'):.2f} / p99 {pct('round_trip_ms', 'p99'):.2f} ms, "
+                f"command age p99 {pct('command_age_ms', 'p99'):.1f} ms (worst seed); {rtf:.1f}x real "
+                f"time; {events} fault event(s)"
+            )
         drops = [r["dropout"] for r in rows if r.get("dropout")]
         if drops:
-            phase = {ph: {m: np.mean([d["phases"][ph][m] for d in drops])
-                          for m in ("F", "N", "C", "steps", "group_size")}
-                     for ph in ("before", "after")}
+            phase = {
+                ph: {m: np.mean([d["phases"][ph][m] for d in drops]) for m in ("F", "N", "C", "steps", "group_size")}
+                for ph in ("before", "after")
+            }
             b, a = phase["before"], phase["after"]
-            lines.append(f"  c = {c} dropout at step {drops[0]['step']}: before ({b['group_size']:.0f} UAVs, "
-                         f"{b['steps']:.0f} steps) F {b['F']:.1f} N {b['N']:.1f} C {b['C']:.2f} %; after "
-                         f"({a['group_size']:.0f} UAVs, {a['steps']:.0f} steps) F {a['F']:.1f} N {a['N']:.1f} "
-                         f"C {a['C']:.2f} %")
+            lines.append(
+                f"  c = {c} dropout at step {drops[0]['step']}: before ({b['group_size']:.0f} UAVs, "
+                f"{b['steps']:.0f} steps) F {b['F']:.1f} N {b['N']:.1f} C {b['C']:.2f} %; after "
+                f"({a['group_size']:.0f} UAVs, {a['steps']:.0f} steps) F {a['F']:.1f} N {a['N']:.1f} "
+                f"C {a['C']:.2f} %"
+            )
     return lines
 
 

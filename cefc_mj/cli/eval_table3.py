@@ -26,8 +26,9 @@ def check(request: Table3Request) -> dict:
             print(f"note: ORCA-F skipped: {PYRVO_MISSING}", file=sys.stderr)
         return provenance("atm", [])
     for c in request.formations:
-        name = (policy_file_for(POLICY_CHOICES[request.policy], c) if request.policy in POLICY_CHOICES
-                else request.policy)
+        name = (
+            policy_file_for(POLICY_CHOICES[request.policy], c) if request.policy in POLICY_CHOICES else request.policy
+        )
         if name is not None:  # ORCA-F has no policy file
             cached_policy(name, c)
     return provenance("atm", [])  # table3 records each row's file and sha256 itself
@@ -35,11 +36,18 @@ def check(request: Table3Request) -> dict:
 
 def run(request: Table3Request, prov: dict, command: str) -> int:
     """Fly every c's batch of episodes and print the table."""
-    print(f"{PROG} table3: particle, c = {', '.join(map(str, request.formations))}, {request.episodes} episodes x "
-          f"{request.steps} steps, seed {request.seed}, policy {request.policy or 'every Table III method'}")
-    result = run_table3(formations=request.formations, episodes=request.episodes, seed=request.seed,
-                        steps=request.steps, policy=request.policy,
-                        provenance={k: v for k, v in prov.items() if k != "policies"})
+    print(
+        f"{PROG} table3: particle, c = {', '.join(map(str, request.formations))}, {request.episodes} episodes x "
+        f"{request.steps} steps, seed {request.seed}, policy {request.policy or 'every Table III method'}"
+    )
+    result = run_table3(
+        formations=request.formations,
+        episodes=request.episodes,
+        seed=request.seed,
+        steps=request.steps,
+        policy=request.policy,
+        provenance={k: v for k, v in prov.items() if k != "policies"},
+    )
     result["protocol"]["command"] = command
     print(format_table3(result))
     if request.json is not None:

@@ -101,7 +101,8 @@ class Airframe:
         return float(np.sqrt(self.mass * gravity / (4.0 * self.motor_constant)))
 
     def effectiveness(self) -> np.ndarray:
-        """[4, 4]: rows (roll torque, pitch torque, yaw torque in N m, thrust in N) per unit normalised motor command."""
+        """[4, 4]: rows (roll torque, pitch torque, yaw torque in N m, thrust in N) per unit normalised motor
+        command."""
         t = self.max_thrust
         x, y = self.rotor_pos[:, 0], self.rotor_pos[:, 1]
         # thrust t u along body +z at (x, y, z): torque r x F = (y F, -x F, 0); yaw reaction -spin km F
@@ -129,8 +130,10 @@ def airframe_path(name_or_path: str | Path) -> Path:
         return path
     path = MJCF_DIR / f"{text}.xml"
     if not text or not path.is_file() or text in NOT_AIRFRAMES:
-        raise ConfigError(f"airframe: unknown airframe {text!r} (known: {', '.join(known_airframes())}; "
-                          "or give the path of an MJCF file)")
+        raise ConfigError(
+            f"airframe: unknown airframe {text!r} (known: {', '.join(known_airframes())}; "
+            "or give the path of an MJCF file)"
+        )
     return path
 
 
@@ -146,55 +149,88 @@ def load_airframe(name_or_path: str | Path) -> Airframe:
     except ValueError as exc:
         raise ConfigError(f"airframe: {path} does not compile: {str(exc).strip().splitlines()[0]}") from None
     if model.nbody != 2 or model.njnt != 1 or model.jnt_type[0] != mujoco.mjtJoint.mjJNT_FREE:
-        _fail(path, f"a quadrotor airframe is one body with a free joint (found {model.nbody - 1} bodies, {model.njnt} joints)")
+        _fail(
+            path,
+            f"a quadrotor airframe is one body with a free joint (found {model.nbody - 1} bodies, {model.njnt} joints)",
+        )
     if model.nu != 4:
-        _fail(path, f"has {model.nu} actuators; a quadrotor airframe needs exactly four <motor> actuators, one on each rotor site")
+        _fail(
+            path,
+            f"has {model.nu} actuators; a quadrotor airframe needs exactly four <motor> actuators, "
+            "one on each rotor site",
+        )
     numerics = {model.numeric(i).name: float(model.numeric_data[model.numeric_adr[i]]) for i in range(model.nnumeric)}
     missing = [n for n in MOTOR_NUMERICS if n not in numerics and n not in OPTIONAL_NUMERICS]
     if missing:
-        _fail(path, f"lacks <custom><numeric name={missing[0]!r}> (the motor model needs "
-                    f"{', '.join(n for n in MOTOR_NUMERICS if n not in OPTIONAL_NUMERICS)})")
+        _fail(
+            path,
+            f"lacks <custom><numeric name={missing[0]!r}> (the motor model needs "
+            f"{', '.join(n for n in MOTOR_NUMERICS if n not in OPTIONAL_NUMERICS)})",
+        )
     for name, value in numerics.items():
         if name in MOTOR_NUMERICS and not (np.isfinite(value) and (value >= 0 if "coefficient" in name else value > 0)):
-            _fail(path, f"numeric {name} = {value:g} must be a finite number {'>= 0' if 'coefficient' in name else '> 0'}")
+            _fail(
+                path, f"numeric {name} = {value:g} must be a finite number {'>= 0' if 'coefficient' in name else '> 0'}"
+            )
 
     sites: list[int] = []
     for i in range(4):
         label = f"actuator {model.actuator(i).name or i}"
-        if (model.actuator_dyntype[i] != mujoco.mjtDyn.mjDYN_NONE or model.actuator_gaintype[i] != mujoco.mjtGain.mjGAIN_FIXED
-                or model.actuator_biastype[i] != mujoco.mjtBias.mjBIAS_NONE or model.actuator_gainprm[i, 0] != 1.0):
+        if (
+            model.actuator_dyntype[i] != mujoco.mjtDyn.mjDYN_NONE
+            or model.actuator_gaintype[i] != mujoco.mjtGain.mjGAIN_FIXED
+            or model.actuator_biastype[i] != mujoco.mjtBias.mjBIAS_NONE
+            or model.actuator_gainprm[i, 0] != 1.0
+        ):
             _fail(path, f"{label} must be a <motor> (force = ctrl: no dynamics, gain 1, no bias)")
         if model.actuator_trntype[i] != mujoco.mjtTrn.mjTRN_SITE or model.actuator_trnid[i, 1] != -1:
             kind = mujoco.mjtTrn(model.actuator_trntype[i]).name.removeprefix("mjTRN_").lower()
             _fail(path, f"{label} must act on a rotor site (site=..., no refsite), not through a {kind} transmission")
         site = int(model.actuator_trnid[i, 0])
         if site in sites:
-            _fail(path, f"{label} acts on site {model.site(site).name!r} like another actuator; a quadrotor airframe "
-                        "needs four rotor sites, one thrust motor on each")
+            _fail(
+                path,
+                f"{label} acts on site {model.site(site).name!r} like another actuator; a quadrotor airframe "
+                "needs four rotor sites, one thrust motor on each",
+            )
         sites.append(site)
     gears = np.empty(4)
     for i, site in enumerate(sites):
         gear = model.actuator_gear[i]
         if not np.allclose(gear[:5], [0, 0, 1, 0, 0], atol=1e-12) or gear[5] == 0:
-            _fail(path, f"actuator {model.actuator(i).name or i} gear must be '0 0 1 0 0 +-km' (thrust along the rotor "
-                        f"axis, yaw reaction torque), got '{' '.join(f'{g:g}' for g in gear)}'")
+            _fail(
+                path,
+                f"actuator {model.actuator(i).name or i} gear must be '0 0 1 0 0 +-km' (thrust along the rotor "
+                f"axis, yaw reaction torque), got '{' '.join(f'{g:g}' for g in gear)}'",
+            )
         gears[i] = gear[5]
         axes = np.empty(9)
         mujoco.mju_quat2Mat(axes, model.site_quat[site])
         if not np.allclose(axes.reshape(3, 3)[:, 2], [0, 0, 1], atol=1e-9):
-            _fail(path, f"rotor site {model.site(site).name!r} must not tilt: its z axis (the thrust) must be the body's z axis")
+            _fail(
+                path,
+                f"rotor site {model.site(site).name!r} must not tilt: "
+                "its z axis (the thrust) must be the body's z axis",
+            )
     km = float(abs(gears[0]))
     if not np.allclose(np.abs(gears), km, rtol=1e-9):
         _fail(path, f"the four actuators' yaw gears must share one moment constant, got {np.abs(gears).tolist()}")
     if "moment_constant" in numerics and not np.isclose(km, numerics["moment_constant"], rtol=1e-9):
-        _fail(path, f"numeric moment_constant = {numerics['moment_constant']:g} differs from the actuators' gear {km:g}")
+        _fail(
+            path, f"numeric moment_constant = {numerics['moment_constant']:g} differs from the actuators' gear {km:g}"
+        )
     numerics["moment_constant"] = km
     spin = -np.sign(gears)  # a CCW rotor's reaction torque is clockwise (-z)
     if int((spin > 0).sum()) != 2:
-        _fail(path, f"a quadrotor needs two counter-clockwise and two clockwise rotors (gear[5] < 0 and > 0), "
-                    f"got {int((spin > 0).sum())} and {int((spin < 0).sum())}")
+        _fail(
+            path,
+            f"a quadrotor needs two counter-clockwise and two clockwise rotors (gear[5] < 0 and > 0), "
+            f"got {int((spin > 0).sum())} and {int((spin < 0).sum())}",
+        )
     max_thrust = numerics["motor_constant"] * numerics["max_rot_velocity"] ** 2
-    if not model.actuator_ctrllimited.all() or not np.allclose(model.actuator_ctrlrange, [[0.0, max_thrust]] * 4, rtol=1e-4):
+    if not model.actuator_ctrllimited.all() or not np.allclose(
+        model.actuator_ctrlrange, [[0.0, max_thrust]] * 4, rtol=1e-4
+    ):
         _fail(path, f"actuator ctrlrange must be 0 .. motor_constant * max_rot_velocity^2 = {max_thrust:.6g} N")
     centre = model.body_ipos[1].copy()
     airframe = Airframe(
@@ -217,8 +253,11 @@ def load_airframe(name_or_path: str | Path) -> Airframe:
     effectiveness = airframe.effectiveness()
     row_scale = np.maximum(np.abs(effectiveness).max(axis=1, keepdims=True), 1e-300)
     if np.linalg.matrix_rank(effectiveness / row_scale, tol=1e-6) < 4:
-        _fail(path, "the four rotors cannot make independent roll, pitch and yaw torques and thrust "
-                    "(a quadrotor needs its rotors around the centre of mass, not in a line)")
+        _fail(
+            path,
+            "the four rotors cannot make independent roll, pitch and yaw torques and thrust "
+            "(a quadrotor needs its rotors around the centre of mass, not in a line)",
+        )
     return airframe
 
 

@@ -38,8 +38,8 @@ Frames: world ENU, body FLU (MuJoCo's). PX4 works in NED/FRD; every formula here
 z (and the sign of vertical quantities) flipped, e.g. body_z = normalize(-a_x, -a_y, g) in NED is
 normalize(a_x, a_y, g) here. Quaternions are MuJoCo's [w, x, y, z] (body -> world).
 
-`Px4Cascade` holds the constants and the per-drone state it works on; tests/test_controller.py holds the slow numpy reference that it
-is checked against.
+`Px4Cascade` holds the constants and the per-drone state it works on; tests/test_controller.py holds
+the slow numpy reference that it is checked against.
 """
 
 from __future__ import annotations
@@ -58,20 +58,72 @@ from cefc_mj.jit import njit
 
 # ----------------------------------------------------------------------------- layouts
 # parameter positions (numba folds module-level ints into constants)
-(MPC_Z_P, MPC_Z_VEL_P_ACC, MPC_Z_VEL_I_ACC, MPC_Z_VEL_D_ACC, MPC_Z_VEL_MAX_UP, MPC_Z_VEL_MAX_DN,
- MPC_XY_VEL_P_ACC, MPC_XY_VEL_I_ACC, MPC_XY_VEL_D_ACC, MPC_VELD_LP,
- MPC_TILTMAX_AIR, MPC_THR_HOVER, MPC_THR_MIN, MPC_THR_MAX, MPC_THR_XY_MARG,
- MC_ROLL_P, MC_PITCH_P, MC_YAW_P, MC_YAW_WEIGHT, MC_ROLLRATE_MAX, MC_PITCHRATE_MAX, MC_YAWRATE_MAX,
- MC_ROLLRATE_P, MC_ROLLRATE_I, MC_ROLLRATE_D, MC_ROLLRATE_FF, MC_ROLLRATE_K, MC_RR_INT_LIM,
- MC_PITCHRATE_P, MC_PITCHRATE_I, MC_PITCHRATE_D, MC_PITCHRATE_FF, MC_PITCHRATE_K, MC_PR_INT_LIM,
- MC_YAWRATE_P, MC_YAWRATE_I, MC_YAWRATE_D, MC_YAWRATE_FF, MC_YAWRATE_K, MC_YR_INT_LIM,
- MC_YAW_TQ_CUTOFF, IMU_DGYRO_CUTOFF) = range(42)
+(
+    MPC_Z_P,
+    MPC_Z_VEL_P_ACC,
+    MPC_Z_VEL_I_ACC,
+    MPC_Z_VEL_D_ACC,
+    MPC_Z_VEL_MAX_UP,
+    MPC_Z_VEL_MAX_DN,
+    MPC_XY_VEL_P_ACC,
+    MPC_XY_VEL_I_ACC,
+    MPC_XY_VEL_D_ACC,
+    MPC_VELD_LP,
+    MPC_TILTMAX_AIR,
+    MPC_THR_HOVER,
+    MPC_THR_MIN,
+    MPC_THR_MAX,
+    MPC_THR_XY_MARG,
+    MC_ROLL_P,
+    MC_PITCH_P,
+    MC_YAW_P,
+    MC_YAW_WEIGHT,
+    MC_ROLLRATE_MAX,
+    MC_PITCHRATE_MAX,
+    MC_YAWRATE_MAX,
+    MC_ROLLRATE_P,
+    MC_ROLLRATE_I,
+    MC_ROLLRATE_D,
+    MC_ROLLRATE_FF,
+    MC_ROLLRATE_K,
+    MC_RR_INT_LIM,
+    MC_PITCHRATE_P,
+    MC_PITCHRATE_I,
+    MC_PITCHRATE_D,
+    MC_PITCHRATE_FF,
+    MC_PITCHRATE_K,
+    MC_PR_INT_LIM,
+    MC_YAWRATE_P,
+    MC_YAWRATE_I,
+    MC_YAWRATE_D,
+    MC_YAWRATE_FF,
+    MC_YAWRATE_K,
+    MC_YR_INT_LIM,
+    MC_YAW_TQ_CUTOFF,
+    IMU_DGYRO_CUTOFF,
+) = range(42)
 assert len(PARAM_NAMES) == 42 and PARAM_NAMES[MPC_VELD_LP] == "MPC_VELD_LP" and PARAM_NAMES[MC_ROLL_P] == "MC_ROLL_P"
 assert PARAM_NAMES[IMU_DGYRO_CUTOFF] == "IMU_DGYRO_CUTOFF"
 
 # constants array `k`
-(K_DT, K_RATE_DIV, K_POS_DIV, K_G, K_MASS, K_KT, K_WMAX, K_ALPHA_UP, K_ALPHA_DOWN, K_CRD, K_CRM,
- K_SPEED_TAU, K_COS_FLIP, K_DIST_TAU, K_KM, K_OFFBOARD) = range(16)
+(
+    K_DT,
+    K_RATE_DIV,
+    K_POS_DIV,
+    K_G,
+    K_MASS,
+    K_KT,
+    K_WMAX,
+    K_ALPHA_UP,
+    K_ALPHA_DOWN,
+    K_CRD,
+    K_CRM,
+    K_SPEED_TAU,
+    K_COS_FLIP,
+    K_DIST_TAU,
+    K_KM,
+    K_OFFBOARD,
+) = range(16)
 N_CONSTS = 16
 
 # offboard interfaces (k[K_OFFBOARD])
@@ -80,26 +132,26 @@ OFFBOARD_VELOCITY = 1
 OFFBOARD_MODES = {"velocity": OFFBOARD_VELOCITY, "acceleration": OFFBOARD_ACCELERATION}
 
 # per-drone state columns `s`
-S_OMEGA = 0      # 4 rotor speeds (rad/s)
-S_U = 4          # 4 normalised motor commands held between rate ticks
-S_QSP = 8        # attitude setpoint quaternion [w, x, y, z]
-S_THRUST = 12    # collective thrust setpoint (normalised)
+S_OMEGA = 0  # 4 rotor speeds (rad/s)
+S_U = 4  # 4 normalised motor commands held between rate ticks
+S_QSP = 8  # attitude setpoint quaternion [w, x, y, z]
+S_THRUST = 12  # collective thrust setpoint (normalised)
 S_RATE_INT = 13  # 3 rate integrators
-S_RATE_PREV = 16 # 3 body rates at the previous rate tick
-S_ANG_ACC = 19   # 3 filtered angular accelerations (D term)
-S_YAW_TQ = 22    # low-passed yaw torque
-S_Z_INT = 23     # vertical velocity integrator (m/s^2)
-S_VZ_PREV = 24   # climb rate at the previous position tick
-S_SAT_POS = 25   # 3 flags: allocator saturated in the positive direction
-S_SAT_NEG = 28   # 3 flags: ... negative direction
-S_ACC_CMD = 31   # 2 horizontal acceleration actually commanded (after limiter + feed-forward)
-S_DIST = 33      # 2 low-passed external horizontal acceleration estimate (wind push), m/s^2
+S_RATE_PREV = 16  # 3 body rates at the previous rate tick
+S_ANG_ACC = 19  # 3 filtered angular accelerations (D term)
+S_YAW_TQ = 22  # low-passed yaw torque
+S_Z_INT = 23  # vertical velocity integrator (m/s^2)
+S_VZ_PREV = 24  # climb rate at the previous position tick
+S_SAT_POS = 25  # 3 flags: allocator saturated in the positive direction
+S_SAT_NEG = 28  # 3 flags: ... negative direction
+S_ACC_CMD = 31  # 2 horizontal acceleration actually commanded (after limiter + feed-forward)
+S_DIST = 33  # 2 low-passed external horizontal acceleration estimate (wind push), m/s^2
 S_VXY_PREV = 35  # 2 horizontal velocity at the previous position tick
 S_THRUST_N = 37  # 4 rotor thrusts (N) applied at the last physics step
-S_VSP = 41       # 2 horizontal velocity setpoint (offboard "velocity")
-S_VEL_INT = 43   # 2 horizontal velocity integrator (m/s^2)
-S_VEL_DOT = 45   # 2 low-passed horizontal velocity derivative (D term)
-S_DRAG = 47      # 6 rotor drag + rolling moment (world force N, torque N m about the CoM), last physics step
+S_VSP = 41  # 2 horizontal velocity setpoint (offboard "velocity")
+S_VEL_INT = 43  # 2 horizontal velocity integrator (m/s^2)
+S_VEL_DOT = 45  # 2 low-passed horizontal velocity derivative (D term)
+S_DRAG = 47  # 6 rotor drag + rolling moment (world force N, torque N m about the CoM), last physics step
 N_STATE = 53
 
 # per-drone setpoint columns `sp`: SP_AX, SP_AY = the acceleration setpoint ("acceleration") or the
@@ -110,10 +162,12 @@ SP_AX, SP_AY, SP_Z, SP_VMAX = range(4)
 # ----------------------------------------------------------------------------- math helpers
 @njit(inline="always")
 def _qmul(a0, a1, a2, a3, b0, b1, b2, b3):
-    return (a0 * b0 - a1 * b1 - a2 * b2 - a3 * b3,
-            a0 * b1 + a1 * b0 + a2 * b3 - a3 * b2,
-            a0 * b2 - a1 * b3 + a2 * b0 + a3 * b1,
-            a0 * b3 + a1 * b2 - a2 * b1 + a3 * b0)
+    return (
+        a0 * b0 - a1 * b1 - a2 * b2 - a3 * b3,
+        a0 * b1 + a1 * b0 + a2 * b3 - a3 * b2,
+        a0 * b2 - a1 * b3 + a2 * b0 + a3 * b1,
+        a0 * b3 + a1 * b2 - a2 * b1 + a3 * b0,
+    )
 
 
 @njit(inline="always")
@@ -199,7 +253,12 @@ def _position_loop(d, qpos, qvel, s, sp, prm, k):
         err_x = s[d, S_VSP] - vx
         err_y = s[d, S_VSP + 1] - vy
         ax = sp[d, SP_AX] + prm[MPC_XY_VEL_P_ACC] * err_x + s[d, S_VEL_INT] - prm[MPC_XY_VEL_D_ACC] * s[d, S_VEL_DOT]
-        ay = sp[d, SP_AY] + prm[MPC_XY_VEL_P_ACC] * err_y + s[d, S_VEL_INT + 1] - prm[MPC_XY_VEL_D_ACC] * s[d, S_VEL_DOT + 1]
+        ay = (
+            sp[d, SP_AY]
+            + prm[MPC_XY_VEL_P_ACC] * err_y
+            + s[d, S_VEL_INT + 1]
+            - prm[MPC_XY_VEL_D_ACC] * s[d, S_VEL_DOT + 1]
+        )
     else:
         # external horizontal acceleration the vehicle does not command (wind): measured acceleration
         # minus what the thrust vector and the modelled calm-air rotor drag explain, low-passed
@@ -380,7 +439,12 @@ def _rate_pid(d, ax, rate_sp, qvel, s, prm, dt, a_acc):
     s[d, S_RATE_PREV + ax] = rate
     s[d, S_ANG_ACC + ax] += a_acc * (acc - s[d, S_ANG_ACC + ax])
     err = rate_sp - rate
-    torque = gain_k * prm[base] * err + s[d, S_RATE_INT + ax] - gain_k * prm[base + 2] * s[d, S_ANG_ACC + ax] + prm[base + 3] * rate_sp
+    torque = (
+        gain_k * prm[base] * err
+        + s[d, S_RATE_INT + ax]
+        - gain_k * prm[base + 2] * s[d, S_ANG_ACC + ax]
+        + prm[base + 3] * rate_sp
+    )
     return torque, err
 
 
@@ -408,15 +472,24 @@ def _rate_integral(d, ax, err, requested, u, s, prm, eff, dt):
 def _rate_loop(d, qpos, qvel, s, prm, k, mix, eff):
     """AttitudeControl + RateControl + allocation for drone d: writes the motor commands."""
     dt = k[K_DT] * k[K_RATE_DIV]
-    rx, ry, rz = _attitude_control(qpos[d, 3], qpos[d, 4], qpos[d, 5], qpos[d, 6],
-                                   s[d, S_QSP], s[d, S_QSP + 1], s[d, S_QSP + 2], s[d, S_QSP + 3], prm)
+    rx, ry, rz = _attitude_control(
+        qpos[d, 3],
+        qpos[d, 4],
+        qpos[d, 5],
+        qpos[d, 6],
+        s[d, S_QSP],
+        s[d, S_QSP + 1],
+        s[d, S_QSP + 2],
+        s[d, S_QSP + 3],
+        prm,
+    )
     a_acc = _lowpass_alpha(prm[IMU_DGYRO_CUTOFF], dt)
     c0, e0 = _rate_pid(d, 0, rx, qvel, s, prm, dt, a_acc)
     c1, e1 = _rate_pid(d, 1, ry, qvel, s, prm, dt, a_acc)
     c2, e2 = _rate_pid(d, 2, rz, qvel, s, prm, dt, a_acc)
     s[d, S_YAW_TQ] += _lowpass_alpha(prm[MC_YAW_TQ_CUTOFF], dt) * (c2 - s[d, S_YAW_TQ])
     c2 = s[d, S_YAW_TQ]
-    u = s[d, S_U:S_U + 4]
+    u = s[d, S_U : S_U + 4]
     _allocate(c0, c1, c2, s[d, S_THRUST], mix, u)
     _rate_integral(d, 0, e0, c0, u, s, prm, eff, dt)
     _rate_integral(d, 1, e1, c1, u, s, prm, eff, dt)
@@ -550,8 +623,27 @@ def _call_step(typingctx, fn, model, data):
 
 
 @njit
-def run_physics(tick, n_steps, step_fn, model, data, qpos, qvel, xfrc, ctrl, contacts, collided, s, sp, wind, prm, k,
-                mix, eff, rotors):
+def run_physics(
+    tick,
+    n_steps,
+    step_fn,
+    model,
+    data,
+    qpos,
+    qvel,
+    xfrc,
+    ctrl,
+    contacts,
+    collided,
+    s,
+    sp,
+    wind,
+    prm,
+    k,
+    mix,
+    eff,
+    rotors,
+):
     """n_steps physics steps of one env from `tick`: the cascade, then MuJoCo's `mj_step` (called
     through its C address `step_fn` on the mjModel/mjData addresses `model`, `data`), all compiled.
 
@@ -611,9 +703,19 @@ class Px4Cascade:
     (1, 3, 53)
     """
 
-    def __init__(self, airframe: Airframe, params: dict[str, float], timing: CascadeTiming, n_envs: int, n_drones: int,
-                 speed_limit_tau: float = 0.35, disturbance_tau: float = 0.1, flip_tilt_deg: float = 90.0,
-                 gravity: float = 9.81, offboard: str = "velocity"):
+    def __init__(
+        self,
+        airframe: Airframe,
+        params: dict[str, float],
+        timing: CascadeTiming,
+        n_envs: int,
+        n_drones: int,
+        speed_limit_tau: float = 0.35,
+        disturbance_tau: float = 0.1,
+        flip_tilt_deg: float = 90.0,
+        gravity: float = 9.81,
+        offboard: str = "velocity",
+    ):
         if offboard not in OFFBOARD_MODES:
             raise ValueError(f"offboard must be one of {', '.join(OFFBOARD_MODES)}, got {offboard!r}")
         self.offboard = offboard
@@ -650,12 +752,12 @@ class Px4Cascade:
         s = self.state[env]
         s[:] = 0.0
         hover_u = self.airframe.hover_thrust(self.gravity)
-        s[:, S_OMEGA:S_OMEGA + 4] = self.airframe.max_rot_velocity * math.sqrt(hover_u)
-        s[:, S_U:S_U + 4] = hover_u
+        s[:, S_OMEGA : S_OMEGA + 4] = self.airframe.max_rot_velocity * math.sqrt(hover_u)
+        s[:, S_U : S_U + 4] = hover_u
         s[:, S_QSP] = 1.0
         s[:, S_THRUST] = hover_u
-        s[:, S_THRUST_N:S_THRUST_N + 4] = hover_u * self.airframe.max_thrust
-        self.setpoint[env, :, SP_AX:SP_AY + 1] = 0.0
+        s[:, S_THRUST_N : S_THRUST_N + 4] = hover_u * self.airframe.max_thrust
+        self.setpoint[env, :, SP_AX : SP_AY + 1] = 0.0
 
     def command(self, accel: np.ndarray, decision_dt: float, envs: slice = slice(None)) -> None:
         """Hand the offboard interface one decision step's horizontal acceleration setpoints [B, D, 2]
@@ -668,24 +770,25 @@ class Px4Cascade:
         each of its ticks (decision_dt must be a whole number of position-loop periods).
         """
         if self.offboard == "acceleration":
-            self.setpoint[envs, :, SP_AX:SP_AY + 1] = accel
+            self.setpoint[envs, :, SP_AX : SP_AY + 1] = accel
             return
-        _velocity_command(np.ascontiguousarray(accel, dtype=np.float64), float(decision_dt), self.state[envs],
-                          self.setpoint[envs])
+        _velocity_command(
+            np.ascontiguousarray(accel, dtype=np.float64), float(decision_dt), self.state[envs], self.setpoint[envs]
+        )
 
     # read-only views for tests and visualisation
     def motor_speeds(self, env: int) -> np.ndarray:
         """[D, 4] rotor speeds (rad/s)."""
-        return self.state[env, :, S_OMEGA:S_OMEGA + 4]
+        return self.state[env, :, S_OMEGA : S_OMEGA + 4]
 
     def motor_thrusts(self, env: int) -> np.ndarray:
         """[D, 4] rotor thrusts (N) applied at the last physics step."""
-        return self.state[env, :, S_THRUST_N:S_THRUST_N + 4]
+        return self.state[env, :, S_THRUST_N : S_THRUST_N + 4]
 
     def drag_wrenches(self, env: int) -> np.ndarray:
         """[D, 6] rotor drag + rolling moment (world force N, torque N m about the CoM), last physics step."""
-        return self.state[env, :, S_DRAG:S_DRAG + 6]
+        return self.state[env, :, S_DRAG : S_DRAG + 6]
 
     def velocity_setpoints(self, env: int) -> np.ndarray:
         """[D, 2] horizontal velocity setpoints (m/s; offboard "velocity")."""
-        return self.state[env, :, S_VSP:S_VSP + 2]
+        return self.state[env, :, S_VSP : S_VSP + 2]

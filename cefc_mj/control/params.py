@@ -88,8 +88,10 @@ def params_for_airframe(mjcf_path: Path) -> Path:
     for path in candidates:
         if path.is_file():
             return path
-    raise ConfigError(f"params: no parameter file for airframe {mjcf_path.stem!r} (looked for {candidates[0]} and "
-                      f"{candidates[1]}); write one (docs/mujoco_world.md, Adding an airframe) or name it with params=")
+    raise ConfigError(
+        f"params: no parameter file for airframe {mjcf_path.stem!r} (looked for {candidates[0]} and "
+        f"{candidates[1]}); write one (docs/mujoco_world.md, Adding an airframe) or name it with params="
+    )
 
 
 def parse_params(text: str, source: str = "<params>") -> dict[str, float]:
@@ -104,7 +106,9 @@ def parse_params(text: str, source: str = "<params>") -> dict[str, float]:
             raise ConfigError(f"{source}:{lineno}: expected 'NAME VALUE', got {line!r}")
         name, value_text = fields
         if name not in PX4_PARAMS:
-            raise ConfigError(f"{source}:{lineno}: unknown parameter {name} (the cascade uses: {', '.join(PARAM_NAMES)})")
+            raise ConfigError(
+                f"{source}:{lineno}: unknown parameter {name} (the cascade uses: {', '.join(PARAM_NAMES)})"
+            )
         if name in values:
             raise ConfigError(f"{source}:{lineno}: parameter {name} is set twice")
         try:
@@ -113,15 +117,26 @@ def parse_params(text: str, source: str = "<params>") -> dict[str, float]:
             raise ConfigError(f"{source}:{lineno}: parameter {name} = {value_text!r} is not a number") from None
         lo, hi = PX4_PARAMS[name]
         if not (lo <= value <= hi):  # also rejects nan
-            raise ConfigError(f"{source}:{lineno}: parameter {name} = {value:g} is outside PX4's range [{lo:g}, {hi:g}]")
+            raise ConfigError(
+                f"{source}:{lineno}: parameter {name} = {value:g} is outside PX4's range [{lo:g}, {hi:g}]"
+            )
         values[name] = value
     missing = [n for n in PARAM_NAMES if n not in values]
     if missing:
-        raise ConfigError(f"{source}: missing parameter {missing[0]}" + (f" (and {len(missing) - 1} more)" if len(missing) > 1 else ""))
+        raise ConfigError(
+            f"{source}: missing parameter {missing[0]}"
+            + (f" (and {len(missing) - 1} more)" if len(missing) > 1 else "")
+        )
     if values["MPC_THR_MIN"] >= values["MPC_THR_MAX"]:
-        raise ConfigError(f"{source}: parameter MPC_THR_MIN = {values['MPC_THR_MIN']:g} must be below MPC_THR_MAX = {values['MPC_THR_MAX']:g}")
+        raise ConfigError(
+            f"{source}: parameter MPC_THR_MIN = {values['MPC_THR_MIN']:g} "
+            f"must be below MPC_THR_MAX = {values['MPC_THR_MAX']:g}"
+        )
     if not values["MPC_THR_MIN"] < values["MPC_THR_HOVER"] < values["MPC_THR_MAX"]:
-        raise ConfigError(f"{source}: parameter MPC_THR_HOVER = {values['MPC_THR_HOVER']:g} must lie between MPC_THR_MIN and MPC_THR_MAX")
+        raise ConfigError(
+            f"{source}: parameter MPC_THR_HOVER = {values['MPC_THR_HOVER']:g} "
+            "must lie between MPC_THR_MIN and MPC_THR_MAX"
+        )
     return values
 
 

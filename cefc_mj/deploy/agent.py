@@ -87,8 +87,16 @@ def _parent_alive(parent_pid: int | None) -> bool:
 class Agent:
     """The agent's state machine over one DEALER socket (see the module docstring)."""
 
-    def __init__(self, connect: str, uav: int, policy: str, parent_pid: int | None, wait_s: float,
-                 heartbeat_timeout_s: float | None, verbose: bool):
+    def __init__(
+        self,
+        connect: str,
+        uav: int,
+        policy: str,
+        parent_pid: int | None,
+        wait_s: float,
+        heartbeat_timeout_s: float | None,
+        verbose: bool,
+    ):
         import zmq
 
         self.zmq = zmq
@@ -157,8 +165,13 @@ class Agent:
         if self.heartbeat_override is None:
             self.heartbeat_timeout_s = message["heartbeat_timeout_s"]
         cfg = self.cfg
-        probe = {"pos": [0.0, 0.0], "vel": [0.0, 0.0], "anchor": [1.0, 1.0], "lidar": [cfg.lidar_range] * cfg.n_lidar_rays,
-                 "neighbours": [[(self.uav + 1) % cfg.n_agents, 1.0, 0.0, 0.0, 0.0]]}
+        probe = {
+            "pos": [0.0, 0.0],
+            "vel": [0.0, 0.0],
+            "anchor": [1.0, 1.0],
+            "lidar": [cfg.lidar_range] * cfg.n_lidar_rays,
+            "neighbours": [[(self.uav + 1) % cfg.n_agents, 1.0, 0.0, 0.0, 0.0]],
+        }
         from cefc_mj.task.guard import guarded
 
         # the lock-step runner's bits for this row (the guard, when the game asks for it, reads the row alone)
@@ -179,14 +192,26 @@ class Agent:
         obs = observation_from_packet(self.cfg, packet)
         accel = self.act(obs[None, None])[0, 0]
         latency_ms = (time.perf_counter() - arrived) * 1e3
-        self.send({"type": "action", "uav": self.uav, "seq": packet["seq"],
-                   "accel": [float(accel[0]), float(accel[1])], "latency_ms": latency_ms})
+        self.send(
+            {
+                "type": "action",
+                "uav": self.uav,
+                "seq": packet["seq"],
+                "accel": [float(accel[0]), float(accel[1])],
+                "latency_ms": latency_ms,
+            }
+        )
         self.answered += 1
 
     def run(self) -> int:
         """The agent's main loop; returns the process exit code."""
-        hello = {"type": "hello", "uav": self.uav, "policy": self.policy_choice, "pid": os.getpid(),
-                 "host": socket.gethostname()[:200]}
+        hello = {
+            "type": "hello",
+            "uav": self.uav,
+            "policy": self.policy_choice,
+            "pid": os.getpid(),
+            "host": socket.gethostname()[:200],
+        }
         self.send(hello)
         last_hello = last_heard = time.monotonic()
         while True:
@@ -195,8 +220,10 @@ class Agent:
             for message, arrived in messages:
                 kind = message["type"]
                 if kind == "stop":
-                    self.log(f"stopped by the simulator ({message['reason']}); {self.answered} packets answered, "
-                             f"{self.malformed} malformed dropped")
+                    self.log(
+                        f"stopped by the simulator ({message['reason']}); {self.answered} packets answered, "
+                        f"{self.malformed} malformed dropped"
+                    )
                     return 0
                 if kind == "reject":
                     return self._fail(f"rejected by the simulator: {message['reason']}")
@@ -213,12 +240,18 @@ class Agent:
                 last_heard = now  # (after a welcome: after loading the policy, which took a while)
             limit = self.heartbeat_timeout_s if self.cfg is not None else self.wait_s
             if now - last_heard > limit:
-                print(f"cefc-agent uav {self.uav}: no message from the simulator for {limit:g} s; exiting",
-                      file=sys.stderr, flush=True)
+                print(
+                    f"cefc-agent uav {self.uav}: no message from the simulator for {limit:g} s; exiting",
+                    file=sys.stderr,
+                    flush=True,
+                )
                 return EXIT_LOST
             if not _parent_alive(self.parent_pid):
-                print(f"cefc-agent uav {self.uav}: parent process {self.parent_pid} is gone; exiting",
-                      file=sys.stderr, flush=True)
+                print(
+                    f"cefc-agent uav {self.uav}: parent process {self.parent_pid} is gone; exiting",
+                    file=sys.stderr,
+                    flush=True,
+                )
                 return EXIT_LOST
             if self.cfg is None and now - last_hello > HELLO_PERIOD_S:  # the simulator may have (re)started
                 self.send(hello)
@@ -236,18 +269,41 @@ class _Parser(argparse.ArgumentParser):
 
 def build_parser() -> argparse.ArgumentParser:
     p = _Parser(prog="cefc-agent", description="Run UAV policies as SITL-M agent processes (one process per UAV).")
-    p.add_argument("--connect", required=True, metavar="ENDPOINT",
-                   help="the simulator's ZeroMQ endpoint, e.g. tcp://192.168.1.10:5555")
-    p.add_argument("--uav", required=True, type=int, nargs="+", metavar="I",
-                   help="this agent's UAV index (0-based); several indices fork one agent process per UAV "
-                        "after the shared imports")
-    p.add_argument("--policy", default=DEFAULT_POLICY, metavar="NAME|PATH",
-                   help=f"nav, atm, safe, clm, student, a name in policies/ or a .pt path (default {DEFAULT_POLICY})")
+    p.add_argument(
+        "--connect",
+        required=True,
+        metavar="ENDPOINT",
+        help="the simulator's ZeroMQ endpoint, e.g. tcp://192.168.1.10:5555",
+    )
+    p.add_argument(
+        "--uav",
+        required=True,
+        type=int,
+        nargs="+",
+        metavar="I",
+        help="this agent's UAV index (0-based); several indices fork one agent process per UAV "
+        "after the shared imports",
+    )
+    p.add_argument(
+        "--policy",
+        default=DEFAULT_POLICY,
+        metavar="NAME|PATH",
+        help=f"nav, atm, safe, clm, student, a name in policies/ or a .pt path (default {DEFAULT_POLICY})",
+    )
     p.add_argument("--parent-pid", type=int, metavar="PID", help="exit when this process (the simulator) is gone")
-    p.add_argument("--wait", type=float, default=DEFAULT_WAIT_S, metavar="S",
-                   help=f"how long to wait for the simulator's welcome (default {DEFAULT_WAIT_S:g} s)")
-    p.add_argument("--heartbeat-timeout", type=float, metavar="S",
-                   help="exit after this long without a message from the simulator (default: the simulator's value)")
+    p.add_argument(
+        "--wait",
+        type=float,
+        default=DEFAULT_WAIT_S,
+        metavar="S",
+        help=f"how long to wait for the simulator's welcome (default {DEFAULT_WAIT_S:g} s)",
+    )
+    p.add_argument(
+        "--heartbeat-timeout",
+        type=float,
+        metavar="S",
+        help="exit after this long without a message from the simulator (default: the simulator's value)",
+    )
     p.add_argument("--verbose", action="store_true", help="log to stderr")
     return p
 
@@ -257,8 +313,9 @@ def _run_agent(args, uav: int) -> int:
     agent = None
     try:
         try:
-            agent = Agent(args.connect, uav, args.policy, args.parent_pid, args.wait, args.heartbeat_timeout,
-                          args.verbose)
+            agent = Agent(
+                args.connect, uav, args.policy, args.parent_pid, args.wait, args.heartbeat_timeout, args.verbose
+            )
         except Exception as e:  # zmq.ZMQError: a malformed endpoint
             print(f"cefc-agent: error: --connect {args.connect}: {e}", file=sys.stderr)
             return EXIT_USAGE
@@ -313,8 +370,11 @@ def _fork_agents(args) -> int:
         if pid:
             uav = children.pop(pid, None)
             if args.verbose or os.waitstatus_to_exitcode(status) not in (0, 130, 143):
-                print(f"cefc-agent uav {uav}: process {pid} exited with code {os.waitstatus_to_exitcode(status)}",
-                      file=sys.stderr, flush=True)
+                print(
+                    f"cefc-agent uav {uav}: process {pid} exited with code {os.waitstatus_to_exitcode(status)}",
+                    file=sys.stderr,
+                    flush=True,
+                )
             continue
         if not stop_since and not _parent_alive(args.parent_pid):
             stop_children()
@@ -349,8 +409,16 @@ def main(argv: list[str] | None = None) -> int:
 
         torch.set_num_threads(1)
         cfg = TaskConfig(n_agents=3, mode="formation")  # load the compiled observation kernels once, before any fork
-        observation_from_packet(cfg, {"pos": [0.0, 0.0], "vel": [0.0, 0.0], "anchor": [1.0, 1.0],
-                                      "lidar": [cfg.lidar_range] * cfg.n_lidar_rays, "neighbours": [[1, 1.0, 0, 0, 0]]})
+        observation_from_packet(
+            cfg,
+            {
+                "pos": [0.0, 0.0],
+                "vel": [0.0, 0.0],
+                "anchor": [1.0, 1.0],
+                "lidar": [cfg.lidar_range] * cfg.n_lidar_rays,
+                "neighbours": [[1, 1.0, 0, 0, 0]],
+            },
+        )
     except KeyboardInterrupt:
         return 130
     if len(args.uav) > 1 and hasattr(os, "fork"):

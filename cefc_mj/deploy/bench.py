@@ -25,8 +25,9 @@ def _fmt(values) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m cefc_mj.deploy.bench", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(
+        prog="python -m cefc_mj.deploy.bench", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     p.add_argument("--formation", type=int, nargs="+", default=[5, 6, 7, 8], metavar="C")
     p.add_argument("--seeds", type=int, nargs="+", default=[0], metavar="S")
     p.add_argument("--steps", type=int, default=1000, metavar="T")
@@ -35,8 +36,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--link-delay", type=float, default=0.0, metavar="MS")
     p.add_argument("--jitter", type=float, default=0.0, metavar="MS")
     p.add_argument("--no-lockstep", action="store_true", help="fly only the SITL-M episodes")
-    p.add_argument("--latency-model", action="store_true",
-                   help="also fly the one-process latency model (run_latency_model_episode, one tick)")
+    p.add_argument(
+        "--latency-model",
+        action="store_true",
+        help="also fly the one-process latency model (run_latency_model_episode, one tick)",
+    )
     p.add_argument("--json", type=Path, metavar="PATH")
     args = p.parse_args(argv)
 
@@ -45,8 +49,10 @@ def main(argv: list[str] | None = None) -> int:
 
     sitl = SitlConfig(link_delay_ms=args.link_delay, jitter_ms=args.jitter)
     rows = []
-    print(f"{'c':>2} {'seed':>4} | {'SITL-S F/N/C':>18} | {'SITL-M F/N/C':>18} | {'RTT p50/p99 ms':>14} | "
-          f"{'latency p50/p99':>15} | {'age p50':>7} | {'late':>4} | {'RTF':>5} | {'startup s':>9}")
+    print(
+        f"{'c':>2} {'seed':>4} | {'SITL-S F/N/C':>18} | {'SITL-M F/N/C':>18} | {'RTT p50/p99 ms':>14} | "
+        f"{'latency p50/p99':>15} | {'age p50':>7} | {'late':>4} | {'RTF':>5} | {'startup s':>9}"
+    )
     for c in args.formation:
         for seed in args.seeds:
             spec = EpisodeSpec(formation=c, seed=seed, steps=args.steps, backend=args.backend, policy=args.policy)
@@ -55,16 +61,24 @@ def main(argv: list[str] | None = None) -> int:
             model = run_latency_model_episode(spec) if args.latency_model else None
             s = res.sitl.summary()
             rtt, lat, age = (s[k]["all"] for k in ("round_trip_ms", "decision_latency_ms", "command_age_ms"))
-            row = {"formation": c, "seed": seed, "steps": args.steps,
-                   "SITL-S": None if ref is None else {"F": ref.F, "N": ref.N, "C": ref.C, "wall_s": ref.wall_s},
-                   "SITL-M": {"F": res.F, "N": res.N, "C": res.C, "wall_s": res.wall_s}, "sitl": s,
-                   "latency_model": None if model is None else {"F": model.F, "N": model.N, "C": model.C}}
+            row = {
+                "formation": c,
+                "seed": seed,
+                "steps": args.steps,
+                "SITL-S": None if ref is None else {"F": ref.F, "N": ref.N, "C": ref.C, "wall_s": ref.wall_s},
+                "SITL-M": {"F": res.F, "N": res.N, "C": res.C, "wall_s": res.wall_s},
+                "sitl": s,
+                "latency_model": None if model is None else {"F": model.F, "N": model.N, "C": model.C},
+            }
             rows.append(row)
             ref_txt = "-" if ref is None else f"{ref.F:.0f}/{ref.N:.0f}/{ref.C:.2f}"
-            print(f"{c:>2} {seed:>4} | {ref_txt:>18} | {f'{res.F:.0f}/{res.N:.0f}/{res.C:.2f}':>18} | "
-                  f"{_fmt([rtt['p50'], rtt['p99']]):>14} | {_fmt([lat['p50'], lat['p99']]):>15} | {age['p50']:>7.1f} | "
-                  f"{sum(s['late_commands']):>4} | {s['real_time_factor']:>5.1f} | {s['startup_s']:>9.1f}"
-                  + ("" if model is None else f" | model {model.F:.0f}/{model.N:.0f}/{model.C:.2f}"), flush=True)
+            print(
+                f"{c:>2} {seed:>4} | {ref_txt:>18} | {f'{res.F:.0f}/{res.N:.0f}/{res.C:.2f}':>18} | "
+                f"{_fmt([rtt['p50'], rtt['p99']]):>14} | {_fmt([lat['p50'], lat['p99']]):>15} | {age['p50']:>7.1f} | "
+                f"{sum(s['late_commands']):>4} | {s['real_time_factor']:>5.1f} | {s['startup_s']:>9.1f}"
+                + ("" if model is None else f" | model {model.F:.0f}/{model.N:.0f}/{model.C:.2f}"),
+                flush=True,
+            )
     if not args.no_lockstep:
         print("\nSITL-M share of SITL-S F + N:")
         total_m = total_s = 0.0

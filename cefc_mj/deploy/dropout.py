@@ -15,7 +15,6 @@ same `drop` for SITL-M, where the dropped agents' processes are killed (or stopp
 
 from __future__ import annotations
 
-
 import numpy as np
 
 from cefc_mj.env import BatchedCEFCEnv
@@ -132,7 +131,8 @@ def dropout_report(env: DropoutCEFCEnv, uavs: list[int], step: int):
     from cefc_mj.deploy.results import DropoutReport
 
     return DropoutReport(
-        uavs=list(uavs), step=step,
+        uavs=list(uavs),
+        step=step,
         phases={"before": env.phase_metrics(0, 0, step), "after": env.phase_metrics(0, step)},
         hd_error=np.asarray([v[0] for v in env.trace["hd_error"]]),
     )
@@ -154,10 +154,20 @@ def run_dropout_episode(spec, drop: tuple[int, int], policy=None):
     k, step = check_drop(drop, spec.formation, spec.steps)
     policy = policy if policy is not None else load_policy_for(spec.policy, spec.formation)
     config = policy.task_for(spec.task_config())
-    world = TickedWorld(make_world(spec.backend, config, n_envs=1, wind=spec.wind, seed=spec.seed,
-                                   airframe=spec.mujoco_airframe, wind_direction=spec.wind_direction,
-                                   rotor_actuation=spec.rotor_actuation if spec.backend == "mujoco" else None),
-                        1, config.dt)
+    world = TickedWorld(
+        make_world(
+            spec.backend,
+            config,
+            n_envs=1,
+            wind=spec.wind,
+            seed=spec.seed,
+            airframe=spec.mujoco_airframe,
+            wind_direction=spec.wind_direction,
+            rotor_actuation=spec.rotor_actuation if spec.backend == "mujoco" else None,
+        ),
+        1,
+        config.dt,
+    )
     env = DropoutCEFCEnv(config, n_envs=1, seed=spec.seed, world=world)
     dropped = choose_dropouts(spec.formation, k, spec.seed)
 
@@ -177,5 +187,6 @@ def run_dropout_episode(spec, drop: tuple[int, int], policy=None):
     diverged, wall_s = fly(env, spec.steps, act, before_step=leave)
     return SitlEpisodeResult(
         **episode_fields(env, spec, diverged, wall_s),
-        dropout=dropout_report(env, dropped, step), mode="lock-step",
+        dropout=dropout_report(env, dropped, step),
+        mode="lock-step",
     )

@@ -25,7 +25,13 @@ import numpy as np
 from cefc_mj.deploy.dropout import DropoutCEFCEnv, check_drop, choose_dropouts, dropout_report
 from cefc_mj.deploy.results import SitlEpisodeResult, SitlStats
 from cefc_mj.deploy.sim_server import (  # noqa: F401
-    OFFBOARD_LOSS_TIMEOUT_S, AgentError, AgentFleet, SitlServer, block_sigint, restore_sigint)
+    OFFBOARD_LOSS_TIMEOUT_S,
+    AgentError,
+    AgentFleet,
+    SitlServer,
+    block_sigint,
+    restore_sigint,
+)
 from cefc_mj.deploy.tick_world import make_ticked_world
 from cefc_mj.errors import ConfigError, SimulationDiverged
 from cefc_mj.eval.runner import EpisodeSpec, wind_direction_flown
@@ -102,8 +108,11 @@ class SitlConfig:
             value = getattr(self, name)
             if not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
                 raise ConfigError(f"{name}={value!r}: must be a finite number > 0")
-        if self.control_tick_s is not None and not (isinstance(self.control_tick_s, (int, float))
-                                                    and math.isfinite(self.control_tick_s) and self.control_tick_s > 0):
+        if self.control_tick_s is not None and not (
+            isinstance(self.control_tick_s, (int, float))
+            and math.isfinite(self.control_tick_s)
+            and self.control_tick_s > 0
+        ):
             raise ConfigError(f"control_tick_s={self.control_tick_s!r}: must be a finite number > 0 or None")
         if "://" not in str(self.bind):
             raise ConfigError(f"bind={self.bind!r}: not a ZeroMQ endpoint (e.g. tcp://127.0.0.1:5555)")
@@ -132,8 +141,9 @@ def _check(spec: EpisodeSpec, sitl: SitlConfig) -> tuple[float, tuple[int, int] 
             raise ConfigError(f"remote_agents: {uav!r} is not a UAV index 0..{spec.formation - 1}")
     for fault in sitl.faults:
         if not 0 <= fault.uav < spec.formation or not 0 <= fault.step < spec.steps:
-            raise ConfigError(f"faults: {fault} is outside the episode (uav 0..{spec.formation - 1}, "
-                              f"step 0..{spec.steps - 1})")
+            raise ConfigError(
+                f"faults: {fault} is outside the episode (uav 0..{spec.formation - 1}, step 0..{spec.steps - 1})"
+            )
         if fault.uav in sitl.remote_agents:
             raise ConfigError(f"faults: uav {fault.uav}'s agent is remote; only local processes can be signalled")
     policy = load_policy_for(spec.policy, spec.formation)  # an unknown policy fails here, not in N processes
@@ -150,13 +160,31 @@ def run_sitl_episode(spec: EpisodeSpec, sitl: SitlConfig = SitlConfig(), record:
     or raises (Ctrl-C included).
     """
     tick, drop, config = _check(spec, sitl)
-    world = make_ticked_world(spec.backend, config, tick, wind=spec.wind, seed=spec.seed,
-                              airframe=spec.mujoco_airframe, wind_direction=spec.wind_direction,
-                              rotor_actuation=spec.rotor_actuation)
+    world = make_ticked_world(
+        spec.backend,
+        config,
+        tick,
+        wind=spec.wind,
+        seed=spec.seed,
+        airframe=spec.mujoco_airframe,
+        wind_direction=spec.wind_direction,
+        rotor_actuation=spec.rotor_actuation,
+    )
     env = DropoutCEFCEnv(config, n_envs=1, seed=spec.seed, world=world)
     welcome = {"formation": spec.formation, "task": config.to_dict(), "heartbeat_timeout_s": sitl.heartbeat_timeout_s}
-    server = SitlServer(sitl.bind, spec.formation, welcome, world.tick_s, sitl.link_delay_ms, sitl.jitter_ms,
-                        sitl.offboard_loss_timeout_s, sitl.realtime, sitl.lockstep, sitl.lockstep_timeout_s, spec.seed)
+    server = SitlServer(
+        sitl.bind,
+        spec.formation,
+        welcome,
+        world.tick_s,
+        sitl.link_delay_ms,
+        sitl.jitter_ms,
+        sitl.offboard_loss_timeout_s,
+        sitl.realtime,
+        sitl.lockstep,
+        sitl.lockstep_timeout_s,
+        spec.seed,
+    )
     fleet = None
     try:
         local = [i for i in range(spec.formation) if i not in sitl.remote_agents]
@@ -165,12 +193,18 @@ def run_sitl_episode(spec: EpisodeSpec, sitl: SitlConfig = SitlConfig(), record:
             fleet = AgentFleet(command, server.local_endpoint, spec.policy, local, sitl.verbose_agents)
             fleet.spawn()
         if sitl.remote_agents:
-            print(f"SITL-M: waiting for agents {list(sitl.remote_agents)} at {server.endpoint}", file=sys.stderr, flush=True)
+            print(
+                f"SITL-M: waiting for agents {list(sitl.remote_agents)} at {server.endpoint}",
+                file=sys.stderr,
+                flush=True,
+            )
         startup_s = server.wait_until_ready(sitl.startup_timeout_s, fleet)
         if fleet is not None:
             for uav in local:
                 if not fleet.adopt(uav, server.vehicles[uav].info.get("pid", -1)):
-                    server.event(uav, "not_adopted", "the agent's pid is not a local agent process: faults cannot reach it")
+                    server.event(
+                        uav, "not_adopted", "the agent's pid is not a local agent process: faults cannot reach it"
+                    )
         return _fly(spec, sitl, env, world, server, fleet, drop, startup_s, record)
     finally:  # Ctrl-C waits until every agent process is gone
         previous = block_sigint()
@@ -183,8 +217,11 @@ def run_sitl_episode(spec: EpisodeSpec, sitl: SitlConfig = SitlConfig(), record:
             restore_sigint(previous)
 
 
-TIMING_SCALARS = {"sitl_decision_latency_ms": "latency_ms", "sitl_round_trip_ms": "round_trip_ms",
-                  "sitl_command_age_ms": "age_ms"}
+TIMING_SCALARS = {
+    "sitl_decision_latency_ms": "latency_ms",
+    "sitl_round_trip_ms": "round_trip_ms",
+    "sitl_command_age_ms": "age_ms",
+}
 """Per-step SITL-M timing recorded for Rerun (name -> the per-vehicle sample list it reads)."""
 
 
@@ -228,8 +265,16 @@ def _fly(spec, sitl, env, world, server: SitlServer, fleet: AgentFleet | None, d
                     fleet.signal(uav, signal.SIGKILL if sitl.drop_action == "kill" else signal.SIGSTOP)
                 server.remove(uav, f"dropout ({sitl.drop_action})")
             env.remove_agents(0, dropped)
-        server.send_sensors(k, t, env.perceived_pos[0], world.agent_vel[0], env.lidar[0], env.anchor[0],
-                            world.agent_pos[0], config.observation_distance)
+        server.send_sensors(
+            k,
+            t,
+            env.perceived_pos[0],
+            world.agent_vel[0],
+            env.lidar[0],
+            env.anchor[0],
+            world.agent_pos[0],
+            config.observation_distance,
+        )
         server.await_replies()
         try:
             _, _, done, _ = env.step(np.zeros((1, spec.formation, 2)))  # the controller supplies the setpoints
@@ -267,15 +312,24 @@ def _fly(spec, sitl, env, world, server: SitlServer, fleet: AgentFleet | None, d
     if record is not None:  # Rerun draws these under metrics/ beside F, N, C
         record.scalars.update({name: np.asarray(series, dtype=np.float64) for name, series in timing.items()})
     return SitlEpisodeResult(
-        spec=spec, F=float(metrics["F"][0]), N=float(metrics["N"][0]), C=float(metrics["C"][0]),
-        steps=int(env.t[0]), wall_s=loop_wall, diverged=diverged, wind_direction_flown=wind_direction_flown(world),
+        spec=spec,
+        F=float(metrics["F"][0]),
+        N=float(metrics["N"][0]),
+        C=float(metrics["C"][0]),
+        steps=int(env.t[0]),
+        wall_s=loop_wall,
+        diverged=diverged,
+        wind_direction_flown=wind_direction_flown(world),
         record=record,
-        sitl=stats, dropout=dropout_report(env, dropped, drop[1]) if drop else None, mode="SITL-M",
+        sitl=stats,
+        dropout=dropout_report(env, dropped, drop[1]) if drop else None,
+        mode="SITL-M",
     )
 
 
-def run_latency_model_episode(spec: EpisodeSpec, latency_ticks: int = 1, control_tick_s: float | None = None,
-                              policy=None) -> SitlEpisodeResult:
+def run_latency_model_episode(
+    spec: EpisodeSpec, latency_ticks: int = 1, control_tick_s: float | None = None, policy=None
+) -> SitlEpisodeResult:
     """The deterministic, one-process model of a SITL-M episode: the lock-step episode on the
     ticked world where each decision takes effect `latency_ticks` control ticks after its packet
     (held until the next one does), and each agent's policy runs on its own observation (batch of 1,
@@ -294,15 +348,21 @@ def run_latency_model_episode(spec: EpisodeSpec, latency_ticks: int = 1, control
         raise ConfigError(f"latency_ticks={latency_ticks!r}: must be an integer >= 0")
     policy = policy if policy is not None else load_policy_for(spec.policy, spec.formation)
     config = policy.task_for(config)
-    world = make_ticked_world(spec.backend, config, tick, wind=spec.wind, seed=spec.seed,
-                              airframe=spec.mujoco_airframe, wind_direction=spec.wind_direction,
-                              rotor_actuation=spec.rotor_actuation)
+    world = make_ticked_world(
+        spec.backend,
+        config,
+        tick,
+        wind=spec.wind,
+        seed=spec.seed,
+        airframe=spec.mujoco_airframe,
+        wind_direction=spec.wind_direction,
+        rotor_actuation=spec.rotor_actuation,
+    )
     env = DropoutCEFCEnv(config, n_envs=1, seed=spec.seed, world=world)
     n_ticks = world.n_ticks
     commands: dict[int, np.ndarray] = {}  # decision step -> its setpoints [1, N, 2]
     held = [np.zeros((1, spec.formation, 2))]
     step_index = 0
-    timing: dict[str, list[float]] = {name: [] for name in TIMING_SCALARS}
 
     def controller(j: int) -> np.ndarray:
         tick_index = step_index * n_ticks + j

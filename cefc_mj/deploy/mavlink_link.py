@@ -113,8 +113,13 @@ magnitudes (m/s, m/s^2, rad from the current heading, rad/s) a warning says so."
 STATUSTEXT_REPEAT_S = 10.0
 """A warning for the same cause (a refused frame, an ignored field, ...) is sent at most once per this
 many simulated seconds, however often the cause recurs (each occurrence is counted)."""
-FLIGHT_MESSAGES = ("SET_POSITION_TARGET_GLOBAL_INT", "SET_ATTITUDE_TARGET", "SET_ACTUATOR_CONTROL_TARGET",
-                   "MANUAL_CONTROL", "COMMAND_INT")
+FLIGHT_MESSAGES = (
+    "SET_POSITION_TARGET_GLOBAL_INT",
+    "SET_ATTITUDE_TARGET",
+    "SET_ACTUATOR_CONTROL_TARGET",
+    "MANUAL_CONTROL",
+    "COMMAND_INT",
+)
 """Messages a script may fly with that the link does not handle: ignored with a warning, not silently."""
 
 
@@ -176,8 +181,9 @@ class MavlinkLinkConfig:
         if not isinstance(n, int) or isinstance(n, bool) or not 1 <= n <= 64:
             raise ConfigError(f"n_drones={n!r}: must be an integer in 1..64")
         if not isinstance(self.system_id, int) or not 1 <= self.system_id <= 256 - n:
-            raise ConfigError(f"system_id={self.system_id!r}: must be in 1..{256 - n} "
-                              f"(drone i has system id + i <= 255)")
+            raise ConfigError(
+                f"system_id={self.system_id!r}: must be in 1..{256 - n} (drone i has system id + i <= 255)"
+            )
         for name, low in (("ports", 0), ("remote_ports", 1)):
             ports = getattr(self, name)
             if not isinstance(ports, tuple) or len(ports) not in (1, n):
@@ -194,10 +200,13 @@ class MavlinkLinkConfig:
                 raise ConfigError(f"{name}={value!r}: must be a finite number > 0")
         ticks = 1.0 / (CONTROL_TICK_S * self.telemetry_hz)
         if self.telemetry_hz > 1.0 / CONTROL_TICK_S or abs(ticks - round(ticks)) > 1e-9:
-            raise ConfigError(f"telemetry_hz={self.telemetry_hz!r}: must divide the control rate "
-                              f"{1.0 / CONTROL_TICK_S:g} Hz (e.g. 50, 25, 10)")
-        if self.duration_s is not None and not (isinstance(self.duration_s, (int, float))
-                                                and math.isfinite(self.duration_s) and self.duration_s > 0):
+            raise ConfigError(
+                f"telemetry_hz={self.telemetry_hz!r}: must divide the control rate "
+                f"{1.0 / CONTROL_TICK_S:g} Hz (e.g. 50, 25, 10)"
+            )
+        if self.duration_s is not None and not (
+            isinstance(self.duration_s, (int, float)) and math.isfinite(self.duration_s) and self.duration_s > 0
+        ):
             raise ConfigError(f"duration_s={self.duration_s!r}: must be a finite number > 0 (or None: no limit)")
         if self.origin not in ORIGINS:
             raise ConfigError(f"origin={self.origin!r}: must be one of {', '.join(ORIGINS)}")
@@ -302,11 +311,13 @@ def attitude_ned(quat_wxyz: np.ndarray) -> tuple[float, float, float]:
     """(roll, pitch, yaw) of the FRD body in NED (rad, ZYX Euler angles, as PX4's ATTITUDE) from the
     MuJoCo quaternion [w, x, y, z] of the FLU body in ENU."""
     w, x, y, z = (float(c) for c in quat_wxyz)
-    r_enu_flu = np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ])
+    r_enu_flu = np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
     r = _ENU_TO_NED @ r_enu_flu @ _FLU_TO_FRD
     roll = math.atan2(r[2, 1], r[2, 2])
     pitch = -math.asin(max(-1.0, min(1.0, r[2, 0])))
@@ -317,8 +328,19 @@ def attitude_ned(quat_wxyz: np.ndarray) -> tuple[float, float, float]:
 # ====================================================================== one vehicle
 SETPOINT_FRAMES = {1: "LOCAL_NED", 7: "LOCAL_OFFSET_NED", 8: "BODY_NED", 9: "BODY_OFFSET_NED"}
 """The MAV_FRAME values a SET_POSITION_TARGET_LOCAL_NED may use (module docstring, "Frames")."""
-TYPE_MASK_BITS = {"x": 1, "y": 2, "z": 4, "vx": 8, "vy": 16, "vz": 32, "afx": 64, "afy": 128, "afz": 256,
-                  "yaw": 1024, "yaw_rate": 2048}
+TYPE_MASK_BITS = {
+    "x": 1,
+    "y": 2,
+    "z": 4,
+    "vx": 8,
+    "vy": 16,
+    "vz": 32,
+    "afx": 64,
+    "afy": 128,
+    "afz": 256,
+    "yaw": 1024,
+    "yaw_rate": 2048,
+}
 """POSITION_TARGET_TYPEMASK: a set bit means the field is ignored. Bit 512 (FORCE_SET) is not a field:
 it says afx, afy, afz are a force."""
 TYPE_MASK_FORCE_SET = 512
@@ -353,10 +375,18 @@ class VehicleLink:
     no estimate, such setpoints are refused); `speed_max` is the horizontal speed limit.
     """
 
-    def __init__(self, uav: int, system_id: int, sock: socket.socket, remote: tuple[str, int],
-                 offboard_loss_timeout_s: float = OFFBOARD_LOSS_TIMEOUT_S, log: Callable[[str], None] | None = None,
-                 verbose: bool = False, state: Callable[[], tuple[np.ndarray, float]] | None = None,
-                 speed_max: float = math.inf):
+    def __init__(
+        self,
+        uav: int,
+        system_id: int,
+        sock: socket.socket,
+        remote: tuple[str, int],
+        offboard_loss_timeout_s: float = OFFBOARD_LOSS_TIMEOUT_S,
+        log: Callable[[str], None] | None = None,
+        verbose: bool = False,
+        state: Callable[[], tuple[np.ndarray, float]] | None = None,
+        speed_max: float = math.inf,
+    ):
         self.mavlink = _mavlink()
         self.uav, self.system_id, self.sock = uav, system_id, sock
         self.remote = (resolve(remote[0]), int(remote[1]))
@@ -364,8 +394,9 @@ class VehicleLink:
         self.offboard_loss_timeout_s = offboard_loss_timeout_s
         self.log = log or (lambda text: None)
         self.verbose = verbose
-        self.mav = self.mavlink.MAVLink(_UdpWriter(self), srcSystem=system_id,
-                                        srcComponent=self.mavlink.MAV_COMP_ID_AUTOPILOT1)
+        self.mav = self.mavlink.MAVLink(
+            _UdpWriter(self), srcSystem=system_id, srcComponent=self.mavlink.MAV_COMP_ID_AUTOPILOT1
+        )
         self.parser = self._new_parser()
         self.armed = False
         self.mode = MODE_HOLD
@@ -452,8 +483,12 @@ class VehicleLink:
     @property
     def base_mode(self) -> int:
         m = self.mavlink
-        flags = (m.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | m.MAV_MODE_FLAG_AUTO_ENABLED | m.MAV_MODE_FLAG_GUIDED_ENABLED
-                 | m.MAV_MODE_FLAG_STABILIZE_ENABLED)  # PX4's flags for its AUTO and OFFBOARD modes
+        flags = (
+            m.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
+            | m.MAV_MODE_FLAG_AUTO_ENABLED
+            | m.MAV_MODE_FLAG_GUIDED_ENABLED
+            | m.MAV_MODE_FLAG_STABILIZE_ENABLED
+        )  # PX4's flags for its AUTO and OFFBOARD modes
         return flags | (m.MAV_MODE_FLAG_SAFETY_ARMED if self.armed else 0)
 
     def command(self, t: float) -> tuple[str, np.ndarray] | None:
@@ -515,8 +550,12 @@ class VehicleLink:
             return
         self.last_peer = peer  # like PX4, answer whoever talks to us
         kind = message.get_type()
-        handler = {"HEARTBEAT": None, "SET_POSITION_TARGET_LOCAL_NED": self._setpoint,
-                   "COMMAND_LONG": self._command_long, "SET_MODE": self._set_mode_message}.get(kind, False)
+        handler = {
+            "HEARTBEAT": None,
+            "SET_POSITION_TARGET_LOCAL_NED": self._setpoint,
+            "COMMAND_LONG": self._command_long,
+            "SET_MODE": self._set_mode_message,
+        }.get(kind, False)
         if handler is False:
             self._ignore(f"unsupported message {kind}")
             if kind in FLIGHT_MESSAGES and getattr(message, "target_system", 0) in (0, self.system_id):
@@ -621,8 +660,9 @@ class VehicleLink:
         """SET_MODE (MAVROS' set_mode): answered with a COMMAND_ACK for MAV_CMD_DO_SET_MODE, as PX4 does."""
         main, sub = (msg.custom_mode >> 16) & 0xFF, (msg.custom_mode >> 24) & 0xFF
         result = self._set_mode(msg.base_mode, main, sub)
-        self.mav.command_ack_send(self.mavlink.MAV_CMD_DO_SET_MODE, result, 0, 0,
-                                  msg.get_srcSystem(), msg.get_srcComponent())
+        self.mav.command_ack_send(
+            self.mavlink.MAV_CMD_DO_SET_MODE, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()
+        )
         return True
 
     def _ack(self, msg, result: int) -> None:
@@ -656,8 +696,9 @@ class VehicleLink:
         elif (main, sub) == MODE_HOLD:
             wanted = MODE_HOLD
         else:
-            self.status_text(f"Unsupported mode {main}/{sub}: the testbed flies OFFBOARD and AUTO.LOITER",
-                             m.MAV_SEVERITY_WARNING)
+            self.status_text(
+                f"Unsupported mode {main}/{sub}: the testbed flies OFFBOARD and AUTO.LOITER", m.MAV_SEVERITY_WARNING
+            )
             return m.MAV_RESULT_UNSUPPORTED
         if wanted == MODE_OFFBOARD and not self.streaming:  # PX4: stream setpoints before switching
             refusal = self._recent_refusal()
@@ -676,16 +717,27 @@ class VehicleLink:
         """One STATUSTEXT (50 characters): a name in parentheses at the end that would not fit is dropped
         (e.g. a long frame or command name: its number stays), the rest cut at 50."""
         if len(text) > 50 and text.endswith(")") and " (" in text:
-            text = text[:text.rindex(" (")]
+            text = text[: text.rindex(" (")]
         self.mav.statustext_send(severity, text[:50].encode())
 
     def send_heartbeat(self) -> None:
         m = self.mavlink
-        self.mav.heartbeat_send(m.MAV_TYPE_QUADROTOR, m.MAV_AUTOPILOT_PX4, self.base_mode, self.custom_mode,
-                                m.MAV_STATE_ACTIVE if self.armed else m.MAV_STATE_STANDBY)
+        self.mav.heartbeat_send(
+            m.MAV_TYPE_QUADROTOR,
+            m.MAV_AUTOPILOT_PX4,
+            self.base_mode,
+            self.custom_mode,
+            m.MAV_STATE_ACTIVE if self.armed else m.MAV_STATE_STANDBY,
+        )
 
-    def send_telemetry(self, t: float, position_ned: np.ndarray, velocity_ned: np.ndarray,
-                       attitude: tuple[float, float, float], rates_frd: np.ndarray) -> None:
+    def send_telemetry(
+        self,
+        t: float,
+        position_ned: np.ndarray,
+        velocity_ned: np.ndarray,
+        attitude: tuple[float, float, float],
+        rates_frd: np.ndarray,
+    ) -> None:
         """LOCAL_POSITION_NED and ATTITUDE at simulated time t (time_boot_ms = simulated ms)."""
         boot_ms = round(t * 1e3) & 0xFFFFFFFF
         x, y, z = (float(c) for c in position_ned)
@@ -714,9 +766,10 @@ class LinkReport:
         for v in self.vehicles:
             ignored = ", ".join(f"{k}: {n}" for k, n in sorted(v["ignored"].items())) or "none"
             warned = ", ".join(f"{k}: {n}" for k, n in sorted(v.get("warnings", {}).items()))
-            lines.append(f"uav {v['uav']} (sysid {v['system_id']}): handled {sum(v['handled'].values())}, "
-                         f"ignored {sum(v['ignored'].values())} ({ignored})"
-                         + (f"; warnings ({warned})" if warned else ""))
+            lines.append(
+                f"uav {v['uav']} (sysid {v['system_id']}): handled {sum(v['handled'].values())}, "
+                f"ignored {sum(v['ignored'].values())} ({ignored})" + (f"; warnings ({warned})" if warned else "")
+            )
         return "\n".join(lines)
 
 
@@ -739,8 +792,17 @@ class MavlinkLink:
             remote_ports = config.offboard_ports()
             for i, port in enumerate(config.vehicle_ports()):
                 sock = bind_udp(config.bind_host, port)
-                self.vehicles.append(VehicleLink(i, config.system_id + i, sock, (config.remote_host, remote_ports[i]),
-                                                 config.offboard_loss_timeout_s, self.log, verbose))
+                self.vehicles.append(
+                    VehicleLink(
+                        i,
+                        config.system_id + i,
+                        sock,
+                        (config.remote_host, remote_ports[i]),
+                        config.offboard_loss_timeout_s,
+                        self.log,
+                        verbose,
+                    )
+                )
         except BaseException:
             self.close()
             raise
@@ -748,8 +810,11 @@ class MavlinkLink:
 
     def endpoints(self) -> list[str]:
         """One line per drone: its system id, its bound address and where it sends."""
-        return [f"uav {v.uav}: sysid {v.system_id}, udp {v.sock.getsockname()[0]}:{v.sock.getsockname()[1]} "
-                f"-> {v.remote[0]}:{v.remote[1]}" for v in self.vehicles]
+        return [
+            f"uav {v.uav}: sysid {v.system_id}, udp {v.sock.getsockname()[0]}:{v.sock.getsockname()[1]} "
+            f"-> {v.remote[0]}:{v.remote[1]}"
+            for v in self.vehicles
+        ]
 
     def build_world(self) -> None:
         """The ticked MuJoCo world with the drones hovering at their spawn points."""
@@ -757,8 +822,9 @@ class MavlinkLink:
 
         config = self.config
         task = config.task_config()
-        self.world = make_ticked_world("mujoco", task, CONTROL_TICK_S, wind=config.wind, seed=config.seed,
-                                       airframe=config.airframe)
+        self.world = make_ticked_world(
+            "mujoco", task, CONTROL_TICK_S, wind=config.wind, seed=config.seed, airframe=config.airframe
+        )
         n = config.n_drones
         self.spawn = np.stack([np.arange(n) * config.spacing, np.zeros(n)], axis=1)
         reset = (np.ones(1, dtype=bool), self.spawn[None], np.zeros((1, 2)), np.zeros((1, 0, 2)))
@@ -847,11 +913,22 @@ class MavlinkLink:
                 clock["step"] += 1
         finally:
             world.controller = None
-        return LinkReport(sim_s=clock["step"] * world.dt, wall_s=time.perf_counter() - start,
-                          overruns=clock["overruns"],
-                          vehicles=[{"uav": v.uav, "system_id": v.system_id, "handled": dict(v.handled),
-                                     "ignored": dict(v.ignored), "warnings": dict(v.warnings),
-                                     "events": list(v.events)} for v in self.vehicles])
+        return LinkReport(
+            sim_s=clock["step"] * world.dt,
+            wall_s=time.perf_counter() - start,
+            overruns=clock["overruns"],
+            vehicles=[
+                {
+                    "uav": v.uav,
+                    "system_id": v.system_id,
+                    "handled": dict(v.handled),
+                    "ignored": dict(v.ignored),
+                    "warnings": dict(v.warnings),
+                    "events": list(v.events),
+                }
+                for v in self.vehicles
+            ],
+        )
 
     def close(self) -> None:
         for v in self.vehicles:
@@ -867,68 +944,149 @@ class _Parser(argparse.ArgumentParser):
 
 def build_parser() -> argparse.ArgumentParser:
     d = MavlinkLinkConfig()
-    p = _Parser(prog="cefc-mavlink",
-                description="Serve testbed drones as MAVLink 2 vehicles (PX4 SITL's offboard interface over UDP): "
-                            "HEARTBEAT, LOCAL_POSITION_NED and ATTITUDE out; position, velocity or "
-                            "acceleration SET_POSITION_TARGET_LOCAL_NED, ARM_DISARM and DO_SET_MODE "
-                            "(OFFBOARD) in.")
+    p = _Parser(
+        prog="cefc-mavlink",
+        description="Serve testbed drones as MAVLink 2 vehicles (PX4 SITL's offboard interface over UDP): "
+        "HEARTBEAT, LOCAL_POSITION_NED and ATTITUDE out; position, velocity or "
+        "acceleration SET_POSITION_TARGET_LOCAL_NED, ARM_DISARM and DO_SET_MODE "
+        "(OFFBOARD) in.",
+    )
     p.add_argument("--drones", type=int, default=d.n_drones, metavar="N", help="how many drones (default 1)")
-    p.add_argument("--sysid", type=int, default=d.system_id, metavar="ID",
-                   help="MAVLink system id of drone 0; drone i has ID + i (default 1)")
-    p.add_argument("--bind", default=d.bind_host, metavar="HOST",
-                   help="address the vehicles' UDP sockets bind (default 127.0.0.1; 0.0.0.0 for other machines)")
-    p.add_argument("--port", type=int, nargs="+", default=list(d.ports), metavar="PORT",
-                   help=f"the vehicles' local UDP ports: one base (drone i binds PORT + i; 0: any free port) "
-                        f"or one per drone (default {DEFAULT_VEHICLE_PORT})")
-    p.add_argument("--remote-host", default=d.remote_host, metavar="HOST",
-                   help="where the offboard scripts listen (default 127.0.0.1)")
-    p.add_argument("--remote-port", type=int, nargs="+", default=list(d.remote_ports), metavar="PORT",
-                   help=f"the scripts' UDP ports: one base (drone i sends to PORT + i) or one per drone "
-                        f"(default {DEFAULT_OFFBOARD_PORT}, PX4's offboard API port)")
-    p.add_argument("--real-time-factor", type=float, default=d.real_time_factor, metavar="X",
-                   help="simulated seconds per wall second (default 1: real time)")
-    p.add_argument("--offboard-loss-timeout", type=float, default=d.offboard_loss_timeout_s, metavar="S",
-                   help=f"COM_OF_LOSS_T: simulated seconds without a setpoint before an OFFBOARD vehicle holds "
-                        f"(default {d.offboard_loss_timeout_s:g})")
-    p.add_argument("--telemetry-hz", type=float, default=d.telemetry_hz, metavar="HZ",
-                   help="LOCAL_POSITION_NED and ATTITUDE rate, per simulated second (default 50; divides 100)")
-    p.add_argument("--duration", type=float, metavar="S", help="stop after S simulated seconds (default: run until "
-                                                                "Ctrl-C or SIGTERM)")
-    p.add_argument("--spacing", type=float, default=d.spacing, metavar="M",
-                   help="drone i spawns at (i * M, 0) m in the world frame (ENU), hovering (default 2)")
-    p.add_argument("--origin", choices=ORIGINS, default=d.origin,
-                   help="local NED origin: below each drone's spawn point (PX4's home; default) or the world's origin")
+    p.add_argument(
+        "--sysid",
+        type=int,
+        default=d.system_id,
+        metavar="ID",
+        help="MAVLink system id of drone 0; drone i has ID + i (default 1)",
+    )
+    p.add_argument(
+        "--bind",
+        default=d.bind_host,
+        metavar="HOST",
+        help="address the vehicles' UDP sockets bind (default 127.0.0.1; 0.0.0.0 for other machines)",
+    )
+    p.add_argument(
+        "--port",
+        type=int,
+        nargs="+",
+        default=list(d.ports),
+        metavar="PORT",
+        help=f"the vehicles' local UDP ports: one base (drone i binds PORT + i; 0: any free port) "
+        f"or one per drone (default {DEFAULT_VEHICLE_PORT})",
+    )
+    p.add_argument(
+        "--remote-host",
+        default=d.remote_host,
+        metavar="HOST",
+        help="where the offboard scripts listen (default 127.0.0.1)",
+    )
+    p.add_argument(
+        "--remote-port",
+        type=int,
+        nargs="+",
+        default=list(d.remote_ports),
+        metavar="PORT",
+        help=f"the scripts' UDP ports: one base (drone i sends to PORT + i) or one per drone "
+        f"(default {DEFAULT_OFFBOARD_PORT}, PX4's offboard API port)",
+    )
+    p.add_argument(
+        "--real-time-factor",
+        type=float,
+        default=d.real_time_factor,
+        metavar="X",
+        help="simulated seconds per wall second (default 1: real time)",
+    )
+    p.add_argument(
+        "--offboard-loss-timeout",
+        type=float,
+        default=d.offboard_loss_timeout_s,
+        metavar="S",
+        help=f"COM_OF_LOSS_T: simulated seconds without a setpoint before an OFFBOARD vehicle holds "
+        f"(default {d.offboard_loss_timeout_s:g})",
+    )
+    p.add_argument(
+        "--telemetry-hz",
+        type=float,
+        default=d.telemetry_hz,
+        metavar="HZ",
+        help="LOCAL_POSITION_NED and ATTITUDE rate, per simulated second (default 50; divides 100)",
+    )
+    p.add_argument(
+        "--duration",
+        type=float,
+        metavar="S",
+        help="stop after S simulated seconds (default: run until Ctrl-C or SIGTERM)",
+    )
+    p.add_argument(
+        "--spacing",
+        type=float,
+        default=d.spacing,
+        metavar="M",
+        help="drone i spawns at (i * M, 0) m in the world frame (ENU), hovering (default 2)",
+    )
+    p.add_argument(
+        "--origin",
+        choices=ORIGINS,
+        default=d.origin,
+        help="local NED origin: below each drone's spawn point (PX4's home; default) or the world's origin",
+    )
     p.add_argument("--airframe", metavar="NAME|PATH", help="airframe: iris (default), crazyflie or an MJCF path")
     p.add_argument("--wind", type=float, default=d.wind, metavar="M/S", help="mean wind speed (default 0)")
     p.add_argument("--speed-max", type=float, metavar="M/S", help="horizontal speed limit (default: the task's, 1)")
-    p.add_argument("--accel-max", type=float, metavar="M/S2",
-                   help="per-axis acceleration limit (default: the task's, 2)")
+    p.add_argument(
+        "--accel-max", type=float, metavar="M/S2", help="per-axis acceleration limit (default: the task's, 2)"
+    )
     p.add_argument("--seed", type=int, default=d.seed, help="seeds the wind (default 0)")
     p.add_argument("--verbose", action="store_true", help="log every ignored message to stderr")
     return p
 
 
-FLAGS = {"n_drones": "--drones", "system_id": "--sysid", "bind_host": "--bind", "ports": "--port",
-         "remote_host": "--remote-host", "remote_ports": "--remote-port", "real_time_factor": "--real-time-factor",
-         "offboard_loss_timeout_s": "--offboard-loss-timeout", "telemetry_hz": "--telemetry-hz",
-         "duration_s": "--duration", "spacing": "--spacing", "origin": "--origin", "wind": "--wind",
-         "speed_max": "--speed-max", "accel_max": "--accel-max"}
+FLAGS = {
+    "n_drones": "--drones",
+    "system_id": "--sysid",
+    "bind_host": "--bind",
+    "ports": "--port",
+    "remote_host": "--remote-host",
+    "remote_ports": "--remote-port",
+    "real_time_factor": "--real-time-factor",
+    "offboard_loss_timeout_s": "--offboard-loss-timeout",
+    "telemetry_hz": "--telemetry-hz",
+    "duration_s": "--duration",
+    "spacing": "--spacing",
+    "origin": "--origin",
+    "wind": "--wind",
+    "speed_max": "--speed-max",
+    "accel_max": "--accel-max",
+}
 """Config field -> the flag that sets it (error messages name the flag)."""
 
 
 def _flag_message(error: ConfigError) -> str:
     text = str(error)
     field = text.split("=", 1)[0]
-    return FLAGS[field] + text[len(field):] if field in FLAGS else text
+    return FLAGS[field] + text[len(field) :] if field in FLAGS else text
 
 
 def config_from_args(args) -> MavlinkLinkConfig:
     return MavlinkLinkConfig(
-        n_drones=args.drones, system_id=args.sysid, bind_host=args.bind, ports=tuple(args.port),
-        remote_host=args.remote_host, remote_ports=tuple(args.remote_port), real_time_factor=args.real_time_factor,
-        offboard_loss_timeout_s=args.offboard_loss_timeout, telemetry_hz=args.telemetry_hz, duration_s=args.duration,
-        spacing=args.spacing, origin=args.origin, airframe=args.airframe, wind=args.wind, speed_max=args.speed_max,
-        accel_max=args.accel_max, seed=args.seed)
+        n_drones=args.drones,
+        system_id=args.sysid,
+        bind_host=args.bind,
+        ports=tuple(args.port),
+        remote_host=args.remote_host,
+        remote_ports=tuple(args.remote_port),
+        real_time_factor=args.real_time_factor,
+        offboard_loss_timeout_s=args.offboard_loss_timeout,
+        telemetry_hz=args.telemetry_hz,
+        duration_s=args.duration,
+        spacing=args.spacing,
+        origin=args.origin,
+        airframe=args.airframe,
+        wind=args.wind,
+        speed_max=args.speed_max,
+        accel_max=args.accel_max,
+        seed=args.seed,
+    )
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -960,8 +1118,10 @@ def main(argv: list[str] | None = None) -> int:
             return EXIT_USAGE
         for line in link.endpoints():
             log(line)
-        log(f"flying at {args.real_time_factor:g}x real time"
-            + (f" for {args.duration:g} s" if args.duration else "; Ctrl-C or SIGTERM stops"))
+        log(
+            f"flying at {args.real_time_factor:g}x real time"
+            + (f" for {args.duration:g} s" if args.duration else "; Ctrl-C or SIGTERM stops")
+        )
         try:
             report = link.run(stop=lambda: bool(stopping))
         except SimulationDiverged as e:

@@ -71,8 +71,11 @@ class SitlStats:
         for name in ("decision_latency_ms", "round_trip_ms", "command_age_ms"):
             per_agent = getattr(self, name)
             pooled = np.concatenate(per_agent) if per_agent else np.zeros(0)
-            timings[name] = {"all": _percentiles(pooled), "per_uav": [_percentiles(v) for v in per_agent],
-                             "histogram": _histogram(pooled)}
+            timings[name] = {
+                "all": _percentiles(pooled),
+                "per_uav": [_percentiles(v) for v in per_agent],
+                "histogram": _histogram(pooled),
+            }
         return {
             **timings,
             "late_commands": self.late_commands.tolist(),

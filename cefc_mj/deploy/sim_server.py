@@ -77,8 +77,20 @@ class AgentFleet:
 
     def spawn(self) -> None:
         env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", PYTHONUNBUFFERED="1")
-        argv = self.command + ["--connect", self.endpoint, "--uav", *map(str, self.uavs), "--policy", self.policy,
-                               "--parent-pid", str(os.getpid())] + (["--verbose"] if self.verbose else [])
+        argv = (
+            self.command
+            + [
+                "--connect",
+                self.endpoint,
+                "--uav",
+                *map(str, self.uavs),
+                "--policy",
+                self.policy,
+                "--parent-pid",
+                str(os.getpid()),
+            ]
+            + (["--verbose"] if self.verbose else [])
+        )
         with open(self.log_path, "wb") as log:
             self.launcher = subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=log, stderr=log, env=env)
 
@@ -160,7 +172,7 @@ def _parent_pid(pid: int) -> int | None:
     """The parent of `pid` from /proc (Linux); None when unknown."""
     try:
         stat = Path(f"/proc/{pid}/stat").read_text()
-        return int(stat[stat.rindex(")") + 2:].split()[1])
+        return int(stat[stat.rindex(")") + 2 :].split()[1])
     except (OSError, ValueError, IndexError):
         return None
 
@@ -204,9 +216,18 @@ def restore_sigint(previous) -> None:
 
 
 # ====================================================================== the socket and the schedule
-def sensor_packets(step: int, t: float, perceived_pos: np.ndarray, velocity: np.ndarray, lidar: np.ndarray,
-                   anchor: np.ndarray, true_pos: np.ndarray, radio_range: float, in_swarm: np.ndarray,
-                   uavs: list[int]) -> list[dict]:
+def sensor_packets(
+    step: int,
+    t: float,
+    perceived_pos: np.ndarray,
+    velocity: np.ndarray,
+    lidar: np.ndarray,
+    anchor: np.ndarray,
+    true_pos: np.ndarray,
+    radio_range: float,
+    in_swarm: np.ndarray,
+    uavs: list[int],
+) -> list[dict]:
     """The sensor packets of decision step `step` for UAVs `uavs` (arrays [N, ...] of one env).
 
     UAV i's packet holds what its own vehicle measures (perceived position, velocity, LiDAR cast
@@ -218,9 +239,19 @@ def sensor_packets(step: int, t: float, perceived_pos: np.ndarray, velocity: np.
     hears = (np.sqrt((gap * gap).sum(-1)) < radio_range) & np.asarray(in_swarm, dtype=bool)[None, :]
     np.fill_diagonal(hears, False)
     pos_l, vel_l, lidar_l, anchor_l = perceived_pos.tolist(), velocity.tolist(), lidar.tolist(), anchor.tolist()
-    return [{"type": "sensor", "seq": step, "t": t, "pos": pos_l[i], "vel": vel_l[i], "anchor": anchor_l,
-             "lidar": lidar_l[i], "neighbours": [[j, *pos_l[j], *vel_l[j]] for j in np.flatnonzero(hears[i]).tolist()]}
-            for i in uavs]
+    return [
+        {
+            "type": "sensor",
+            "seq": step,
+            "t": t,
+            "pos": pos_l[i],
+            "vel": vel_l[i],
+            "anchor": anchor_l,
+            "lidar": lidar_l[i],
+            "neighbours": [[j, *pos_l[j], *vel_l[j]] for j in np.flatnonzero(hears[i]).tolist()],
+        }
+        for i in uavs
+    ]
 
 
 @dataclass
@@ -280,9 +311,20 @@ class SitlServer:
         seed: seeds the jitter draws.
     """
 
-    def __init__(self, bind: str, n_agents: int, welcome: dict, tick_s: float, link_delay_ms: float = 0.0,
-                 jitter_ms: float = 0.0, offboard_loss_timeout_s: float = OFFBOARD_LOSS_TIMEOUT_S, realtime: bool = False,
-                 lockstep: bool = False, lockstep_timeout_s: float = 10.0, seed: int = 0):
+    def __init__(
+        self,
+        bind: str,
+        n_agents: int,
+        welcome: dict,
+        tick_s: float,
+        link_delay_ms: float = 0.0,
+        jitter_ms: float = 0.0,
+        offboard_loss_timeout_s: float = OFFBOARD_LOSS_TIMEOUT_S,
+        realtime: bool = False,
+        lockstep: bool = False,
+        lockstep_timeout_s: float = 10.0,
+        seed: int = 0,
+    ):
         import zmq
 
         self.zmq = zmq
@@ -324,8 +366,15 @@ class SitlServer:
 
     # ------------------------------------------------------------------ bookkeeping
     def event(self, uav: int | None, event: str, detail: str = "", t: float | None = None) -> None:
-        self.events.append({"step": self.step, "t": round(self.t_now if t is None else t, 6),
-                            "uav": uav, "event": event, "detail": detail})
+        self.events.append(
+            {
+                "step": self.step,
+                "t": round(self.t_now if t is None else t, 6),
+                "uav": uav,
+                "event": event,
+                "detail": detail,
+            }
+        )
 
     def _malformed(self, reason: str) -> None:
         self.malformed += 1
@@ -371,7 +420,9 @@ class SitlServer:
         if not 0 <= uav < self.n_agents:
             self._malformed("uav out of range")
             if kind == "hello":
-                self._send_to(identity, {"type": "reject", "reason": f"uav {uav}: this game has UAVs 0..{self.n_agents - 1}"})
+                self._send_to(
+                    identity, {"type": "reject", "reason": f"uav {uav}: this game has UAVs 0..{self.n_agents - 1}"}
+                )
             return
         if kind == "hello":
             self._hello(identity, message)
@@ -402,7 +453,12 @@ class SitlServer:
         if vehicle.identity is None:
             vehicle.identity = identity
             vehicle.state = "connected"
-            vehicle.info = {"uav": vehicle.index, "policy": message["policy"], "pid": message["pid"], "host": message["host"]}
+            vehicle.info = {
+                "uav": vehicle.index,
+                "policy": message["policy"],
+                "pid": message["pid"],
+                "host": message["host"],
+            }
             self.by_identity[identity] = vehicle
         self._send(vehicle, {"type": "welcome", "uav": vehicle.index, **self.welcome})  # again on a repeated hello
 
@@ -444,8 +500,10 @@ class SitlServer:
                 raise AgentError(f"agent failed: {self.errors[0]}")
             if fleet is not None and fleet.launcher_exit_code() is not None:
                 tail = fleet.log_tail()
-                raise AgentError(f"the agent processes exited with code {fleet.launcher_exit_code()} during startup"
-                                 + (f": {tail}" if tail else ""))
+                raise AgentError(
+                    f"the agent processes exited with code {fleet.launcher_exit_code()} during startup"
+                    + (f": {tail}" if tail else "")
+                )
             if all(v.state == "flying" for v in self.vehicles):
                 return time.monotonic() - start
             now = time.monotonic()
@@ -462,19 +520,32 @@ class SitlServer:
     def flying(self) -> list[_Vehicle]:
         return [v for v in self.vehicles if v.state == "flying"]
 
-    def send_sensors(self, step: int, t: float, perceived_pos: np.ndarray, velocity: np.ndarray, lidar: np.ndarray,
-                     anchor: np.ndarray, true_pos: np.ndarray, radio_range: float) -> None:
+    def send_sensors(
+        self,
+        step: int,
+        t: float,
+        perceived_pos: np.ndarray,
+        velocity: np.ndarray,
+        lidar: np.ndarray,
+        anchor: np.ndarray,
+        true_pos: np.ndarray,
+        radio_range: float,
+    ) -> None:
         """Sensor packet `step` (see `sensor_packets`) to every flying agent."""
         self.step = self.seq = step
         self.t_now = t
         if self.wall0 is None:
             self.wall0 = time.perf_counter() - t
-        delays = self.link_delay_s + (self.rng.uniform(0.0, self.jitter_s, size=(self.n_agents, 2)) if self.jitter_s
-                                      else np.zeros((self.n_agents, 2)))
+        delays = self.link_delay_s + (
+            self.rng.uniform(0.0, self.jitter_s, size=(self.n_agents, 2))
+            if self.jitter_s
+            else np.zeros((self.n_agents, 2))
+        )
         in_swarm = np.array([v.state != "removed" for v in self.vehicles])
         flying = self.flying()
-        packets = sensor_packets(step, t, perceived_pos, velocity, lidar, anchor, true_pos, radio_range, in_swarm,
-                                 [v.index for v in flying])
+        packets = sensor_packets(
+            step, t, perceived_pos, velocity, lidar, anchor, true_pos, radio_range, in_swarm, [v.index for v in flying]
+        )
         for v, packet in zip(flying, packets):
             v.outstanding.append(_Request(step, t, time.perf_counter(), float(delays[v.index].sum())))
             self._send(v, packet)
@@ -523,8 +594,12 @@ class SitlServer:
             if v.state in ("flying", "exited") and offboard_lost(t, v.last_setpoint_t, self.offboard_loss_timeout_s):
                 v.state = "failsafe"
                 v.outstanding.clear()
-                self.event(v.index, "offboard_loss_hold",
-                           f"no setpoint for {self.offboard_loss_timeout_s:g} s: hold (zero velocity setpoint)", t)
+                self.event(
+                    v.index,
+                    "offboard_loss_hold",
+                    f"no setpoint for {self.offboard_loss_timeout_s:g} s: hold (zero velocity setpoint)",
+                    t,
+                )
             accel[v.index] = v.setpoint
             hold[v.index] = v.state in ("failsafe", "removed")
         return accel, hold
@@ -548,12 +623,16 @@ class SitlServer:
             waiting = [v for v in self.flying() if any(r.seq == self.seq for r in v.outstanding)]
             if not waiting:
                 return
-            remaining = min(r.wall_sent for v in waiting for r in v.outstanding) + self.lockstep_timeout_s - time.perf_counter()
+            remaining = (
+                min(r.wall_sent for v in waiting for r in v.outstanding) + self.lockstep_timeout_s - time.perf_counter()
+            )
             if remaining <= 0:
                 for v in waiting:
                     v.state = "failsafe"
                     v.outstanding.clear()
-                    self.event(v.index, "offboard_loss_hold", f"no reply within {self.lockstep_timeout_s:g} s (lock-step)")
+                    self.event(
+                        v.index, "offboard_loss_hold", f"no reply within {self.lockstep_timeout_s:g} s (lock-step)"
+                    )
                 return
             self.receive(remaining)
 

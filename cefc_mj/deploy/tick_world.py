@@ -31,9 +31,16 @@ PARK_ORIGIN = (1000.0, 1000.0)
 PARK_SPACING = 10.0
 
 
-def make_ticked_world(backend: str, config: TaskConfig, control_tick_s: float, wind: float = 0.0,
-                      seed: int | None = None, airframe: str | None = None,
-                      wind_direction: float | None = None, rotor_actuation: str = "auto") -> "TickedWorld":
+def make_ticked_world(
+    backend: str,
+    config: TaskConfig,
+    control_tick_s: float,
+    wind: float = 0.0,
+    seed: int | None = None,
+    airframe: str | None = None,
+    wind_direction: float | None = None,
+    rotor_actuation: str = "auto",
+) -> "TickedWorld":
     """The world of `backend` for one env, stepped at `control_tick_s` inside each decision step."""
     from cefc_mj.sim.backends import make_world
 
@@ -42,17 +49,25 @@ def make_ticked_world(backend: str, config: TaskConfig, control_tick_s: float, w
         raise ConfigError(f"control_tick_s={control_tick_s}: must divide the decision step {config.dt} s")
     if backend == "particle":
         if n_ticks != 1:
-            raise ConfigError(f"control_tick_s={control_tick_s}: the particle world steps only at the decision step "
-                              f"({config.dt} s)")
-        return TickedWorld(make_world("particle", config, n_envs=1, seed=seed, wind_direction=wind_direction), 1,
-                           config.dt)
+            raise ConfigError(
+                f"control_tick_s={control_tick_s}: the particle world steps only at the decision step ({config.dt} s)"
+            )
+        return TickedWorld(
+            make_world("particle", config, n_envs=1, seed=seed, wind_direction=wind_direction), 1, config.dt
+        )
     if backend != "mujoco":
         return TickedWorld(make_world(backend, config, n_envs=1, seed=seed), 1, config.dt)  # make_world names the error
     from cefc_mj.sim.mujoco_world import MujocoWorldConfig, make_mujoco_world
 
-    inner = make_mujoco_world(config, n_envs=1, wind=wind, seed=seed, airframe=airframe,
-                              config=MujocoWorldConfig(decision_dt=config.dt / n_ticks, rotor_actuation=rotor_actuation),
-                              wind_direction=wind_direction)
+    inner = make_mujoco_world(
+        config,
+        n_envs=1,
+        wind=wind,
+        seed=seed,
+        airframe=airframe,
+        config=MujocoWorldConfig(decision_dt=config.dt / n_ticks, rotor_actuation=rotor_actuation),
+        wind_direction=wind_direction,
+    )
     return TickedWorld(inner, n_ticks, config.dt)
 
 
@@ -103,7 +118,7 @@ class TickedWorld:
         offboard brakes the interface's own velocity setpoint; otherwise the measured velocity."""
         inner = self.inner
         if getattr(getattr(inner, "config", None), "offboard", None) == "velocity":
-            velocity = inner.velocity_setpoints[:, :self.n_agents]
+            velocity = inner.velocity_setpoints[:, : self.n_agents]
         else:
             velocity = inner.agent_vel
         return np.clip(-velocity / self.tick_s, -accel_max, accel_max)
@@ -127,8 +142,8 @@ def park_agents(world, env: int, agents) -> None:
 
         model, data = world.models[env], world.datas[env]
         for i in agents:
-            data.qpos[7 * i: 7 * i + 2] = spots[i]
-            data.qvel[6 * i: 6 * i + 6] = 0.0
+            data.qpos[7 * i : 7 * i + 2] = spots[i]
+            data.qvel[6 * i : 6 * i + 6] = 0.0
         mujoco.mj_forward(model, data)
         return
     pos, vel = world.agent_pos, world.agent_vel  # ParticleWorld: its own arrays

@@ -100,8 +100,13 @@ SIM_TO_AGENT: dict[str, dict] = {
     "welcome": {"uav": _int, "formation": _int, "task": _object, "heartbeat_timeout_s": _float},
     "reject": {"reason": _text},
     "sensor": {
-        "seq": _int, "t": _float, "pos": lambda v, n: _vector(v, n, 2), "vel": lambda v, n: _vector(v, n, 2),
-        "anchor": lambda v, n: _vector(v, n, 2), "lidar": lambda v, n: _vector(v, n, None), "neighbours": _neighbours,
+        "seq": _int,
+        "t": _float,
+        "pos": lambda v, n: _vector(v, n, 2),
+        "vel": lambda v, n: _vector(v, n, 2),
+        "anchor": lambda v, n: _vector(v, n, 2),
+        "lidar": lambda v, n: _vector(v, n, None),
+        "neighbours": _neighbours,
     },
     "ping": {"t": _float},
     "stop": {"reason": _text},
@@ -153,14 +158,23 @@ def _decode_binary(frame: bytes, schema: dict[str, dict]) -> dict:
     if kind == _ACTION:
         return {"v": version, "type": "action", "uav": a, "seq": seq, "accel": values[:2], "latency_ms": values[2]}
     lidar_end = _SENSOR_FIXED + a
-    rows = [values[k:k + 5] for k in range(lidar_end, len(values), 5)]
+    rows = [values[k : k + 5] for k in range(lidar_end, len(values), 5)]
     for row in rows:
         uav = row[0]
         if not (uav.is_integer() and 0 <= uav < 65536):
             raise WireError("neighbours id: not an integer")
         row[0] = int(uav)
-    return {"v": version, "type": "sensor", "seq": seq, "t": values[0], "pos": values[1:3], "vel": values[3:5],
-            "anchor": values[5:7], "lidar": values[7:lidar_end], "neighbours": rows}
+    return {
+        "v": version,
+        "type": "sensor",
+        "seq": seq,
+        "t": values[0],
+        "pos": values[1:3],
+        "vel": values[3:5],
+        "anchor": values[5:7],
+        "lidar": values[7:lidar_end],
+        "neighbours": rows,
+    }
 
 
 def _refuse_constant(name: str):

@@ -65,11 +65,16 @@ FACTS = ("no-collisions-SITL-S", "no-collisions-Wind-8", "Wind-8-lowers-F+N", "D
 
 
 # ---------------------------------------------------------------------------- flying
-def cell_specs(formations, conditions, seeds: int, steps: int = STEPS, policy: str = DEFAULT_POLICY) -> list[EpisodeSpec]:
+def cell_specs(
+    formations, conditions, seeds: int, steps: int = STEPS, policy: str = DEFAULT_POLICY
+) -> list[EpisodeSpec]:
     return [
-        EpisodeSpec(formation=c, seed=s, wind=CONDITIONS[cond][0], deviation=CONDITIONS[cond][1], steps=steps,
-                    policy=policy)
-        for c in formations for cond in conditions for s in range(seeds)
+        EpisodeSpec(
+            formation=c, seed=s, wind=CONDITIONS[cond][0], deviation=CONDITIONS[cond][1], steps=steps, policy=policy
+        )
+        for c in formations
+        for cond in conditions
+        for s in range(seeds)
     ]
 
 
@@ -87,8 +92,10 @@ def fly(specs: list[EpisodeSpec], cell_file: Path, workers: int, ulps: int = 0) 
     Path(cell_file).parent.mkdir(parents=True, exist_ok=True)
     done = load_cells(cell_file)
     todo = [s for s in specs if _key(s) not in done]
-    with open(cell_file, "a") as sink, closing(map_unordered(functools.partial(_fly_row, ulps=ulps), todo,
-                                                             ExecutorConfig(workers=workers))) as rows:
+    with (
+        open(cell_file, "a") as sink,
+        closing(map_unordered(functools.partial(_fly_row, ulps=ulps), todo, ExecutorConfig(workers=workers))) as rows,
+    ):
         for spec, result in rows:
             row = {"key": _key(spec), **result}
             done[row["key"]] = row
@@ -131,8 +138,10 @@ def cell_means(rows: list[dict]) -> dict[str, dict[str, dict[str, float]]]:
     out: dict[str, dict[str, dict[str, float]]] = {}
     for r in rows:
         out.setdefault(str(r["formation"]), {}).setdefault(r["condition"], []).append(r)
-    return {c: {cond: {m: float(np.mean([r[m] for r in rs])) for m in "FNC"} for cond, rs in conds.items()}
-            for c, conds in out.items()}
+    return {
+        c: {cond: {m: float(np.mean([r[m] for r in rs])) for m in "FNC"} for cond, rs in conds.items()}
+        for c, conds in out.items()
+    }
 
 
 def violations(means: dict[str, float], cell: dict) -> list[str]:
@@ -141,8 +150,10 @@ def violations(means: dict[str, float], cell: dict) -> list[str]:
     for m in "FNC":
         low, high = cell[m]["band"]
         if not low <= means[m] <= high:
-            out.append(f"{m} = {means[m]:.2f} outside [{low:.2f}, {high:.2f}] (reference {cell[m]['reference']:.2f}, "
-                       f"noise of the mean {cell[m]['noise_of_mean']:.2f})")
+            out.append(
+                f"{m} = {means[m]:.2f} outside [{low:.2f}, {high:.2f}] (reference {cell[m]['reference']:.2f}, "
+                f"noise of the mean {cell[m]['noise_of_mean']:.2f})"
+            )
     return out
 
 
@@ -173,8 +184,11 @@ def make_bands(rows: list[dict], formations=FORMATIONS, seeds: int = SEEDS) -> d
     path_names = sorted({r["fp_path"] for r in rows})
     index = {(r["fp_path"], r["formation"], r["condition"], r["seed"]): r for r in rows}
     # Cells measured completely (every path, c and seed); a run cut short sets bands for those only.
-    conditions = [cond for cond in CONDITIONS if all(
-        (p, c, cond, s) in index for p in path_names for c in formations for s in range(seeds))]
+    conditions = [
+        cond
+        for cond in CONDITIONS
+        if all((p, c, cond, s) in index for p in path_names for c in formations for s in range(seeds))
+    ]
     if not set(DEFAULT_CONDITIONS) <= set(conditions):
         raise SystemExit(f"the default conditions {DEFAULT_CONDITIONS} are not measured completely: run `measure`")
     cells: dict[str, dict] = {}
@@ -187,12 +201,16 @@ def make_bands(rows: list[dict], formations=FORMATIONS, seeds: int = SEEDS) -> d
                 stats = noise_stats(x)
                 half = max(K_SIGMA * stats["noise_of_mean"], FLOOR[m])
                 upper = 100.0 if m == "C" else float(STEPS)
-                cell[m] = {"band": [max(0.0, stats["reference"] - half), min(upper, stats["reference"] + half)],
-                           **stats, "per_path_mean": dict(zip(path_names, x.mean(axis=1).tolist()))}
+                cell[m] = {
+                    "band": [max(0.0, stats["reference"] - half), min(upper, stats["reference"] + half)],
+                    **stats,
+                    "per_path_mean": dict(zip(path_names, x.mean(axis=1).tolist())),
+                }
             cells.setdefault(str(c), {})[cond] = cell
             for p in path_names:
                 per_path_means.setdefault(p, {}).setdefault(str(c), {})[cond] = {
-                    m: cell[m]["per_path_mean"][p] for m in "FNC"}
+                    m: cell[m]["per_path_mean"][p] for m in "FNC"
+                }
     facts = {}
     for c in map(str, formations):
         for fact in FACTS:
@@ -200,7 +218,11 @@ def make_bands(rows: list[dict], formations=FORMATIONS, seeds: int = SEEDS) -> d
                 continue
             ref = {cond: {m: cells[c][cond][m]["reference"] for m in "FNC"} for cond in cells[c]}
             # The noise of the fact's margin: both terms are means with independent noise.
-            terms = ["SITL-S", fact.removesuffix("-lowers-F+N")] if fact.endswith("F+N") else [fact.removeprefix("no-collisions-")]
+            terms = (
+                ["SITL-S", fact.removesuffix("-lowers-F+N")]
+                if fact.endswith("F+N")
+                else [fact.removeprefix("no-collisions-")]
+            )
             metrics = "FN" if fact.endswith("F+N") else "C"
             noise = math.sqrt(sum(cells[c][t][m]["noise_of_mean"] ** 2 for t in terms for m in metrics))
             margin = fact_statistic(ref, fact)
@@ -208,8 +230,13 @@ def make_bands(rows: list[dict], formations=FORMATIONS, seeds: int = SEEDS) -> d
                 # The test asserts a mean C of exactly 0 over the seeds: that holds where no path collided
                 # on any seed, and is robustly broken where every path collided.
                 path_means = cells[c][terms[0]]["C"]["per_path_mean"].values()
-                verdict = ("holds" if all(v == 0 for v in path_means)
-                           else "broken" if all(v > 0 for v in path_means) else "undecided")
+                verdict = (
+                    "holds"
+                    if all(v == 0 for v in path_means)
+                    else "broken"
+                    if all(v > 0 for v in path_means)
+                    else "undecided"
+                )
             elif margin > K_SIGMA * noise:
                 verdict = "holds"
             elif margin < -K_SIGMA * noise:
@@ -309,8 +336,9 @@ def _make(args) -> None:
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(prog="python -m cefc_mj.eval.bands", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        prog="python -m cefc_mj.eval.bands", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     sub = parser.add_subparsers(dest="command", required=True)
     p = sub.add_parser("measure")
     p.add_argument("--out", type=Path, required=True, help="folder of the per-path cell files")

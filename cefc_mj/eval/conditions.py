@@ -25,8 +25,12 @@ def number_text(value: object) -> str:
 
 def is_number_in(value: object, low: float, high: float) -> bool:
     """Whether `value` is a finite int or float (not a bool) in [low, high]."""
-    return (isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
-            and low <= value <= high)
+    return (
+        isinstance(value, (int, float))
+        and not isinstance(value, bool)
+        and math.isfinite(value)
+        and low <= value <= high
+    )
 
 
 def check_wind_direction(degrees: object) -> None:
@@ -56,11 +60,12 @@ class Conditions:
         if self.backend not in BACKENDS:
             raise ConfigError(f"--backend {self.backend}: must be one of {', '.join(BACKENDS)}")
         if not is_number_in(self.wind, 0.0, MAX_WIND_SPEED):
-            raise ConfigError(f"--wind {number_text(self.wind)}: must be a number in 0..{MAX_WIND_SPEED:g} m/s "
-                              "(the wind model's maximum speed)")
+            raise ConfigError(
+                f"--wind {number_text(self.wind)}: must be a number in 0..{MAX_WIND_SPEED:g} m/s "
+                "(the wind model's maximum speed)"
+            )
         if not is_number_in(self.deviation, 0.0, MAX_DEVIATION):
-            raise ConfigError(f"--deviation {number_text(self.deviation)}: must be a number in "
-                              f"0..{MAX_DEVIATION:g} m")
+            raise ConfigError(f"--deviation {number_text(self.deviation)}: must be a number in 0..{MAX_DEVIATION:g} m")
         if self.backend == "particle" and self.wind:
             raise ConfigError("--wind: the particle backend has no wind model; use --backend mujoco")
         if self.wind_direction is not None:

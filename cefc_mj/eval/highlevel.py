@@ -89,9 +89,16 @@ def game_task(adversary: str = "nearest_group", deviation: float = 0.0, n_agents
     them): both play by the same physical rule (docs/high_level.md, "The adversary")."""
     if adversary not in ADVERSARIES:
         raise ConfigError(f"adversary={adversary!r}: must be one of {', '.join(ADVERSARIES)}")
-    return TaskConfig(n_agents=n_agents, mode="cefc", obstacle_density=GAME_DENSITY, adversary=adversary,
-                      episode_steps=GAME_STEPS, deviation=deviation, position_estimator="fused",
-                      adversary_avoids_obstacles=True)
+    return TaskConfig(
+        n_agents=n_agents,
+        mode="cefc",
+        obstacle_density=GAME_DENSITY,
+        adversary=adversary,
+        episode_steps=GAME_STEPS,
+        deviation=deviation,
+        position_estimator="fused",
+        adversary_avoids_obstacles=True,
+    )
 
 
 def resolve_adversary(spec: str, policies_dir: Path | None = None) -> tuple[str, object, dict]:
@@ -106,23 +113,29 @@ def resolve_adversary(spec: str, policies_dir: Path | None = None) -> tuple[str,
         path = resolve_policy_path(spec, policies_dir)
         policy, _ = load_adversary_policy(path)
     except CheckpointError as e:
-        raise CheckpointError(f"adversary {spec}: {e} (a rule is one of {', '.join(ADVERSARY_RULES)}; a trained "
-                              "adversary comes from cefc-train adversary)") from None
+        raise CheckpointError(
+            f"adversary {spec}: {e} (a rule is one of {', '.join(ADVERSARY_RULES)}; a trained "
+            "adversary comes from cefc-train adversary)"
+        ) from None
     return LEARNED_ADVERSARY, policy.act, {"policy": path.name, "sha256": file_sha256(path)}
 
 
 # ---------------------------------------------------------------------------- episodes
 @torch.no_grad()
-def play_highlevel(policy: HighLevelPolicy, game: HierarchicalCEFCEnv, seed: int,
-                   on_decision=None) -> dict[str, np.ndarray]:
+def play_highlevel(
+    policy: HighLevelPolicy, game: HierarchicalCEFCEnv, seed: int, on_decision=None
+) -> dict[str, np.ndarray]:
     """Play the game's B episodes (seeded by `seed`) to the end with the mode of each anchor
     distribution; returns per-episode [B] R_H and its weighted parts R_t, R_n, R_e (they sum to
     R_H), all summed over the episode's low-level steps, and the env's metrics E (steps with an
     agent within 2 m of the adversary), F and C. on_decision(inbox, index, message), if given, sees
     every decision (inbox None without communication)."""
     task = game.task
-    channel = (MessageChannel(game.n_envs, task.n_agents, policy.message_dim, task.observation_distance)
-               if policy.comm is not None else None)
+    channel = (
+        MessageChannel(game.n_envs, task.n_agents, policy.message_dim, task.observation_distance)
+        if policy.comm is not None
+        else None
+    )
     w = task.rewards
     weights = {"R_t": w.task_weight, "R_n": w.navigation_weight_high, "R_e": w.evasion_weight}
     obs = game.reset(seed=seed)
@@ -145,22 +158,44 @@ def play_highlevel(policy: HighLevelPolicy, game: HierarchicalCEFCEnv, seed: int
     return {"R_H": total, **parts, **{m: np.asarray(metrics[m], dtype=float) for m in ("E", "E_agents", "F", "C")}}
 
 
-def evaluate_highlevel_episodes(policy: HighLevelPolicy, task: TaskConfig, low_level: LowLevel, episodes: int,
-                                seed: int = 0, decision_interval: int = DECISION_INTERVAL,
-                                world=None, adversary_policy=None) -> dict[str, np.ndarray]:
+def evaluate_highlevel_episodes(
+    policy: HighLevelPolicy,
+    task: TaskConfig,
+    low_level: LowLevel,
+    episodes: int,
+    seed: int = 0,
+    decision_interval: int = DECISION_INTERVAL,
+    world=None,
+    adversary_policy=None,
+) -> dict[str, np.ndarray]:
     """`play_highlevel` on `episodes` episodes in one batch (seeded by `seed`). world: a physics
     world of `episodes` envs (default the particle world); adversary_policy: the trained adversary
     of a task with adversary='learned'."""
-    game = HierarchicalCEFCEnv(task, low_level, n_envs=episodes, seed=seed, decision_interval=decision_interval,
-                               world=world, adversary_policy=adversary_policy)
+    game = HierarchicalCEFCEnv(
+        task,
+        low_level,
+        n_envs=episodes,
+        seed=seed,
+        decision_interval=decision_interval,
+        world=world,
+        adversary_policy=adversary_policy,
+    )
     return play_highlevel(policy, game, seed)
 
 
-def evaluate_highlevel(policy: HighLevelPolicy, task: TaskConfig, low_level: LowLevel, episodes: int, seed: int = 0,
-                       decision_interval: int = DECISION_INTERVAL, adversary_policy=None) -> dict[str, float]:
+def evaluate_highlevel(
+    policy: HighLevelPolicy,
+    task: TaskConfig,
+    low_level: LowLevel,
+    episodes: int,
+    seed: int = 0,
+    decision_interval: int = DECISION_INTERVAL,
+    adversary_policy=None,
+) -> dict[str, float]:
     """The means over episodes of `evaluate_highlevel_episodes`."""
-    per_episode = evaluate_highlevel_episodes(policy, task, low_level, episodes, seed, decision_interval,
-                                              adversary_policy=adversary_policy)
+    per_episode = evaluate_highlevel_episodes(
+        policy, task, low_level, episodes, seed, decision_interval, adversary_policy=adversary_policy
+    )
     return {name: float(values.mean()) for name, values in per_episode.items()}
 
 
@@ -199,19 +234,36 @@ def highlevel_policy_path(policy: str, policies_dir: Path | None = None) -> Path
     try:
         return resolve_policy_path(policy, policies_dir)
     except CheckpointError as e:
-        raise CheckpointError(f"--policy {policy}: no high-level policy file ({e}); train it with "
-                              "cefc-train highlevel") from None
+        raise CheckpointError(
+            f"--policy {policy}: no high-level policy file ({e}); train it with cefc-train highlevel"
+        ) from None
 
 
-def _evaluate_file(path: Path, task: TaskConfig, low_level: LowLevel, episodes: int, seed: int,
-                   where: Conditions, adversary_policy=None, adversary: dict | None = None) -> dict:
+def _evaluate_file(
+    path: Path,
+    task: TaskConfig,
+    low_level: LowLevel,
+    episodes: int,
+    seed: int,
+    where: Conditions,
+    adversary_policy=None,
+    adversary: dict | None = None,
+) -> dict:
     """One policy file's row; adversary: the record (`resolve_adversary`) of the adversary played,
     noted in the row when the policy was trained against another one."""
     policy, meta = load_highlevel_policy(path)
-    row = _stats(evaluate_highlevel_episodes(policy, task, low_level, episodes, seed=seed,
-                                             decision_interval=int(meta.get("decision_interval", DECISION_INTERVAL)),
-                                             world=where.world(task, episodes, seed),
-                                             adversary_policy=adversary_policy))
+    row = _stats(
+        evaluate_highlevel_episodes(
+            policy,
+            task,
+            low_level,
+            episodes,
+            seed=seed,
+            decision_interval=int(meta.get("decision_interval", DECISION_INTERVAL)),
+            world=where.world(task, episodes, seed),
+            adversary_policy=adversary_policy,
+        )
+    )
     row.update({"policy": path.name, "sha256": file_sha256(path), "message_dim": policy.message_dim})
     trained_with = (meta.get("low_level") or {}).get("file", {}).get("sha256")
     low_file = (low_level.describe().get("file") or {}).get("sha256")
@@ -220,24 +272,36 @@ def _evaluate_file(path: Path, task: TaskConfig, low_level: LowLevel, episodes: 
     # Files written before trained adversaries carry no record: they were trained against the rule.
     trained_against = meta.get("adversary", {"rule": "nearest_group"})
     if adversary is not None and trained_against != adversary:
-        row["adversary_differs"] = f"trained against {_adversary_text(trained_against)}, played here against " \
-                                   f"{_adversary_text(adversary)}"
+        row["adversary_differs"] = (
+            f"trained against {_adversary_text(trained_against)}, played here against {_adversary_text(adversary)}"
+        )
     return row
 
 
-def _protocol(episodes: int, seed: int, low_level: LowLevel, policies_dir: Path, adversary: dict | None,
-              where: Conditions) -> dict:
+def _protocol(
+    episodes: int, seed: int, low_level: LowLevel, policies_dir: Path, adversary: dict | None, where: Conditions
+) -> dict:
     if not isinstance(episodes, int) or isinstance(episodes, bool) or episodes < 1:
         raise ConfigError(f"episodes={episodes!r}: must be an integer >= 1")
     if not isinstance(seed, int) or isinstance(seed, bool) or seed < 0:
         raise ConfigError(f"seed={seed!r}: must be an integer >= 0")
-    return {**where.to_dict(), "n_agents": GAME_AGENTS, "density": GAME_DENSITY, "steps": GAME_STEPS,
-            "decision_interval": DECISION_INTERVAL, "episodes": episodes, "seed": seed, "adversary": adversary,
-            "low_level": low_level.describe() | {"name": low_level.name}, "policies_dir": display_path(policies_dir),
-            "anchors": "mode of the selector", "dt": DT,
-            "comparable_to_paper": episodes == EPISODES and where.paper_like,
-            "units": "per-episode sums over 400 low-level steps; 'seconds' = x dt, the scale of the paper's values",
-            "missing": []}
+    return {
+        **where.to_dict(),
+        "n_agents": GAME_AGENTS,
+        "density": GAME_DENSITY,
+        "steps": GAME_STEPS,
+        "decision_interval": DECISION_INTERVAL,
+        "episodes": episodes,
+        "seed": seed,
+        "adversary": adversary,
+        "low_level": low_level.describe() | {"name": low_level.name},
+        "policies_dir": display_path(policies_dir),
+        "anchors": "mode of the selector",
+        "dt": DT,
+        "comparable_to_paper": episodes == EPISODES and where.paper_like,
+        "units": "per-episode sums over 400 low-level steps; 'seconds' = x dt, the scale of the paper's values",
+        "missing": [],
+    }
 
 
 def _low_level(task: TaskConfig) -> LowLevel:
@@ -260,9 +324,14 @@ def _seed_block(per_seed: dict[int, dict], files: dict[int, Path]) -> dict:
 
     values = {m: [r[m] for r in per_seed.values()] for m in SEED_METRICS}
     ci = {m: seed_interval(v) for m, v in values.items()}
-    return {"seeds": list(per_seed), "files": [files[k].name for k in per_seed], **values,
-            "mean": {m: ci[m]["mean"] for m in SEED_METRICS},
-            "std": {m: ci[m]["std"] for m in SEED_METRICS}, "ci95": ci}
+    return {
+        "seeds": list(per_seed),
+        "files": [files[k].name for k in per_seed],
+        **values,
+        "mean": {m: ci[m]["mean"] for m in SEED_METRICS},
+        "std": {m: ci[m]["std"] for m in SEED_METRICS},
+        "ci95": ci,
+    }
 
 
 def _compare_with_reference(rows: dict) -> None:
@@ -276,14 +345,25 @@ def _compare_with_reference(rows: dict) -> None:
         if method == REFERENCE_METHOD or "training_seeds" not in row:
             continue
         ours = row["training_seeds"]
-        row["vs_reference"] = {"method": REFERENCE_METHOD, **{
-            m: {"p": welch_p(ours[m], reference[m]),
-                "verdict": verdict(ours[m], reference[m], HIGHER_IS_BETTER[m])} for m in SEED_METRICS}}
+        row["vs_reference"] = {
+            "method": REFERENCE_METHOD,
+            **{
+                m: {"p": welch_p(ours[m], reference[m]), "verdict": verdict(ours[m], reference[m], HIGHER_IS_BETTER[m])}
+                for m in SEED_METRICS
+            },
+        }
 
 
-def run_table5(episodes: int = EPISODES, seed: int = 0, policies_dir: Path | None = None,
-               policy: str | None = None, provenance: dict | None = None, where: Conditions | None = None,
-               adversary: str = GAME_ADVERSARY, against_rule: bool = True) -> dict:
+def run_table5(
+    episodes: int = EPISODES,
+    seed: int = 0,
+    policies_dir: Path | None = None,
+    policy: str | None = None,
+    provenance: dict | None = None,
+    where: Conditions | None = None,
+    adversary: str = GAME_ADVERSARY,
+    against_rule: bool = True,
+) -> dict:
     """Table V: every method whose policy file exists (the others are listed in protocol["missing"]),
     or only `policy` (a file or a name in policies_dir, one row under its file name). Each row is
     the seed-0 policy over `episodes` episodes; where files of other training seeds exist,
@@ -298,16 +378,21 @@ def run_table5(episodes: int = EPISODES, seed: int = 0, policies_dir: Path | Non
     kind, adversary_policy, record = resolve_adversary(adversary, policies_dir)
     task = game_task(kind, deviation=where.deviation)
     low_level = _low_level(task)
-    result = {"schema": "cefc-eval/table5", "schema_version": 1,
-              "protocol": _protocol(episodes, seed, low_level, policies_dir, record, where), "rows": {}}
+    result = {
+        "schema": "cefc-eval/table5",
+        "schema_version": 1,
+        "protocol": _protocol(episodes, seed, low_level, policies_dir, record, where),
+        "rows": {},
+    }
     paper = _paper("table5_cihrl_mpe")
     if provenance is not None:
         result["provenance"] = provenance
     if policy is not None:
         path = highlevel_policy_path(policy, policies_dir)
-        result["rows"][path.stem] = {**_evaluate_file(path, task, low_level, episodes, seed, where, adversary_policy,
-                                                      record),
-                                     "paper": None}
+        result["rows"][path.stem] = {
+            **_evaluate_file(path, task, low_level, episodes, seed, where, adversary_policy, record),
+            "paper": None,
+        }
         return result
     rule_kind, _, rule_record = resolve_adversary("nearest_group")
     rule_task = game_task(rule_kind, deviation=where.deviation)
@@ -318,21 +403,32 @@ def run_table5(episodes: int = EPISODES, seed: int = 0, policies_dir: Path | Non
             continue
         row = _evaluate_file(files[0], task, low_level, episodes, seed, where, adversary_policy, record)
         row["paper"] = dict(zip(COLUMNS, paper[method])) if method in paper else None
-        per_seed = {k: (row if k == 0 else _evaluate_file(f, task, low_level, episodes, seed, where,
-                                                          adversary_policy, record))
-                    for k, f in files.items()}
+        per_seed = {
+            k: (row if k == 0 else _evaluate_file(f, task, low_level, episodes, seed, where, adversary_policy, record))
+            for k, f in files.items()
+        }
         row["training_seeds"] = _seed_block(per_seed, files)
         if against_rule:
-            row["against_rule"] = _seed_block({k: _evaluate_file(f, rule_task, low_level, episodes, seed, where, None,
-                                                                 rule_record) for k, f in files.items()}, files)
+            row["against_rule"] = _seed_block(
+                {
+                    k: _evaluate_file(f, rule_task, low_level, episodes, seed, where, None, rule_record)
+                    for k, f in files.items()
+                },
+                files,
+            )
         result["rows"][method] = row
     _compare_with_reference(result["rows"])
     return result
 
 
-def run_table6(episodes: int = EPISODES, seed: int = 0, policies_dir: Path | None = None,
-               policy: str = GAME_POLICY, provenance: dict | None = None,
-               where: Conditions | None = None) -> dict:
+def run_table6(
+    episodes: int = EPISODES,
+    seed: int = 0,
+    policies_dir: Path | None = None,
+    policy: str = GAME_POLICY,
+    provenance: dict | None = None,
+    where: Conditions | None = None,
+) -> dict:
     """Table VI: one high-level policy (default CI-HRL) against each adversary strategy, the same
     episodes otherwise. Columns R_t, R_e, E as the paper prints them (R_H, R_n ride along); a row
     without a paper column (the nearest-group rule) has paper None. An adversary of TABLE6_TRAINED_LATER
@@ -344,29 +440,47 @@ def run_table6(episodes: int = EPISODES, seed: int = 0, policies_dir: Path | Non
     adversaries = {column: resolve_adversary(adversary, policies_dir) for column, adversary, _ in rows}
     where = where or PAPER_CONDITIONS
     low_level = _low_level(game_task())
-    result = {"schema": "cefc-eval/table6", "schema_version": 1,
-              "protocol": _protocol(episodes, seed, low_level, policies_dir, None, where), "rows": {}}
+    result = {
+        "schema": "cefc-eval/table6",
+        "schema_version": 1,
+        "protocol": _protocol(episodes, seed, low_level, policies_dir, None, where),
+        "rows": {},
+    }
     result["protocol"]["policy"] = path.name
-    result["protocol"]["missing"] += [f"{column} ({name}.pt: not trained yet; train it with "
-                                      f"`{TABLE6_TRAINED_LATER[name]}`)" for column, name, _ in TABLE6_ROWS
-                                      if name in untrained]
+    result["protocol"]["missing"] += [
+        f"{column} ({name}.pt: not trained yet; train it with `{TABLE6_TRAINED_LATER[name]}`)"
+        for column, name, _ in TABLE6_ROWS
+        if name in untrained
+    ]
     paper = _paper("table6_adversaries")
     if provenance is not None:
         result["provenance"] = provenance
     for column, adversary, differs in rows:
         kind, adversary_policy, record = adversaries[column]
         row = _evaluate_file(path, game_task(kind, where.deviation), low_level, episodes, seed, where, adversary_policy)
-        row.update({"adversary": adversary, "adversary_record": record,
-                    "paper": dict(zip(("R_t", "R_e", "E"), paper[column])) if column in paper else None})
+        row.update(
+            {
+                "adversary": adversary,
+                "adversary_record": record,
+                "paper": dict(zip(("R_t", "R_e", "E"), paper[column])) if column in paper else None,
+            }
+        )
         if differs:
             row["differs"] = differs
         result["rows"][column] = row
     return result
 
 
-def run_table7(episodes: int = EPISODES, seed: int = 0, policies_dir: Path | None = None,
-               policy: str = GAME_POLICY, provenance: dict | None = None, where: Conditions | None = None,
-               adversary: str = GAME_ADVERSARY, sizes: tuple[int, ...] = TABLE7_SIZES) -> dict:
+def run_table7(
+    episodes: int = EPISODES,
+    seed: int = 0,
+    policies_dir: Path | None = None,
+    policy: str = GAME_POLICY,
+    provenance: dict | None = None,
+    where: Conditions | None = None,
+    adversary: str = GAME_ADVERSARY,
+    sizes: tuple[int, ...] = TABLE7_SIZES,
+) -> dict:
     """Table VII: one high-level policy (default CI-HRL, trained with N = 8) in games of N UAVs for
     each N in `sizes`, the same adversary, targets and obstacle density; each row adds the per-agent
     averages (R_H, R_t, R_n, R_e and E in seconds, divided by N), the paper's columns."""
@@ -377,8 +491,12 @@ def run_table7(episodes: int = EPISODES, seed: int = 0, policies_dir: Path | Non
         raise ConfigError(f"sizes={sizes!r}: must be swarm sizes in [3, 32]")
     kind, adversary_policy, record = resolve_adversary(adversary, policies_dir)
     low_level = _low_level(game_task(kind))
-    result = {"schema": "cefc-eval/table7", "schema_version": 1,
-              "protocol": _protocol(episodes, seed, low_level, policies_dir, record, where), "rows": {}}
+    result = {
+        "schema": "cefc-eval/table7",
+        "schema_version": 1,
+        "protocol": _protocol(episodes, seed, low_level, policies_dir, record, where),
+        "rows": {},
+    }
     result["protocol"].update({"policy": path.name, "n_agents": list(sizes)})
     paper = _paper("table7_large_scale")
     if provenance is not None:
@@ -388,8 +506,9 @@ def run_table7(episodes: int = EPISODES, seed: int = 0, policies_dir: Path | Non
         row = _evaluate_file(path, task, low_level, episodes, seed, where, adversary_policy, record)
         row["n_agents"] = n
         row["per_agent"] = {m: row["seconds"][m] / n for m in COLUMNS}
-        row["per_agent_std"] = {m: row["seconds_std"][m] / n if row["seconds_std"][m] is not None else None
-                                for m in COLUMNS}
+        row["per_agent_std"] = {
+            m: row["seconds_std"][m] / n if row["seconds_std"][m] is not None else None for m in COLUMNS
+        }
         row["paper"] = dict(zip(COLUMNS, paper[str(n)])) if str(n) in paper else None
         result["rows"][f"N = {n}"] = row
     return result
@@ -424,41 +543,50 @@ def format_highlevel_table(result: dict) -> str:
     adversary = _adversary_text(proto["adversary"])
     lines = [
         f"{table_name} protocol ({_where_text(proto)}, N = "
-        f"{', '.join(map(str, proto['n_agents'])) if per_agent else proto['n_agents']}, density {proto['density']}/m^2, "
+        f"{', '.join(map(str, proto['n_agents'])) if per_agent else proto['n_agents']}, "
+        f"density {proto['density']}/m^2, "
         f"{proto['episodes']} "
         f"episodes x {proto['steps']} steps, seed {proto['seed']}, adversary {adversary}, low level "
         f"{proto['low_level']['name']}).",
         "R_H = R_t + R_n + R_e (weighted reward terms) and E (time with an agent within 2 m of the adversary), "
         "summed over each episode and given in seconds of flight (x 0.1 s), the scale of the paper's values; "
-        "ours: mean ± sample std over episodes." + (f" Table VII: per agent (divided by N), {proto['policy']} "
-                                                   "trained with N = 8." if per_agent else ""),
+        "ours: mean ± sample std over episodes."
+        + (f" Table VII: per agent (divided by N), {proto['policy']} trained with N = 8." if per_agent else ""),
     ]
     if proto["episodes"] != EPISODES:
         lines.append(f"{proto['episodes']} episodes; the paper evaluates {EPISODES}.")
     if proto["backend"] != "particle" or proto["wind"] or proto["deviation"]:
-        lines.append("The paper's rows are from its MPE (particles, calm, exact sensing): shown for scale, not "
-                     "like-for-like.")
+        lines.append(
+            "The paper's rows are from its MPE (particles, calm, exact sensing): shown for scale, not like-for-like."
+        )
     header = [f"{m}/N" for m in COLUMNS] if per_agent else list(COLUMNS)
     table = [["method", "", *header, "F (steps)", "C (%)"]]
     for method, row in result["rows"].items():
         label = method if result["schema"] != "cefc-eval/table6" else f"{method} ({row['adversary']})"
-        figures, spread = (row["per_agent"], row["per_agent_std"]) if per_agent else (row["seconds"],
-                                                                                   row["seconds_std"])
-        table.append([label, "ours"] + [format_mean_std(figures[m], spread[m], ".2f" if per_agent else ".1f")
-                                        for m in COLUMNS]
-                     + [format_mean_std(row["F"], row["F_std"], ".0f"), format_mean_std(row["C"], row["C_std"], ".2f")])
+        figures, spread = (
+            (row["per_agent"], row["per_agent_std"]) if per_agent else (row["seconds"], row["seconds_std"])
+        )
+        table.append(
+            [label, "ours"]
+            + [format_mean_std(figures[m], spread[m], ".2f" if per_agent else ".1f") for m in COLUMNS]
+            + [format_mean_std(row["F"], row["F_std"], ".0f"), format_mean_std(row["C"], row["C_std"], ".2f")]
+        )
         seeds = row.get("training_seeds")
         if seeds and len(seeds["seeds"]) > 1:
-            table.append([f"  {len(seeds['seeds'])} training seeds", "ours"]
-                         + [format_mean_std(seeds["mean"][m] * DT, seeds["std"][m] * DT, ".1f") for m in COLUMNS]
-                         + ["", ""])
+            table.append(
+                [f"  {len(seeds['seeds'])} training seeds", "ours"]
+                + [format_mean_std(seeds["mean"][m] * DT, seeds["std"][m] * DT, ".1f") for m in COLUMNS]
+                + ["", ""]
+            )
         paper = row.get("paper") or {}
-        table.append(["", "paper"] + ["-" if paper.get(m) is None else format(paper[m], ".2f") for m in COLUMNS]
-                     + ["-", "-"])
+        table.append(
+            ["", "paper"] + ["-" if paper.get(m) is None else format(paper[m], ".2f") for m in COLUMNS] + ["-", "-"]
+        )
     widths = [max(len(r[i]) for r in table) for i in range(len(table[0]))]
     for r in table:
-        lines.append("  ".join(cell.ljust(w) if i < 2 else cell.rjust(w) for i, (cell, w) in enumerate(zip(r, widths)))
-                     .rstrip())
+        lines.append(
+            "  ".join(cell.ljust(w) if i < 2 else cell.rjust(w) for i, (cell, w) in enumerate(zip(r, widths))).rstrip()
+        )
     for method, row in result["rows"].items():
         for key in ("differs", "low_level_differs", "adversary_differs"):
             if row.get(key):
@@ -485,13 +613,30 @@ def seed_table_lines(result: dict) -> list[str]:
     significant difference")."""
     from cefc_mj.eval.stats import ALPHA
 
-    lines = ["", f"Over training seeds (each seed's mean over the {result['protocol']['episodes']} episodes; mean "
-             "[95 % CI of the mean, Student's t]). E: steps with any agent within 2 m of the adversary, in steps "
-             "and in seconds (x 0.1 s); E_agents: agent-steps within 2 m. R_* are per-episode sums, not "
-             "scaled. p: Welch's t-test against CI-HRL over the seeds; a difference counts only where "
-             f"p < {ALPHA}."]
-    header = ["method", "seeds", "R_H", "R_t", "R_n", "R_e", "E (steps)", "E (s)", "E_agents", "E vs rule (s)",
-              "p R_H", "p R_t", "p E", "vs CI-HRL (R_H / E)"]
+    lines = [
+        "",
+        f"Over training seeds (each seed's mean over the {result['protocol']['episodes']} episodes; mean "
+        "[95 % CI of the mean, Student's t]). E: steps with any agent within 2 m of the adversary, in steps "
+        "and in seconds (x 0.1 s); E_agents: agent-steps within 2 m. R_* are per-episode sums, not "
+        "scaled. p: Welch's t-test against CI-HRL over the seeds; a difference counts only where "
+        f"p < {ALPHA}.",
+    ]
+    header = [
+        "method",
+        "seeds",
+        "R_H",
+        "R_t",
+        "R_n",
+        "R_e",
+        "E (steps)",
+        "E (s)",
+        "E_agents",
+        "E vs rule (s)",
+        "p R_H",
+        "p R_t",
+        "p E",
+        "vs CI-HRL (R_H / E)",
+    ]
     table = [header]
     for method, row in result["rows"].items():
         seeds = row.get("training_seeds")
@@ -504,15 +649,33 @@ def seed_table_lines(result: dict) -> list[str]:
         def p(m, vs=vs):
             return "-" if not vs or vs[m]["p"] is None else f"{vs[m]['p']:.3f}"
 
-        table.append([method, str(len(seeds["seeds"])), _ci_text(ci["R_H"], fmt=".0f"), _ci_text(ci["R_t"]),
-                      _ci_text(ci["R_n"], fmt=".0f"), _ci_text(ci["R_e"], fmt=".0f"), _ci_text(ci["E"]),
-                      _ci_text(ci["E"], DT, ".2f"), _ci_text(ci["E_agents"], fmt=".0f"),
-                      "-" if rule is None else _ci_text(rule, DT, ".2f"), p("R_H"), p("R_t"), p("E"),
-                      "reference" if method == REFERENCE_METHOD else
-                      "-" if not vs else f"{vs['R_H']['verdict']} / {vs['E']['verdict']}"])
+        table.append(
+            [
+                method,
+                str(len(seeds["seeds"])),
+                _ci_text(ci["R_H"], fmt=".0f"),
+                _ci_text(ci["R_t"]),
+                _ci_text(ci["R_n"], fmt=".0f"),
+                _ci_text(ci["R_e"], fmt=".0f"),
+                _ci_text(ci["E"]),
+                _ci_text(ci["E"], DT, ".2f"),
+                _ci_text(ci["E_agents"], fmt=".0f"),
+                "-" if rule is None else _ci_text(rule, DT, ".2f"),
+                p("R_H"),
+                p("R_t"),
+                p("E"),
+                "reference"
+                if method == REFERENCE_METHOD
+                else "-"
+                if not vs
+                else f"{vs['R_H']['verdict']} / {vs['E']['verdict']}",
+            ]
+        )
     widths = [max(len(r[i]) for r in table) for i in range(len(header))]
-    lines += ["  ".join(cell.ljust(w) if i == 0 else cell.rjust(w) for i, (cell, w) in enumerate(zip(r, widths)))
-              for r in table]
+    lines += [
+        "  ".join(cell.ljust(w) if i == 0 else cell.rjust(w) for i, (cell, w) in enumerate(zip(r, widths)))
+        for r in table
+    ]
     return lines
 
 
@@ -521,8 +684,11 @@ def table4_line(result: dict) -> str | None:
     result, read from the policy files, beside the paper's; None without such a method (--policy)."""
     paper = _paper("table4_comm_dims")
     named = {"MAPPO+AT-M": "MAPPO", "TarMAC+AT-M": "TarMAC", "CI-HRL": "ConsMAC"}
-    cells = [f"{method} {row['message_dim']} (paper {paper[named[method]]})"
-             for method, row in result["rows"].items() if method in named and "message_dim" in row]
+    cells = [
+        f"{method} {row['message_dim']} (paper {paper[named[method]]})"
+        for method, row in result["rows"].items()
+        if method in named and "message_dim" in row
+    ]
     return "Table IV, message size per agent and decision: " + ", ".join(cells) if cells else None
 
 
@@ -542,8 +708,10 @@ def plot_highlevel_table(result: dict, path: Path) -> Path:
     for ax, m in zip(axes, ("R_t", "E")):
         ours = [rows[n][key][m] for n in names]
         err = [rows[n][f"{key}_std"][m] or 0.0 for n in names]
-        paper = [np.nan if not rows[n].get("paper") or rows[n]["paper"].get(m) is None else rows[n]["paper"][m]
-                 for n in names]
+        paper = [
+            np.nan if not rows[n].get("paper") or rows[n]["paper"].get(m) is None else rows[n]["paper"][m]
+            for n in names
+        ]
         ax.bar(x - 0.2, ours, 0.4, yerr=err, capsize=3, label="ours")
         ax.bar(x + 0.2, paper, 0.4, label="paper")
         ax.set_xticks(x, names, rotation=20, ha="right", fontsize=8)

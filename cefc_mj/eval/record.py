@@ -181,8 +181,17 @@ class EpisodeRecord:
 
     def __post_init__(self) -> None:
         f64 = lambda a: np.asarray(a, dtype=np.float64)  # noqa: E731
-        for name in ("agent_pos", "agent_quat", "agent_vel", "obstacles", "anchor", "targets",
-                     "lidar_origins", "lidar_ranges", "template_world"):
+        for name in (
+            "agent_pos",
+            "agent_quat",
+            "agent_vel",
+            "obstacles",
+            "anchor",
+            "targets",
+            "lidar_origins",
+            "lidar_ranges",
+            "template_world",
+        ):
             setattr(self, name, f64(getattr(self, name)))
         if self.wind_vector is None:
             self.wind_vector = np.zeros((self.agent_pos.shape[0], 2))
@@ -217,8 +226,11 @@ class EpisodeRecord:
     @property
     def final_metrics(self) -> dict[str, float]:
         """F, N, C at the last step (from the "F_so_far", ... series; those missing are left out)."""
-        return {m: float(self.scalars[f"{m}_so_far"][-1]) for m in "FNC"
-                if f"{m}_so_far" in self.scalars and self.n_steps > 0}
+        return {
+            m: float(self.scalars[f"{m}_so_far"][-1])
+            for m in "FNC"
+            if f"{m}_so_far" in self.scalars and self.n_steps > 0
+        }
 
     def _validate(self) -> None:
         if self.agent_pos.ndim != 3 or self.agent_pos.shape[2] != 3:
@@ -285,13 +297,18 @@ class EpisodeRecord:
                 value = arrays.pop(f.name)
                 kwargs[f.name] = value.item() if value.ndim == 0 else value
         kwargs["scalars"] = {k.removeprefix("scalar/"): v for k, v in arrays.items() if k.startswith("scalar/")}
-        kwargs["provenance"] = {k.removeprefix("provenance/"): str(v) for k, v in arrays.items()
-                                if k.startswith("provenance/")}
+        kwargs["provenance"] = {
+            k.removeprefix("provenance/"): str(v) for k, v in arrays.items() if k.startswith("provenance/")
+        }
         kwargs["airframe_parts"] = [
             AirframePart(name=str(name), kind=str(kind), size=size, pos=pos, quat=quat, rgba=rgba)
             for name, kind, size, pos, quat, rgba in zip(
-                arrays["part/name"], arrays["part/kind"], arrays["part/size"],
-                arrays["part/pos"], arrays["part/quat"], arrays["part/rgba"],
+                arrays["part/name"],
+                arrays["part/kind"],
+                arrays["part/size"],
+                arrays["part/pos"],
+                arrays["part/quat"],
+                arrays["part/rgba"],
             )
         ]
         for name in ("backend", "condition", "policy", "policy_sha256"):
@@ -343,8 +360,9 @@ def synthetic_record(
     perp2 = (rel * rel).sum(-1)[:, :, None, :] - along**2
     hit = along - np.sqrt(np.clip(radius**2 - perp2, 0.0, None))
     valid = (perp2 <= radius**2) & (hit > 0)
-    ranges = np.where(valid, hit, np.inf).min(axis=-1) if len(obstacles) else np.full(
-        (n_steps, n_agents, n_beams), np.inf)
+    ranges = (
+        np.where(valid, hit, np.inf).min(axis=-1) if len(obstacles) else np.full((n_steps, n_agents, n_beams), np.inf)
+    )
     ranges = np.minimum(ranges, lidar_range)
     apart = ((steps // 100) % 2 == 1)[:, None] & (np.arange(n_agents) < 3)[None, :]
     # Labels follow connected_groups: a component is labelled by its smallest member index.
@@ -360,11 +378,26 @@ def synthetic_record(
     hd = np.abs(ring - 0.8).max(axis=1)
     anchor_distance = np.linalg.norm(centre[:, 0] - anchor, axis=-1)
     return EpisodeRecord(
-        backend="particle", condition="Synthetic", formation=n_agents, seed=seed, dt=dt,
-        flight_altitude=altitude, agent_pos=pos, agent_quat=quat, agent_vel=vel,
-        obstacles=obstacles, obstacle_radius=radius, obstacle_height=4.0, anchor=anchor,
-        targets=np.array([[8.0, 8.0], [-8.0, 8.0]]), lidar_origins=origins, lidar_ranges=ranges,
-        lidar_range=lidar_range, group_id=group_id, template_world=template_world, collision=collision,
+        backend="particle",
+        condition="Synthetic",
+        formation=n_agents,
+        seed=seed,
+        dt=dt,
+        flight_altitude=altitude,
+        agent_pos=pos,
+        agent_quat=quat,
+        agent_vel=vel,
+        obstacles=obstacles,
+        obstacle_radius=radius,
+        obstacle_height=4.0,
+        anchor=anchor,
+        targets=np.array([[8.0, 8.0], [-8.0, 8.0]]),
+        lidar_origins=origins,
+        lidar_ranges=ranges,
+        lidar_range=lidar_range,
+        group_id=group_id,
+        template_world=template_world,
+        collision=collision,
         scalars={
             "hd_error": hd,
             "anchor_distance": anchor_distance,
@@ -374,5 +407,7 @@ def synthetic_record(
             "C_so_far": 100.0 * np.cumsum(collision.sum(axis=1)) / (n_agents * (steps + 1)),
         },
         adversary_pos=np.concatenate([xy.mean(axis=1) + 4.0, np.full((n_steps, 1), altitude)], axis=-1),
-        airframe_parts=list(airframe_parts or []), wind_vector=wind_vector, wind=8.0,
+        airframe_parts=list(airframe_parts or []),
+        wind_vector=wind_vector,
+        wind=8.0,
     )

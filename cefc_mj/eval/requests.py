@@ -26,8 +26,7 @@ import numpy as np
 from cefc_mj.errors import CefcError, ConfigError
 from cefc_mj.eval import DEFAULT_POLICY
 from cefc_mj.eval.conditions import Conditions, check_wind_direction, is_number_in, number_text
-from cefc_mj.eval.highlevel import EPISODES as GAME_EPISODES
-from cefc_mj.eval.highlevel import GAME_ADVERSARY, GAME_POLICY
+from cefc_mj.eval.highlevel import EPISODES as GAME_EPISODES, GAME_ADVERSARY, GAME_POLICY
 from cefc_mj.eval.runner import TABLE8_FORMATIONS, TABLE8_STEPS
 from cefc_mj.eval.table3 import TABLE3_FORMATIONS
 from cefc_mj.executors import ExecutorConfig
@@ -56,11 +55,34 @@ TABLE8_BACKEND = "mujoco"
 """Table VIII is flown on quadrotors (its Wind conditions need the wind model)."""
 GAME_TABLES = ("table5", "table6", "table7")
 
-SYSTEM_FOLDERS = frozenset({
-    "/", "/bin", "/boot", "/dev", "/etc", "/lib", "/lib32", "/lib64", "/libx32", "/opt", "/proc", "/run", "/sbin",
-    "/snap", "/srv", "/sys", "/usr", "/usr/bin", "/usr/lib", "/usr/local", "/usr/sbin", "/usr/share", "/var",
-    "/var/lib",
-})
+SYSTEM_FOLDERS = frozenset(
+    {
+        "/",
+        "/bin",
+        "/boot",
+        "/dev",
+        "/etc",
+        "/lib",
+        "/lib32",
+        "/lib64",
+        "/libx32",
+        "/opt",
+        "/proc",
+        "/run",
+        "/sbin",
+        "/snap",
+        "/srv",
+        "/sys",
+        "/usr",
+        "/usr/bin",
+        "/usr/lib",
+        "/usr/local",
+        "/usr/sbin",
+        "/usr/share",
+        "/var",
+        "/var/lib",
+    }
+)
 """Folders in which cefc-eval never creates a missing output folder (even when run as root)."""
 
 
@@ -136,8 +158,9 @@ def check_policy_name(policy: object, orca: bool = False) -> None:
     if policy in WITHDRAWN:
         raise ConfigError(f"--policy {policy}: {WITHDRAWN[policy]}")
     if policy == "orca" and not orca:
-        raise ConfigError("--policy orca: the ORCA-F baseline is a Table III row (--backend particle --protocol "
-                          "table3)")
+        raise ConfigError(
+            "--policy orca: the ORCA-F baseline is a Table III row (--backend particle --protocol table3)"
+        )
 
 
 def recording_refused(flag: str) -> ConfigError:
@@ -147,12 +170,14 @@ def recording_refused(flag: str) -> ConfigError:
 
 def adversary_refused(adversary: str) -> ConfigError:
     """The error of --adversary outside Tables V and VII."""
-    return ConfigError(f"--adversary {adversary}: chooses the adversary of --protocol table5 and table7 (table6 "
-                       "plays each adversary of the paper's table in turn; the other protocols have none)")
+    return ConfigError(
+        f"--adversary {adversary}: chooses the adversary of --protocol table5 and table7 (table6 "
+        "plays each adversary of the paper's table in turn; the other protocols have none)"
+    )
 
 
 def parse_drop(text: str) -> tuple[int, int]:
-    """"K@STEP" (e.g. "2@500") -> (2, 500); ConfigError for anything else (the range is checked
+    """ "K@STEP" (e.g. "2@500") -> (2, 500); ConfigError for anything else (the range is checked
     against the episode by check_drop)."""
     parts = str(text).split("@")
     if len(parts) != 2 or not all(p.strip().isdigit() for p in parts):
@@ -229,8 +254,9 @@ class Flight:
             if self.offboard not in OFFBOARD_MODES:
                 raise ConfigError(f"--offboard {self.offboard}: must be one of {', '.join(OFFBOARD_MODES)}")
             if self.rotor_actuation not in ROTOR_ACTUATIONS:
-                raise ConfigError(f"--rotor-actuation {self.rotor_actuation}: must be one of "
-                                  f"{', '.join(ROTOR_ACTUATIONS)}")
+                raise ConfigError(
+                    f"--rotor-actuation {self.rotor_actuation}: must be one of {', '.join(ROTOR_ACTUATIONS)}"
+                )
             try:
                 MujocoWorldConfig(airframe=self.airframe).validate()
             except CefcError as e:
@@ -289,8 +315,9 @@ class SingleRequest:
 
     def __post_init__(self) -> None:
         if self.sitl is not None and _is_int(self.workers) and self.workers > 1:
-            raise ConfigError(f"--workers {self.workers}: SITL-M episodes fly one at a time (each runs c + 1 "
-                              "processes)")
+            raise ConfigError(
+                f"--workers {self.workers}: SITL-M episodes fly one at a time (each runs c + 1 processes)"
+            )
         check_policy_name(self.policy)
         object.__setattr__(self, "formations", _formations(self.formations))
         _check_count("--episodes", self.episodes, MAX_EPISODES)
@@ -355,8 +382,10 @@ class Table8Request:
         check_wind_direction(self.wind_direction)
         executor = self.executor
         if executor.address is not None and executor.kind == "ray" and executor.workers > 1:
-            raise ConfigError(f"--workers {executor.workers}: with --address the cluster's CPUs decide how many "
-                              "episodes fly at once; drop --workers")
+            raise ConfigError(
+                f"--workers {executor.workers}: with --address the cluster's CPUs decide how many "
+                "episodes fly at once; drop --workers"
+            )
         executor.validate()
         report_dir = _path(self.report_dir) or default_report_dir(self.policy, self.backend)
         object.__setattr__(self, "report_dir", report_dir)
@@ -444,8 +473,12 @@ class GameTablesRequest:
                     raise recording_refused(flag)
         for name in ("rrd", "png", "report_dir", "json"):
             object.__setattr__(self, name, _path(getattr(self, name)))
-        _check_outputs(("--json", self.json, False), ("--rrd", self.rrd, False), ("--png", self.png, True),
-                       ("--report-dir", self.report_dir, True))
+        _check_outputs(
+            ("--json", self.json, False),
+            ("--rrd", self.rrd, False),
+            ("--png", self.png, True),
+            ("--report-dir", self.report_dir, True),
+        )
 
     @property
     def played_policy(self) -> str | None:

@@ -120,8 +120,13 @@ class EpisodeSpec:
 
     def task_config(self) -> TaskConfig:
         return TaskConfig(
-            n_agents=self.formation, mode="formation", obstacle_density=TABLE8_DENSITY, episode_steps=self.steps,
-            anchor_redraw_steps=TABLE8_ANCHOR_REDRAW, deviation=self.deviation, position_estimator=self.estimator,
+            n_agents=self.formation,
+            mode="formation",
+            obstacle_density=TABLE8_DENSITY,
+            episode_steps=self.steps,
+            anchor_redraw_steps=TABLE8_ANCHOR_REDRAW,
+            deviation=self.deviation,
+            position_estimator=self.estimator,
             separation_guard=self.guard,
         )
 
@@ -177,9 +182,16 @@ def fly(env, steps: int, act, before_step=None, after_step=None) -> tuple[str | 
 def episode_fields(env, spec: EpisodeSpec, diverged: str | None, wall_s: float) -> dict:
     """The fields every episode result shares: spec, F, N, C of env 0, steps flown, wall-clock, divergence."""
     metrics = env.episode_metrics()
-    return {"spec": spec, "F": float(metrics["F"][0]), "N": float(metrics["N"][0]), "C": float(metrics["C"][0]),
-            "steps": int(env.t[0]), "wall_s": wall_s, "diverged": diverged,
-            "wind_direction_flown": wind_direction_flown(env.world)}
+    return {
+        "spec": spec,
+        "F": float(metrics["F"][0]),
+        "N": float(metrics["N"][0]),
+        "C": float(metrics["C"][0]),
+        "steps": int(env.t[0]),
+        "wall_s": wall_s,
+        "diverged": diverged,
+        "wind_direction_flown": wind_direction_flown(env.world),
+    }
 
 
 def wind_direction_flown(world) -> float | None:
@@ -199,9 +211,17 @@ def episode_env(spec: EpisodeSpec, policy: Policy | None = None) -> tuple[Batche
     if policy is None:
         policy = load_policy_for(spec.policy, spec.formation)
     config = policy.task_for(spec.task_config())
-    world = make_world(spec.backend, config, n_envs=1, wind=spec.wind, seed=spec.seed, airframe=spec.mujoco_airframe,
-                       offboard=spec.offboard if spec.backend == "mujoco" else None, wind_direction=spec.wind_direction,
-                       rotor_actuation=spec.rotor_actuation if spec.backend == "mujoco" else None)
+    world = make_world(
+        spec.backend,
+        config,
+        n_envs=1,
+        wind=spec.wind,
+        seed=spec.seed,
+        airframe=spec.mujoco_airframe,
+        offboard=spec.offboard if spec.backend == "mujoco" else None,
+        wind_direction=spec.wind_direction,
+        rotor_actuation=spec.rotor_actuation if spec.backend == "mujoco" else None,
+    )
     env = BatchedCEFCEnv(config, n_envs=1, seed=spec.seed, world=world)
     # Policy.act's numbers bit for bit without its per-call checks: the compiled kernel on the weights
     # as they are now (fixed for the episode)
@@ -226,9 +246,27 @@ class _Recorder:
     def __init__(self, env: BatchedCEFCEnv, spec: EpisodeSpec):
         self.env = env
         self.spec = spec
-        self.rows: dict[str, list] = {k: [] for k in (
-            "agent_pos", "agent_quat", "agent_vel", "anchor", "lidar_origins", "lidar_ranges", "group_id",
-            "template_world", "collision", "hd_error", "anchor_distance", "wind_speed", "wind_vector", "F", "N", "C")}
+        self.rows: dict[str, list] = {
+            k: []
+            for k in (
+                "agent_pos",
+                "agent_quat",
+                "agent_vel",
+                "anchor",
+                "lidar_origins",
+                "lidar_ranges",
+                "group_id",
+                "template_world",
+                "collision",
+                "hd_error",
+                "anchor_distance",
+                "wind_speed",
+                "wind_vector",
+                "F",
+                "N",
+                "C",
+            )
+        }
         self.template = formation_template(env.n_agents, env.config.formation_spacing)
 
     def capture(self) -> None:
@@ -264,19 +302,39 @@ class _Recorder:
         airframe = flown.path if flown is not None else MJCF_DIR / "iris.xml"
         policy = policy_files(self.spec.policy, [self.spec.formation])[str(self.spec.formation)]
         return EpisodeRecord(
-            wind_vector=arr["wind_vector"], policy=policy["name"], policy_sha256=policy["sha256"], wind=self.spec.wind,
+            wind_vector=arr["wind_vector"],
+            policy=policy["name"],
+            policy_sha256=policy["sha256"],
+            wind=self.spec.wind,
             deviation=self.spec.deviation,
-            backend=self.spec.backend, condition=self.spec.condition, formation=self.spec.formation,
-            seed=self.spec.seed, dt=env.config.dt, flight_altitude=FLIGHT_ALTITUDE,
+            backend=self.spec.backend,
+            condition=self.spec.condition,
+            formation=self.spec.formation,
+            seed=self.spec.seed,
+            dt=env.config.dt,
+            flight_altitude=FLIGHT_ALTITUDE,
             wind_direction=wind_direction_flown(env.world),
-            agent_pos=arr["agent_pos"], agent_quat=arr["agent_quat"], agent_vel=arr["agent_vel"],
-            obstacles=env.obstacles[0], obstacle_radius=env.config.obstacle_radius, obstacle_height=OBSTACLE_HEIGHT,
-            anchor=arr["anchor"], targets=np.zeros((0, 2)), lidar_origins=arr["lidar_origins"],
-            lidar_ranges=arr["lidar_ranges"], lidar_range=env.config.lidar_range, group_id=arr["group_id"],
-            template_world=arr["template_world"], collision=arr["collision"],
+            agent_pos=arr["agent_pos"],
+            agent_quat=arr["agent_quat"],
+            agent_vel=arr["agent_vel"],
+            obstacles=env.obstacles[0],
+            obstacle_radius=env.config.obstacle_radius,
+            obstacle_height=OBSTACLE_HEIGHT,
+            anchor=arr["anchor"],
+            targets=np.zeros((0, 2)),
+            lidar_origins=arr["lidar_origins"],
+            lidar_ranges=arr["lidar_ranges"],
+            lidar_range=env.config.lidar_range,
+            group_id=arr["group_id"],
+            template_world=arr["template_world"],
+            collision=arr["collision"],
             scalars={
-                "hd_error": arr["hd_error"], "anchor_distance": arr["anchor_distance"], "wind_speed": arr["wind_speed"],
-                "F_so_far": arr["F"], "N_so_far": arr["N"], "C_so_far": arr["C"],
+                "hd_error": arr["hd_error"],
+                "anchor_distance": arr["anchor_distance"],
+                "wind_speed": arr["wind_speed"],
+                "F_so_far": arr["F"],
+                "N_so_far": arr["N"],
+                "C_so_far": arr["C"],
             },
             airframe_parts=airframe_parts_from_mjcf(airframe) if airframe.is_file() else [],
         )
@@ -337,7 +395,7 @@ def retention(cell: dict | None, calm: dict | None) -> tuple[float | None, str |
 
 
 def format_mean_std(mean: float | None, std: float | None, fmt: str = ".1f") -> str:
-    """"812.3 ± 12.1", or "812.3" without a spread, or "-" without a value; never "nan"."""
+    """ "812.3 ± 12.1", or "812.3" without a spread, or "-" without a value; never "nan"."""
     if mean is None or not math.isfinite(mean):
         return "-"
     if std is None or not math.isfinite(std):
@@ -363,8 +421,12 @@ def provenance(choice: str, formations) -> dict:
     from cefc_mj.provenance import git_commit, library_versions
 
     versions = library_versions()
-    return {"library_versions": versions, "code_version": versions["code_version"], "git_commit": git_commit(),
-            "policies": policy_files(choice, formations)}
+    return {
+        "library_versions": versions,
+        "code_version": versions["code_version"],
+        "git_commit": git_commit(),
+        "policies": policy_files(choice, formations),
+    }
 
 
 def airframe_files(spec: EpisodeSpec) -> dict[str, str] | None:

@@ -40,7 +40,7 @@ def welch_p(values, reference) -> float | None:
 
 
 def verdict(values, reference, higher_is_better: bool) -> str:
-    """"better" / "worse" (than the reference) where Welch's p < ALPHA, else "no significant difference"."""
+    """ "better" / "worse" (than the reference) where Welch's p < ALPHA, else "no significant difference"."""
     p = welch_p(values, reference)
     if p is None or p >= ALPHA:
         return "no significant difference"

@@ -35,8 +35,17 @@ from cefc_mj.task.config import TaskConfig
 
 TABLE3_FORMATIONS = (6, 7, 8)
 OBSTACLE_LIDAR_STEP1 = "AT-M-Step1 (obstacle LiDAR)"
-METHODS = ("ORCA-F", "CL-M", OBSTACLE_LIDAR_STEP1, "AT-M-Step1", "AT-M-Step2", "AT-M-Step3", "AT-M-Safe",
-           "AT-M-Nav", "Student")
+METHODS = (
+    "ORCA-F",
+    "CL-M",
+    OBSTACLE_LIDAR_STEP1,
+    "AT-M-Step1",
+    "AT-M-Step2",
+    "AT-M-Step3",
+    "AT-M-Safe",
+    "AT-M-Nav",
+    "Student",
+)
 """Row names as the paper writes them (AT-M-Nav and the student are this project's additions;
 ORCA-F is the baseline of cefc_mj/baselines/orca.py, CL-M the curriculum baseline trained by `cefc-train clm`,
 docs/baselines.md). AT-M-Step1 is the Step 1 that Step 3 starts from, its LiDAR seeing obstacles and
@@ -50,8 +59,11 @@ COLUMNS = ("R_L", "F", "N", "C")
 def _paper_table3() -> dict[str, dict[str, dict[str, float]]]:
     """The paper's Table III AT-M, ORCA-F and CL-M rows from the shipped transcription (eval/paper_tables.json)."""
     raw = json.loads((paths.EVAL_DIR / "paper_tables.json").read_text())["table3_atm_mpe"]
-    return {c: {m: dict(zip(COLUMNS, v)) for m, v in rows.items() if m.startswith("AT-M") or m in ("ORCA-F", "CL-M")}
-            for c, rows in raw.items() if c.isdigit()}
+    return {
+        c: {m: dict(zip(COLUMNS, v)) for m, v in rows.items() if m.startswith("AT-M") or m in ("ORCA-F", "CL-M")}
+        for c, rows in raw.items()
+        if c.isdigit()
+    }
 
 
 PAPER_TABLE3 = _paper_table3()
@@ -72,12 +84,18 @@ def policy_file_for(method: str, formation: int) -> str | None:
 
 
 @torch.no_grad()
-def evaluate_lowlevel_episodes(policy: Policy, formation: int, density: float = TABLE3_DENSITY,
-                               episodes: int = TABLE3_EPISODES, seed: int = 0,
-                               steps: int = TABLE3_STEPS) -> dict[str, np.ndarray]:
+def evaluate_lowlevel_episodes(
+    policy: Policy,
+    formation: int,
+    density: float = TABLE3_DENSITY,
+    episodes: int = TABLE3_EPISODES,
+    seed: int = 0,
+    steps: int = TABLE3_STEPS,
+) -> dict[str, np.ndarray]:
     """Per-episode R_L (per step), F, N, C [episodes] of `policy` for one group of `formation` agents."""
-    task = policy.task_for(TaskConfig(n_agents=formation, mode="formation", obstacle_density=density,
-                                      episode_steps=steps))
+    task = policy.task_for(
+        TaskConfig(n_agents=formation, mode="formation", obstacle_density=density, episode_steps=steps)
+    )
     env = BatchedCEFCEnv(task, n_envs=episodes, seed=seed)
     if policy.obs_dim != env.layout.size:
         raise ConfigError(f"policy {policy.name}: observation size {policy.obs_dim}, the env gives {env.layout.size}")
@@ -89,15 +107,27 @@ def evaluate_lowlevel_episodes(policy: Policy, formation: int, density: float = 
         torch.set_num_threads(threads)
 
 
-def evaluate_lowlevel(policy: Policy, formation: int, density: float = TABLE3_DENSITY, episodes: int = TABLE3_EPISODES,
-                      seed: int = 0, steps: int = TABLE3_STEPS) -> dict[str, float]:
+def evaluate_lowlevel(
+    policy: Policy,
+    formation: int,
+    density: float = TABLE3_DENSITY,
+    episodes: int = TABLE3_EPISODES,
+    seed: int = 0,
+    steps: int = TABLE3_STEPS,
+) -> dict[str, float]:
     """R_L, F, N, C of `policy` averaged over `episodes` episodes of one group of `formation` agents."""
     per_episode = evaluate_lowlevel_episodes(policy, formation, density, episodes, seed, steps)
     return {m: float(v.mean()) for m, v in per_episode.items()}
 
 
-POLICY_CHOICES = {"atm": "AT-M-Step3", "safe": "AT-M-Safe", "nav": "AT-M-Nav", "student": "Student", "orca": "ORCA-F",
-                  "clm": "CL-M"}
+POLICY_CHOICES = {
+    "atm": "AT-M-Step3",
+    "safe": "AT-M-Safe",
+    "nav": "AT-M-Nav",
+    "student": "Student",
+    "orca": "ORCA-F",
+    "clm": "CL-M",
+}
 """cefc-eval's --policy aliases and the Table III row each one is."""
 
 
@@ -120,9 +150,16 @@ def _orca_row(c: int, episodes: int, seed: int, steps: int, required: bool) -> d
     return {**_row(per_episode, c, "ORCA-F"), "policy": "ORCA-F (pyrvo, RVO2)", "sha256": None}
 
 
-def run_table3(formations=TABLE3_FORMATIONS, episodes: int = TABLE3_EPISODES, seed: int = 0,
-               policies_dir: Path | None = None, json_path: Path | None = None, steps: int = TABLE3_STEPS,
-               policy: str | None = None, provenance: dict | None = None) -> dict:
+def run_table3(
+    formations=TABLE3_FORMATIONS,
+    episodes: int = TABLE3_EPISODES,
+    seed: int = 0,
+    policies_dir: Path | None = None,
+    json_path: Path | None = None,
+    steps: int = TABLE3_STEPS,
+    policy: str | None = None,
+    provenance: dict | None = None,
+) -> dict:
     """Evaluate every available Table III method for each formation c (or only `policy`).
 
     `policy`: None = every method in METHODS; an alias of POLICY_CHOICES = that method's row; any
@@ -145,10 +182,19 @@ def run_table3(formations=TABLE3_FORMATIONS, episodes: int = TABLE3_EPISODES, se
     if not isinstance(steps, int) or steps < 1:
         raise ConfigError(f"steps={steps!r}: must be an integer >= 1")
     result: dict = {
-        "schema": "cefc-eval/table3", "schema_version": 2,
-        "protocol": {"backend": "particle", "density": TABLE3_DENSITY, "episodes": episodes, "steps": steps,
-                     "seed": seed, "policies_dir": display_path(policies_dir), "policy": policy,
-                     "comparable_to_paper": steps == TABLE3_STEPS, "missing": []},
+        "schema": "cefc-eval/table3",
+        "schema_version": 2,
+        "protocol": {
+            "backend": "particle",
+            "density": TABLE3_DENSITY,
+            "episodes": episodes,
+            "steps": steps,
+            "seed": seed,
+            "policies_dir": display_path(policies_dir),
+            "policy": policy,
+            "comparable_to_paper": steps == TABLE3_STEPS,
+            "missing": [],
+        },
     }
     if provenance is not None:
         result["provenance"] = provenance
@@ -165,7 +211,9 @@ def run_table3(formations=TABLE3_FORMATIONS, episodes: int = TABLE3_EPISODES, se
             if method == "ORCA-F":
                 row = _orca_row(c, episodes, seed, steps, required=policy is not None)
                 if row is None:
-                    result["protocol"]["missing"].append(f"{c}/ORCA-F (pyrvo not installed: pip install -e '.[baselines]')")
+                    result["protocol"]["missing"].append(
+                        f"{c}/ORCA-F (pyrvo not installed: pip install -e '.[baselines]')"
+                    )
                 else:
                     rows[method] = row
                 continue
@@ -205,15 +253,24 @@ def format_table3(result: dict) -> str:
             continue
         for method, row in rows.items():
             paper = row.get("paper") or {}
-            table.append([c, method, "ours"] + [format_mean_std(row[m], row.get(f"{m}_std"), ".2f") if m in row
-                                                else "-" for m in ("R_L", "R_L_agents", *COLUMNS[1:])])
+            table.append(
+                [c, method, "ours"]
+                + [
+                    format_mean_std(row[m], row.get(f"{m}_std"), ".2f") if m in row else "-"
+                    for m in ("R_L", "R_L_agents", *COLUMNS[1:])
+                ]
+            )
             # the paper prints one R_L; its values match R_L^a, so it stands in that column
-            table.append(["", "", "paper", "-"]
-                         + ["-" if paper.get(m) is None else format(paper[m], ".2f") for m in COLUMNS])
+            table.append(
+                ["", "", "paper", "-"] + ["-" if paper.get(m) is None else format(paper[m], ".2f") for m in COLUMNS]
+            )
     widths = [max(len(r[i]) for r in table) for i in range(len(table[0]))]
     for r in table:
-        lines.append("  ".join(cell.ljust(w) if i in (1, 2) else cell.rjust(w)
-                               for i, (cell, w) in enumerate(zip(r, widths))).rstrip())
+        lines.append(
+            "  ".join(
+                cell.ljust(w) if i in (1, 2) else cell.rjust(w) for i, (cell, w) in enumerate(zip(r, widths))
+            ).rstrip()
+        )
     if proto.get("missing"):
         lines.append("missing policies: " + ", ".join(proto["missing"]))
     return "\n".join(lines)

@@ -25,11 +25,20 @@ from pathlib import Path
 import numpy as np
 
 from cefc_mj import paths
-from cefc_mj.eval.runner import (
-    CONDITIONS, HISTOGRAM_EDGES_MS, TABLE8_STEPS, EpisodeResult, EpisodeSpec, airframe_files, format_mean_std,
-    load_policy_for, retention, run_episode, summarize,
-)
 from cefc_mj.errors import ConfigError
+from cefc_mj.eval.runner import (
+    CONDITIONS,
+    HISTOGRAM_EDGES_MS,
+    TABLE8_STEPS,
+    EpisodeResult,
+    EpisodeSpec,
+    airframe_files,
+    format_mean_std,
+    load_policy_for,
+    retention,
+    run_episode,
+    summarize,
+)
 from cefc_mj.executors import ExecutorConfig, map_unordered
 from cefc_mj.fileio import write_atomic
 
@@ -51,16 +60,38 @@ def paper_table8() -> dict[str, dict[str, dict[str, float]]]:
     return {c: {cond: dict(zip("FNC", v)) for cond, v in rows.items()} for c, rows in raw.items() if c.isdigit()}
 
 
-def table8_specs(formations, episodes: int, seed: int, steps: int, backend: str, policy: str,
-                 airframe: str = "iris", estimator: str = "fused", offboard: str = "velocity",
-                 guard: bool = True, wind_direction: float | None = None,
-                 rotor_actuation: str = "auto") -> list[EpisodeSpec]:
+def table8_specs(
+    formations,
+    episodes: int,
+    seed: int,
+    steps: int,
+    backend: str,
+    policy: str,
+    airframe: str = "iris",
+    estimator: str = "fused",
+    offboard: str = "velocity",
+    guard: bool = True,
+    wind_direction: float | None = None,
+    rotor_actuation: str = "auto",
+) -> list[EpisodeSpec]:
     """The grid, seeds seed .. seed+K-1 for every cell (the same layouts under every condition);
     `wind_direction` (degrees) points the Wind rows' wind (None: drawn per episode from the seed)."""
     return [
-        EpisodeSpec(formation=c, seed=seed + k, backend=backend, wind=wind, deviation=dev, steps=steps, policy=policy,
-                    airframe=airframe, estimator=estimator, offboard=offboard, guard=guard,
-                    wind_direction=wind_direction if wind else None, rotor_actuation=rotor_actuation)
+        EpisodeSpec(
+            formation=c,
+            seed=seed + k,
+            backend=backend,
+            wind=wind,
+            deviation=dev,
+            steps=steps,
+            policy=policy,
+            airframe=airframe,
+            estimator=estimator,
+            offboard=offboard,
+            guard=guard,
+            wind_direction=wind_direction if wind else None,
+            rotor_actuation=rotor_actuation,
+        )
         for c in formations
         for name, (wind, dev) in CONDITIONS.items()
         for k in range(episodes)
@@ -85,8 +116,13 @@ class Cell:
 
 def cell_key_fields(spec: EpisodeSpec, policy_sha256: str, code_version: str, sitl=None) -> dict:
     """The inputs that determine an episode's result (the cell key is their digest)."""
-    fields = {"schema": CELL_SCHEMA, "spec": asdict(spec), "policy_sha256": policy_sha256, "code_version": code_version,
-              "airframe": airframe_files(spec)}
+    fields = {
+        "schema": CELL_SCHEMA,
+        "spec": asdict(spec),
+        "policy_sha256": policy_sha256,
+        "code_version": code_version,
+        "airframe": airframe_files(spec),
+    }
     if sitl is not None:
         fields["sitl"] = asdict(sitl)
     return fields
@@ -134,8 +170,9 @@ class RowRunners:
 def _runner(runners: RowRunners | None, row: str) -> Callable:
     run = getattr(runners, row, None)
     if run is None:
-        raise ValueError(f"the {row} row needs runners=RowRunners({row}=...), cefc_mj.deploy's runner "
-                         "(as cefc-eval passes it)")
+        raise ValueError(
+            f"the {row} row needs runners=RowRunners({row}=...), cefc_mj.deploy's runner (as cefc-eval passes it)"
+        )
     return run
 
 
@@ -145,8 +182,13 @@ def cached_policy(choice: str, formation: int):
     return load_policy_for(choice, formation)
 
 
-def _fly(spec: EpisodeSpec, record: bool = False, sitl=None, drop: tuple[int, int] | None = None,
-         runners: RowRunners | None = None):
+def _fly(
+    spec: EpisodeSpec,
+    record: bool = False,
+    sitl=None,
+    drop: tuple[int, int] | None = None,
+    runners: RowRunners | None = None,
+):
     import torch
 
     torch.set_num_threads(1)
@@ -169,17 +211,24 @@ def _fly_cell(cell: Cell) -> dict:
     from cefc_mj.provenance import code_version
 
     spec, expected = cell.spec, cell.key_fields
-    here = {"code_version": code_version(),
-            "policy_sha256": policy_files(spec.policy, [spec.formation])[str(spec.formation)]["sha256"],
-            "airframe": airframe_files(spec)}
-    what = {"code_version": f"cefc-mj code (digest {here['code_version']}, the command's {expected['code_version']})",
-            "policy_sha256": f"policy file for {spec.policy} c = {spec.formation}", "airframe": "airframe files"}
+    here = {
+        "code_version": code_version(),
+        "policy_sha256": policy_files(spec.policy, [spec.formation])[str(spec.formation)]["sha256"],
+        "airframe": airframe_files(spec),
+    }
+    what = {
+        "code_version": f"cefc-mj code (digest {here['code_version']}, the command's {expected['code_version']})",
+        "policy_sha256": f"policy file for {spec.policy} c = {spec.formation}",
+        "airframe": "airframe files",
+    }
     differ = [what[name] for name, value in here.items() if expected[name] != value]
     if differ:
         import platform
 
-        raise ConfigError(f"{platform.node()} flies with other {' and other '.join(differ)} than the command that "
-                          "planned the cell: install the same cefc-mj and policy files on every node (docs/scaling.md)")
+        raise ConfigError(
+            f"{platform.node()} flies with other {' and other '.join(differ)} than the command that "
+            "planned the cell: install the same cefc-mj and policy files on every node (docs/scaling.md)"
+        )
     return _fly_row(spec)
 
 
@@ -194,10 +243,14 @@ class _PooledResult(EpisodeResult):
         return dict(self.row)
 
 
-def fly_episodes(specs: list[EpisodeSpec], workers: int = 1,
-                 record: Callable[[EpisodeSpec], bool] | None = None, sitl=None,
-                 drop: tuple[int, int] | None = None,
-                 runners: RowRunners | None = None) -> Iterator[tuple[int, object]]:
+def fly_episodes(
+    specs: list[EpisodeSpec],
+    workers: int = 1,
+    record: Callable[[EpisodeSpec], bool] | None = None,
+    sitl=None,
+    drop: tuple[int, int] | None = None,
+    runners: RowRunners | None = None,
+) -> Iterator[tuple[int, object]]:
     """Fly `specs`, yielding (index into specs, EpisodeResult) as each finishes.
 
     `record(spec)` says which episodes keep an EpisodeRecord (workers = 1 only). workers > 1 uses a
@@ -216,8 +269,12 @@ def fly_episodes(specs: list[EpisodeSpec], workers: int = 1,
     fly_row = functools.partial(_fly_row, drop=drop, runners=runners)
     with closing(map_unordered(fly_row, specs, ExecutorConfig(workers=workers))) as rows:
         for spec, row in rows:
-            yield index[id(spec)], _PooledResult(spec=spec, row=row, **{k: row[k] for k in ("F", "N", "C", "steps",
-                                                                                            "wall_s", "diverged")})
+            yield (
+                index[id(spec)],
+                _PooledResult(
+                    spec=spec, row=row, **{k: row[k] for k in ("F", "N", "C", "steps", "wall_s", "diverged")}
+                ),
+            )
 
 
 def _torn_tail(path: Path) -> bool:
@@ -229,8 +286,15 @@ def _torn_tail(path: Path) -> bool:
         return fh.read(1) != b"\n"
 
 
-def run_grid(cells: list[Cell], cell_file: Path, workers: int = 1, progress=None, fresh: bool = False,
-             executor: ExecutorConfig | None = None, runners: RowRunners | None = None) -> list[dict]:
+def run_grid(
+    cells: list[Cell],
+    cell_file: Path,
+    workers: int = 1,
+    progress=None,
+    fresh: bool = False,
+    executor: ExecutorConfig | None = None,
+    runners: RowRunners | None = None,
+) -> list[dict]:
     """Fly the cells not yet in `cell_file` (all of them with `fresh`), appending each finished
     episode as one JSON line; returns the rows of all `cells` in order.
 
@@ -306,8 +370,10 @@ def paper_cell(c: str, cond: str) -> dict | None:
 def _steps_note(steps: int) -> str | None:
     if steps == TABLE8_STEPS:
         return None
-    return (f"F, N over {steps} steps; the paper's are over {TABLE8_STEPS}: not comparable "
-            "(C and retention are ratios and roughly comparable)")
+    return (
+        f"F, N over {steps} steps; the paper's are over {TABLE8_STEPS}: not comparable "
+        "(C and retention are ratios and roughly comparable)"
+    )
 
 
 def _pct(value: float | None) -> str:
@@ -327,14 +393,18 @@ def report_markdown(table: dict, meta: dict) -> str:
     k = meta["episodes"]
     lines = [
         f"# Table VIII: policy `{meta['policy']}` on the {meta['backend']} backend"
-        + (f" ({meta['airframe']} airframe)" if meta.get("airframe") else "") + ", "
+        + (f" ({meta['airframe']} airframe)" if meta.get("airframe") else "")
+        + ", "
         f"{meta.get('estimator', 'raw')} position estimate, {meta.get('offboard', 'velocity')} offboard setpoints"
         + guard_text(meta),
         "",
         f"Command: `{meta['command']}`  ",
         f"{k} seed(s) per cell ({meta['seed']}..{meta['seed'] + k - 1}, the same layouts under every condition), "
-        + ("the Wind rows' direction drawn per episode from the seed, " if meta.get("wind_direction") is None
-           else f"the Wind rows' wind blowing towards {meta['wind_direction']:g}° (ENU), ")
+        + (
+            "the Wind rows' direction drawn per episode from the seed, "
+            if meta.get("wind_direction") is None
+            else f"the Wind rows' wind blowing towards {meta['wind_direction']:g}° (ENU), "
+        )
         + f"{meta['steps']} decision steps per episode. F, N: decision steps in formation / with the swarm centre "
         "within 1 m of the anchor; C: % of agent-steps in collision; retention = (F+N) / (F+N at SITL-S, same c). "
         + ("Ours: mean ± sample std over seeds." if k > 1 else "Ours: one seed per cell, no spread."),
@@ -347,9 +417,12 @@ def report_markdown(table: dict, meta: dict) -> str:
         f"{meta['cells_reused']} of {meta['cells_total']} episodes were reused from the cell file "
         f"`{meta['cell_file']}` (same policy file, code and conditions); the rest were flown by this command.",
         "",
-        ("SITL-M: every UAV's policy in its own process over ZeroMQ, asynchronous (docs/sitl_m.md); its "
-         "retention divides by SITL-S of the same seeds." if any("SITL-M" in rows for rows in table.values())
-         else "SITL-M (every UAV's policy in its own process) is left out: add --sitl-m to fly its row."),
+        (
+            "SITL-M: every UAV's policy in its own process over ZeroMQ, asynchronous (docs/sitl_m.md); its "
+            "retention divides by SITL-S of the same seeds."
+            if any("SITL-M" in rows for rows in table.values())
+            else "SITL-M (every UAV's policy in its own process) is left out: add --sitl-m to fly its row."
+        ),
         "",
         "| c | condition | F | N | C (%) | retention | paper F | paper N | paper C (%) | paper retention |",
         "|---|---|---|---|---|---|---|---|---|---|",
@@ -366,8 +439,7 @@ def report_markdown(table: dict, meta: dict) -> str:
                 f"| {c} | {cond}{diverged} | {format_mean_std(cell['F'], cell['F_std'])} | "
                 f"{format_mean_std(cell['N'], cell['N_std'])} | {format_mean_std(cell['C'], cell['C_std'], '.2f')} | "
                 f"{ret} | "
-                + (f"{p['F']:.1f} | {p['N']:.1f} | {p['C']:.2f} | {_pct(p['retention'])} |" if p
-                   else "- | - | - | - |")
+                + (f"{p['F']:.1f} | {p['N']:.1f} | {p['C']:.2f} | {_pct(p['retention'])} |" if p else "- | - | - | - |")
             )
             if p is None:
                 notes.add(f"paper -: the paper has no Table VIII row for c = {c}")
@@ -375,40 +447,93 @@ def report_markdown(table: dict, meta: dict) -> str:
         lines += [""] + [f"- {n}" for n in sorted(notes)]
     lines += sitl_timing_lines(table)
     prov = meta["provenance"]
-    lines += ["", "## Provenance", "", f"- git commit: `{prov['git_commit'] or 'none (not a git checkout)'}`",
-              f"- code digest: `{prov['code_version']}`"]
-    lines += [f"- {name}: {version or '(unset)'}" for name, version in prov["library_versions"].items()
-              if name != "code_version"]
+    lines += [
+        "",
+        "## Provenance",
+        "",
+        f"- git commit: `{prov['git_commit'] or 'none (not a git checkout)'}`",
+        f"- code digest: `{prov['code_version']}`",
+    ]
+    lines += [
+        f"- {name}: {version or '(unset)'}"
+        for name, version in prov["library_versions"].items()
+        if name != "code_version"
+    ]
     lines += [f"- policy c = {c}: `{p['name']}` sha256 `{p['sha256']}`" for c, p in prov["policies"].items()]
     return "\n".join(lines) + "\n"
 
 
 def report_csv(table: dict) -> str:
     """One row per (c, condition): ours (mean, std) and the paper's numbers; empty where undefined."""
+
     def num(value, fmt):
         return "" if value is None else format(value, fmt)
 
     out = io.StringIO()
     writer = csv.writer(out)
-    writer.writerow(["c", "condition", "episodes", "diverged", "F_mean", "F_std", "N_mean", "N_std", "C_mean", "C_std",
-                     "retention", "paper_F", "paper_N", "paper_C", "paper_retention"])
+    writer.writerow(
+        [
+            "c",
+            "condition",
+            "episodes",
+            "diverged",
+            "F_mean",
+            "F_std",
+            "N_mean",
+            "N_std",
+            "C_mean",
+            "C_std",
+            "retention",
+            "paper_F",
+            "paper_N",
+            "paper_C",
+            "paper_retention",
+        ]
+    )
     for c, rows in table.items():
         for cond, cell in rows.items():
             p = paper_cell(c, cond) or {}
-            writer.writerow([c, cond, cell["episodes"], cell["diverged"],
-                             num(cell["F"], ".3f"), num(cell["F_std"], ".3f"), num(cell["N"], ".3f"),
-                             num(cell["N_std"], ".3f"), num(cell["C"], ".4f"), num(cell["C_std"], ".4f"),
-                             num(cell["retention"], ".4f"), num(p.get("F"), "g"), num(p.get("N"), "g"),
-                             num(p.get("C"), "g"), num(p.get("retention"), ".4f")])
+            writer.writerow(
+                [
+                    c,
+                    cond,
+                    cell["episodes"],
+                    cell["diverged"],
+                    num(cell["F"], ".3f"),
+                    num(cell["F_std"], ".3f"),
+                    num(cell["N"], ".3f"),
+                    num(cell["N_std"], ".3f"),
+                    num(cell["C"], ".4f"),
+                    num(cell["C_std"], ".4f"),
+                    num(cell["retention"], ".4f"),
+                    num(p.get("F"), "g"),
+                    num(p.get("N"), "g"),
+                    num(p.get("C"), "g"),
+                    num(p.get("retention"), ".4f"),
+                ]
+            )
     return out.getvalue()
 
 
 def report_json(table: dict, meta: dict) -> str:
     """The full result: meta, provenance, per cell mean/std, the paper's cell and every episode."""
-    rows = {c: {cond: {**cell, "paper": paper_cell(c, cond)} for cond, cell in conds.items()}
-            for c, conds in table.items()}
-    return json.dumps({"schema": "cefc-eval/table8", "schema_version": 2, "protocol": "table8", **meta,
-                       "comparable_to_paper": meta["steps"] == TABLE8_STEPS, "rows": rows}, indent=2) + "\n"
+    rows = {
+        c: {cond: {**cell, "paper": paper_cell(c, cond)} for cond, cell in conds.items()} for c, conds in table.items()
+    }
+    return (
+        json.dumps(
+            {
+                "schema": "cefc-eval/table8",
+                "schema_version": 2,
+                "protocol": "table8",
+                **meta,
+                "comparable_to_paper": meta["steps"] == TABLE8_STEPS,
+                "rows": rows,
+            },
+            indent=2,
+        )
+        + "\n"
+    )
 
 
 def report_plot(table: dict, path: Path, meta: dict) -> None:
@@ -433,8 +558,9 @@ def report_plot(table: dict, path: Path, meta: dict) -> None:
             ours = [val(rows[k][metric]) if k in rows else np.nan for k in conds]
             err = [val(rows[k][f"{metric}_std"]) if k in rows else np.nan for k in conds]
             ref = paper.get(c, {})
-            theirs = [(ref[k]["F"] + ref[k]["N"] if metric == "FN" else ref[k]["C"]) if k in ref else np.nan
-                      for k in conds]
+            theirs = [
+                (ref[k]["F"] + ref[k]["N"] if metric == "FN" else ref[k]["C"]) if k in ref else np.nan for k in conds
+            ]
             ax.bar(x - 0.2, ours, 0.4, yerr=np.nan_to_num(err), capsize=2, label=f"ours ({meta['backend']})")
             if metric == "C" or comparable:  # F+N of a shorter run beside the paper's 1000 steps would mislead
                 ax.bar(x + 0.2, theirs, 0.4, label="paper (Gazebo+PX4)", color="tab:orange")
@@ -446,8 +572,9 @@ def report_plot(table: dict, path: Path, meta: dict) -> None:
     handles, labels = axes[1][0].get_legend_handles_labels()
     fig.legend(handles, labels, loc="lower center", ncol=2, fontsize=8)
     k = meta["episodes"]
-    title = (f"Table VIII, policy {meta['policy']} ({meta['backend']})\n{k} seed(s) per cell, {meta['steps']} steps"
-             + ("; error bars: std over seeds" if k > 1 else ""))
+    title = f"Table VIII, policy {meta['policy']} ({meta['backend']})\n{k} seed(s) per cell, {meta['steps']} steps" + (
+        "; error bars: std over seeds" if k > 1 else ""
+    )
     if not comparable:
         title += f"\nF+N over {meta['steps']} steps, not comparable to the paper's {TABLE8_STEPS}: paper F+N not drawn"
     fig.suptitle(title, fontsize=10)
@@ -459,14 +586,19 @@ def report_plot(table: dict, path: Path, meta: dict) -> None:
 
 
 # ---------------------------------------------------------------------------- SITL-M timing
-SITL_TIMINGS = {"decision_latency_ms": "decision latency (agent's own, wall ms)",
-                "round_trip_ms": "round trip (simulator, wall ms)",
-                "command_age_ms": "command age when applied (simulated ms)"}
+SITL_TIMINGS = {
+    "decision_latency_ms": "decision latency (agent's own, wall ms)",
+    "round_trip_ms": "round trip (simulator, wall ms)",
+    "command_age_ms": "command age when applied (simulated ms)",
+}
 
 
 def _sitl_episodes(table: dict) -> dict[str, list[dict]]:
-    return {c: [e["sitl"] for e in rows["SITL-M"]["episodes_detail"] if e.get("sitl")]
-            for c, rows in table.items() if "SITL-M" in rows}
+    return {
+        c: [e["sitl"] for e in rows["SITL-M"]["episodes_detail"] if e.get("sitl")]
+        for c, rows in table.items()
+        if "SITL-M" in rows
+    }
 
 
 def sitl_timing_lines(table: dict) -> list[str]:
@@ -474,11 +606,16 @@ def sitl_timing_lines(table: dict) -> list[str]:
     episodes = {c: e for c, e in _sitl_episodes(table).items() if e}
     if not episodes:
         return []
-    lines = ["", "## SITL-M timing", "",
-             "Per c over its SITL-M episodes: median of the episodes' p50, and the worst p99 "
-             "(histograms: `table8_sitl.png`).", "",
-             "| c | " + " | ".join(f"{label} p50 / p99" for label in SITL_TIMINGS.values()) + " | real time | faults |",
-             "|---|" + "---|" * (len(SITL_TIMINGS) + 2)]
+    lines = [
+        "",
+        "## SITL-M timing",
+        "",
+        "Per c over its SITL-M episodes: median of the episodes' p50, and the worst p99 "
+        "(histograms: `table8_sitl.png`).",
+        "",
+        "| c | " + " | ".join(f"{label} p50 / p99" for label in SITL_TIMINGS.values()) + " | real time | faults |",
+        "|---|" + "---|" * (len(SITL_TIMINGS) + 2),
+    ]
     for c, eps in episodes.items():
         cells = []
         for name in SITL_TIMINGS:

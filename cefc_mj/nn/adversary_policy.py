@@ -98,7 +98,7 @@ def network_input(obs: torch.Tensor, observes_goal: bool) -> torch.Tensor:
     """What the networks read of an observation [..., D]: all of it, or without the goal columns."""
     if observes_goal:
         return obs
-    return torch.cat([obs[..., :ADVERSARY_GOAL_COLUMNS.start], obs[..., ADVERSARY_GOAL_COLUMNS.stop:]], dim=-1)
+    return torch.cat([obs[..., : ADVERSARY_GOAL_COLUMNS.start], obs[..., ADVERSARY_GOAL_COLUMNS.stop :]], dim=-1)
 
 
 class AdversaryPolicy(nn.Module):
@@ -158,7 +158,8 @@ def load_adversary_policy(path: Path) -> tuple[AdversaryPolicy, dict]:
         policy = AdversaryPolicy(cfg)
         policy.load_state_dict(state)
     except (ConfigError, RuntimeError, TypeError, KeyError) as e:
-        raise CheckpointError(f"{path}: weights do not fit the described network "
-                              f"({str(e).splitlines()[0][:160]})") from None
+        raise CheckpointError(
+            f"{path}: weights do not fit the described network ({str(e).splitlines()[0][:160]})"
+        ) from None
     policy.eval()
     return policy, dict(payload.get("meta") or {})

@@ -125,7 +125,9 @@ class ATMActor(nn.Module):
         formation_index = torch.cat([torch.arange(cfg.obs_dim)[cfg.part(p)] for p in FORMATION_PARTS])
         lidar = cfg.part(OBSTACLE_PART)
         self.register_buffer("formation_index", formation_index, persistent=False)
-        self.register_buffer("free_lidar", torch.full((lidar.stop - lidar.start,), float(cfg.lidar_range)), persistent=False)
+        self.register_buffer(
+            "free_lidar", torch.full((lidar.stop - lidar.start,), float(cfg.lidar_range)), persistent=False
+        )
         self.lidar_slice = lidar
         self.velocity_slice = cfg.part("own_velocity")
         self.formation = mlp([len(formation_index), h, h, h], activate_last=True)
@@ -157,7 +159,9 @@ class ATMActor(nn.Module):
         load_state_dict (assign or copy) recomputes it."""
         if torch.is_grad_enabled() or torch.jit.is_tracing():  # a TorchScript trace records the computation
             return self.obstacle(self.free_lidar)
-        tensors = [self.free_lidar] + [t for layer in self.obstacle if isinstance(layer, nn.Linear) for t in (layer.weight, layer.bias)]
+        tensors = [self.free_lidar] + [
+            t for layer in self.obstacle if isinstance(layer, nn.Linear) for t in (layer.weight, layer.bias)
+        ]
         key = [(t, t.data_ptr(), t._version) for t in tensors]
         cached = self.__dict__.get("_free_cache")
         if cached is None or any(t is not c or p != cp or v != cv for (t, p, v), (c, cp, cv) in zip(key, cached[0])):
@@ -203,14 +207,20 @@ class _InferencePlan:
     (an optimizer step, load_state_dict with or without assign, or `param.data = ...` rebuilds it)."""
 
     def __init__(self, actor: ATMActor):
-        self.tensors = [(owner, name, tensor, tensor.data_ptr(), tensor._version)
-                        for module in actor.modules() for owner in (module._parameters, module._buffers)
-                        for name, tensor in owner.items() if tensor is not None]
+        self.tensors = [
+            (owner, name, tensor, tensor.data_ptr(), tensor._version)
+            for module in actor.modules()
+            for owner in (module._parameters, module._buffers)
+            for name, tensor in owner.items()
+            if tensor is not None
+        ]
         self.weights = InferenceWeights.from_actor(actor)
 
     def current(self) -> bool:
-        return all(owner[name] is tensor and tensor.data_ptr() == ptr and tensor._version == version
-                   for owner, name, tensor, ptr, version in self.tensors)
+        return all(
+            owner[name] is tensor and tensor.data_ptr() == ptr and tensor._version == version
+            for owner, name, tensor, ptr, version in self.tensors
+        )
 
 
 def merge_step3(step1: ATMActor, step2: ATMActor) -> ATMActor:

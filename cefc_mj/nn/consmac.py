@@ -118,8 +118,9 @@ class ConsMACConfig(LocalObservationSizes):
         if not isinstance(self.n_agents, int) or self.n_agents < 2:
             raise ConfigError(f"n_agents={self.n_agents!r}: ConsMAC needs at least 2 agents")
         if dict(self.layout)["neighbours"] % 4:
-            raise ConfigError(f"layout: the neighbour block ({dict(self.layout)['neighbours']}) is not 4 numbers "
-                              "per slot")
+            raise ConfigError(
+                f"layout: the neighbour block ({dict(self.layout)['neighbours']}) is not 4 numbers per slot"
+            )
         if self.variant not in VARIANTS:
             raise ConfigError(f"variant={self.variant!r}: must be one of {VARIANTS}")
         if self.label_order not in LABEL_ORDERS:

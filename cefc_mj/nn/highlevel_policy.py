@@ -64,8 +64,9 @@ class HighLevelPolicy(nn.Module):
         return (out.message if live else out.detach_for_policy("message")), out
 
     @torch.no_grad()
-    def decide(self, obs: np.ndarray, inbox: Inbox | None, deterministic: bool = True,
-               generator: torch.Generator | None = None) -> tuple[np.ndarray, np.ndarray | None]:
+    def decide(
+        self, obs: np.ndarray, inbox: Inbox | None, deterministic: bool = True, generator: torch.Generator | None = None
+    ) -> tuple[np.ndarray, np.ndarray | None]:
         """(anchor index [B, N], message to send [B, N, 64] or None) for CEFC observations [B, N, D]
         and the channel's inbox of this decision."""
         obs_t = torch.as_tensor(obs, dtype=torch.float32)
@@ -78,7 +79,6 @@ class HighLevelPolicy(nn.Module):
             return self.selector(obs_t, consensus).argmax(dim=-1).numpy(), message
         index, _ = self.selector.act(obs_t, consensus, deterministic=False, generator=generator)
         return index.numpy(), message
-
 
     def agent_decider(self):
         """One agent's deployed decision: `decide(obs, inbox)` for a batch of one ([1, 1, ...]
@@ -105,8 +105,10 @@ class HighLevelPolicy(nn.Module):
         def decide_one(obs: np.ndarray, inbox: Inbox | None) -> tuple[np.ndarray, np.ndarray | None]:
             if np.shape(obs)[:2] != (1, 1):
                 raise ConfigError(f"agent_decider: expects one agent's observation [1, 1, D], got {np.shape(obs)}")
-            inputs = (torch.as_tensor(obs, dtype=torch.float32),
-                      *(inbox_tensors(inbox) if policy.comm is not None else ()))
+            inputs = (
+                torch.as_tensor(obs, dtype=torch.float32),
+                *(inbox_tensors(inbox) if policy.comm is not None else ()),
+            )
             k = inputs[2].shape[-2] if policy.comm is not None else 0
             if k not in traced:
                 try:
@@ -128,9 +130,16 @@ class HighLevelPolicy(nn.Module):
 
 def save_highlevel_policy(policy: HighLevelPolicy, path: Path, meta: dict | None = None) -> Path:
     """Write pi_H (communication module and selector, with their configs) as one policy file."""
-    return write_policy_payload(path, POLICY_FORMAT, POLICY_VERSION, policy, meta, variant=policy.variant,
-                                comm=None if policy.comm is None else policy.comm.cfg.to_dict(),
-                                selector=policy.selector.cfg.to_dict())
+    return write_policy_payload(
+        path,
+        POLICY_FORMAT,
+        POLICY_VERSION,
+        policy,
+        meta,
+        variant=policy.variant,
+        comm=None if policy.comm is None else policy.comm.cfg.to_dict(),
+        selector=policy.selector.cfg.to_dict(),
+    )
 
 
 def load_highlevel_policy(path: Path) -> tuple[HighLevelPolicy, dict]:
@@ -145,7 +154,8 @@ def load_highlevel_policy(path: Path) -> tuple[HighLevelPolicy, dict]:
         policy = HighLevelPolicy(selector, comm, str(payload.get("variant")))
         policy.load_state_dict(state)
     except (ConfigError, RuntimeError, TypeError, KeyError) as e:
-        raise CheckpointError(f"{path}: weights do not fit the described networks "
-                              f"({str(e).splitlines()[0][:160]})") from None
+        raise CheckpointError(
+            f"{path}: weights do not fit the described networks ({str(e).splitlines()[0][:160]})"
+        ) from None
     policy.eval()
     return policy, dict(payload.get("meta") or {})

@@ -30,17 +30,26 @@ import numpy as np
 
 from cefc_mj.jit import njit
 
-
 # tanh as a rational function of float32 arithmetic only (Eigen's `generic_fast_tanh_float`
 # coefficients, degree 13/6, clamped at |x| = 7.905): no libm call, so it vectorises and gives the
 # same bits everywhere; within 4e-7 of the exact tanh (torch's vectorised tanh: within 0.5 ulp)
 _TANH_CLAMP = np.float32(7.90531110763549805)
 _TANH_TINY = np.float32(0.0004)
-_A1, _A3, _A5, _A7, _A9, _A11, _A13 = (np.float32(c) for c in (
-    4.89352455891786e-03, 6.37261928875436e-04, 1.48572235717979e-05, 5.12229709037114e-08,
-    -8.60467152213735e-11, 2.00018790482477e-13, -2.76076847742355e-16))
-_B0, _B2, _B4, _B6 = (np.float32(c) for c in (
-    4.89352518554385e-03, 2.26843463243900e-03, 1.18534705686654e-04, 1.19825839466702e-06))
+_A1, _A3, _A5, _A7, _A9, _A11, _A13 = (
+    np.float32(c)
+    for c in (
+        4.89352455891786e-03,
+        6.37261928875436e-04,
+        1.48572235717979e-05,
+        5.12229709037114e-08,
+        -8.60467152213735e-11,
+        2.00018790482477e-13,
+        -2.76076847742355e-16,
+    )
+)
+_B0, _B2, _B4, _B6 = (
+    np.float32(c) for c in (4.89352518554385e-03, 2.26843463243900e-03, 1.18534705686654e-04, 1.19825839466702e-06)
+)
 
 
 @njit(inline="always")
@@ -131,8 +140,23 @@ def _mlp3(x, layers, tanh_last, h0, h1, out):
 
 
 @njit
-def atm_forward(obs, formation_index, lidar_lo, lidar_hi, safe, lidar_range, safe_margin,
-                formation, obstacle, output, free, velocity_lo, velocity_gain, accel_max, actions):
+def atm_forward(
+    obs,
+    formation_index,
+    lidar_lo,
+    lidar_hi,
+    safe,
+    lidar_range,
+    safe_margin,
+    formation,
+    obstacle,
+    output,
+    free,
+    velocity_lo,
+    velocity_gain,
+    accel_max,
+    actions,
+):
     """actions [R, A] for observations obs [R, D] (float32). formation / obstacle / output are
     (w0, b0, w1, b1, w2, b2) tuples of a 3-layer MLP; free = F_a(d_free) [H]; velocity_lo < 0 means
     the head outputs accelerations, otherwise velocity_gain * (head - obs[velocity_lo:+A])."""
@@ -174,8 +198,14 @@ def atm_forward(obs, formation_index, lidar_lo, lidar_hi, safe, lidar_range, saf
 def mlp3_forward(x, layers, tanh_last, out):
     """A 3-layer MLP (tanh between layers) on rows x [R, I] -> out [R, O]."""
     hidden = layers[1].shape[0]
-    _mlp3(x, layers, tanh_last, np.empty((x.shape[0], hidden), dtype=np.float32),
-          np.empty((x.shape[0], hidden), dtype=np.float32), out)
+    _mlp3(
+        x,
+        layers,
+        tanh_last,
+        np.empty((x.shape[0], hidden), dtype=np.float32),
+        np.empty((x.shape[0], hidden), dtype=np.float32),
+        out,
+    )
 
 
 @dataclass(frozen=True)
@@ -207,19 +237,29 @@ class InferenceWeights:
                 raise ValueError(f"atm_forward runs 3-layer MLPs, got {len(linears)} layers")
             out = []
             for m in linears:
-                out += [np.ascontiguousarray(m.weight.detach().cpu().numpy().T, dtype=np.float32),
-                        np.ascontiguousarray(m.bias.detach().cpu().numpy(), dtype=np.float32)]
+                out += [
+                    np.ascontiguousarray(m.weight.detach().cpu().numpy().T, dtype=np.float32),
+                    np.ascontiguousarray(m.bias.detach().cpu().numpy(), dtype=np.float32),
+                ]
             return tuple(out)
 
         cfg = actor.cfg
         velocity = actor.velocity_slice
-        weights = cls(formation=layers(actor.formation), obstacle=layers(actor.obstacle), output=layers(actor.output),
-                      free=np.zeros(cfg.hidden, dtype=np.float32),
-                      formation_index=actor.formation_index.cpu().numpy().astype(np.int64),
-                      lidar=(actor.lidar_slice.start, actor.lidar_slice.stop), safe=bool(cfg.safe),
-                      lidar_range=float(cfg.lidar_range), safe_margin=float(cfg.safe_margin),
-                      velocity_lo=velocity.start if cfg.action == "velocity" else -1,
-                      velocity_gain=float(cfg.velocity_gain), accel_max=float(cfg.accel_max), act_dim=cfg.act_dim)
+        weights = cls(
+            formation=layers(actor.formation),
+            obstacle=layers(actor.obstacle),
+            output=layers(actor.output),
+            free=np.zeros(cfg.hidden, dtype=np.float32),
+            formation_index=actor.formation_index.cpu().numpy().astype(np.int64),
+            lidar=(actor.lidar_slice.start, actor.lidar_slice.stop),
+            safe=bool(cfg.safe),
+            lidar_range=float(cfg.lidar_range),
+            safe_margin=float(cfg.safe_margin),
+            velocity_lo=velocity.start if cfg.action == "velocity" else -1,
+            velocity_gain=float(cfg.velocity_gain),
+            accel_max=float(cfg.accel_max),
+            act_dim=cfg.act_dim,
+        )
         # F_a(d_free) by the same kernel, so that a drone whose beams all read the range gets a - free = 0 exactly
         free_lidar = np.full((1, weights.lidar[1] - weights.lidar[0]), cfg.lidar_range, dtype=np.float32)
         mlp3_forward(free_lidar, weights.obstacle, True, weights.free[None])
@@ -230,7 +270,21 @@ class InferenceWeights:
         obs = np.asarray(obs)
         rows = np.ascontiguousarray(obs.reshape(-1, obs.shape[-1]), dtype=np.float32)
         out = np.empty((rows.shape[0], self.act_dim), dtype=np.float32)
-        atm_forward(rows, self.formation_index, self.lidar[0], self.lidar[1], self.safe, self.lidar_range,
-                    self.safe_margin, self.formation, self.obstacle, self.output, self.free, self.velocity_lo,
-                    self.velocity_gain, self.accel_max, out)
+        atm_forward(
+            rows,
+            self.formation_index,
+            self.lidar[0],
+            self.lidar[1],
+            self.safe,
+            self.lidar_range,
+            self.safe_margin,
+            self.formation,
+            self.obstacle,
+            self.output,
+            self.free,
+            self.velocity_lo,
+            self.velocity_gain,
+            self.accel_max,
+            out,
+        )
         return out.reshape(obs.shape[:-1] + (self.act_dim,))

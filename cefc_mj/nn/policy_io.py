@@ -64,14 +64,24 @@ def safe_torch_load(path: Path) -> dict:
     return payload
 
 
-def write_policy_payload(path: Path, file_format: str, version: int, module: torch.nn.Module,
-                         meta: dict | None = None, **configs) -> Path:
+def write_policy_payload(
+    path: Path, file_format: str, version: int, module: torch.nn.Module, meta: dict | None = None, **configs
+) -> Path:
     """Write `module`'s weights (copied to the CPU, with their SHA-256) as a policy file of
     `file_format` and `version`, with its `configs` and `meta`, atomically: what
     `read_policy_payload` reads back."""
     state = {k: v.detach().cpu().clone() for k, v in module.state_dict().items()}
-    atomic_torch_save({"format": file_format, "version": version, **configs, "state_dict": state,
-                       "sha256": state_digest(state), "meta": meta or {}}, Path(path))
+    atomic_torch_save(
+        {
+            "format": file_format,
+            "version": version,
+            **configs,
+            "state_dict": state,
+            "sha256": state_digest(state),
+            "meta": meta or {},
+        },
+        Path(path),
+    )
     return Path(path)
 
 
@@ -111,7 +121,9 @@ def load_actor(path: Path, obs_dim: int | None = None) -> tuple[ATMActor, dict]:
     try:
         actor.load_state_dict(state, assign=True)
     except RuntimeError as e:
-        raise CheckpointError(f"{path}: weights do not fit the described network ({str(e).splitlines()[0][:160]})") from None
+        raise CheckpointError(
+            f"{path}: weights do not fit the described network ({str(e).splitlines()[0][:160]})"
+        ) from None
     actor.eval()
     return actor, dict(payload.get("meta") or {})
 
@@ -143,7 +155,9 @@ def resolve_policy_path(path_or_name: str | Path, policies_dir: Path | None = No
     for name in (candidate.name, candidate.name + ".pt"):
         if (base / name).is_file():
             return base / name
-    raise CheckpointError(f"no policy {str(path_or_name)!r}: not a file, and not found as {base / (candidate.name + '.pt')}")
+    raise CheckpointError(
+        f"no policy {str(path_or_name)!r}: not a file, and not found as {base / (candidate.name + '.pt')}"
+    )
 
 
 class Policy:

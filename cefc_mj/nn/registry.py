@@ -22,9 +22,9 @@ ALIASES = {"atm": "step3", "safe": "safe", "nav": "nav", "clm": "clm", "student"
 """What users type (`--policy`) -> the kind of policy flown for each c."""
 WITHDRAWN = {
     "robust": "AT-M-Robust is withdrawn: the shipped one was a fine-tune of the first Step 3 generation on the "
-              "old layouts; train one from today's Step 3 (docs/training.md) and give its file",
+    "old layouts; train one from today's Step 3 (docs/training.md) and give its file",
     "quad": "AT-M-Quad is withdrawn: the shipped one was a fine-tune of the first Step 3 generation on the old "
-            "layouts; train one from today's Step 3 (docs/training.md) and give its file",
+    "layouts; train one from today's Step 3 (docs/training.md) and give its file",
 }
 """Aliases that once named shipped policies, with the line that says why they are gone."""
 

@@ -9,9 +9,17 @@ from cefc_mj.task.config import TaskConfig
 BACKENDS = ("particle", "mujoco")
 
 
-def make_world(backend: str, config: TaskConfig, n_envs: int = 1, wind: float = 0.0, seed: int | None = None,
-               airframe: str | None = None, offboard: str | None = None, wind_direction: float | None = None,
-               rotor_actuation: str | None = None):
+def make_world(
+    backend: str,
+    config: TaskConfig,
+    n_envs: int = 1,
+    wind: float = 0.0,
+    seed: int | None = None,
+    airframe: str | None = None,
+    offboard: str | None = None,
+    wind_direction: float | None = None,
+    rotor_actuation: str | None = None,
+):
     """The physics world for `backend` ("particle" or "mujoco"); wind (m/s mean speed), wind_direction
     (degrees the air moves towards, ENU: 0 = +x, 90 = +y; None = drawn per episode from the seed),
     airframe (a shipped name such as "iris" or "crazyflie", or an MJCF path; docs/mujoco_world.md) and
@@ -40,5 +48,12 @@ def make_world(backend: str, config: TaskConfig, n_envs: int = 1, wind: float = 
 
     options = {k: v for k, v in (("offboard", offboard), ("rotor_actuation", rotor_actuation)) if v is not None}
     world_config = MujocoWorldConfig(**options) if options else None
-    return make_mujoco_world(config, n_envs=n_envs, wind=wind, seed=seed, airframe=airframe, config=world_config,
-                             wind_direction=wind_direction)
+    return make_mujoco_world(
+        config,
+        n_envs=n_envs,
+        wind=wind,
+        seed=seed,
+        airframe=airframe,
+        config=world_config,
+        wind_direction=wind_direction,
+    )

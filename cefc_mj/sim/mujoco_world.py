@@ -35,7 +35,8 @@ hands the setpoints to the offboard interface (`offboard`: "velocity" or "accele
 
 >>> world = MujocoWorld(MujocoWorldConfig(), n_envs=1, n_agents=2, n_obstacles=1, seed=0)
 >>> import numpy as np
->>> world.reset(np.ones(1, bool), np.array([[[0.0, 0.0], [1.0, 0.0]]]), np.array([[0.0, 5.0]]), np.array([[[3.0, 0.0]]]))
+>>> world.reset(np.ones(1, bool), np.array([[[0.0, 0.0], [1.0, 0.0]]]), np.array([[0.0, 5.0]]),
+...             np.array([[[3.0, 0.0]]]))
 >>> world.step(np.zeros((1, 2, 2)), np.zeros((1, 2)))
 >>> world.agent_pos.shape, world.lidar(world.agent_pos).shape
 ((1, 2, 2), (1, 2, 24))
@@ -67,7 +68,11 @@ OBSTACLE_GROUP = 1
 UAV_GROUP = 2
 ADVERSARY_GROUP = 4
 _PARKED = 1.0e3  # where obstacles wait before the first reset (far outside the arena)
-_BAD_STATE_WARNINGS = (mujoco.mjtWarning.mjWARN_BADQACC, mujoco.mjtWarning.mjWARN_BADQPOS, mujoco.mjtWarning.mjWARN_BADQVEL)
+_BAD_STATE_WARNINGS = (
+    mujoco.mjtWarning.mjWARN_BADQACC,
+    mujoco.mjtWarning.mjWARN_BADQPOS,
+    mujoco.mjtWarning.mjWARN_BADQVEL,
+)
 _VISUAL_GROUP = 3  # the airframe file's visual-only geoms and rotor sites
 _FOOTPRINT_HALF_HEIGHT = 0.05  # of the footprint cylinder the world adds to an airframe without one (m)
 _HOVER_MISMATCH = 0.1  # largest |MPC_THR_HOVER - the airframe's hover thrust| accepted (normalised)
@@ -171,43 +176,72 @@ class MujocoWorldConfig:
             raise ConfigError(f"mujoco.airframe must be a name or a path, got {self.airframe!r}")
         airframe = load_airframe(self.airframe)
         params_file = self.params_file()
-        for name in ("physics_dt", "decision_dt", "rate_loop_hz", "position_loop_hz", "flight_altitude",
-                     "speed_limit_tau", "disturbance_tau", "obstacle_height", "gravity"):
+        for name in (
+            "physics_dt",
+            "decision_dt",
+            "rate_loop_hz",
+            "position_loop_hz",
+            "flight_altitude",
+            "speed_limit_tau",
+            "disturbance_tau",
+            "obstacle_height",
+            "gravity",
+        ):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
                 raise ConfigError(f"mujoco.{name} must be a finite number > 0, got {value!r}")
         if self.physics_dt > 0.002 + 1e-12:
             raise ConfigError(f"mujoco.physics_dt must be <= 0.002 s (500 Hz or finer), got {self.physics_dt}")
         if _ratio(self.decision_dt, self.physics_dt) is None:
-            raise ConfigError(f"mujoco.decision_dt = {self.decision_dt} must be a multiple of physics_dt = {self.physics_dt}")
+            raise ConfigError(
+                f"mujoco.decision_dt = {self.decision_dt} must be a multiple of physics_dt = {self.physics_dt}"
+            )
         if self.rate_loop_hz < 250:
             raise ConfigError(f"mujoco.rate_loop_hz must be >= 250 (PX4-like), got {self.rate_loop_hz}")
         for name in ("rate_loop_hz", "position_loop_hz"):
             if _ratio(1.0 / getattr(self, name), self.physics_dt) is None:
-                raise ConfigError(f"mujoco.{name} = {getattr(self, name)} must divide the physics rate {1 / self.physics_dt:g} Hz")
-        if not (isinstance(self.wind_settle_s, (int, float)) and math.isfinite(self.wind_settle_s)
-                and self.wind_settle_s >= 0 and _ratio(self.wind_settle_s + self.decision_dt, self.decision_dt) is not None):
-            raise ConfigError(f"mujoco.wind_settle_s must be a whole number (>= 0) of decision steps "
-                              f"({self.decision_dt} s), got {self.wind_settle_s!r}")
+                raise ConfigError(
+                    f"mujoco.{name} = {getattr(self, name)} must divide the physics rate {1 / self.physics_dt:g} Hz"
+                )
+        if not (
+            isinstance(self.wind_settle_s, (int, float))
+            and math.isfinite(self.wind_settle_s)
+            and self.wind_settle_s >= 0
+            and _ratio(self.wind_settle_s + self.decision_dt, self.decision_dt) is not None
+        ):
+            raise ConfigError(
+                f"mujoco.wind_settle_s must be a whole number (>= 0) of decision steps "
+                f"({self.decision_dt} s), got {self.wind_settle_s!r}"
+            )
         if not 0 < self.flip_tilt_deg <= 180:
             raise ConfigError(f"mujoco.flip_tilt_deg must be in (0, 180], got {self.flip_tilt_deg}")
         if self.obstacle_height <= self.flight_altitude:
-            raise ConfigError(f"mujoco.obstacle_height = {self.obstacle_height} must exceed flight_altitude = {self.flight_altitude}")
+            raise ConfigError(
+                f"mujoco.obstacle_height = {self.obstacle_height} must exceed flight_altitude = {self.flight_altitude}"
+            )
         if self.offboard not in OFFBOARD_MODES:
             raise ConfigError(f"mujoco.offboard must be one of {', '.join(OFFBOARD_MODES)}, got {self.offboard!r}")
         if self.offboard == "velocity" and _ratio(self.decision_dt * self.position_loop_hz, 1.0) is None:
-            raise ConfigError(f"mujoco.decision_dt = {self.decision_dt} must be a whole number of position-loop periods "
-                              f"(1 / {self.position_loop_hz:g} Hz) with offboard = 'velocity'")
+            raise ConfigError(
+                f"mujoco.decision_dt = {self.decision_dt} must be a whole number of position-loop periods "
+                f"(1 / {self.position_loop_hz:g} Hz) with offboard = 'velocity'"
+            )
         if self.physics_loop not in PHYSICS_LOOPS:
-            raise ConfigError(f"mujoco.physics_loop must be one of {', '.join(PHYSICS_LOOPS)}, got {self.physics_loop!r}")
+            raise ConfigError(
+                f"mujoco.physics_loop must be one of {', '.join(PHYSICS_LOOPS)}, got {self.physics_loop!r}"
+            )
         if not isinstance(self.visual_geoms, bool):
             raise ConfigError(f"mujoco.visual_geoms must be a bool, got {self.visual_geoms!r}")
         if self.rotor_actuation not in ROTOR_ACTUATIONS:
-            raise ConfigError(f"mujoco.rotor_actuation must be one of {', '.join(ROTOR_ACTUATIONS)}, got {self.rotor_actuation!r}")
+            raise ConfigError(
+                f"mujoco.rotor_actuation must be one of {', '.join(ROTOR_ACTUATIONS)}, got {self.rotor_actuation!r}"
+            )
         hover, expected = load_params(params_file)["MPC_THR_HOVER"], airframe.hover_thrust(self.gravity)
         if abs(hover - expected) > _HOVER_MISMATCH:
-            raise ConfigError(f"params: MPC_THR_HOVER = {hover:g} in {params_file.name} but airframe {airframe.name!r} "
-                              f"hovers at {expected:.3f} of full thrust: these gains are not this airframe's")
+            raise ConfigError(
+                f"params: MPC_THR_HOVER = {hover:g} in {params_file.name} but airframe {airframe.name!r} "
+                f"hovers at {expected:.3f} of full thrust: these gains are not this airframe's"
+            )
 
     def to_dict(self) -> dict:
         """Plain dict for run records."""
@@ -225,15 +259,23 @@ def resolve_rotor_actuation(rotor_actuation: str, n_drones: int) -> str:
     """The rotor path a scene of `n_drones` drones per env flies with: "actuators" or "external"; "auto"
     is "actuators" up to AUTO_ACTUATORS_MAX_DRONES drones, "external" above."""
     if rotor_actuation not in ROTOR_ACTUATIONS:
-        raise ConfigError(f"mujoco.rotor_actuation must be one of {', '.join(ROTOR_ACTUATIONS)}, "
-                          f"got {rotor_actuation!r}")
+        raise ConfigError(
+            f"mujoco.rotor_actuation must be one of {', '.join(ROTOR_ACTUATIONS)}, got {rotor_actuation!r}"
+        )
     if rotor_actuation != "auto":
         return rotor_actuation
     return "actuators" if n_drones <= AUTO_ACTUATORS_MAX_DRONES else "external"
 
 
-def build_scene(config: MujocoWorldConfig, n_agents: int, n_obstacles: int, with_adversary: bool, uav_radius: float,
-                obstacle_radius: float = 0.4, airframe: Airframe | None = None) -> mujoco.MjModel:
+def build_scene(
+    config: MujocoWorldConfig,
+    n_agents: int,
+    n_obstacles: int,
+    with_adversary: bool,
+    uav_radius: float,
+    obstacle_radius: float = 0.4,
+    airframe: Airframe | None = None,
+) -> mujoco.MjModel:
     """Compose arena + N UAVs (+ adversary) + K parked obstacle cylinders (+ 2 contact sensors per UAV,
     sensordata[2i:2i+2] = contacts of UAV i's footprint: all, with the floor) into one MjModel.
 
@@ -279,11 +321,18 @@ def build_scene(config: MujocoWorldConfig, n_agents: int, n_obstacles: int, with
             if site.name not in keep_sites and not config.visual_geoms:
                 child.delete(site)
         if footprint is None:
-            footprint = body.add_geom(name="footprint", type=mujoco.mjtGeom.mjGEOM_CYLINDER, pos=airframe.centre_of_mass,
-                                      size=[uav_radius, _FOOTPRINT_HALF_HEIGHT, 0.0], rgba=[0.3, 0.3, 0.35, 0.25])
+            footprint = body.add_geom(
+                name="footprint",
+                type=mujoco.mjtGeom.mjGEOM_CYLINDER,
+                pos=airframe.centre_of_mass,
+                size=[uav_radius, _FOOTPRINT_HALF_HEIGHT, 0.0],
+                rgba=[0.3, 0.3, 0.35, 0.25],
+            )
         elif footprint.type != mujoco.mjtGeom.mjGEOM_CYLINDER:
-            raise ConfigError(f"airframe: {airframe.path}: geom 'footprint' must be a cylinder (the collision disc), "
-                              "or leave it out and the world adds one")
+            raise ConfigError(
+                f"airframe: {airframe.path}: geom 'footprint' must be a cylinder (the collision disc), "
+                "or leave it out and the world adds one"
+            )
         footprint.contype, footprint.conaffinity, footprint.group = 1, 1, UAV_GROUP
         frame = arena.worldbody.add_frame(pos=[2.0 * i, 0.0, config.flight_altitude])
         frame.attach_body(body, prefix, "")
@@ -299,15 +348,25 @@ def build_scene(config: MujocoWorldConfig, n_agents: int, n_obstacles: int, with
         # one world-welded body per obstacle, moved through model.body_pos: the geom never moves in its
         # body's frame, so the bounding volumes MuJoCo compiles for collisions and rays stay valid
         arena.worldbody.add_body(name=f"obstacle{k}", pos=[_PARKED + 2.0 * k, _PARKED, half_h]).add_geom(
-            name=f"obstacle{k}", type=mujoco.mjtGeom.mjGEOM_CYLINDER, size=[obstacle_radius, half_h, 0.0],
-            group=OBSTACLE_GROUP, contype=1, conaffinity=1, rgba=[0.55, 0.45, 0.35, 1.0],
+            name=f"obstacle{k}",
+            type=mujoco.mjtGeom.mjGEOM_CYLINDER,
+            size=[obstacle_radius, half_h, 0.0],
+            group=OBSTACLE_GROUP,
+            contype=1,
+            conaffinity=1,
+            rgba=[0.55, 0.45, 0.35, 1.0],
         )
     floor = next((g.name for g in arena.geoms if g.type == mujoco.mjtGeom.mjGEOM_PLANE), None)
     if floor is None:
         raise ConfigError("mujoco: assets/mjcf/arena.xml needs a plane geom (the floor)")
     found = [1 << int(mujoco.mjtConDataField.mjCONDATA_FOUND), 0, 1]  # data = "found" (count), no reduction, 1 slot
     for i in range(n_agents):
-        geom = dict(type=mujoco.mjtSensor.mjSENS_CONTACT, objtype=mujoco.mjtObj.mjOBJ_GEOM, objname=f"uav{i}_footprint", intprm=found)
+        geom = dict(
+            type=mujoco.mjtSensor.mjSENS_CONTACT,
+            objtype=mujoco.mjtObj.mjOBJ_GEOM,
+            objname=f"uav{i}_footprint",
+            intprm=found,
+        )
         arena.add_sensor(name=f"uav{i}_contacts", **geom)
         arena.add_sensor(name=f"uav{i}_floor_contacts", reftype=mujoco.mjtObj.mjOBJ_GEOM, refname=floor, **geom)
     return arena.compile()
@@ -331,19 +390,39 @@ class MujocoWorld:
         seed: seeds the world's numpy Generator (wind draws).
     """
 
-    def __init__(self, config: MujocoWorldConfig, n_envs: int, n_agents: int, n_obstacles: int, *,
-                 n_lidar_rays: int = 24, lidar_range: float = 3.0, lidar_sees_agents: bool = True,
-                 uav_radius: float = 0.25, obstacle_radius: float = 0.4, speed_max: float = 1.0,
-                 adversary_speed_max: float = 0.75, accel_max: float = 2.0, wind: WindConfig | None = None, with_adversary: bool = True, seed: int = 0):
+    def __init__(
+        self,
+        config: MujocoWorldConfig,
+        n_envs: int,
+        n_agents: int,
+        n_obstacles: int,
+        *,
+        n_lidar_rays: int = 24,
+        lidar_range: float = 3.0,
+        lidar_sees_agents: bool = True,
+        uav_radius: float = 0.25,
+        obstacle_radius: float = 0.4,
+        speed_max: float = 1.0,
+        adversary_speed_max: float = 0.75,
+        accel_max: float = 2.0,
+        wind: WindConfig | None = None,
+        with_adversary: bool = True,
+        seed: int = 0,
+    ):
         config.validate()
         for name, value in (("n_envs", n_envs), ("n_agents", n_agents), ("n_lidar_rays", n_lidar_rays)):
             if not isinstance(value, (int, np.integer)) or value < 1:
                 raise ConfigError(f"{name} must be an integer >= 1, got {value!r}")
         if not isinstance(n_obstacles, (int, np.integer)) or n_obstacles < 0:
             raise ConfigError(f"n_obstacles must be an integer >= 0, got {n_obstacles!r}")
-        for name, value in (("lidar_range", lidar_range), ("uav_radius", uav_radius), ("obstacle_radius", obstacle_radius),
-                            ("speed_max", speed_max),
-                            ("adversary_speed_max", adversary_speed_max), ("accel_max", accel_max)):
+        for name, value in (
+            ("lidar_range", lidar_range),
+            ("uav_radius", uav_radius),
+            ("obstacle_radius", obstacle_radius),
+            ("speed_max", speed_max),
+            ("adversary_speed_max", adversary_speed_max),
+            ("accel_max", accel_max),
+        ):
             if not (math.isfinite(value) and value > 0):
                 raise ConfigError(f"{name} must be a finite number > 0, got {value!r}")
         if wind is not None and not isinstance(wind, WindConfig):
@@ -352,7 +431,11 @@ class MujocoWorld:
         self.n_envs, self.n_agents, self.n_obstacles = int(n_envs), int(n_agents), int(n_obstacles)
         self.with_adversary = bool(with_adversary)
         self.n_drones = self.n_agents + int(self.with_adversary)
-        self.n_lidar_rays, self.lidar_range, self.lidar_sees_agents = int(n_lidar_rays), float(lidar_range), bool(lidar_sees_agents)
+        self.n_lidar_rays, self.lidar_range, self.lidar_sees_agents = (
+            int(n_lidar_rays),
+            float(lidar_range),
+            bool(lidar_sees_agents),
+        )
         self.uav_radius, self.obstacle_radius = float(uav_radius), float(obstacle_radius)
         self.accel_max = float(accel_max)
         self.dt = float(config.decision_dt)
@@ -362,31 +445,56 @@ class MujocoWorld:
         self.wind = WindField(self.wind_config, self.n_envs, self.rng)
         self._wind_period = _ratio(self.wind_config.update_period, config.physics_dt)
         if self._wind_period is None:
-            raise ConfigError(f"wind.update_period = {self.wind_config.update_period} must be a multiple of physics_dt = {config.physics_dt}")
+            raise ConfigError(
+                f"wind.update_period = {self.wind_config.update_period} "
+                f"must be a multiple of physics_dt = {config.physics_dt}"
+            )
 
         self.airframe = load_airframe(config.airframe)
-        timing = CascadeTiming(config.physics_dt, _ratio(1.0 / config.rate_loop_hz, config.physics_dt),
-                               _ratio(1.0 / config.position_loop_hz, config.physics_dt))
+        timing = CascadeTiming(
+            config.physics_dt,
+            _ratio(1.0 / config.rate_loop_hz, config.physics_dt),
+            _ratio(1.0 / config.position_loop_hz, config.physics_dt),
+        )
         self.params_file = config.params_file()
-        self.cascade = Px4Cascade(self.airframe, load_params(self.params_file), timing, self.n_envs, self.n_drones,
-                                  speed_limit_tau=config.speed_limit_tau,
-                                  disturbance_tau=config.disturbance_tau, flip_tilt_deg=config.flip_tilt_deg,
-                                  gravity=config.gravity, offboard=config.offboard)
+        self.cascade = Px4Cascade(
+            self.airframe,
+            load_params(self.params_file),
+            timing,
+            self.n_envs,
+            self.n_drones,
+            speed_limit_tau=config.speed_limit_tau,
+            disturbance_tau=config.disturbance_tau,
+            flip_tilt_deg=config.flip_tilt_deg,
+            gravity=config.gravity,
+            offboard=config.offboard,
+        )
         self.cascade.setpoint[:, :, SP_Z] = config.flight_altitude
-        self.cascade.setpoint[:, :self.n_agents, SP_VMAX] = speed_max
-        self.cascade.setpoint[:, self.n_agents:, SP_VMAX] = adversary_speed_max
+        self.cascade.setpoint[:, : self.n_agents, SP_VMAX] = speed_max
+        self.cascade.setpoint[:, self.n_agents :, SP_VMAX] = adversary_speed_max
 
-        base = build_scene(config, self.n_agents, self.n_obstacles, self.with_adversary, self.uav_radius, self.obstacle_radius,
-                           airframe=self.airframe)
+        base = build_scene(
+            config,
+            self.n_agents,
+            self.n_obstacles,
+            self.with_adversary,
+            self.uav_radius,
+            self.obstacle_radius,
+            airframe=self.airframe,
+        )
         self.models = [base] + [copy.deepcopy(base) for _ in range(self.n_envs - 1)]
         self.datas = [mujoco.MjData(m) for m in self.models]
         prefixes = [f"uav{i}_" for i in range(self.n_agents)] + (["adv_"] if self.with_adversary else [])
         self.drone_body_ids = np.array([base.body(f"{p}{self.airframe.body_name}").id for p in prefixes])
         if not np.array_equal(self.drone_body_ids, np.arange(1, self.n_drones + 1)) or base.nq != 7 * self.n_drones:
             raise ConfigError("mujoco: the scene must hold the drones as bodies 1..D with one free joint each")
-        if not (np.allclose(base.body_mass[1:self.n_drones + 1], self.airframe.mass, rtol=1e-12)
-                and np.allclose(base.body_ipos[1:self.n_drones + 1], self.airframe.centre_of_mass, atol=1e-12)):
-            raise ConfigError(f"mujoco: the drones in the scene lost the mass or centre of mass of {self.airframe.path}")
+        if not (
+            np.allclose(base.body_mass[1 : self.n_drones + 1], self.airframe.mass, rtol=1e-12)
+            and np.allclose(base.body_ipos[1 : self.n_drones + 1], self.airframe.centre_of_mass, atol=1e-12)
+        ):
+            raise ConfigError(
+                f"mujoco: the drones in the scene lost the mass or centre of mass of {self.airframe.path}"
+            )
         # "actuators" or "external": the rotor path this world flies (config.rotor_actuation, "auto" resolved)
         self.rotor_actuation_used = resolve_rotor_actuation(config.rotor_actuation, self.n_drones)
         self.rotor_actuators = self.rotor_actuation_used == "actuators"
@@ -396,8 +504,10 @@ class MujocoWorld:
             if base.nu != 4 * self.n_drones or base.actuator_trnid[:, 0].tolist() != sites:
                 raise ConfigError("mujoco: the scene must hold four rotor actuators per drone, in motor order")
         elif base.nu:
-            raise ConfigError(f"mujoco: with rotor_actuation = 'external' (configured {config.rotor_actuation!r}) "
-                              "the scene must have no actuators")
+            raise ConfigError(
+                f"mujoco: with rotor_actuation = 'external' (configured {config.rotor_actuation!r}) "
+                "the scene must have no actuators"
+            )
         if base.nsensordata != 2 * self.n_agents:
             raise ConfigError("mujoco: the scene must have exactly the UAVs' contact sensors")
         self.obstacle_geom_ids = np.array([base.geom(f"obstacle{k}").id for k in range(self.n_obstacles)], dtype=int)
@@ -406,13 +516,23 @@ class MujocoWorld:
         # per env: qpos [D, 7], qvel [D, 6], xfrc_applied [D, 6], ctrl [D, 4] (rotor thrusts; [0, 4] without
         # actuators), contact counts [N, 2] (views into MjData)
         no_ctrl = np.empty((0, 4))
-        self._views = [(dat.qpos.reshape(d, 7), dat.qvel.reshape(d, 6), dat.xfrc_applied[1:d + 1],
-                        dat.ctrl.reshape(d, 4) if self.rotor_actuators else no_ctrl, dat.sensordata.reshape(n, 2))
-                       for dat in self.datas]
+        self._views = [
+            (
+                dat.qpos.reshape(d, 7),
+                dat.qvel.reshape(d, 6),
+                dat.xfrc_applied[1 : d + 1],
+                dat.ctrl.reshape(d, 4) if self.rotor_actuators else no_ctrl,
+                dat.sensordata.reshape(n, 2),
+            )
+            for dat in self.datas
+        ]
         self._compiled = config.physics_loop == "compiled" and _MJ_STEP is not None
         if config.physics_loop == "compiled" and not self._compiled:
-            warnings.warn("mujoco: mj_step's C address not found next to the bindings; physics_loop falls back to 'python'",
-                          RuntimeWarning, stacklevel=2)
+            warnings.warn(
+                "mujoco: mj_step's C address not found next to the bindings; physics_loop falls back to 'python'",
+                RuntimeWarning,
+                stacklevel=2,
+            )
         self._tick = np.zeros(self.n_envs, dtype=np.int64)
         self._collided = np.zeros((self.n_envs, self.n_agents), dtype=bool)
         self._accel = np.zeros((self.n_envs, self.n_drones, 2))
@@ -437,12 +557,16 @@ class MujocoWorld:
         reach[is_obstacle] = base.geom_size[self._ray_candidates[is_obstacle], 0]
         self._ray_candidate_reach = reach + REACH_MARGIN
         self._ray_candidate_body = base.geom_bodyid[self._ray_candidates].astype(np.int64)
-        self._ray_caster_body = self.drone_body_ids[:self.n_agents].astype(np.int64)
+        self._ray_caster_body = self.drone_body_ids[: self.n_agents].astype(np.int64)
         self._ray_directions = self._ray_vec.reshape(-1, 3).copy()
-        self._ray_arrays = [(dat.geom_xpos, dat.geom_xmat, mdl.geom_size, mdl.geom_type) for mdl, dat in zip(self.models, self.datas)]
+        self._ray_arrays = [
+            (dat.geom_xpos, dat.geom_xmat, mdl.geom_size, mdl.geom_type) for mdl, dat in zip(self.models, self.datas)
+        ]
 
     # ------------------------------------------------------------------ World protocol
-    def reset(self, env_mask: np.ndarray, agent_pos: np.ndarray, adversary_pos: np.ndarray, obstacles: np.ndarray) -> None:
+    def reset(
+        self, env_mask: np.ndarray, agent_pos: np.ndarray, adversary_pos: np.ndarray, obstacles: np.ndarray
+    ) -> None:
         """Place the masked envs' drones (level hover at flight altitude, zero velocity) and obstacles."""
         b, n, k = self.n_envs, self.n_agents, self.n_obstacles
         mask = _check(np.asarray(env_mask, dtype=bool), (b,), "env_mask")
@@ -478,8 +602,9 @@ class MujocoWorld:
         for _ in range(_ratio(self.config.wind_settle_s + self.dt, self.dt) - 1):
             target = SETTLE_POSITION_GAIN * (start - qpos[:, :2])
             now = self.cascade.velocity_setpoints(e) if velocity_interface else qvel[:, :2]
-            self.cascade.command(np.clip((target - now) / self.dt, -self.accel_max, self.accel_max)[None], self.dt,
-                                 envs=slice(e, e + 1))
+            self.cascade.command(
+                np.clip((target - now) / self.dt, -self.accel_max, self.accel_max)[None], self.dt, envs=slice(e, e + 1)
+            )
             self._advance(e, self.n_substeps)
         qpos[:, :2] = start
         self._tick[e] = 0
@@ -502,7 +627,10 @@ class MujocoWorld:
             data = self.datas[e]
             for w in _BAD_STATE_WARNINGS:
                 if data.warning[w].number:
-                    raise SimulationDiverged(f"env {e}: MuJoCo {mujoco.mjtWarning(w).name} (unstable physics) before t = {self.sim_time[e]:.3f} s")
+                    raise SimulationDiverged(
+                        f"env {e}: MuJoCo {mujoco.mjtWarning(w).name} (unstable physics) "
+                        f"before t = {self.sim_time[e]:.3f} s"
+                    )
 
     def _advance(self, e: int, n_steps: int) -> None:
         """n_steps physics steps of env e, redrawing its wind on the plugin's schedule."""
@@ -518,12 +646,33 @@ class MujocoWorld:
                 self.wind.update(e, tick * self.config.physics_dt)
             stop = min(end, (tick // period + 1) * period)  # the next wind redraw
             if self._compiled:
-                done, bad = run_physics(tick, stop - tick, _MJ_STEP, model._address, data._address, qpos, qvel, xfrc, ctrl,
-                                        contacts, collided, s_e, sp_e, wind_e, c.prm, c.k, c.mix, c.eff, c.rotors)
+                done, bad = run_physics(
+                    tick,
+                    stop - tick,
+                    _MJ_STEP,
+                    model._address,
+                    data._address,
+                    qpos,
+                    qvel,
+                    xfrc,
+                    ctrl,
+                    contacts,
+                    collided,
+                    s_e,
+                    sp_e,
+                    wind_e,
+                    c.prm,
+                    c.k,
+                    c.mix,
+                    c.eff,
+                    c.rotors,
+                )
             else:
                 done, bad = stop - tick, -1
                 for j in range(stop - tick):
-                    bad = cascade_step(tick + j, qpos, qvel, xfrc, s_e, sp_e, wind_e, c.prm, c.k, c.mix, c.eff, c.rotors, ctrl)
+                    bad = cascade_step(
+                        tick + j, qpos, qvel, xfrc, s_e, sp_e, wind_e, c.prm, c.k, c.mix, c.eff, c.rotors, ctrl
+                    )
                     if bad >= 0:
                         done = j
                         break
@@ -539,15 +688,15 @@ class MujocoWorld:
     def agent_pos(self) -> np.ndarray:
         """[B, N, 2] true positions (m)."""
         if self.n_envs == 1:
-            return self._views[0][0][None, :self.n_agents, :2].copy()
-        return np.stack([v[0][:self.n_agents, :2] for v in self._views])
+            return self._views[0][0][None, : self.n_agents, :2].copy()
+        return np.stack([v[0][: self.n_agents, :2] for v in self._views])
 
     @property
     def agent_vel(self) -> np.ndarray:
         """[B, N, 2] true velocities (m/s)."""
         if self.n_envs == 1:
-            return self._views[0][1][None, :self.n_agents, :2].copy()
-        return np.stack([v[1][:self.n_agents, :2] for v in self._views])
+            return self._views[0][1][None, : self.n_agents, :2].copy()
+        return np.stack([v[1][: self.n_agents, :2] for v in self._views])
 
     @property
     def adversary_pos(self) -> np.ndarray:
@@ -572,9 +721,23 @@ class MujocoWorld:
             no_discs = np.empty((0, 2))
             for e in range(b):
                 discs = np.ascontiguousarray(self._views[e][0][:n, :2]) if self.lidar_sees_agents else no_discs
-                cast_lidar(MJU_RAY_GEOM, origins[e], self.config.flight_altitude, self._ray_directions, self.lidar_range,
-                           *self._ray_arrays[e], self._ray_candidates, self._ray_candidate_body, self._ray_candidate_reach,
-                           self._ray_caster_body, self.obstacles[e], self.obstacle_radius, discs, self.uav_radius, out[e])
+                cast_lidar(
+                    MJU_RAY_GEOM,
+                    origins[e],
+                    self.config.flight_altitude,
+                    self._ray_directions,
+                    self.lidar_range,
+                    *self._ray_arrays[e],
+                    self._ray_candidates,
+                    self._ray_candidate_body,
+                    self._ray_candidate_reach,
+                    self._ray_caster_body,
+                    self.obstacles[e],
+                    self.obstacle_radius,
+                    discs,
+                    self.uav_radius,
+                    out[e],
+                )
             return out
         self._multiray(origins, out)
         out[out < 0] = self.lidar_range  # no hit within the cutoff
@@ -592,15 +755,33 @@ class MujocoWorld:
     def _multiray(self, origins: np.ndarray, out: np.ndarray) -> None:
         """The beams' nearest hits (-1: none) from `mj_multiRay`, drone by drone: the reference the compiled
         LiDAR equals bit for bit, and its fallback when mju_rayGeom's address is not found."""
-        pnt, geomid, vec, group, cutoff = self._ray_pnt, self._ray_geomid, self._ray_vec, self._ray_group, self.lidar_range
+        pnt, geomid, vec, group, cutoff = (
+            self._ray_pnt,
+            self._ray_geomid,
+            self._ray_vec,
+            self._ray_group,
+            self.lidar_range,
+        )
         pnt[2] = self.config.flight_altitude
         for e in range(self.n_envs):
             model, data = self.models[e], self.datas[e]
             for i in range(self.n_agents):
                 pnt[0] = origins[e, i, 0]
                 pnt[1] = origins[e, i, 1]
-                mujoco.mj_multiRay(model, data, pnt, vec, group, 1, self._drone_body_list[i], geomid, out[e, i], None,
-                                   self.n_lidar_rays, cutoff)
+                mujoco.mj_multiRay(
+                    model,
+                    data,
+                    pnt,
+                    vec,
+                    group,
+                    1,
+                    self._drone_body_list[i],
+                    geomid,
+                    out[e, i],
+                    None,
+                    self.n_lidar_rays,
+                    cutoff,
+                )
 
     def collisions(self) -> np.ndarray:
         """[B, N] bool: UAV touched an obstacle or another UAV during the last decision step."""
@@ -666,7 +847,9 @@ class MujocoWorld:
         if not (np.isfinite(qpos).all() and np.isfinite(qvel).all()):
             raise SimulationDiverged(f"env {env}: {who} state became NaN/inf at t = {t:.3f} s")
         tilt = self.tilt_deg()[env, drone]
-        raise SimulationDiverged(f"env {env}: {who} flipped (tilt {tilt:.0f} deg > {self.config.flip_tilt_deg:g}) at t = {t:.3f} s")
+        raise SimulationDiverged(
+            f"env {env}: {who} flipped (tilt {tilt:.0f} deg > {self.config.flip_tilt_deg:g}) at t = {t:.3f} s"
+        )
 
 
 def _check(array, shape: tuple[int, ...], name: str) -> np.ndarray:
@@ -689,27 +872,44 @@ def _inside_any(origins: np.ndarray, centres: np.ndarray, radius: float) -> np.n
     return ((gap * gap).sum(-1) <= radius * radius).any(-1)
 
 
-def make_mujoco_world(task: TaskConfig, n_envs: int = 1, wind: float = 0.0, seed: int | None = None,
-                      config: MujocoWorldConfig | None = None, airframe: str | Path | None = None,
-                      wind_direction: float | None = None) -> MujocoWorld:
+def make_mujoco_world(
+    task: TaskConfig,
+    n_envs: int = 1,
+    wind: float = 0.0,
+    seed: int | None = None,
+    config: MujocoWorldConfig | None = None,
+    airframe: str | Path | None = None,
+    wind_direction: float | None = None,
+) -> MujocoWorld:
     """The MuJoCo world for a task: its counts, radii, speed limits and LiDAR, plus a wind of mean
     speed `wind` (m/s, Gazebo wind-plugin semantics; 0 for calm air) blowing towards
-    `wind_direction` (degrees, ENU: 0 = +x, 90 = +y; None = drawn uniformly per episode from the seed). `airframe` (a shipped name or an
-    MJCF path) replaces config.airframe; its gains are found as for MujocoWorldConfig.params = None.
+    `wind_direction` (degrees, ENU: 0 = +x, 90 = +y; None = drawn uniformly per episode from the seed).
+    `airframe` (a shipped name or an MJCF path) replaces config.airframe; its gains are found as for
+    MujocoWorldConfig.params = None.
     The footprint disc is the task's uav_radius whatever the airframe (docs/mujoco_world.md)."""
     for name in ("response_time", "velocity_noise"):  # the quadrotor has its own lag and tracking error
         if getattr(task, name):
-            raise ConfigError(f"{name}={getattr(task, name)}: a particle-world setting; the MuJoCo world must keep it 0")
+            raise ConfigError(
+                f"{name}={getattr(task, name)}: a particle-world setting; the MuJoCo world must keep it 0"
+            )
     if wind_direction is not None and not wind:
         raise ConfigError(f"wind_direction={wind_direction!r}: there is no wind to point (wind = 0)")
     config = config or MujocoWorldConfig()
     if airframe is not None:
         config = dataclasses.replace(config, airframe=str(airframe))
     return MujocoWorld(
-        config, n_envs=n_envs, n_agents=task.n_agents, n_obstacles=task.n_obstacles,
-        n_lidar_rays=task.n_lidar_rays, lidar_range=task.lidar_range, lidar_sees_agents=task.lidar_sees_agents,
-        uav_radius=task.uav_radius, obstacle_radius=task.obstacle_radius, speed_max=task.speed_max,
-        adversary_speed_max=task.adversary_speed_max, accel_max=task.accel_max,
+        config,
+        n_envs=n_envs,
+        n_agents=task.n_agents,
+        n_obstacles=task.n_obstacles,
+        n_lidar_rays=task.n_lidar_rays,
+        lidar_range=task.lidar_range,
+        lidar_sees_agents=task.lidar_sees_agents,
+        uav_radius=task.uav_radius,
+        obstacle_radius=task.obstacle_radius,
+        speed_max=task.speed_max,
+        adversary_speed_max=task.adversary_speed_max,
+        accel_max=task.accel_max,
         wind=WindConfig(mean_speed=float(wind), direction=wind_config_direction(wind_direction)) if wind else None,
         with_adversary=task.mode == "cefc" and task.adversary != "none",
         seed=0 if seed is None else seed,

@@ -64,9 +64,18 @@ class ParticleWorld:
         else:
             kick = self._no_kick
         particle_step_kernel(
-            self._pos, self._vel, self._vel_cmd, np.ascontiguousarray(agent_accel, dtype=np.float64), kick,
-            self.obstacles, dt, cfg.speed_max, self._response, cfg.obstacle_radius + cfg.uav_radius,
-            2 * cfg.uav_radius, self._collided,
+            self._pos,
+            self._vel,
+            self._vel_cmd,
+            np.ascontiguousarray(agent_accel, dtype=np.float64),
+            kick,
+            self.obstacles,
+            dt,
+            cfg.speed_max,
+            self._response,
+            cfg.obstacle_radius + cfg.uav_radius,
+            2 * cfg.uav_radius,
+            self._collided,
         )
         self._adv_vel = clip_speed(self._adv_vel + adversary_accel * dt, cfg.adversary_speed_max)
         self._adv_pos = self._adv_pos + self._adv_vel * dt
@@ -74,8 +83,14 @@ class ParticleWorld:
     def lidar(self, origins: np.ndarray) -> np.ndarray:
         cfg = self.config
         return lidar_ranges(
-            origins, self.obstacles, cfg.obstacle_radius, self._pos, cfg.uav_radius,
-            cfg.n_lidar_rays, cfg.lidar_range, cfg.lidar_sees_agents,
+            origins,
+            self.obstacles,
+            cfg.obstacle_radius,
+            self._pos,
+            cfg.uav_radius,
+            cfg.n_lidar_rays,
+            cfg.lidar_range,
+            cfg.lidar_sees_agents,
         )
 
     def collisions(self) -> np.ndarray:

@@ -58,8 +58,26 @@ def _ray_geom(typingctx, fn, pos, mat, size, pnt, vec, geomtype):
 
 
 @njit
-def cast_lidar(ray_fn, origins, altitude, directions, cutoff, geom_xpos, geom_xmat, geom_size, geom_type, candidates,
-               candidate_body, candidate_reach, caster_body, obstacles, obstacle_radius, discs, disc_radius, out):
+def cast_lidar(
+    ray_fn,
+    origins,
+    altitude,
+    directions,
+    cutoff,
+    geom_xpos,
+    geom_xmat,
+    geom_size,
+    geom_type,
+    candidates,
+    candidate_body,
+    candidate_reach,
+    caster_body,
+    obstacles,
+    obstacle_radius,
+    discs,
+    disc_radius,
+    out,
+):
     """LiDAR ranges [N, M] of the drones of one env, as MujocoWorld.lidar defines them.
 
     Each beam reads its nearest hit as mj_multiRay reports it, `cutoff` (the range) without a hit

@@ -115,7 +115,11 @@ class WindField:
         """Redraw env's wind for episode time `time` (s)."""
         cfg = self.config
         speed = min(abs(self.rng.normal(cfg.mean_speed, cfg.sigma)), cfg.max_speed)
-        angle = self.rng.normal(self.mean_direction[env], cfg.direction_sigma) if cfg.direction_sigma > 0 else self.mean_direction[env]
+        angle = (
+            self.rng.normal(self.mean_direction[env], cfg.direction_sigma)
+            if cfg.direction_sigma > 0
+            else self.mean_direction[env]
+        )
         wx, wy = speed * math.cos(angle), speed * math.sin(angle)
         if cfg.gust_duration > 0 and cfg.gust_start <= time < cfg.gust_start + cfg.gust_duration:
             gust = abs(self.rng.normal(cfg.gust_mean_speed, cfg.gust_sigma))

@@ -21,7 +21,9 @@ class World(Protocol):
     n_agents: int
     dt: float
 
-    def reset(self, env_mask: np.ndarray, agent_pos: np.ndarray, adversary_pos: np.ndarray, obstacles: np.ndarray) -> None:
+    def reset(
+        self, env_mask: np.ndarray, agent_pos: np.ndarray, adversary_pos: np.ndarray, obstacles: np.ndarray
+    ) -> None:
         """Place the masked envs' agents [B,N,2], adversary [B,2] and obstacles [B,K,2]; zero velocities."""
         ...
 

@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import numpy as np
 
-
 STRIKE_DISTANCE = 3.0
 """Within this distance (m) of a UAV, "nearest_group_strike" chases that UAV (the UAVs' observation range)."""
 
@@ -54,8 +53,9 @@ def adversary_goal(
     raise ValueError(f"unknown adversary rule {rule!r}")
 
 
-def avoiding_velocity(desired: np.ndarray, position: np.ndarray, obstacles: np.ndarray, keep_out: float,
-                      margin: float) -> np.ndarray:
+def avoiding_velocity(
+    desired: np.ndarray, position: np.ndarray, obstacles: np.ndarray, keep_out: float, margin: float
+) -> np.ndarray:
     """Bend the desired velocity [B, 2] around obstacle discs (centres [B, K, 2]) so that the
     adversary stays outside `keep_out` (m, obstacle plus body radius) of every centre.
 
@@ -79,8 +79,14 @@ def avoiding_velocity(desired: np.ndarray, position: np.ndarray, obstacles: np.n
     return np.where(norm > 1e-9, velocity * speed / np.maximum(norm, 1e-9), desired)
 
 
-def pursuit_velocity(goal: np.ndarray, position: np.ndarray, speed_max: float, obstacles: np.ndarray | None = None,
-                     keep_out: float = 0.0, margin: float = 1.0) -> np.ndarray:
+def pursuit_velocity(
+    goal: np.ndarray,
+    position: np.ndarray,
+    speed_max: float,
+    obstacles: np.ndarray | None = None,
+    keep_out: float = 0.0,
+    margin: float = 1.0,
+) -> np.ndarray:
     """The velocity [B, 2] a pursuer wants: speed_max along goal - position, bent around `obstacles`
     [B, K, 2] by `avoiding_velocity` when given."""
     offset = goal - position
@@ -97,15 +103,23 @@ def clip_speed(velocity: np.ndarray, speed_max: float) -> np.ndarray:
     return velocity * np.minimum(1.0, speed_max / np.maximum(speed, 1e-12))
 
 
-def velocity_tracking_acceleration(desired: np.ndarray, velocity: np.ndarray, accel_max: float,
-                                   dt: float) -> np.ndarray:
+def velocity_tracking_acceleration(
+    desired: np.ndarray, velocity: np.ndarray, accel_max: float, dt: float
+) -> np.ndarray:
     """The acceleration [B, 2] that turns `velocity` into `desired` within one step, per-axis clipped."""
     return np.clip((desired - velocity) / dt, -accel_max, accel_max)
 
 
 def pursuit_acceleration(
-    goal: np.ndarray, position: np.ndarray, velocity: np.ndarray, speed_max: float, accel_max: float, dt: float,
-    obstacles: np.ndarray | None = None, keep_out: float = 0.0, margin: float = 1.0,
+    goal: np.ndarray,
+    position: np.ndarray,
+    velocity: np.ndarray,
+    speed_max: float,
+    accel_max: float,
+    dt: float,
+    obstacles: np.ndarray | None = None,
+    keep_out: float = 0.0,
+    margin: float = 1.0,
 ) -> np.ndarray:
     """Acceleration [B, 2] that turns the velocity towards speed_max along goal - position (bent
     around `obstacles` [B, K, 2] by `avoiding_velocity` when given), per-axis clipped to accel_max."""
@@ -150,11 +164,20 @@ def _nearest(offset: np.ndarray, slots: int) -> tuple[np.ndarray, np.ndarray]:
     return order, present
 
 
-def adversary_observation(adversary_pos: np.ndarray, adversary_vel: np.ndarray, goal: np.ndarray,
-                          agent_pos: np.ndarray, agent_vel: np.ndarray, agent_group_size: np.ndarray,
-                          obstacles: np.ndarray, arena_half_size: float, speed_max: float,
-                          keep_out: float, group_centre: np.ndarray | None = None,
-                          group_size: np.ndarray | None = None) -> np.ndarray:
+def adversary_observation(
+    adversary_pos: np.ndarray,
+    adversary_vel: np.ndarray,
+    goal: np.ndarray,
+    agent_pos: np.ndarray,
+    agent_vel: np.ndarray,
+    agent_group_size: np.ndarray,
+    obstacles: np.ndarray,
+    arena_half_size: float,
+    speed_max: float,
+    keep_out: float,
+    group_centre: np.ndarray | None = None,
+    group_size: np.ndarray | None = None,
+) -> np.ndarray:
     """The learned adversary's observation [B, ADVERSARY_OBS_DIM] float32 (layout: ADVERSARY_OBS_DIM)
     from true states: it is the simulator's agent, not a sensing UAV. goal [B, 2] is the point it is
     set to chase; agent_group_size [B, N] is the size of each agent's group; keep_out (m) is the
@@ -164,9 +187,15 @@ def adversary_observation(adversary_pos: np.ndarray, adversary_vel: np.ndarray, 
     rows = np.arange(b)[:, None]
     offset = agent_pos - adversary_pos[:, None, :]
     order, present = _nearest(offset, ADVERSARY_SLOTS)
-    agents = np.concatenate([offset[rows, order] / arena_half_size,
-                             (agent_vel - adversary_vel[:, None, :])[rows, order] / speed_max,
-                             agent_group_size[rows, order][..., None] / n, present[..., None]], axis=-1)
+    agents = np.concatenate(
+        [
+            offset[rows, order] / arena_half_size,
+            (agent_vel - adversary_vel[:, None, :])[rows, order] / speed_max,
+            agent_group_size[rows, order][..., None] / n,
+            present[..., None],
+        ],
+        axis=-1,
+    )
     agents *= present[..., None]
     obstacle_offset = obstacles - adversary_pos[:, None, :]
     order, present = _nearest(obstacle_offset, ADVERSARY_OBSTACLE_SLOTS)
@@ -177,8 +206,9 @@ def adversary_observation(adversary_pos: np.ndarray, adversary_vel: np.ndarray, 
     clearance = np.clip((dist - keep_out) / ADVERSARY_OBSTACLE_RANGE, 0.0, 1.0)
     near = np.concatenate([offset / dist, clearance, present[..., None]], axis=-1)
     near *= present[..., None]
-    own = np.concatenate([adversary_pos / arena_half_size, adversary_vel / speed_max,
-                          (goal - adversary_pos) / arena_half_size], axis=-1)
+    own = np.concatenate(
+        [adversary_pos / arena_half_size, adversary_vel / speed_max, (goal - adversary_pos) / arena_half_size], axis=-1
+    )
     groups = np.zeros((b, ADVERSARY_GROUP_SLOTS, 4))
     if group_centre is not None and group_centre.shape[1]:
         rel = group_centre - adversary_pos[:, None, :]
@@ -186,18 +216,29 @@ def adversary_observation(adversary_pos: np.ndarray, adversary_vel: np.ndarray, 
         order = np.argsort(dist, axis=-1, kind="stable")[:, :ADVERSARY_GROUP_SLOTS]
         k = order.shape[1]
         present = np.isfinite(np.take_along_axis(dist, order, axis=1))
-        groups[:, :k] = np.concatenate([rel[rows, order] / arena_half_size,
-                                        group_size[rows, order][..., None] / n, present[..., None]], axis=-1)
+        groups[:, :k] = np.concatenate(
+            [rel[rows, order] / arena_half_size, group_size[rows, order][..., None] / n, present[..., None]], axis=-1
+        )
         groups[:, :k] *= present[..., None]
-    return np.concatenate([own, agents.reshape(b, -1), near.reshape(b, -1), groups.reshape(b, -1)],
-                          axis=-1).astype(np.float32)
+    return np.concatenate([own, agents.reshape(b, -1), near.reshape(b, -1), groups.reshape(b, -1)], axis=-1).astype(
+        np.float32
+    )
 
 
-def adversary_reward(adversary_pos: np.ndarray, goal: np.ndarray, agent_pos: np.ndarray, obstacles: np.ndarray,
-                     alert_distance: float, keep_out: float, distance_weight: float = 0.1,
-                     alert_weight: float = 1.0, collision_weight: float = 10.0,
-                     previous_distance: np.ndarray | None = None, progress_weight: float = 0.0,
-                     gamma: float = 1.0) -> dict[str, np.ndarray]:
+def adversary_reward(
+    adversary_pos: np.ndarray,
+    goal: np.ndarray,
+    agent_pos: np.ndarray,
+    obstacles: np.ndarray,
+    alert_distance: float,
+    keep_out: float,
+    distance_weight: float = 0.1,
+    alert_weight: float = 1.0,
+    collision_weight: float = 10.0,
+    previous_distance: np.ndarray | None = None,
+    progress_weight: float = 0.0,
+    gamma: float = 1.0,
+) -> dict[str, np.ndarray]:
     """The learned adversary's reward terms [B] after a step, and their weighted sum "reward":
     "distance" = -|goal - p| (m; goal: the nearest group of >= 3, `adversary_goal("nearest_group")`),
     "alert" = share of agents within `alert_distance` of it, "collision" = -1 inside an obstacle's
@@ -205,13 +246,14 @@ def adversary_reward(adversary_pos: np.ndarray, goal: np.ndarray, agent_pos: np.
     (potential-based shaping with the potential -d, which leaves the optimal policy unchanged and
     credits each step with the approach it made; 0 without previous_distance, the step's d_before)."""
     distance = -np.linalg.norm(goal - adversary_pos, axis=-1)
-    progress = (np.zeros_like(distance) if previous_distance is None
-                else previous_distance + gamma * distance)
+    progress = np.zeros_like(distance) if previous_distance is None else previous_distance + gamma * distance
     alert = (np.linalg.norm(agent_pos - adversary_pos[:, None, :], axis=-1) < alert_distance).mean(axis=-1)
     if obstacles.shape[1]:
         inside = (np.linalg.norm(obstacles - adversary_pos[:, None, :], axis=-1) < keep_out).any(axis=-1)
     else:
         inside = np.zeros(len(adversary_pos), dtype=bool)
     collision = -inside.astype(float)
-    reward = distance_weight * distance + alert_weight * alert + collision_weight * collision + progress_weight * progress
+    reward = (
+        distance_weight * distance + alert_weight * alert + collision_weight * collision + progress_weight * progress
+    )
     return {"distance": distance, "alert": alert, "collision": collision, "progress": progress, "reward": reward}

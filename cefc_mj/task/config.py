@@ -221,17 +221,36 @@ class TaskConfig:
         if self.episode_steps is not None and (not isinstance(self.episode_steps, int) or self.episode_steps < 1):
             fail("episode_steps", self.episode_steps, "must be an integer >= 1")
         for name in (
-            "dt", "arena_half_size", "start_half_size", "obstacle_radius", "anchor_half_size",
-            "observation_distance", "formation_spacing", "formation_tolerance", "navigation_tolerance",
-            "target_radius", "target_corner", "speed_max", "adversary_speed_max", "accel_max", "uav_radius",
+            "dt",
+            "arena_half_size",
+            "start_half_size",
+            "obstacle_radius",
+            "anchor_half_size",
+            "observation_distance",
+            "formation_spacing",
+            "formation_tolerance",
+            "navigation_tolerance",
+            "target_radius",
+            "target_corner",
+            "speed_max",
+            "adversary_speed_max",
+            "accel_max",
+            "uav_radius",
             "lidar_range",
         ):
             value = getattr(self, name)
             finite(name, value)
             if value <= 0:
                 fail(name, value, "must be > 0")
-        for name in ("obstacle_density", "start_min_spacing", "obstacle_min_gap", "anchor_clearance", "deviation",
-                     "response_time", "velocity_noise"):
+        for name in (
+            "obstacle_density",
+            "start_min_spacing",
+            "obstacle_min_gap",
+            "anchor_clearance",
+            "deviation",
+            "response_time",
+            "velocity_noise",
+        ):
             value = getattr(self, name)
             finite(name, value)
             if value < 0:
@@ -251,18 +270,26 @@ class TaskConfig:
         if not isinstance(self.separation_guard, bool):
             fail("separation_guard", self.separation_guard, "must be True or False")
         if self.separation_guard and self.mode != "formation":
-            fail("separation_guard", self.separation_guard, "the guard reads the low-level observation: "
-                 "mode='formation' only")
+            fail(
+                "separation_guard",
+                self.separation_guard,
+                "the guard reads the low-level observation: mode='formation' only",
+            )
         if self.deviation_sampling not in ("fixed", "uniform"):
             fail("deviation_sampling", self.deviation_sampling, "must be 'fixed' or 'uniform'")
         finite("straggler_fraction", self.straggler_fraction)
         if not 0 <= self.straggler_fraction <= 1:
             fail("straggler_fraction", self.straggler_fraction, "must be in [0, 1]")
-        if self.straggler_fraction > 0 and (self.n_agents < 2 or self.observation_distance >= STRAGGLER_MAX_DISTANCE
-                                            - self.start_half_size * math.sqrt(2)):
-            fail("straggler_fraction", self.straggler_fraction,
-                 f"needs at least 2 agents and observation_distance + the start square's half-diagonal below "
-                 f"{STRAGGLER_MAX_DISTANCE} m")
+        if self.straggler_fraction > 0 and (
+            self.n_agents < 2
+            or self.observation_distance >= STRAGGLER_MAX_DISTANCE - self.start_half_size * math.sqrt(2)
+        ):
+            fail(
+                "straggler_fraction",
+                self.straggler_fraction,
+                f"needs at least 2 agents and observation_distance + the start square's half-diagonal below "
+                f"{STRAGGLER_MAX_DISTANCE} m",
+            )
         if self.obstacle_layout not in OBSTACLE_LAYOUTS:
             fail("obstacle_layout", self.obstacle_layout, f"must be one of {', '.join(OBSTACLE_LAYOUTS)}")
         if self.adversary not in ADVERSARIES:
@@ -274,16 +301,23 @@ class TaskConfig:
         if self.anchor_half_size > self.arena_half_size:
             fail("anchor_half_size", self.anchor_half_size, "must be at most arena_half_size")
         if self.start_min_spacing < 2 * self.uav_radius:
-            fail("start_min_spacing", self.start_min_spacing,
-                 f"must be at least 2 x uav_radius = {2 * self.uav_radius:g} m, or two UAVs start in contact")
+            fail(
+                "start_min_spacing",
+                self.start_min_spacing,
+                f"must be at least 2 x uav_radius = {2 * self.uav_radius:g} m, or two UAVs start in contact",
+            )
         # Start positions: the square must hold N points at min spacing (hexagonal packing bound).
         side = 2 * self.start_half_size
         if self.start_min_spacing > 0:
             capacity = (side / self.start_min_spacing + 1) ** 2
             if self.n_agents > capacity:
-                fail("n_agents", self.n_agents,
-                     f"cannot place {self.n_agents} starts {self.start_min_spacing} m apart in [-{self.start_half_size}, "
-                     f"{self.start_half_size}]^2")
+                fail(
+                    "n_agents",
+                    self.n_agents,
+                    f"cannot place {self.n_agents} starts {self.start_min_spacing} m apart "
+                    f"in [-{self.start_half_size}, "
+                    f"{self.start_half_size}]^2",
+                )
         # Obstacles: each needs a disc of radius r + gap/2 that no other may overlap; hard-disc random
         # packing jams near 55 % coverage, and the start square is kept free.
         if self.n_obstacles > 0:
@@ -292,9 +326,12 @@ class TaskConfig:
             free_area = (2 * self.arena_half_size) ** 2 - keep_out**2
             coverage = self.n_obstacles * math.pi * r_eff**2 / max(free_area, 1e-9)
             if coverage > 0.4:
-                fail("obstacle_density", self.obstacle_density,
-                     f"too high: {self.n_obstacles} obstacles of radius {self.obstacle_radius} m cannot be placed "
-                     f"{self.obstacle_min_gap} m apart in the free part of the arena (coverage {coverage:.0%} > 40%)")
+                fail(
+                    "obstacle_density",
+                    self.obstacle_density,
+                    f"too high: {self.n_obstacles} obstacles of radius {self.obstacle_radius} m cannot be placed "
+                    f"{self.obstacle_min_gap} m apart in the free part of the arena (coverage {coverage:.0%} > 40%)",
+                )
 
     def to_dict(self) -> dict:
         """A JSON-ready dict of every field (nested dataclasses included)."""

@@ -86,8 +86,13 @@ def group_formation_error(
     size = np.empty((b, n), dtype=np.int64)
     centre = np.empty((b, n, 2))
     formation_error_kernel(
-        np.ascontiguousarray(positions, dtype=np.float64), np.ascontiguousarray(labels, dtype=np.int64),
-        template_table(n, float(spacing)), min_size, error, size, centre,
+        np.ascontiguousarray(positions, dtype=np.float64),
+        np.ascontiguousarray(labels, dtype=np.int64),
+        template_table(n, float(spacing)),
+        min_size,
+        error,
+        size,
+        centre,
     )
     return error, size, centre
 

@@ -97,8 +97,9 @@ def _guard_kernel(obs, actions, slots, directions, dt, accel_max, out):
                 out[b, i, 1] = actions[b, i, 1]
 
 
-def guard_actions(obs: np.ndarray, actions: np.ndarray, slots: int, n_rays: int, dt: float,
-                  accel_max: float) -> np.ndarray:
+def guard_actions(
+    obs: np.ndarray, actions: np.ndarray, slots: int, n_rays: int, dt: float, accel_max: float
+) -> np.ndarray:
     """The guarded actions [B, N, 2] (dtype of `actions`) for low-level observations obs [B, N, D]
     with `slots` neighbour slots and `n_rays` LiDAR beams."""
     obs = np.asarray(obs)
@@ -106,8 +107,9 @@ def guard_actions(obs: np.ndarray, actions: np.ndarray, slots: int, n_rays: int,
     if obs.ndim != 3 or obs.shape[-1] < 4 + 5 * slots + n_rays or actions.shape != obs.shape[:2] + (2,):
         raise ValueError(f"guard_actions: obs {obs.shape} and actions {actions.shape} do not match the layout")
     out = np.empty(actions.shape, dtype=np.float64)
-    _guard_kernel(obs, actions, int(slots), np.ascontiguousarray(beam_directions(n_rays)), float(dt),
-                  float(accel_max), out)
+    _guard_kernel(
+        obs, actions, int(slots), np.ascontiguousarray(beam_directions(n_rays)), float(dt), float(accel_max), out
+    )
     return out.astype(actions.dtype, copy=False)
 
 

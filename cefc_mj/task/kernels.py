@@ -82,8 +82,16 @@ def low_level_observation_kernel(pos, vel, anchor, lidar, slots, radius, out):
     neighbours_kernel(pos, vel, slots, radius, feats, mask)
     for b in range(n_envs):
         for i in range(n):
-            _observation_row(out[b, i], anchor[b, i, 0] - pos[b, i, 0], anchor[b, i, 1] - pos[b, i, 1], vel[b, i, 0],
-                             vel[b, i, 1], feats[b, i], mask[b, i], lidar[b, i])
+            _observation_row(
+                out[b, i],
+                anchor[b, i, 0] - pos[b, i, 0],
+                anchor[b, i, 1] - pos[b, i, 1],
+                vel[b, i, 0],
+                vel[b, i, 1],
+                feats[b, i],
+                mask[b, i],
+                lidar[b, i],
+            )
 
 
 @njit
@@ -173,8 +181,9 @@ def formation_error_kernel(pos, labels, templates, min_size, error, size, centre
 
 
 @njit
-def particle_step_kernel(pos, vel, vel_cmd, accel, kick, obstacles, dt, speed_max, response, contact_dist,
-                         uav_diameter, collided):
+def particle_step_kernel(
+    pos, vel, vel_cmd, accel, kick, obstacles, dt, speed_max, response, contact_dist, uav_diameter, collided
+):
     """Semi-implicit Euler with a speed clip, UAV-UAV overlap flags, and inelastic obstacle
     contacts (pushed back onto the surface, inward velocity removed). The action integrates into the
     commanded velocity vel_cmd; the velocity follows it by the first-order factor `response` in (0, 1]

@@ -12,8 +12,9 @@ from __future__ import annotations
 
 import functools
 
-from cefc_mj.jit import njit
 import numpy as np
+
+from cefc_mj.jit import njit
 
 
 @functools.lru_cache(maxsize=16)
@@ -107,7 +108,9 @@ def lidar_ranges(
     return out
 
 
-def lidar_ranges_reference(origins, obstacles, obstacle_radius, agents, agent_radius, n_rays, max_range, see_agents=True):
+def lidar_ranges_reference(
+    origins, obstacles, obstacle_radius, agents, agent_radius, n_rays, max_range, see_agents=True
+):
     """Slow, obvious numpy reference of `lidar_ranges` (one ray-circle solve at a time)."""
     directions = beam_directions(n_rays)
     b, n, _ = origins.shape

@@ -80,8 +80,12 @@ def neighbour_features(
     features = np.empty((b, n, slots, 4))
     mask = np.empty((b, n, slots))
     neighbours_kernel(
-        np.ascontiguousarray(perceived_pos, dtype=np.float64), np.ascontiguousarray(velocity, dtype=np.float64),
-        int(slots), float(observation_distance), features, mask,
+        np.ascontiguousarray(perceived_pos, dtype=np.float64),
+        np.ascontiguousarray(velocity, dtype=np.float64),
+        int(slots),
+        float(observation_distance),
+        features,
+        mask,
     )
     return features, mask
 
@@ -96,8 +100,15 @@ def build_low_level_observation(
     slots = cfg.neighbour_slots
     out = np.empty((b, n, 4 + 5 * slots + lidar.shape[-1]), dtype=np.float32)
     f64 = lambda a: np.ascontiguousarray(a, dtype=np.float64)  # noqa: E731 - one array type per kernel argument
-    low_level_observation_kernel(f64(perceived_pos), f64(velocity), f64(np.broadcast_to(anchor, (b, n, 2))), f64(lidar),
-                                 int(slots), float(cfg.observation_distance), out)
+    low_level_observation_kernel(
+        f64(perceived_pos),
+        f64(velocity),
+        f64(np.broadcast_to(anchor, (b, n, 2))),
+        f64(lidar),
+        int(slots),
+        float(cfg.observation_distance),
+        out,
+    )
     return out
 
 
@@ -121,6 +132,6 @@ def build_cefc_observation(
         [adversary_pos[:, None, :] - perceived_pos, adversary_vel[:, None, :] - velocity], axis=-1
     )
     feats, mask = neighbour_features(perceived_pos, velocity, cfg.neighbour_slots, cfg.observation_distance)
-    return np.concatenate(
-        [target_part, adversary_part, feats.reshape(b, n, -1), mask, lidar], axis=-1
-    ).astype(np.float32)
+    return np.concatenate([target_part, adversary_part, feats.reshape(b, n, -1), mask, lidar], axis=-1).astype(
+        np.float32
+    )

@@ -91,8 +91,9 @@ START_DISC_MARGIN = 0.1
 """Extra room (m) between an obstacle surface and a UAV's start disc in the "paper" layout."""
 
 
-def sample_obstacles(cfg: TaskConfig, rng: np.random.Generator, anchor: np.ndarray, targets: np.ndarray,
-                     starts: np.ndarray | None = None) -> np.ndarray:
+def sample_obstacles(
+    cfg: TaskConfig, rng: np.random.Generator, anchor: np.ndarray, targets: np.ndarray, starts: np.ndarray | None = None
+) -> np.ndarray:
     """Obstacle centres [B, K, 2], each wholly inside the arena, clear of each other (obstacle_min_gap
     between surfaces), and at least anchor_clearance from the anchor and the targets' centres.
 
@@ -156,15 +157,21 @@ def sample_scenario(cfg: TaskConfig, rng: np.random.Generator, n_envs: int) -> S
     obstacles = sample_obstacles(cfg, rng, anchor, targets, agent_pos)
     adversary_pos = np.broadcast_to(np.asarray(cfg.adversary_start, dtype=float), (n_envs, 2)).copy()
     adversary_pos[:, 0] += rng.uniform(-cfg.start_half_size, cfg.start_half_size, size=n_envs)
-    return Scenario(agent_pos=agent_pos, adversary_pos=adversary_pos, obstacles=obstacles, targets=targets, anchor=anchor)
+    return Scenario(
+        agent_pos=agent_pos, adversary_pos=adversary_pos, obstacles=obstacles, targets=targets, anchor=anchor
+    )
 
 
 def check_scenario(cfg: TaskConfig, scenario: Scenario, n_envs: int) -> None:
     """Raise ConfigError naming the first array of a hand-built `scenario` whose shape does not fit
     `n_envs` layouts of `cfg`, or that is not finite."""
-    shapes = {"agent_pos": (n_envs, cfg.n_agents, 2), "adversary_pos": (n_envs, 2),
-              "obstacles": (n_envs, cfg.n_obstacles, 2), "anchor": (n_envs, 2),
-              "targets": (n_envs, cfg.n_targets if cfg.mode == "cefc" else 0, 2)}
+    shapes = {
+        "agent_pos": (n_envs, cfg.n_agents, 2),
+        "adversary_pos": (n_envs, 2),
+        "obstacles": (n_envs, cfg.n_obstacles, 2),
+        "anchor": (n_envs, 2),
+        "targets": (n_envs, cfg.n_targets if cfg.mode == "cefc" else 0, 2),
+    }
     for name, shape in shapes.items():
         value = np.asarray(getattr(scenario, name))
         if value.shape != shape:
@@ -177,9 +184,9 @@ def obstacle_near_path(scenario: Scenario, obstacle_radius: float, margin: float
     """[B] bool: some obstacle's surface lies within `margin` m of the straight segment from the
     start centre (mean start position) to the anchor, i.e. its centre is within
     obstacle_radius + margin of that segment."""
-    start = scenario.agent_pos.mean(axis=1)                            # [B, 2]
-    seg = scenario.anchor - start                                      # [B, 2]
-    rel = scenario.obstacles - start[:, None]                          # [B, K, 2]
+    start = scenario.agent_pos.mean(axis=1)  # [B, 2]
+    seg = scenario.anchor - start  # [B, 2]
+    rel = scenario.obstacles - start[:, None]  # [B, K, 2]
     length_sq = np.maximum((seg * seg).sum(-1), 1e-12)[:, None]
     along = np.clip((rel * seg[:, None]).sum(-1) / length_sq, 0.0, 1.0)  # [B, K] projection onto the segment
     dist = np.linalg.norm(rel - along[..., None] * seg[:, None], axis=-1)

@@ -45,8 +45,13 @@ from cefc_mj.errors import CheckpointError, ConfigError
 from cefc_mj.eval.highlevel import game_task, highlevel_policy_path, play_highlevel
 from cefc_mj.fileio import write_atomic
 from cefc_mj.hierarchy import DECISION_INTERVAL, HierarchicalCEFCEnv, LowLevel, load_low_level
-from cefc_mj.nn.adversary_policy import (ADVERSARY_ACTIONS, AdversaryNetConfig, AdversaryPolicy, network_input,
-                                         save_adversary_policy)
+from cefc_mj.nn.adversary_policy import (
+    ADVERSARY_ACTIONS,
+    AdversaryNetConfig,
+    AdversaryPolicy,
+    network_input,
+    save_adversary_policy,
+)
 from cefc_mj.nn.atm import Critic
 from cefc_mj.nn.highlevel_policy import HighLevelPolicy, load_highlevel_policy
 from cefc_mj.nn.policy_io import atomic_torch_save
@@ -83,9 +88,17 @@ def _fail(name: str, value: object, why: str) -> None:
 
 
 DEFAULT_POPULATION = (
-    "cihrl_consmac_a", "cihrl_consmac_a_seed1", "cihrl_consmac_a_seed2", "cihrl_consmac_a_wo_ft",
-    "cihrl_mappo", "cihrl_mappo_seed1", "cihrl_mappo_seed2", "cihrl_tarmac", "cihrl_consmac_a_dt",
-    "cihrl_consmac_o", *RULE_TEAMS,
+    "cihrl_consmac_a",
+    "cihrl_consmac_a_seed1",
+    "cihrl_consmac_a_seed2",
+    "cihrl_consmac_a_wo_ft",
+    "cihrl_mappo",
+    "cihrl_mappo_seed1",
+    "cihrl_mappo_seed2",
+    "cihrl_tarmac",
+    "cihrl_consmac_a_dt",
+    "cihrl_consmac_o",
+    *RULE_TEAMS,
 )
 """Every shipped method over its training seeds, and the rule-driven teams."""
 
@@ -173,8 +186,15 @@ class AdversaryConfig(BudgetPPODict):
             _fail("init_log_std", self.init_log_std, "must be a number in [-5, 2]")
         if self.imitation_rule not in IMITATION_RULES:
             _fail("imitation_rule", self.imitation_rule, f"must be one of {', '.join(IMITATION_RULES)}")
-        _check_ints(self, (("imitation_episodes", 0, 100_000), ("imitation_steps", 0, 10_000_000),
-                           ("imitation_rounds", 1, 100), ("critic_warmup", 0, 1_000_000)))
+        _check_ints(
+            self,
+            (
+                ("imitation_episodes", 0, 100_000),
+                ("imitation_steps", 0, 10_000_000),
+                ("imitation_rounds", 1, 100),
+                ("critic_warmup", 0, 1_000_000),
+            ),
+        )
         if not isinstance(self.ppo, PPOConfig):
             _fail("ppo", self.ppo, "must be a PPOConfig")
         self.ppo.validate()
@@ -205,10 +225,17 @@ def validate_population_game(cfg) -> None:
         _fail("seed", cfg.seed, f"must be an integer in [0, {MAX_SEED}]")
     if not isinstance(cfg.low_level, str) or not cfg.low_level:
         _fail("low_level", cfg.low_level, "must name a policy (a name or a file)")
-    if (not isinstance(cfg.teams, tuple) or not cfg.teams
-            or not all(isinstance(t, str) and t for t in cfg.teams) or len(set(cfg.teams)) != len(cfg.teams)):
-        _fail("teams", cfg.teams, "must be a non-empty list of distinct team names (policy names, files or "
-              f"rules: {', '.join(RULE_TEAMS)})")
+    if (
+        not isinstance(cfg.teams, tuple)
+        or not cfg.teams
+        or not all(isinstance(t, str) and t for t in cfg.teams)
+        or len(set(cfg.teams)) != len(cfg.teams)
+    ):
+        _fail(
+            "teams",
+            cfg.teams,
+            f"must be a non-empty list of distinct team names (policy names, files or rules: {', '.join(RULE_TEAMS)})",
+        )
     if not isinstance(cfg.observes_goal, bool):
         _fail("observes_goal", cfg.observes_goal, "must be True or False")
     if cfg.action not in ADVERSARY_ACTIONS:
@@ -219,8 +246,15 @@ def validate_population_game(cfg) -> None:
         value = getattr(cfg, name)
         if not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0:
             _fail(name, value, "must be a number >= 0")
-    _check_ints(cfg, (("hidden", 1, 4096), ("checkpoint_every", 1, 1_000_000), ("eval_episodes", 0, 1000),
-                      ("teams_per_iteration", 1, 1000)))
+    _check_ints(
+        cfg,
+        (
+            ("hidden", 1, 4096),
+            ("checkpoint_every", 1, 1_000_000),
+            ("eval_episodes", 0, 1000),
+            ("teams_per_iteration", 1, 1000),
+        ),
+    )
 
 
 class _Sampler:
@@ -246,13 +280,21 @@ class _Sampler:
         """The terms of the state the env is in; with an action pending, its reward is recorded."""
         env, cfg = self.env, self.trainer.cfg
         world, task = env.world, env.config
-        goal = adversary_goal("nearest_group", world.adversary_pos, world.agent_pos, env.group_size,
-                              env.group_centre)
+        goal = adversary_goal("nearest_group", world.adversary_pos, world.agent_pos, env.group_size, env.group_centre)
         previous = None if self.distance is None else -self.distance
-        terms = adversary_reward(world.adversary_pos, goal, world.agent_pos, env.obstacles,
-                                 task.rewards.evasion_alert_distance, task.obstacle_radius + task.uav_radius,
-                                 cfg.distance_weight, cfg.alert_weight, cfg.collision_weight,
-                                 previous_distance=previous, progress_weight=cfg.progress_weight)
+        terms = adversary_reward(
+            world.adversary_pos,
+            goal,
+            world.agent_pos,
+            env.obstacles,
+            task.rewards.evasion_alert_distance,
+            task.obstacle_radius + task.uav_radius,
+            cfg.distance_weight,
+            cfg.alert_weight,
+            cfg.collision_weight,
+            previous_distance=previous,
+            progress_weight=cfg.progress_weight,
+        )
         if len(self.buf["obs"]) > len(self.buf["rewards"]):
             self.buf["rewards"].append(torch.as_tensor(terms["reward"], dtype=torch.float32))
             for name in self.terms:
@@ -298,15 +340,26 @@ class AdversaryTrainer(PopulationGames):
     `iterate()` = collect one episode per env (teams_per_iteration games, a team drawn for each), then
     the PPO update."""
 
-    def __init__(self, cfg: AdversaryConfig, population: dict[str, HighLevelPolicy | None], low_level: LowLevel,
-                 decision_interval: int = DECISION_INTERVAL):
+    def __init__(
+        self,
+        cfg: AdversaryConfig,
+        population: dict[str, HighLevelPolicy | None],
+        low_level: LowLevel,
+        decision_interval: int = DECISION_INTERVAL,
+    ):
         """population: team name -> its high level, None for a rule team (RULE_TEAMS)."""
         self.cfg = cfg
         self.task = cfg.task()
         self.population, self.low_level = population, low_level
-        net = AdversaryNetConfig(hidden=cfg.hidden, accel_max=self.task.accel_max, init_log_std=cfg.init_log_std,
-                                 observes_goal=cfg.observes_goal, action=cfg.action,
-                                 speed_max=self.task.adversary_speed_max, dt=self.task.dt)
+        net = AdversaryNetConfig(
+            hidden=cfg.hidden,
+            accel_max=self.task.accel_max,
+            init_log_std=cfg.init_log_std,
+            observes_goal=cfg.observes_goal,
+            action=cfg.action,
+            speed_max=self.task.adversary_speed_max,
+            dt=self.task.dt,
+        )
         self.actor = AdversaryPolicy(net, seed=cfg.seed)
         torch.manual_seed(cfg.seed + 1)
         self.critic = Critic(net.input_dim, cfg.hidden)
@@ -317,9 +370,17 @@ class AdversaryTrainer(PopulationGames):
         self.iteration, self.episodes, self.elapsed = 0, 0, 0.0
         per_game = cfg.ppo.n_envs // cfg.teams_per_iteration
         self.samplers = [_Sampler(self) for _ in range(cfg.teams_per_iteration)]
-        self.games = [HierarchicalCEFCEnv(self.task, low_level, n_envs=per_game, seed=cfg.seed,
-                                          decision_interval=decision_interval, adversary_policy=sampler)
-                      for sampler in self.samplers]
+        self.games = [
+            HierarchicalCEFCEnv(
+                self.task,
+                low_level,
+                n_envs=per_game,
+                seed=cfg.seed,
+                decision_interval=decision_interval,
+                adversary_policy=sampler,
+            )
+            for sampler in self.samplers
+        ]
         for sampler, game in zip(self.samplers, self.games):
             sampler.env = game.env
 
@@ -338,16 +399,26 @@ class AdversaryTrainer(PopulationGames):
             def rule(obs):  # called while `game` below plays
                 env = game.env
                 action = env.rule_adversary_acceleration(self.cfg.imitation_rule)
-                target = (env.rule_adversary_velocity(self.cfg.imitation_rule) / self.task.adversary_speed_max
-                          if self.cfg.action != "acceleration" else action)  # what the actor outputs
+                target = (
+                    env.rule_adversary_velocity(self.cfg.imitation_rule) / self.task.adversary_speed_max
+                    if self.cfg.action != "acceleration"
+                    else action
+                )  # what the actor outputs
                 obs_rows.append(torch.from_numpy(obs.copy()))
                 act_rows.append(torch.as_tensor(target, dtype=torch.float32))
                 return action if round_ == 0 else self.actor.act(obs)
 
-            game = HierarchicalCEFCEnv(self.task, self.low_level, n_envs=per_game, seed=self.cfg.seed,
-                                       decision_interval=self.games[0].decision_interval, adversary_policy=rule)
-            play_highlevel(self.team_for(name, game), game,
-                           seed=iteration_seed(self.cfg.seed, batch, stream=IMITATION_STREAM))
+            game = HierarchicalCEFCEnv(
+                self.task,
+                self.low_level,
+                n_envs=per_game,
+                seed=self.cfg.seed,
+                decision_interval=self.games[0].decision_interval,
+                adversary_policy=rule,
+            )
+            play_highlevel(
+                self.team_for(name, game), game, seed=iteration_seed(self.cfg.seed, batch, stream=IMITATION_STREAM)
+            )
         return torch.cat(obs_rows), torch.cat(act_rows)
 
     def imitate(self) -> dict[str, float]:
@@ -371,8 +442,7 @@ class AdversaryTrainer(PopulationGames):
             with torch.no_grad():
                 fit = float((self.actor(obs) - target).pow(2).sum(-1).mean())
             per_round.append({"samples": len(obs), "mse_on_new_states_before": on_policy, "mse_after": fit})
-        return {"rounds": per_round, "steps": cfg.imitation_steps,
-                "mse_of_the_mean_action": float(target.var(0).sum())}
+        return {"rounds": per_round, "steps": cfg.imitation_steps, "mse_of_the_mean_action": float(target.var(0).sum())}
 
     def value(self, obs: torch.Tensor) -> torch.Tensor:
         """V of adversary observations: the critic reads what the actor reads."""
@@ -383,8 +453,11 @@ class AdversaryTrainer(PopulationGames):
         parts, team_stats = [], []
         for g, (name, game, sampler) in enumerate(zip(self.draw_teams(self.iteration), self.games, self.samplers)):
             sampler.start()
-            team_stats.append(play_highlevel(self.team_for(name, game), game,
-                                             seed=iteration_seed(self.cfg.seed, self.iteration, stream=g)))
+            team_stats.append(
+                play_highlevel(
+                    self.team_for(name, game), game, seed=iteration_seed(self.cfg.seed, self.iteration, stream=g)
+                )
+            )
             final_value = sampler.finish()
             buf = {k: torch.stack(v) for k, v in sampler.buf.items()}  # [T, B/k, ...]
             buf["next_values"] = torch.cat([buf["values"][1:], final_value[None]])
@@ -394,14 +467,21 @@ class AdversaryTrainer(PopulationGames):
         episode_end = torch.zeros_like(buf["rewards"], dtype=torch.bool)
         episode_end[-1] = True
         buf["advantages"], buf["targets"], ev = advantages_and_targets(
-            buf["rewards"], buf["values"], buf.pop("next_values"), episode_end, self.cfg.ppo, self.value_norm)
+            buf["rewards"], buf["values"], buf.pop("next_values"), episode_end, self.cfg.ppo, self.value_norm
+        )
         team = {k: np.concatenate([s[k] for s in team_stats]) for k in ("E", "R_t", "R_H")}
-        stats = {"episode_return": float(buf["rewards"].sum(0).mean()), "explained_variance": ev,
-                 "distance_m": float(-terms["distance"].mean()), "alert_share": float(terms["alert"].mean()),
-                 "collision_share": float(-terms["collision"].mean()),
-                 "team/E": float(team["E"].mean()), "team/R_t": float(team["R_t"].mean()),
-                 "team/R_H": float(team["R_H"].mean()), "action_std": float(self.actor.log_std.exp().mean()),
-                 "episodes": self.cfg.ppo.n_envs}
+        stats = {
+            "episode_return": float(buf["rewards"].sum(0).mean()),
+            "explained_variance": ev,
+            "distance_m": float(-terms["distance"].mean()),
+            "alert_share": float(terms["alert"].mean()),
+            "collision_share": float(-terms["collision"].mean()),
+            "team/E": float(team["E"].mean()),
+            "team/R_t": float(team["R_t"].mean()),
+            "team/R_H": float(team["R_H"].mean()),
+            "action_std": float(self.actor.log_std.exp().mean()),
+            "episodes": self.cfg.ppo.n_envs,
+        }
         return buf, stats
 
     def update(self, buf: dict[str, torch.Tensor]) -> dict[str, float]:
@@ -412,9 +492,20 @@ class AdversaryTrainer(PopulationGames):
             return dist.log_prob(flat["actions"][mb]).sum(-1), dist.entropy().sum(-1).mean()
 
         critic_obs = network_input(flat["obs"], self.cfg.observes_goal)
-        return ppo_epochs(len(flat["obs"]), self.cfg.ppo, self.generator, policy_terms, flat["logp"],
-                          flat["advantages"], self.actor_opt, list(self.actor.parameters()), self.critic,
-                          critic_obs, flat["targets"], self.critic_opt)
+        return ppo_epochs(
+            len(flat["obs"]),
+            self.cfg.ppo,
+            self.generator,
+            policy_terms,
+            flat["logp"],
+            flat["advantages"],
+            self.actor_opt,
+            list(self.actor.parameters()),
+            self.critic,
+            critic_obs,
+            flat["targets"],
+            self.critic_opt,
+        )
 
     def iterate(self) -> dict[str, float]:
         t0 = time.perf_counter()
@@ -429,12 +520,21 @@ class AdversaryTrainer(PopulationGames):
         self.iteration += 1
         self.episodes += stats["episodes"]
         self.elapsed += t2 - t0
-        return {"iteration": self.iteration, "episodes_total": self.episodes, "wall_s": self.elapsed,
-                **stats, **update, "rollout_s": t1 - t0, "update_s": t2 - t1}
+        return {
+            "iteration": self.iteration,
+            "episodes_total": self.episodes,
+            "wall_s": self.elapsed,
+            **stats,
+            **update,
+            "rollout_s": t1 - t0,
+            "update_s": t2 - t1,
+        }
 
     def state_dict(self) -> dict:
-        return {**learner_state(self),
-                "counters": {"iteration": self.iteration, "episodes": self.episodes, "elapsed": self.elapsed}}
+        return {
+            **learner_state(self),
+            "counters": {"iteration": self.iteration, "episodes": self.episodes, "elapsed": self.elapsed},
+        }
 
     def load_state_dict(self, state: dict) -> None:
         load_learner_state(self, state)
@@ -444,8 +544,16 @@ class AdversaryTrainer(PopulationGames):
 
 # ---------------------------------------------------------------------------- evaluation
 @torch.no_grad()
-def evaluate_adversary(adversary, team: HighLevelPolicy | str, low_level: LowLevel, task: TaskConfig, episodes: int,
-                       seed: int = 0, decision_interval: int = DECISION_INTERVAL, world=None) -> dict[str, float]:
+def evaluate_adversary(
+    adversary,
+    team: HighLevelPolicy | str,
+    low_level: LowLevel,
+    task: TaskConfig,
+    episodes: int,
+    seed: int = 0,
+    decision_interval: int = DECISION_INTERVAL,
+    world=None,
+) -> dict[str, float]:
     """The UAV team's per-episode means (R_H and its parts, E, F, C: `play_highlevel`) against an
     adversary, and the share of steps it spent inside an obstacle ("adversary_collision_share").
     adversary: a callable of observations (e.g. `AdversaryPolicy.act`) for a task with
@@ -462,8 +570,15 @@ def evaluate_adversary(adversary, team: HighLevelPolicy | str, low_level: LowLev
         return env.rule_adversary_acceleration(adversary) if isinstance(adversary, str) else adversary(obs)
 
     task = dataclasses.replace(task, adversary=LEARNED_ADVERSARY)
-    game = HierarchicalCEFCEnv(task, low_level, n_envs=episodes, seed=seed, decision_interval=decision_interval,
-                               world=world, adversary_policy=flown)
+    game = HierarchicalCEFCEnv(
+        task,
+        low_level,
+        n_envs=episodes,
+        seed=seed,
+        decision_interval=decision_interval,
+        world=world,
+        adversary_policy=flown,
+    )
     per_episode = play_highlevel(RuleTeam(team, game) if isinstance(team, str) else team, game, seed)
     out = {name: float(values.mean()) for name, values in per_episode.items()}
     out["adversary_collision_share"] = float(np.mean(inside)) if inside else 0.0
@@ -475,8 +590,9 @@ def read_state(path: Path) -> dict:
     return run_state.read_state(path, STATE_FORMAT, "adversary training state")
 
 
-def load_population(cfg: AdversaryConfig, policies_dir: Path | None = None
-                    ) -> tuple[dict[str, HighLevelPolicy | None], dict[str, dict], LowLevel, int]:
+def load_population(
+    cfg: AdversaryConfig, policies_dir: Path | None = None
+) -> tuple[dict[str, HighLevelPolicy | None], dict[str, dict], LowLevel, int]:
     """(team name -> high level or None for a rule team, team name -> its record for the card, the low
     level, the teams' decision interval); CheckpointError naming the flag when a file is missing."""
     population, records, intervals = {}, {}, set()
@@ -500,8 +616,14 @@ def load_population(cfg: AdversaryConfig, policies_dir: Path | None = None
     return population, records, low_level, intervals.pop() if intervals else DECISION_INTERVAL
 
 
-def train_adversary(cfg: AdversaryConfig, out: Path, policies_dir: Path, resume: bool = False,
-                    show_progress: bool = True, command: str | None = None) -> dict:
+def train_adversary(
+    cfg: AdversaryConfig,
+    out: Path,
+    policies_dir: Path,
+    resume: bool = False,
+    show_progress: bool = True,
+    command: str | None = None,
+) -> dict:
     """Train under the budget, export the adversary and its model card to `policies_dir`; returns
     the card. Everything the run needs is loaded and checked before the run folder is made."""
     out, policies_dir = Path(out), Path(policies_dir)
@@ -520,30 +642,45 @@ def train_adversary(cfg: AdversaryConfig, out: Path, policies_dir: Path, resume:
         imitation = saved.get("imitation")
     elif cfg.imitation_episodes and cfg.imitation_steps:
         if show_progress:
-            print(f"{cfg.name}: imitating the {cfg.imitation_rule} rule ({cfg.imitation_episodes} episodes, "
-                  f"{cfg.imitation_steps} steps)", flush=True)
+            print(
+                f"{cfg.name}: imitating the {cfg.imitation_rule} rule ({cfg.imitation_episodes} episodes, "
+                f"{cfg.imitation_steps} steps)",
+                flush=True,
+            )
         start = time.perf_counter()
         imitation = {**trainer.imitate(), "wall_s": round(time.perf_counter() - start, 1)}
-    write_atomic(run_dir / "config.json", json.dumps(
-        {"adversary": cfg.to_dict(), "task": trainer.task.to_dict(), "team": team_record, "command": command},
-        indent=2, default=str) + "\n")
+    write_atomic(
+        run_dir / "config.json",
+        json.dumps(
+            {"adversary": cfg.to_dict(), "task": trainer.task.to_dict(), "team": team_record, "command": command},
+            indent=2,
+            default=str,
+        )
+        + "\n",
+    )
 
     def checkpoint() -> None:
-        atomic_torch_save({"format": STATE_FORMAT, "config": cfg.to_dict(), "trainer": trainer.state_dict(),
-                           "imitation": imitation}, state_path)
+        atomic_torch_save(
+            {"format": STATE_FORMAT, "config": cfg.to_dict(), "trainer": trainer.state_dict(), "imitation": imitation},
+            state_path,
+        )
 
     if saved is None:
         checkpoint()
     logger = RunLogger(run_dir, trainer.iteration, cfg.budget.iterations, desc=cfg.name, show_progress=show_progress)
-    last_row = run_state.train_under_budget(trainer, cfg.budget, cfg.checkpoint_every, logger, PROGRESS_KEYS,
-                                            checkpoint)
+    last_row = run_state.train_under_budget(
+        trainer, cfg.budget, cfg.checkpoint_every, logger, PROGRESS_KEYS, checkpoint
+    )
 
-    policy_path = save_adversary_policy(trainer.actor, policies_dir / f"{cfg.name}.pt", meta={
-        "name": cfg.name, "seed": cfg.seed, "iterations": trainer.iteration})
+    policy_path = save_adversary_policy(
+        trainer.actor,
+        policies_dir / f"{cfg.name}.pt",
+        meta={"name": cfg.name, "seed": cfg.seed, "iterations": trainer.iteration},
+    )
     card = {
         "name": cfg.name,
         "method": "PPO adversary (single-agent PPO, the low level's network shape), trained against a population "
-                  f"of {len(cfg.teams)} teams over {low_level.name}",
+        f"of {len(cfg.teams)} teams over {low_level.name}",
         "seed": cfg.seed,
         "config": cfg.to_dict(),
         "task": trainer.task.to_dict(),
@@ -559,70 +696,124 @@ def train_adversary(cfg: AdversaryConfig, out: Path, policies_dir: Path, resume:
         "last_iteration": {k: v for k, v in last_row.items() if isinstance(v, (int, float))},
     }
     if cfg.eval_episodes:
-        card["evaluation"] = evaluate_against_population(trainer.actor.act, population, low_level, trainer.task,
-                                                         cfg.eval_episodes, interval)
+        card["evaluation"] = evaluate_against_population(
+            trainer.actor.act, population, low_level, trainer.task, cfg.eval_episodes, interval
+        )
     write_model_card(policy_path, card)
     return card
 
 
-def evaluate_against_population(adversary, population: dict[str, HighLevelPolicy | None], low_level: LowLevel,
-                                task: TaskConfig, episodes: int, decision_interval: int = DECISION_INTERVAL,
-                                seed: int = GAME_VALIDATION_SEED) -> dict:
+def evaluate_against_population(
+    adversary,
+    population: dict[str, HighLevelPolicy | None],
+    low_level: LowLevel,
+    task: TaskConfig,
+    episodes: int,
+    decision_interval: int = DECISION_INTERVAL,
+    seed: int = GAME_VALIDATION_SEED,
+) -> dict:
     """Each team against the adversary (its mean action) and against the nearest-group rule, flown under
     the same obstacle rule (task.adversary_avoids_obstacles), on `episodes` validation games; with the
     ratio of E (PPO / rule) per team."""
     per_team = {}
     for name, policy in population.items():
         team = name if policy is None else policy
-        ours = evaluate_adversary(adversary, team, low_level, task, episodes, seed=seed,
-                                  decision_interval=decision_interval)
-        rule = evaluate_adversary("nearest_group", team, low_level, task, episodes, seed=seed,
-                                  decision_interval=decision_interval)
-        per_team[name] = {"ours": ours, "rule_nearest_group": rule,
-                          "E_ratio": ours["E"] / rule["E"] if rule["E"] else None}
-    return {"protocol": {"episodes": episodes, "seed": seed, "seed_block": "validation", "backend": "particle",
-                         "adversary": "the mean action",
-                         "rule_avoids_obstacles": task.adversary_avoids_obstacles,
-                         "figures": "the team's per-episode sums (R_t, R_n, R_e weighted, summing to R_H; E in "
-                                    "steps) and the adversary's share of steps inside an obstacle"},
-            "per_team": per_team}
+        ours = evaluate_adversary(
+            adversary, team, low_level, task, episodes, seed=seed, decision_interval=decision_interval
+        )
+        rule = evaluate_adversary(
+            "nearest_group", team, low_level, task, episodes, seed=seed, decision_interval=decision_interval
+        )
+        per_team[name] = {
+            "ours": ours,
+            "rule_nearest_group": rule,
+            "E_ratio": ours["E"] / rule["E"] if rule["E"] else None,
+        }
+    return {
+        "protocol": {
+            "episodes": episodes,
+            "seed": seed,
+            "seed_block": "validation",
+            "backend": "particle",
+            "adversary": "the mean action",
+            "rule_avoids_obstacles": task.adversary_avoids_obstacles,
+            "figures": "the team's per-episode sums (R_t, R_n, R_e weighted, summing to R_H; E in "
+            "steps) and the adversary's share of steps inside an obstacle",
+        },
+        "per_team": per_team,
+    }
 
 
 def summary_lines(card: dict, policies_dir: Path, algorithm: str = "PPO") -> list[str]:
     """What `cefc-train adversary` (and adversary-ddpg, algorithm "DDPG") prints when a run ends."""
-    lines = [f"{card['name']}: {card['iterations']} iterations, {card['episodes']} episodes, "
-             f"{card['train_wall_clock_s']} s -> {policies_dir / (card['name'] + '.pt')} (run {card['run_dir']})"]
+    lines = [
+        f"{card['name']}: {card['iterations']} iterations, {card['episodes']} episodes, "
+        f"{card['train_wall_clock_s']} s -> {policies_dir / (card['name'] + '.pt')} (run {card['run_dir']})"
+    ]
     if "evaluation" in card:
         e = card["evaluation"]
-        lines.append(f"team E in steps against the {algorithm} adversary / the nearest-group rule "
-                     f"({e['protocol']['episodes']} validation episodes each):")
+        lines.append(
+            f"team E in steps against the {algorithm} adversary / the nearest-group rule "
+            f"({e['protocol']['episodes']} validation episodes each):"
+        )
         for name, row in e["per_team"].items():
             ratio = "-" if row["E_ratio"] is None else f"{row['E_ratio']:.2f}"
-            lines.append(f"  {name:24s} {row['ours']['E']:6.1f} / {row['rule_nearest_group']['E']:6.1f}  "
-                         f"(ratio {ratio}); adversary inside an obstacle "
-                         f"{100 * row['ours']['adversary_collision_share']:.1f} %")
+            lines.append(
+                f"  {name:24s} {row['ours']['E']:6.1f} / {row['rule_nearest_group']['E']:6.1f}  "
+                f"(ratio {ratio}); adversary inside an obstacle "
+                f"{100 * row['ours']['adversary_collision_share']:.1f} %"
+            )
     return lines
 
 
 # ---------------------------------------------------------------------------- command line
-_FLAG_OF_FIELD = {"seed": "--seed", "teams": "--teams", "teams_per_iteration": "--teams-per-iteration",
-                  "low_level": "--low-level", "imitation_episodes": "--imitation-episodes",
-                  "imitation_steps": "--imitation-steps", "imitation_rounds": "--imitation-rounds",
-                  "init_log_std": "--init-log-std", "critic_warmup": "--critic-warmup", "action": "--action",
-                  "imitation_rule": "--imitation-rule",
-                  "alert_weight": "--alert-weight", "progress_weight": "--progress-weight",
-                  "obstacle_density": "--density", "eval_episodes": "--eval-episodes", "n_envs": "--envs",
-                  "collision_weight": "--collision-weight",
-                  "epochs": "--epochs", "lr": "--lr", "update_threads": "--threads"}
+_FLAG_OF_FIELD = {
+    "seed": "--seed",
+    "teams": "--teams",
+    "teams_per_iteration": "--teams-per-iteration",
+    "low_level": "--low-level",
+    "imitation_episodes": "--imitation-episodes",
+    "imitation_steps": "--imitation-steps",
+    "imitation_rounds": "--imitation-rounds",
+    "init_log_std": "--init-log-std",
+    "critic_warmup": "--critic-warmup",
+    "action": "--action",
+    "imitation_rule": "--imitation-rule",
+    "alert_weight": "--alert-weight",
+    "progress_weight": "--progress-weight",
+    "obstacle_density": "--density",
+    "eval_episodes": "--eval-episodes",
+    "n_envs": "--envs",
+    "collision_weight": "--collision-weight",
+    "epochs": "--epochs",
+    "lr": "--lr",
+    "update_threads": "--threads",
+}
 """Config fields set by `cefc-train adversary` flags: their errors name the flag the user typed."""
-CLI_FIELDS = ("seed", "teams", "teams_per_iteration", "low_level", "obstacle_density", "collision_weight",
-              "eval_episodes", "imitation_episodes", "imitation_steps", "imitation_rounds", "init_log_std",
-              "critic_warmup", "action", "alert_weight", "progress_weight", "imitation_rule")
+CLI_FIELDS = (
+    "seed",
+    "teams",
+    "teams_per_iteration",
+    "low_level",
+    "obstacle_density",
+    "collision_weight",
+    "eval_episodes",
+    "imitation_episodes",
+    "imitation_steps",
+    "imitation_rounds",
+    "init_log_std",
+    "critic_warmup",
+    "action",
+    "alert_weight",
+    "progress_weight",
+    "imitation_rule",
+)
 CLI_PPO_FIELDS = ("n_envs", "epochs", "lr", "update_threads")
 
 
 def config_from_args(args, budget: Budget) -> AdversaryConfig:
     """The AdversaryConfig of `cefc-train adversary` arguments (flags left out keep the defaults);
     a bad value raises ConfigError naming the flag."""
-    return config_from_flags(AdversaryConfig, args, budget, CLI_FIELDS, CLI_PPO_FIELDS, _adversary_ppo(),
-                             _FLAG_OF_FIELD)
+    return config_from_flags(
+        AdversaryConfig, args, budget, CLI_FIELDS, CLI_PPO_FIELDS, _adversary_ppo(), _FLAG_OF_FIELD
+    )

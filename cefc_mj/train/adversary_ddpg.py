@@ -62,9 +62,9 @@ from cefc_mj.train.adversary import (
     adversary_task,
     evaluate_against_population,
     load_population,
+    summary_lines as _summary_lines,
     validate_population_game,
 )
-from cefc_mj.train.adversary import summary_lines as _summary_lines
 from cefc_mj.train.config import MAX_ENVS, MAX_LR, MAX_THREADS, Budget, flag_error
 from cefc_mj.train.logger import RunLogger
 from cefc_mj.train.mappo import iteration_seed
@@ -156,15 +156,32 @@ class DDPGAdversaryConfig:
 
     def validate(self) -> None:
         validate_population_game(self)
-        _check_ints(self, (("n_envs", 1, MAX_ENVS), ("replay_capacity", 1, MAX_REPLAY), ("batch_size", 1, 65_536),
-                           ("learning_starts", 0, MAX_REPLAY), ("updates_per_iteration", 0, 1_000_000),
-                           ("threads", 1, MAX_THREADS)))
-        for name, least, most, open_low in (("actor_lr", 0, MAX_LR, True), ("critic_lr", 0, MAX_LR, True),
-                                            ("tau", 0, 1, True), ("gamma", 0, 1, False),
-                                            ("exploration_noise", 0, 5, True)):
+        _check_ints(
+            self,
+            (
+                ("n_envs", 1, MAX_ENVS),
+                ("replay_capacity", 1, MAX_REPLAY),
+                ("batch_size", 1, 65_536),
+                ("learning_starts", 0, MAX_REPLAY),
+                ("updates_per_iteration", 0, 1_000_000),
+                ("threads", 1, MAX_THREADS),
+            ),
+        )
+        for name, least, most, open_low in (
+            ("actor_lr", 0, MAX_LR, True),
+            ("critic_lr", 0, MAX_LR, True),
+            ("tau", 0, 1, True),
+            ("gamma", 0, 1, False),
+            ("exploration_noise", 0, 5, True),
+        ):
             value = getattr(self, name)
-            if (not isinstance(value, (int, float)) or isinstance(value, bool) or not math.isfinite(value)
-                    or not least <= value <= most or (open_low and value == least)):
+            if (
+                not isinstance(value, (int, float))
+                or isinstance(value, bool)
+                or not math.isfinite(value)
+                or not least <= value <= most
+                or (open_low and value == least)
+            ):
                 _fail(name, value, f"must be a number in {'(' if open_low else '['}{least}, {most}]")
         if self.n_envs % self.teams_per_iteration:
             _fail("teams_per_iteration", self.teams_per_iteration, f"must divide the {self.n_envs} envs")
@@ -229,7 +246,7 @@ class ReplayBuffer:
 
     def add(self, obs: torch.Tensor, actions: torch.Tensor, rewards: torch.Tensor, next_obs: torch.Tensor) -> None:
         """Append n transitions ([n, ...] each); of more than the capacity only the last ones stay."""
-        data = [t[-self.capacity:] for t in (obs, actions, rewards, next_obs)]
+        data = [t[-self.capacity :] for t in (obs, actions, rewards, next_obs)]
         n = len(data[0])
         index = (self.pos + torch.arange(n)) % self.capacity
         for name, value in zip(self.FIELDS, data):
@@ -243,8 +260,11 @@ class ReplayBuffer:
         return tuple(getattr(self, name)[index] for name in self.FIELDS)
 
     def state_dict(self) -> dict:
-        return {**{name: getattr(self, name)[:self.size].clone() for name in self.FIELDS},
-                "pos": self.pos, "size": self.size}
+        return {
+            **{name: getattr(self, name)[: self.size].clone() for name in self.FIELDS},
+            "pos": self.pos,
+            "size": self.size,
+        }
 
     def load_state_dict(self, state: dict) -> None:
         size = int(state["size"])
@@ -289,15 +309,26 @@ class DDPGAdversaryTrainer(PopulationGames):
     PARTS = ("actor", "critic", "actor_target", "critic_target", "actor_opt", "critic_opt", "replay")
     """What `state_dict` saves (with the RNG and the counters)."""
 
-    def __init__(self, cfg: DDPGAdversaryConfig, population: dict[str, HighLevelPolicy | None], low_level: LowLevel,
-                 decision_interval: int = DECISION_INTERVAL):
+    def __init__(
+        self,
+        cfg: DDPGAdversaryConfig,
+        population: dict[str, HighLevelPolicy | None],
+        low_level: LowLevel,
+        decision_interval: int = DECISION_INTERVAL,
+    ):
         """population: team name -> its high level, None for a rule team (RULE_TEAMS)."""
         self.cfg = cfg
         self.task = cfg.task()
         self.population, self.low_level = population, low_level
-        net = AdversaryNetConfig(hidden=cfg.hidden, accel_max=self.task.accel_max,
-                                 init_log_std=math.log(cfg.exploration_noise), observes_goal=cfg.observes_goal,
-                                 action=cfg.action, speed_max=self.task.adversary_speed_max, dt=self.task.dt)
+        net = AdversaryNetConfig(
+            hidden=cfg.hidden,
+            accel_max=self.task.accel_max,
+            init_log_std=math.log(cfg.exploration_noise),
+            observes_goal=cfg.observes_goal,
+            action=cfg.action,
+            speed_max=self.task.adversary_speed_max,
+            dt=self.task.dt,
+        )
         self.actor = AdversaryPolicy(net, seed=cfg.seed)
         torch.manual_seed(cfg.seed + 1)
         self.critic = QCritic(net, cfg.hidden)
@@ -311,9 +342,17 @@ class DDPGAdversaryTrainer(PopulationGames):
         self.iteration, self.episodes, self.updates, self.elapsed = 0, 0, 0, 0.0
         per_game = cfg.n_envs // cfg.teams_per_iteration
         self.samplers = [_NoisySampler(self) for _ in range(cfg.teams_per_iteration)]
-        self.games = [HierarchicalCEFCEnv(self.task, low_level, n_envs=per_game, seed=cfg.seed,
-                                          decision_interval=decision_interval, adversary_policy=sampler)
-                      for sampler in self.samplers]
+        self.games = [
+            HierarchicalCEFCEnv(
+                self.task,
+                low_level,
+                n_envs=per_game,
+                seed=cfg.seed,
+                decision_interval=decision_interval,
+                adversary_policy=sampler,
+            )
+            for sampler in self.samplers
+        ]
         for sampler, game in zip(self.samplers, self.games):
             sampler.env = game.env
 
@@ -329,8 +368,11 @@ class DDPGAdversaryTrainer(PopulationGames):
         returns, terms, team_stats = [], [], []
         for g, (name, game, sampler) in enumerate(zip(self.draw_teams(self.iteration), self.games, self.samplers)):
             sampler.start()
-            team_stats.append(play_highlevel(self.team_for(name, game), game,
-                                             seed=iteration_seed(self.cfg.seed, self.iteration, stream=g)))
+            team_stats.append(
+                play_highlevel(
+                    self.team_for(name, game), game, seed=iteration_seed(self.cfg.seed, self.iteration, stream=g)
+                )
+            )
             final_obs = sampler.finish()
             obs, actions, rewards = (torch.stack(sampler.buf[k], dim=1) for k in ("obs", "actions", "rewards"))
             next_obs = torch.cat([obs[:, 1:], final_obs[:, None]], dim=1)  # [b, T, D]: o' of every step
@@ -339,20 +381,29 @@ class DDPGAdversaryTrainer(PopulationGames):
             terms.append({k: np.stack(v, axis=1) for k, v in sampler.terms.items()})
         terms = {k: np.concatenate([t[k] for t in terms]) for k in terms[0]}
         team = {k: np.concatenate([s[k] for s in team_stats]) for k in ("E", "R_t", "R_H")}
-        return {"episode_return": float(torch.cat(returns).mean()), "distance_m": float(-terms["distance"].mean()),
-                "alert_share": float(terms["alert"].mean()), "collision_share": float(-terms["collision"].mean()),
-                "team/E": float(team["E"].mean()), "team/R_t": float(team["R_t"].mean()),
-                "team/R_H": float(team["R_H"].mean()), "random_actions": int(exploring),
-                "replay_size": self.replay.size, "episodes": self.cfg.n_envs}
+        return {
+            "episode_return": float(torch.cat(returns).mean()),
+            "distance_m": float(-terms["distance"].mean()),
+            "alert_share": float(terms["alert"].mean()),
+            "collision_share": float(-terms["collision"].mean()),
+            "team/E": float(team["E"].mean()),
+            "team/R_t": float(team["R_t"].mean()),
+            "team/R_H": float(team["R_H"].mean()),
+            "random_actions": int(exploring),
+            "replay_size": self.replay.size,
+            "episodes": self.cfg.n_envs,
+        }
 
-    def update_step(self, obs: torch.Tensor, actions: torch.Tensor, rewards: torch.Tensor,
-                    next_obs: torch.Tensor) -> dict[str, float]:
+    def update_step(
+        self, obs: torch.Tensor, actions: torch.Tensor, rewards: torch.Tensor, next_obs: torch.Tensor
+    ) -> dict[str, float]:
         """One DDPG step on a batch: the critic towards r + gamma Q'(o', mu'(o')), the actor up Q(o, mu(o)),
         then the targets by tau."""
         net = self.actor.cfg
         with torch.no_grad():
             target = rewards + self.cfg.gamma * self.critic_target(
-                next_obs, effective_action(self.actor_target(next_obs), net))
+                next_obs, effective_action(self.actor_target(next_obs), net)
+            )
         q = self.critic(obs, actions)
         critic_loss = (q - target).pow(2).mean()
         self.critic_opt.zero_grad()
@@ -373,8 +424,9 @@ class DDPGAdversaryTrainer(PopulationGames):
         if not self.warming_up:
             for _ in range(self.cfg.updates_per_iteration):
                 rows.append(self.update_step(*self.replay.sample(self.cfg.batch_size, self.generator)))
-        return {k: float(np.mean([r[k] for r in rows])) if rows else math.nan
-                for k in ("critic_loss", "actor_loss", "q")}
+        return {
+            k: float(np.mean([r[k] for r in rows])) if rows else math.nan for k in ("critic_loss", "actor_loss", "q")
+        }
 
     def iterate(self) -> dict[str, float]:
         t0 = time.perf_counter()
@@ -387,14 +439,28 @@ class DDPGAdversaryTrainer(PopulationGames):
         self.iteration += 1
         self.episodes += stats["episodes"]
         self.elapsed += t2 - t0
-        return {"iteration": self.iteration, "episodes_total": self.episodes, "wall_s": self.elapsed,
-                **stats, **update, "updates_total": self.updates, "rollout_s": t1 - t0, "update_s": t2 - t1}
+        return {
+            "iteration": self.iteration,
+            "episodes_total": self.episodes,
+            "wall_s": self.elapsed,
+            **stats,
+            **update,
+            "updates_total": self.updates,
+            "rollout_s": t1 - t0,
+            "update_s": t2 - t1,
+        }
 
     def state_dict(self) -> dict:
-        return {**{name: getattr(self, name).state_dict() for name in self.PARTS},
-                "generator": self.generator.get_state(),
-                "counters": {"iteration": self.iteration, "episodes": self.episodes, "updates": self.updates,
-                             "elapsed": self.elapsed}}
+        return {
+            **{name: getattr(self, name).state_dict() for name in self.PARTS},
+            "generator": self.generator.get_state(),
+            "counters": {
+                "iteration": self.iteration,
+                "episodes": self.episodes,
+                "updates": self.updates,
+                "elapsed": self.elapsed,
+            },
+        }
 
     def load_state_dict(self, state: dict) -> None:
         for name in self.PARTS:
@@ -406,8 +472,14 @@ class DDPGAdversaryTrainer(PopulationGames):
 
 
 # ---------------------------------------------------------------------------- the run
-def train_ddpg_adversary(cfg: DDPGAdversaryConfig, out: Path, policies_dir: Path, resume: bool = False,
-                         show_progress: bool = True, command: str | None = None) -> dict:
+def train_ddpg_adversary(
+    cfg: DDPGAdversaryConfig,
+    out: Path,
+    policies_dir: Path,
+    resume: bool = False,
+    show_progress: bool = True,
+    command: str | None = None,
+) -> dict:
     """Train under the budget, export the adversary and its model card to `policies_dir`; returns the
     card. Everything the run needs is loaded and checked before the run folder is made."""
     out, policies_dir = Path(out), Path(policies_dir)
@@ -418,32 +490,44 @@ def train_ddpg_adversary(cfg: DDPGAdversaryConfig, out: Path, policies_dir: Path
     saved = None
     if run_state.run_state_path(run_dir, resume) is not None:
         saved = run_state.read_state(state_path, STATE_FORMAT, "DDPG adversary training state")
-        run_state.check_same_run(saved["config"], cfg, state_path,
-                                 free=("budget", "checkpoint_every", "eval_episodes", "threads"))
+        run_state.check_same_run(
+            saved["config"], cfg, state_path, free=("budget", "checkpoint_every", "eval_episodes", "threads")
+        )
     trainer = DDPGAdversaryTrainer(cfg, population, low_level, interval)
     if saved is not None:
         trainer.load_state_dict(saved["trainer"])
-    write_atomic(run_dir / "config.json", json.dumps(
-        {"adversary": cfg.to_dict(), "task": trainer.task.to_dict(), "team": team_record, "command": command},
-        indent=2, default=str) + "\n")
+    write_atomic(
+        run_dir / "config.json",
+        json.dumps(
+            {"adversary": cfg.to_dict(), "task": trainer.task.to_dict(), "team": team_record, "command": command},
+            indent=2,
+            default=str,
+        )
+        + "\n",
+    )
 
     def checkpoint() -> None:
-        atomic_torch_save({"format": STATE_FORMAT, "config": cfg.to_dict(), "trainer": trainer.state_dict()},
-                          state_path)
+        atomic_torch_save(
+            {"format": STATE_FORMAT, "config": cfg.to_dict(), "trainer": trainer.state_dict()}, state_path
+        )
 
     if saved is None:
         checkpoint()
     logger = RunLogger(run_dir, trainer.iteration, cfg.budget.iterations, desc=cfg.name, show_progress=show_progress)
-    last_row = run_state.train_under_budget(trainer, cfg.budget, cfg.checkpoint_every, logger, PROGRESS_KEYS,
-                                            checkpoint)
+    last_row = run_state.train_under_budget(
+        trainer, cfg.budget, cfg.checkpoint_every, logger, PROGRESS_KEYS, checkpoint
+    )
 
-    policy_path = save_adversary_policy(trainer.actor, policies_dir / f"{cfg.name}.pt", meta={
-        "name": cfg.name, "algorithm": "ddpg", "seed": cfg.seed, "iterations": trainer.iteration})
+    policy_path = save_adversary_policy(
+        trainer.actor,
+        policies_dir / f"{cfg.name}.pt",
+        meta={"name": cfg.name, "algorithm": "ddpg", "seed": cfg.seed, "iterations": trainer.iteration},
+    )
     card = {
         "name": cfg.name,
         "method": "DDPG adversary (Lillicrap et al. 2016: the PPO adversary's actor network, a Q critic, target "
-                  f"networks, replay), trained from scratch against a population of {len(cfg.teams)} teams over "
-                  f"{low_level.name}",
+        f"networks, replay), trained from scratch against a population of {len(cfg.teams)} teams over "
+        f"{low_level.name}",
         "seed": cfg.seed,
         "config": cfg.to_dict(),
         "task": trainer.task.to_dict(),
@@ -459,8 +543,9 @@ def train_ddpg_adversary(cfg: DDPGAdversaryConfig, out: Path, policies_dir: Path
         "last_iteration": {k: v for k, v in last_row.items() if isinstance(v, (int, float)) and math.isfinite(v)},
     }
     if cfg.eval_episodes:
-        card["evaluation"] = evaluate_against_population(trainer.actor.act, population, low_level, trainer.task,
-                                                         cfg.eval_episodes, interval)
+        card["evaluation"] = evaluate_against_population(
+            trainer.actor.act, population, low_level, trainer.task, cfg.eval_episodes, interval
+        )
     write_model_card(policy_path, card)
     return card
 
@@ -471,14 +556,29 @@ def summary_lines(card: dict, policies_dir: Path) -> list[str]:
 
 
 # ---------------------------------------------------------------------------- command line
-FLAG_OF_FIELD = {"seed": "--seed", "teams": "--teams", "teams_per_iteration": "--teams-per-iteration",
-                 "low_level": "--low-level", "action": "--action", "alert_weight": "--alert-weight",
-                 "progress_weight": "--progress-weight", "collision_weight": "--collision-weight",
-                 "obstacle_density": "--density", "eval_episodes": "--eval-episodes", "n_envs": "--envs",
-                 "threads": "--threads", "replay_capacity": "--replay", "batch_size": "--batch-size",
-                 "actor_lr": "--actor-lr", "critic_lr": "--critic-lr", "tau": "--tau", "gamma": "--gamma",
-                 "exploration_noise": "--noise", "learning_starts": "--learning-starts",
-                 "updates_per_iteration": "--updates"}
+FLAG_OF_FIELD = {
+    "seed": "--seed",
+    "teams": "--teams",
+    "teams_per_iteration": "--teams-per-iteration",
+    "low_level": "--low-level",
+    "action": "--action",
+    "alert_weight": "--alert-weight",
+    "progress_weight": "--progress-weight",
+    "collision_weight": "--collision-weight",
+    "obstacle_density": "--density",
+    "eval_episodes": "--eval-episodes",
+    "n_envs": "--envs",
+    "threads": "--threads",
+    "replay_capacity": "--replay",
+    "batch_size": "--batch-size",
+    "actor_lr": "--actor-lr",
+    "critic_lr": "--critic-lr",
+    "tau": "--tau",
+    "gamma": "--gamma",
+    "exploration_noise": "--noise",
+    "learning_starts": "--learning-starts",
+    "updates_per_iteration": "--updates",
+}
 """Config fields set by `cefc-train adversary-ddpg` flags (argparse dest = field): errors name the flag."""
 
 

@@ -164,14 +164,24 @@ class PPOConfig:
     """torch intra-op threads during the PPO update."""
 
     def validate(self) -> None:
-        for name, most in (("n_envs", MAX_ENVS), ("episodes_per_iteration", 100), ("epochs", MAX_EPOCHS),
-                           ("minibatches", None), ("rollout_threads", MAX_THREADS), ("update_threads", MAX_THREADS)):
+        for name, most in (
+            ("n_envs", MAX_ENVS),
+            ("episodes_per_iteration", 100),
+            ("epochs", MAX_EPOCHS),
+            ("minibatches", None),
+            ("rollout_threads", MAX_THREADS),
+            ("update_threads", MAX_THREADS),
+        ):
             _check_int(name, getattr(self, name), 1, most)
         # A minibatch is a set of env-steps; more minibatches than env-steps would leave some empty.
         env_steps = self.n_envs * self.episodes_per_iteration * FORMATION_EPISODE_STEPS
         if self.minibatches > env_steps:
-            _fail("minibatches", self.minibatches, f"must be at most the {env_steps} env-steps of an iteration "
-                  f"(n_envs x episodes x {FORMATION_EPISODE_STEPS} steps)")
+            _fail(
+                "minibatches",
+                self.minibatches,
+                f"must be at most the {env_steps} env-steps of an iteration "
+                f"(n_envs x episodes x {FORMATION_EPISODE_STEPS} steps)",
+            )
         for name in ("lr", "clip_eps", "max_grad_norm"):
             v = getattr(self, name)
             if not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
@@ -197,8 +207,15 @@ def flag_error(error: ConfigError, flag_of_field: dict[str, str]) -> ConfigError
     return error
 
 
-def config_from_flags(make, args, budget: "Budget", fields: tuple[str, ...], ppo_fields: tuple[str, ...],
-                      base_ppo: "PPOConfig", flag_of_field: dict[str, str]):
+def config_from_flags(
+    make,
+    args,
+    budget: "Budget",
+    fields: tuple[str, ...],
+    ppo_fields: tuple[str, ...],
+    base_ppo: "PPOConfig",
+    flag_of_field: dict[str, str],
+):
     """make(budget=, ppo=, **fields) from command-line arguments: the `fields` and `ppo_fields` given
     (not None) override the defaults and `base_ppo`; a bad value raises ConfigError naming its flag."""
     given = {name: getattr(args, name) for name in fields if getattr(args, name, None) is not None}
@@ -302,8 +319,11 @@ class LowLevelConfig(BudgetPPODict):
 
     def __post_init__(self) -> None:
         if isinstance(self.curriculum, (list, tuple)):  # JSON gives lists; keep configs comparable
-            object.__setattr__(self, "curriculum", tuple(
-                float(d) if isinstance(d, int) and not isinstance(d, bool) else d for d in self.curriculum))
+            object.__setattr__(
+                self,
+                "curriculum",
+                tuple(float(d) if isinstance(d, int) and not isinstance(d, bool) else d for d in self.curriculum),
+            )
         self.validate()
 
     @property
@@ -330,13 +350,22 @@ class LowLevelConfig(BudgetPPODict):
         atm_c6_nav, clm_c6 (CL-M); with an obstacles-only LiDAR e.g. atm_c6_step1_obstacle_lidar."""
         if self.curriculum is not None:
             return clm_name(self.formation) + self.name_suffix
-        kind = ("safe" if self.safe else "robust" if self.robust else "nav" if self.nav else "quad" if self.quad
-                else f"step{self.step}")
+        kind = (
+            "safe"
+            if self.safe
+            else "robust"
+            if self.robust
+            else "nav"
+            if self.nav
+            else "quad"
+            if self.quad
+            else f"step{self.step}"
+        )
         return lowlevel_name(self.formation, kind) + self.name_suffix
 
     @property
     def name_suffix(self) -> str:
-        """"_obstacle_lidar" for a stage whose LiDAR does not see the UAVs, else "" (its earlier stages
+        """ "_obstacle_lidar" for a stage whose LiDAR does not see the UAVs, else "" (its earlier stages
         carry the same suffix)."""
         return "" if self.lidar_sees_uavs else "_obstacle_lidar"
 
@@ -344,8 +373,9 @@ class LowLevelConfig(BudgetPPODict):
     def source_stages(self) -> tuple[str, ...]:
         """The stages whose runs a Step 3 stage starts from (without `init_from`): Step 3 for a fine-tune
         (Safe, Robust, Quad), else Steps 1 and 2; each with this stage's LiDAR suffix."""
-        return tuple(lowlevel_name(self.formation, f"step{k}") + self.name_suffix
-                     for k in ((3,) if self.fine_tune else (1, 2)))
+        return tuple(
+            lowlevel_name(self.formation, f"step{k}") + self.name_suffix for k in ((3,) if self.fine_tune else (1, 2))
+        )
 
     @property
     def robust(self) -> bool:
@@ -384,11 +414,15 @@ class LowLevelConfig(BudgetPPODict):
         if self.navigation_weight is not None:
             out.append(f"navigation weight omega_n = {self.navigation_weight:g} (paper 4)")
         if self.anchor_periods > 1:
-            out.append(f"episodes of {self.anchor_periods} anchor periods of {FORMATION_EPISODE_STEPS} steps, the anchor "
-                       "redrawn at each (paper: one anchor per episode)")
+            out.append(
+                f"episodes of {self.anchor_periods} anchor periods of {FORMATION_EPISODE_STEPS} steps, the anchor "
+                "redrawn at each (paper: one anchor per episode)"
+            )
         if self.straggler_fraction:
-            out.append(f"in {self.straggler_fraction:.0%} of the episodes one agent starts {STRAGGLER_MIN_DISTANCE:g}-"
-                       f"{STRAGGLER_MAX_DISTANCE:g} m from the others (paper: every agent in the start square)")
+            out.append(
+                f"in {self.straggler_fraction:.0%} of the episodes one agent starts {STRAGGLER_MIN_DISTANCE:g}-"
+                f"{STRAGGLER_MAX_DISTANCE:g} m from the others (paper: every agent in the start square)"
+            )
         return out
 
     @property
@@ -417,8 +451,11 @@ class LowLevelConfig(BudgetPPODict):
         if not isinstance(self.deviation, (int, float)) or not 0 <= self.deviation <= 2.0:
             _fail("deviation", self.deviation, "must be in [0, 2] m")
         if self.deviation > 0 and (self.step != 3 or self.safe):
-            _fail("deviation", self.deviation, "training under sensing deviation fine-tunes the Step 3 policy: "
-                  "use it with step 3 and without --safe")
+            _fail(
+                "deviation",
+                self.deviation,
+                "training under sensing deviation fine-tunes the Step 3 policy: use it with step 3 and without --safe",
+            )
         if self.deviation_sampling not in ("fixed", "uniform"):
             _fail("deviation_sampling", self.deviation_sampling, "must be 'fixed' or 'uniform'")
         if not isinstance(self.response_time, (int, float)) or not 0 <= self.response_time <= 1.0:
@@ -432,25 +469,43 @@ class LowLevelConfig(BudgetPPODict):
             if isinstance(w, bool) or not isinstance(w, (int, float)) or not 0 < w <= 50:
                 _fail("navigation_weight", w, "must be in (0, 50]")
             if self.step != 3 or self.safe:
-                _fail("navigation_weight", w, "another navigation weight fine-tunes the Step 3 policy: use it "
-                      "with step 3 and without --safe")
+                _fail(
+                    "navigation_weight",
+                    w,
+                    "another navigation weight fine-tunes the Step 3 policy: use it with step 3 and without --safe",
+                )
         _check_int("anchor_periods", self.anchor_periods, 1, MAX_ANCHOR_PERIODS)
         if self.anchor_periods > 1 and not self.fine_tune:
-            _fail("anchor_periods", self.anchor_periods, "longer episodes with anchor redraws fine-tune the Step 3 "
-                  "policy: use them with step 3 and a fine-tune such as a navigation weight")
-        if (isinstance(self.straggler_fraction, bool) or not isinstance(self.straggler_fraction, (int, float))
-                or not 0 <= self.straggler_fraction <= 1):
+            _fail(
+                "anchor_periods",
+                self.anchor_periods,
+                "longer episodes with anchor redraws fine-tune the Step 3 "
+                "policy: use them with step 3 and a fine-tune such as a navigation weight",
+            )
+        if (
+            isinstance(self.straggler_fraction, bool)
+            or not isinstance(self.straggler_fraction, (int, float))
+            or not 0 <= self.straggler_fraction <= 1
+        ):
             _fail("straggler_fraction", self.straggler_fraction, "must be in [0, 1]")
         if self.straggler_fraction > 0 and not self.fine_tune:
-            _fail("straggler_fraction", self.straggler_fraction, "starts away from the group fine-tune the Step 3 "
-                  "policy: use them with step 3 and a fine-tune such as a navigation weight")
+            _fail(
+                "straggler_fraction",
+                self.straggler_fraction,
+                "starts away from the group fine-tune the Step 3 "
+                "policy: use them with step 3 and a fine-tune such as a navigation weight",
+            )
         if self.lidar_sees_uavs not in (True, False):
             _fail("lidar_sees_uavs", self.lidar_sees_uavs, "must be true or false")
         if (self.response_time > 0 or self.velocity_noise > 0) and (self.step != 3 or self.safe):
-            _fail("response_time/velocity_noise", (self.response_time, self.velocity_noise),
-                  "quadrotor-like dynamics fine-tune the Step 3 policy: use them with step 3 and without --safe")
-        if self.obstacle_density is not None and (not isinstance(self.obstacle_density, (int, float))
-                                                  or not 0 <= self.obstacle_density <= MAX_DENSITY):
+            _fail(
+                "response_time/velocity_noise",
+                (self.response_time, self.velocity_noise),
+                "quadrotor-like dynamics fine-tune the Step 3 policy: use them with step 3 and without --safe",
+            )
+        if self.obstacle_density is not None and (
+            not isinstance(self.obstacle_density, (int, float)) or not 0 <= self.obstacle_density <= MAX_DENSITY
+        ):
             _fail("obstacle_density", self.obstacle_density, f"must be in [0, {MAX_DENSITY}] per m^2")
         if self.curriculum is not None:
             self._validate_curriculum()
@@ -464,8 +519,11 @@ class LowLevelConfig(BudgetPPODict):
         densities = self.curriculum
 
         def fail(why: str) -> None:  # names the densities as --curriculum takes them: 0,0.01,0.02
-            shown = (",".join(f"{d:g}" if isinstance(d, float) else repr(d) for d in densities)
-                     if isinstance(densities, tuple) else repr(densities))
+            shown = (
+                ",".join(f"{d:g}" if isinstance(d, float) else repr(d) for d in densities)
+                if isinstance(densities, tuple)
+                else repr(densities)
+            )
             raise ConfigError(f"curriculum={shown}: {why}")
 
         if not isinstance(densities, tuple) or not 2 <= len(densities) <= MAX_CURRICULUM_PHASES:
@@ -480,8 +538,10 @@ class LowLevelConfig(BudgetPPODict):
         if self.obstacle_density is not None:
             fail("sets the densities itself: leave obstacle_density unset")
         if self.budget.iterations is not None and self.budget.iterations < len(densities):
-            fail(f"{len(densities)} phases need a budget of at least {len(densities)} iterations, "
-                 f"got {self.budget.iterations}")
+            fail(
+                f"{len(densities)} phases need a budget of at least {len(densities)} iterations, "
+                f"got {self.budget.iterations}"
+            )
 
 
 DISTILL_TEACHERS = ("step3", "nav")  # registry.LOWLEVEL_KINDS a student can imitate

@@ -24,18 +24,24 @@ import torch
 
 from cefc_mj.env import BatchedCEFCEnv
 from cefc_mj.errors import CheckpointError, ConfigError
-from cefc_mj.nn.atm import ATMActor, ATMConfig
 from cefc_mj.fileio import write_atomic
-from cefc_mj.nn.policy_io import (Policy, atomic_torch_save, load_policy, resolve_policy_path, safe_torch_load,
-                                  save_policy)
+from cefc_mj.nn import registry
+from cefc_mj.nn.atm import ATMActor, ATMConfig
+from cefc_mj.nn.policy_io import (
+    Policy,
+    atomic_torch_save,
+    load_policy,
+    resolve_policy_path,
+    safe_torch_load,
+    save_policy,
+)
 from cefc_mj.provenance import file_sha256
 from cefc_mj.task.config import TaskConfig
 from cefc_mj.train.config import DistillConfig
 from cefc_mj.train.logger import RunLogger
-from cefc_mj.nn import registry
 from cefc_mj.train.mappo import iteration_seed
-from cefc_mj.train.run_state import STATE_FILE, run_state_path
 from cefc_mj.train.model_card import display_path, table3_figures, write_model_card
+from cefc_mj.train.run_state import STATE_FILE, run_state_path
 
 STUDENT_NAME = registry.STUDENT
 STATE_FORMAT = "cefc-mj/distill-state"
@@ -44,8 +50,9 @@ LOG_EVERY = 200
 
 
 @torch.no_grad()
-def collect_replay(teacher: Policy, formation: int, tuples: int, density: float, seed: int, held_out: float,
-                   n_envs: int = COLLECT_ENVS) -> dict[str, torch.Tensor]:
+def collect_replay(
+    teacher: Policy, formation: int, tuples: int, density: float, seed: int, held_out: float, n_envs: int = COLLECT_ENVS
+) -> dict[str, torch.Tensor]:
     """Fly `teacher` with `formation` agents until `tuples` training tuples are stored.
 
     The stored action is the teacher's deterministic head output (for the velocity head: the
@@ -102,9 +109,16 @@ def held_out_error(student: ATMActor, replay: dict[int, dict[str, torch.Tensor]]
     return out
 
 
-def train_student(cfg: DistillConfig, policies_dir: Path, out: Path, resume: bool = False,
-                  show_progress: bool = True, evaluate: bool = True, teachers_dir: Path | None = None,
-                  command: str | None = None) -> dict:
+def train_student(
+    cfg: DistillConfig,
+    policies_dir: Path,
+    out: Path,
+    resume: bool = False,
+    show_progress: bool = True,
+    evaluate: bool = True,
+    teachers_dir: Path | None = None,
+    command: str | None = None,
+) -> dict:
     """Collect (or reload) the replay, train the student under cfg.budget, export it with a card.
 
     Teachers are `<teachers_dir>/atm_c{c}_<cfg.teacher>.pt` (teachers_dir defaults to policies_dir).
@@ -132,19 +146,35 @@ def train_student(cfg: DistillConfig, policies_dir: Path, out: Path, resume: boo
     else:
         replay = {}
         for c, teacher in teachers.items():
-            replay[c] = collect_replay(teacher, c, cfg.tuples_per_formation, cfg.collect_density,
-                                       iteration_seed(cfg.seed, 1000 + c), cfg.held_out)
+            replay[c] = collect_replay(
+                teacher,
+                c,
+                cfg.tuples_per_formation,
+                cfg.collect_density,
+                iteration_seed(cfg.seed, 1000 + c),
+                cfg.held_out,
+            )
         atomic_torch_save({"config": cfg.to_dict(), "replay": {str(c): r for c, r in replay.items()}}, replay_path)
-    teacher_files = {str(c): {"path": display_path(path), "sha256": file_sha256(path.resolve())}
-                     for c, path in teacher_paths.items()}
-    write_atomic(run_dir / "config.json", json.dumps({"distill": cfg.to_dict(), "teachers": teacher_files,
-                                                      "command": command}, indent=2) + "\n")
+    teacher_files = {
+        str(c): {"path": display_path(path), "sha256": file_sha256(path.resolve())} for c, path in teacher_paths.items()
+    }
+    write_atomic(
+        run_dir / "config.json",
+        json.dumps({"distill": cfg.to_dict(), "teachers": teacher_files, "command": command}, indent=2) + "\n",
+    )
 
     torch.set_num_threads(cfg.threads)
     torch.manual_seed(cfg.seed)
-    student = ATMActor(ATMConfig(layout=teacher_cfg.layout, lidar_range=teacher_cfg.lidar_range,
-                                 accel_max=teacher_cfg.accel_max, hidden=cfg.hidden, action=teacher_cfg.action,
-                                 velocity_gain=teacher_cfg.velocity_gain))
+    student = ATMActor(
+        ATMConfig(
+            layout=teacher_cfg.layout,
+            lidar_range=teacher_cfg.lidar_range,
+            accel_max=teacher_cfg.accel_max,
+            hidden=cfg.hidden,
+            action=teacher_cfg.action,
+            velocity_gain=teacher_cfg.velocity_gain,
+        )
+    )
     optimizer = torch.optim.Adam(student.parameters(), lr=cfg.lr)
     generator = torch.Generator().manual_seed(cfg.seed)
     step, elapsed = 0, 0.0
@@ -158,9 +188,18 @@ def train_student(cfg: DistillConfig, policies_dir: Path, out: Path, resume: boo
         step, elapsed = int(state["step"]), float(state["elapsed"])
 
     def checkpoint() -> None:
-        atomic_torch_save({"format": STATE_FORMAT, "config": {**cfg.to_dict(), "formations": list(cfg.formations)},
-                           "student": student.state_dict(), "optimizer": optimizer.state_dict(),
-                           "generator": generator.get_state(), "step": step, "elapsed": elapsed}, state_path)
+        atomic_torch_save(
+            {
+                "format": STATE_FORMAT,
+                "config": {**cfg.to_dict(), "formations": list(cfg.formations)},
+                "student": student.state_dict(),
+                "optimizer": optimizer.state_dict(),
+                "generator": generator.get_state(),
+                "step": step,
+                "elapsed": elapsed,
+            },
+            state_path,
+        )
 
     if step == 0:
         checkpoint()  # step 0: a run killed before its first periodic checkpoint can still --resume
@@ -196,8 +235,17 @@ def train_student(cfg: DistillConfig, policies_dir: Path, out: Path, resume: boo
     checkpoint()
 
     errors = held_out_error(student, replay)
-    policy_path = save_policy(student, policies_dir / f"{STUDENT_NAME}.pt", meta={
-        "name": STUDENT_NAME, "method": "Student", "formations": list(cfg.formations), "seed": cfg.seed, "steps": step})
+    policy_path = save_policy(
+        student,
+        policies_dir / f"{STUDENT_NAME}.pt",
+        meta={
+            "name": STUDENT_NAME,
+            "method": "Student",
+            "formations": list(cfg.formations),
+            "seed": cfg.seed,
+            "steps": step,
+        },
+    )
     card = {
         "name": STUDENT_NAME,
         "method": "Student",

@@ -50,18 +50,22 @@ from cefc_mj.fileio import write_atomic
 from cefc_mj.hierarchy import DECISION_INTERVAL, NAVIGATION, HierarchicalCEFCEnv, LowLevel, load_low_level
 from cefc_mj.nn.atm import Critic
 from cefc_mj.nn.consmac import ConsMACConfig, consmac_loss, global_labels, seeded
-from cefc_mj.nn.highlevel_policy import (VARIANTS, HighLevelPolicy, load_highlevel_policy,
-                                         save_highlevel_policy)
-from cefc_mj.nn.registry import HIERARCHY_LOWLEVEL
+from cefc_mj.nn.highlevel_policy import (
+    VARIANTS,
+    HighLevelPolicy,
+    load_highlevel_policy,  # noqa: F401  (re-exported: tests/test_highlevel.py)
+    save_highlevel_policy,
+)
 from cefc_mj.nn.policy_io import atomic_torch_save
+from cefc_mj.nn.registry import HIERARCHY_LOWLEVEL
 from cefc_mj.nn.selector import build_critic
 from cefc_mj.task.config import ADVERSARY_RULES, LEARNED_ADVERSARY, TaskConfig
 from cefc_mj.task.messages import MessageChannel
+from cefc_mj.train import run_state
 from cefc_mj.train.config import MAX_DENSITY, MAX_SEED, Budget, BudgetPPODict, PPOConfig, config_from_flags
 from cefc_mj.train.logger import RunLogger
 from cefc_mj.train.mappo import iteration_seed
 from cefc_mj.train.model_card import display_path, display_paths, write_model_card
-from cefc_mj.train import run_state
 from cefc_mj.train.ppo import ValueNorm, advantages_and_targets, ppo_epochs
 from cefc_mj.train.run_state import STATE_FILE
 
@@ -166,8 +170,12 @@ class HighLevelConfig(BudgetPPODict):
         """Run folder and policy file stem: cihrl_<variant> (cihrl_consmac_a, cihrl_consmac_o, cihrl_mappo,
         cihrl_tarmac), then _dt for direct training (no pre-training, the paper's CI-HRL-DT) and
         _seed<k> for seeds other than 0, so the runs of a comparison never overwrite each other."""
-        return ("cihrl_" + self.variant.replace("-", "_") + ("_dt" if self.pretrain_share == 0 else "")
-                + (f"_seed{self.seed}" if self.seed else ""))
+        return (
+            "cihrl_"
+            + self.variant.replace("-", "_")
+            + ("_dt" if self.pretrain_share == 0 else "")
+            + (f"_seed{self.seed}" if self.seed else "")
+        )
 
     @property
     def supervised(self) -> bool:
@@ -180,8 +188,13 @@ class HighLevelConfig(BudgetPPODict):
 
     def task(self) -> TaskConfig:
         adversary = self.adversary if self.adversary in ADVERSARY_RULES else LEARNED_ADVERSARY
-        return TaskConfig(n_agents=self.n_agents, mode="cefc", obstacle_density=self.obstacle_density,
-                          adversary=adversary, episode_steps=self.episode_steps)
+        return TaskConfig(
+            n_agents=self.n_agents,
+            mode="cefc",
+            obstacle_density=self.obstacle_density,
+            adversary=adversary,
+            episode_steps=self.episode_steps,
+        )
 
     def phase(self, iteration: int, seconds: float) -> int:
         """0 (pre-training, navigation-only low level) until `pretrain_share` of the budget is
@@ -204,16 +217,24 @@ class HighLevelConfig(BudgetPPODict):
         if not isinstance(self.obstacle_density, (int, float)) or not 0 <= self.obstacle_density <= MAX_DENSITY:
             _fail("obstacle_density", self.obstacle_density, f"must be in [0, {MAX_DENSITY}] per m^2")
         if not isinstance(self.adversary, str) or not self.adversary or self.adversary == LEARNED_ADVERSARY:
-            _fail("adversary", self.adversary, f"must be a rule ({', '.join(ADVERSARY_RULES)}) or a trained "
-                  "adversary's policy name or file")
+            _fail(
+                "adversary",
+                self.adversary,
+                f"must be a rule ({', '.join(ADVERSARY_RULES)}) or a trained adversary's policy name or file",
+            )
         _check_int("decision_interval", self.decision_interval, 1, 1000)
         _check_int("episode_steps", self.episode_steps, self.decision_interval, 100_000)
         if self.episode_steps % self.decision_interval:
-            _fail("episode_steps", self.episode_steps,
-                  f"must be a multiple of decision_interval={self.decision_interval}")
+            _fail(
+                "episode_steps", self.episode_steps, f"must be a multiple of decision_interval={self.decision_interval}"
+            )
         if not isinstance(self.low_level, str) or not self.low_level or self.low_level == NAVIGATION:
-            _fail("low_level", self.low_level, "must name the fine-tuning low level: a policy name or file, or "
-                  "'per-group' (the navigation-only one is the pre-training's)")
+            _fail(
+                "low_level",
+                self.low_level,
+                "must name the fine-tuning low level: a policy name or file, or "
+                "'per-group' (the navigation-only one is the pre-training's)",
+            )
         if not isinstance(self.pretrain_share, float) or not 0 <= self.pretrain_share <= 1:
             _fail("pretrain_share", self.pretrain_share, "must be a number in [0, 1]")
         for name in ("consmac_every", "consmac_steps", "consmac_batch", "hidden", "critic_hidden", "checkpoint_every"):
@@ -227,8 +248,12 @@ class HighLevelConfig(BudgetPPODict):
             _fail("ppo", self.ppo, "must be a PPOConfig")
         decisions = self.ppo.n_envs * self.ppo.episodes_per_iteration * self.decision_steps
         if isinstance(self.ppo.minibatches, int) and self.ppo.minibatches > decisions:
-            _fail("minibatches", self.ppo.minibatches, f"must be at most the {decisions} env-decisions of an iteration "
-                  f"(n_envs x episodes x {self.decision_steps} decisions)")
+            _fail(
+                "minibatches",
+                self.ppo.minibatches,
+                f"must be at most the {decisions} env-decisions of an iteration "
+                f"(n_envs x episodes x {self.decision_steps} decisions)",
+            )
         self.ppo.validate()
         self.task()  # the game itself (obstacle packing, ...)
 
@@ -240,9 +265,14 @@ class ConsMACReplay:
 
     def __init__(self, capacity: int, cfg: ConsMACConfig):
         k, d = cfg.n_agents - 1, cfg.message_dim
-        shapes = {"obs": ((cfg.env_obs_dim,), torch.float32), "own": ((d,), torch.float32),
-                  "messages": ((k, d), torch.float32), "mask": ((k,), torch.bool), "distance": ((k,), torch.float32),
-                  "label": ((cfg.global_dim,), torch.float32)}
+        shapes = {
+            "obs": ((cfg.env_obs_dim,), torch.float32),
+            "own": ((d,), torch.float32),
+            "messages": ((k, d), torch.float32),
+            "mask": ((k,), torch.bool),
+            "distance": ((k,), torch.float32),
+            "label": ((cfg.global_dim,), torch.float32),
+        }
         self.capacity = capacity
         self.data = {name: torch.zeros((capacity, *shape), dtype=dtype) for name, (shape, dtype) in shapes.items()}
         self.size = 0
@@ -304,8 +334,14 @@ class HighLevelTrainer:
             _, adversary_policy, self.adversary_record = resolve_adversary(cfg.adversary)
         self.adversary_policy = adversary_policy  # the trained adversary of a 'learned' game, else None
         self.policy = HighLevelPolicy.build(cfg.variant, self.task, cfg.seed, cfg.hidden)
-        probe = HierarchicalCEFCEnv(self.task, low_levels[1], n_envs=1, seed=0,
-                                    decision_interval=cfg.decision_interval, adversary_policy=adversary_policy)
+        probe = HierarchicalCEFCEnv(
+            self.task,
+            low_levels[1],
+            n_envs=1,
+            seed=0,
+            decision_interval=cfg.decision_interval,
+            adversary_policy=adversary_policy,
+        )
         with seeded(cfg.seed + 2):
             self.critic: Critic = build_critic(probe.state_size + probe.layout.size, cfg.critic_hidden)
         self.value_norm = ValueNorm()
@@ -314,8 +350,9 @@ class HighLevelTrainer:
             rl_params += list(self.policy.comm.parameters())
         self.policy_opt = torch.optim.Adam(rl_params, lr=cfg.ppo.lr, eps=1e-5)
         self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=cfg.ppo.lr, eps=1e-5)
-        self.consmac_opt = (torch.optim.Adam(self.policy.comm.parameters(), lr=cfg.consmac_lr)
-                            if cfg.supervised else None)
+        self.consmac_opt = (
+            torch.optim.Adam(self.policy.comm.parameters(), lr=cfg.consmac_lr) if cfg.supervised else None
+        )
         self.replay = ConsMACReplay(cfg.replay_capacity, self.policy.comm.cfg) if cfg.supervised else None
         self.generator = torch.Generator().manual_seed(cfg.seed)
         self.iteration = 0
@@ -337,9 +374,14 @@ class HighLevelTrainer:
             self.pretrained = {k: v.detach().clone() for k, v in self.policy.state_dict().items()}
         self.progress["phase"] = phase
         if phase not in self.envs:
-            self.envs[phase] = HierarchicalCEFCEnv(self.task, self.low_levels[phase], n_envs=self.cfg.ppo.n_envs,
-                                                   seed=self.cfg.seed, decision_interval=self.cfg.decision_interval,
-                                                   adversary_policy=self.adversary_policy)
+            self.envs[phase] = HierarchicalCEFCEnv(
+                self.task,
+                self.low_levels[phase],
+                n_envs=self.cfg.ppo.n_envs,
+                seed=self.cfg.seed,
+                decision_interval=self.cfg.decision_interval,
+                adversary_policy=self.adversary_policy,
+            )
         return phase
 
     # ------------------------------------------------------------------ rollout
@@ -347,8 +389,11 @@ class HighLevelTrainer:
     def collect(self, env: HierarchicalCEFCEnv) -> HighRollout:
         cfg, policy = self.cfg, self.policy
         weights = self.task.rewards
-        channel = (MessageChannel(env.n_envs, env.n_agents, policy.message_dim, self.task.observation_distance)
-                   if policy.comm is not None else None)
+        channel = (
+            MessageChannel(env.n_envs, env.n_agents, policy.message_dim, self.task.observation_distance)
+            if policy.comm is not None
+            else None
+        )
         obs = env.reset(seed=iteration_seed(cfg.seed, self.iteration))
         state = env.global_state()
         keys = ("obs", "next_obs", "consensus", "actions", "logp", "states", "next_states", "rewards", "episode_end")
@@ -369,18 +414,25 @@ class HighLevelTrainer:
                 channel.send(out.message.numpy())
             index, logp = policy.selector.act(obs_t, consensus, generator=self.generator)
             if self.replay is not None:
-                label = global_labels(policy.comm.cfg, env.world.agent_pos, env.world.agent_vel,
-                                      anchors=env.decode(index.numpy()))
+                label = global_labels(
+                    policy.comm.cfg, env.world.agent_pos, env.world.agent_vel, anchors=env.decode(index.numpy())
+                )
                 rows = dict(zip(ConsMACReplay.FIELDS[:-1], comm_inputs))
                 rows["label"] = torch.from_numpy(label)
                 self.replay.add({k: v.reshape(-1, *v.shape[2:]) for k, v in rows.items()})
             next_obs, reward, done, info = env.step(index.numpy())
             next_state = env.global_state()
-            for k, v in (("obs", obs_t), ("next_obs", torch.from_numpy(next_obs)), ("consensus", consensus.detach()),
-                         ("actions", index), ("logp", logp), ("states", torch.from_numpy(state)),
-                         ("next_states", torch.from_numpy(next_state)),
-                         ("rewards", torch.from_numpy(reward.astype(np.float32))),
-                         ("episode_end", torch.from_numpy(done))):
+            for k, v in (
+                ("obs", obs_t),
+                ("next_obs", torch.from_numpy(next_obs)),
+                ("consensus", consensus.detach()),
+                ("actions", index),
+                ("logp", logp),
+                ("states", torch.from_numpy(state)),
+                ("next_states", torch.from_numpy(next_state)),
+                ("rewards", torch.from_numpy(reward.astype(np.float32))),
+                ("episode_end", torch.from_numpy(done)),
+            ):
                 buf[k].append(v)
             if cfg.variant == "tarmac":
                 comm_buf.append(comm_inputs)
@@ -417,8 +469,9 @@ class HighLevelTrainer:
         return torch.cat([states.unsqueeze(-2).expand(*obs.shape[:-1], states.shape[-1]), obs], dim=-1)
 
     # ------------------------------------------------------------------ RL update
-    def policy_terms(self, obs: torch.Tensor, consensus: torch.Tensor, comm_inputs: tuple[torch.Tensor, ...],
-                     actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def policy_terms(
+        self, obs: torch.Tensor, consensus: torch.Tensor, comm_inputs: tuple[torch.Tensor, ...], actions: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """(log-probabilities, entropies) of taken anchors under the current policy. The ConsMAC
         variants act on the stored (detached) consensus; tarmac recomputes it with gradients."""
         if self.cfg.variant == "tarmac":
@@ -442,13 +495,27 @@ class HighLevelTrainer:
         comm_inputs = tuple(flat(x) for x in ro.comm_inputs)
         adv, critic_in, targets = flat(advantages), flat(critic_in), flat(targets)
         rl_params = [p for group in self.policy_opt.param_groups for p in group["params"]]
+
         def policy_terms(mb):
-            new_logp, entropy = self.policy_terms(obs[mb], consensus[mb], tuple(x[mb] for x in comm_inputs),
-                                                  actions[mb])
+            new_logp, entropy = self.policy_terms(
+                obs[mb], consensus[mb], tuple(x[mb] for x in comm_inputs), actions[mb]
+            )
             return new_logp, entropy.mean()
 
-        stats = ppo_epochs(t * b, ppo, self.generator, policy_terms, old_logp, adv, self.policy_opt, rl_params,
-                           self.critic, critic_in, targets, self.critic_opt)
+        stats = ppo_epochs(
+            t * b,
+            ppo,
+            self.generator,
+            policy_terms,
+            old_logp,
+            adv,
+            self.policy_opt,
+            rl_params,
+            self.critic,
+            critic_in,
+            targets,
+            self.critic_opt,
+        )
         stats["explained_variance"] = ev
         return stats
 
@@ -468,8 +535,13 @@ class HighLevelTrainer:
             losses.append(loss.item())
         self.consmac_rounds += 1
         self.consmac_steps += steps
-        return {"consmac_loss": float(np.mean(losses)), "consmac_loss_first": losses[0],
-                "consmac_loss_last": losses[-1], "consmac_steps": steps, "replay_size": self.replay.size}
+        return {
+            "consmac_loss": float(np.mean(losses)),
+            "consmac_loss_first": losses[0],
+            "consmac_loss_last": losses[-1],
+            "consmac_steps": steps,
+            "replay_size": self.replay.size,
+        }
 
     # ------------------------------------------------------------------ one iteration
     def iterate(self) -> dict[str, float]:
@@ -495,26 +567,40 @@ class HighLevelTrainer:
         self.elapsed += t3 - t0
         decisions = rollout.logp.numel()
         return {
-            "iteration": self.iteration, "episodes_total": self.episodes, "wall_s": self.elapsed,
-            "phase": phase, "low_level": self.low_levels[phase].name,
-            **rollout.stats, **stats, **consmac,
-            "rollout_s": t1 - t0, "update_s": t2 - t1, "consmac_s": t3 - t2,
+            "iteration": self.iteration,
+            "episodes_total": self.episodes,
+            "wall_s": self.elapsed,
+            "phase": phase,
+            "low_level": self.low_levels[phase].name,
+            **rollout.stats,
+            **stats,
+            **consmac,
+            "rollout_s": t1 - t0,
+            "update_s": t2 - t1,
+            "consmac_s": t3 - t2,
             "decisions_per_s": decisions / (t1 - t0),
         }
 
     # ------------------------------------------------------------------ checkpoint state
     def state_dict(self) -> dict:
         return {
-            "policy": self.policy.state_dict(), "critic": self.critic.state_dict(),
-            "value_norm": self.value_norm.state_dict(), "policy_opt": self.policy_opt.state_dict(),
+            "policy": self.policy.state_dict(),
+            "critic": self.critic.state_dict(),
+            "value_norm": self.value_norm.state_dict(),
+            "policy_opt": self.policy_opt.state_dict(),
             "critic_opt": self.critic_opt.state_dict(),
             "consmac_opt": None if self.consmac_opt is None else self.consmac_opt.state_dict(),
             "replay": None if self.replay is None else self.replay.state_dict(),
             "generator": self.generator.get_state(),
             "progress": {"phase": self.progress["phase"], "iterations": list(self.progress["iterations"])},
             "pretrained": self.pretrained,
-            "counters": {"iteration": self.iteration, "episodes": self.episodes, "elapsed": self.elapsed,
-                         "consmac_rounds": self.consmac_rounds, "consmac_steps": self.consmac_steps},
+            "counters": {
+                "iteration": self.iteration,
+                "episodes": self.episodes,
+                "elapsed": self.elapsed,
+                "consmac_rounds": self.consmac_rounds,
+                "consmac_steps": self.consmac_steps,
+            },
         }
 
     def load_state_dict(self, state: dict) -> None:
@@ -545,8 +631,15 @@ def _last_csv_row(run_dir: Path) -> dict:
     return rows[-1] if rows else {}
 
 
-def train_highlevel(cfg: HighLevelConfig, out: Path, policies_dir: Path, resume: bool = False,
-                    show_progress: bool = True, command: str | None = None, low_level_dir: Path | None = None) -> dict:
+def train_highlevel(
+    cfg: HighLevelConfig,
+    out: Path,
+    policies_dir: Path,
+    resume: bool = False,
+    show_progress: bool = True,
+    command: str | None = None,
+    low_level_dir: Path | None = None,
+) -> dict:
     """Train under the budget, export pi_H and its model card to `policies_dir`; returns the card.
 
     resume: continue the run in <out>/<name>/ (ConfigError if there is none, or if it was made with
@@ -569,64 +662,111 @@ def train_highlevel(cfg: HighLevelConfig, out: Path, policies_dir: Path, resume:
         saved = read_state(state_path)
         run_state.check_same_run(saved["config"], cfg, state_path, free=("budget", "checkpoint_every", "eval_episodes"))
         if saved["low_level"]["finetune"] != display_paths(low_levels[1].describe()):
-            raise ConfigError(f"--resume: {state_path} was trained with another fine-tuning low level "
-                              f"({saved['low_level']['finetune'].get('name')}); use another --out")
+            raise ConfigError(
+                f"--resume: {state_path} was trained with another fine-tuning low level "
+                f"({saved['low_level']['finetune'].get('name')}); use another --out"
+            )
         if saved.get("adversary", {"rule": cfg.adversary}) != adversary_record:
-            raise ConfigError(f"--resume: {state_path} was trained against another adversary file "
-                              f"({saved['adversary'].get('policy')}); use another --out")
+            raise ConfigError(
+                f"--resume: {state_path} was trained against another adversary file "
+                f"({saved['adversary'].get('policy')}); use another --out"
+            )
     trainer = HighLevelTrainer(cfg, low_levels, adversary_policy)
     trainer.adversary_record = adversary_record
     if saved is not None:
         trainer.load_state_dict(saved["trainer"])
-    low_level_record = {"pretrain": display_paths(low_levels[0].describe()),
-                        "finetune": display_paths(low_levels[1].describe())}
-    write_atomic(run_dir / "config.json", json.dumps(
-        {"highlevel": cfg.to_dict(), "task": task.to_dict(), "low_level": low_level_record,
-         "adversary": adversary_record, "command": command},
-        indent=2) + "\n")
+    low_level_record = {
+        "pretrain": display_paths(low_levels[0].describe()),
+        "finetune": display_paths(low_levels[1].describe()),
+    }
+    write_atomic(
+        run_dir / "config.json",
+        json.dumps(
+            {
+                "highlevel": cfg.to_dict(),
+                "task": task.to_dict(),
+                "low_level": low_level_record,
+                "adversary": adversary_record,
+                "command": command,
+            },
+            indent=2,
+        )
+        + "\n",
+    )
 
     def checkpoint() -> None:
-        atomic_torch_save({"format": STATE_FORMAT, "config": cfg.to_dict(), "low_level": low_level_record,
-                           "adversary": adversary_record, "trainer": trainer.state_dict()}, state_path)
+        atomic_torch_save(
+            {
+                "format": STATE_FORMAT,
+                "config": cfg.to_dict(),
+                "low_level": low_level_record,
+                "adversary": adversary_record,
+                "trainer": trainer.state_dict(),
+            },
+            state_path,
+        )
 
     if saved is None:
         checkpoint()  # iteration 0: a run killed before its first periodic checkpoint can still --resume
     logger = RunLogger(run_dir, trainer.iteration, cfg.budget.iterations, desc=cfg.name, show_progress=show_progress)
-    last_row = run_state.train_under_budget(trainer, cfg.budget, cfg.checkpoint_every, logger, PROGRESS_KEYS,
-                                            checkpoint)
+    last_row = run_state.train_under_budget(
+        trainer, cfg.budget, cfg.checkpoint_every, logger, PROGRESS_KEYS, checkpoint
+    )
     if not last_row and trainer.iteration:  # a finished run re-exported: its last logged iteration
         last_row = _last_csv_row(run_dir)
 
-    card = export_policy(trainer.policy, cfg, task, low_levels, trainer, policies_dir, run_dir, command,
-                         last_row=last_row)
+    card = export_policy(
+        trainer.policy, cfg, task, low_levels, trainer, policies_dir, run_dir, command, last_row=last_row
+    )
     if trainer.pretrained is not None and trainer.progress["iterations"][1] > 0:
         pretrained = HighLevelPolicy.build(cfg.variant, task, cfg.seed, cfg.hidden)
         pretrained.load_state_dict(trainer.pretrained)
-        card["wo_ft"] = export_policy(pretrained, cfg, task, low_levels, trainer, policies_dir, run_dir, command,
-                                      wo_ft=True)["name"]
+        card["wo_ft"] = export_policy(
+            pretrained, cfg, task, low_levels, trainer, policies_dir, run_dir, command, wo_ft=True
+        )["name"]
     return card
 
 
-def export_policy(policy: HighLevelPolicy, cfg: HighLevelConfig, task: TaskConfig,
-                  low_levels: tuple[LowLevel, LowLevel],
-                  trainer: HighLevelTrainer, policies_dir: Path, run_dir: Path, command: str | None,
-                  last_row: dict | None = None, wo_ft: bool = False) -> dict:
+def export_policy(
+    policy: HighLevelPolicy,
+    cfg: HighLevelConfig,
+    task: TaskConfig,
+    low_levels: tuple[LowLevel, LowLevel],
+    trainer: HighLevelTrainer,
+    policies_dir: Path,
+    run_dir: Path,
+    command: str | None,
+    last_row: dict | None = None,
+    wo_ft: bool = False,
+) -> dict:
     """Write `policy` as <name>.pt with its model card (evaluated with the fine-tuning low level)
     into `policies_dir`; returns the card. wo_ft: the weights at the end of pre-training, written
     as <name>_wo_ft.pt (the paper's "wo-FT": pre-trained, then combined with the fine-tuning low
     level without joint fine-tuning)."""
     name = cfg.name + ("_wo_ft" if wo_ft else "")
-    low_level_record = {"pretrain": display_paths(low_levels[0].describe()),
-                        "finetune": display_paths(low_levels[1].describe())}
+    low_level_record = {
+        "pretrain": display_paths(low_levels[0].describe()),
+        "finetune": display_paths(low_levels[1].describe()),
+    }
     iterations = trainer.progress["iterations"][0] if wo_ft else trainer.iteration
     episodes = iterations * cfg.ppo.n_envs * cfg.ppo.episodes_per_iteration if wo_ft else trainer.episodes
-    policy_path = save_highlevel_policy(policy, policies_dir / f"{name}.pt", meta={
-        "name": name, "variant": cfg.variant, "seed": cfg.seed, "iterations": iterations,
-        "decision_interval": cfg.decision_interval, "low_level": low_level_record["finetune"],
-        "adversary": trainer.adversary_record,
-    })
-    phases = [{"phase": phase, "low_level": low_levels[i].name, "iterations": trainer.progress["iterations"][i]}
-              for i, phase in enumerate(PHASES)]
+    policy_path = save_highlevel_policy(
+        policy,
+        policies_dir / f"{name}.pt",
+        meta={
+            "name": name,
+            "variant": cfg.variant,
+            "seed": cfg.seed,
+            "iterations": iterations,
+            "decision_interval": cfg.decision_interval,
+            "low_level": low_level_record["finetune"],
+            "adversary": trainer.adversary_record,
+        },
+    )
+    phases = [
+        {"phase": phase, "low_level": low_levels[i].name, "iterations": trainer.progress["iterations"][i]}
+        for i, phase in enumerate(PHASES)
+    ]
     card = {
         "name": name,
         "method": METHODS[cfg.variant] + (", without fine-tuning (wo-FT)" if wo_ft else ""),
@@ -634,16 +774,27 @@ def export_policy(policy: HighLevelPolicy, cfg: HighLevelConfig, task: TaskConfi
         "seed": cfg.seed,
         "config": cfg.to_dict(),
         "task": task.to_dict(),
-        "networks": {"comm": None if policy.comm is None else policy.comm.cfg.to_dict(),
-                     "selector": policy.selector.cfg.to_dict(), "critic_hidden": cfg.critic_hidden},
+        "networks": {
+            "comm": None if policy.comm is None else policy.comm.cfg.to_dict(),
+            "selector": policy.selector.cfg.to_dict(),
+            "critic_hidden": cfg.critic_hidden,
+        },
         "low_level": low_level_record,
         "adversary": trainer.adversary_record,
         "phases": phases[:1] if wo_ft else phases,
-        "consmac_training": None if not cfg.supervised else {
-            "rounds": trainer.consmac_rounds, "steps": trainer.consmac_steps, "steps_per_round": cfg.consmac_steps,
-            "every_iterations": cfg.consmac_every, "every_episodes": cfg.consmac_every * cfg.ppo.n_envs
-            * cfg.ppo.episodes_per_iteration, "batch": cfg.consmac_batch, "lr": cfg.consmac_lr,
-            "replay_capacity": cfg.replay_capacity, "paper": PAPER_CONSMAC},
+        "consmac_training": None
+        if not cfg.supervised
+        else {
+            "rounds": trainer.consmac_rounds,
+            "steps": trainer.consmac_steps,
+            "steps_per_round": cfg.consmac_steps,
+            "every_iterations": cfg.consmac_every,
+            "every_episodes": cfg.consmac_every * cfg.ppo.n_envs * cfg.ppo.episodes_per_iteration,
+            "batch": cfg.consmac_batch,
+            "lr": cfg.consmac_lr,
+            "replay_capacity": cfg.replay_capacity,
+            "paper": PAPER_CONSMAC,
+        },
         "iterations": iterations,
         "episodes": episodes,
         "decisions": episodes * cfg.decision_steps * cfg.n_agents,
@@ -652,18 +803,31 @@ def export_policy(policy: HighLevelPolicy, cfg: HighLevelConfig, task: TaskConfi
         "command": command,
     }
     if wo_ft:
-        card["wo_ft"] = (f"the weights at the end of pre-training (iteration {iterations}) of the run that made "
-                         f"{cfg.name}; the ConsMAC and wall-clock figures are the whole run's")
+        card["wo_ft"] = (
+            f"the weights at the end of pre-training (iteration {iterations}) of the run that made "
+            f"{cfg.name}; the ConsMAC and wall-clock figures are the whole run's"
+        )
     else:
         card["last_iteration"] = {k: v for k, v in (last_row or {}).items() if isinstance(v, (int, float))}
     if cfg.eval_episodes:
         card["evaluation"] = {
-            "protocol": {"episodes": cfg.eval_episodes, "seed": 0, "anchors": "mode of the selector",
-                         "low_level": low_levels[1].name, "backend": "particle",
-                         "figures": "per-episode sums; R_t, R_n, R_e weighted, summing to R_H"},
-            "ours": evaluate_highlevel(policy, task, low_levels[1], cfg.eval_episodes, seed=0,
-                                       decision_interval=cfg.decision_interval,
-                                       adversary_policy=trainer.adversary_policy),
+            "protocol": {
+                "episodes": cfg.eval_episodes,
+                "seed": 0,
+                "anchors": "mode of the selector",
+                "low_level": low_levels[1].name,
+                "backend": "particle",
+                "figures": "per-episode sums; R_t, R_n, R_e weighted, summing to R_H",
+            },
+            "ours": evaluate_highlevel(
+                policy,
+                task,
+                low_levels[1],
+                cfg.eval_episodes,
+                seed=0,
+                decision_interval=cfg.decision_interval,
+                adversary_policy=trainer.adversary_policy,
+            ),
         }
     write_model_card(policy_path, card)
     return card
@@ -671,40 +835,71 @@ def export_policy(policy: HighLevelPolicy, cfg: HighLevelConfig, task: TaskConfi
 
 # ---------------------------------------------------------------------------- command line
 _FLAG_OF_FIELD = {
-    "variant": "--variant", "seed": "--seed", "obstacle_density": "--density", "adversary": "--adversary",
-    "episode_steps": "--episode-steps", "low_level": "--low-level", "pretrain_share": "--pretrain-share",
-    "consmac_every": "--consmac-every", "consmac_steps": "--consmac-steps", "consmac_batch": "--consmac-batch",
-    "consmac_lr": "--consmac-lr", "replay_capacity": "--replay", "eval_episodes": "--eval-episodes",
-    "n_envs": "--envs", "epochs": "--epochs", "minibatches": "--minibatches", "lr": "--lr",
-    "update_threads": "--threads", "entropy_coef": "--entropy",
+    "variant": "--variant",
+    "seed": "--seed",
+    "obstacle_density": "--density",
+    "adversary": "--adversary",
+    "episode_steps": "--episode-steps",
+    "low_level": "--low-level",
+    "pretrain_share": "--pretrain-share",
+    "consmac_every": "--consmac-every",
+    "consmac_steps": "--consmac-steps",
+    "consmac_batch": "--consmac-batch",
+    "consmac_lr": "--consmac-lr",
+    "replay_capacity": "--replay",
+    "eval_episodes": "--eval-episodes",
+    "n_envs": "--envs",
+    "epochs": "--epochs",
+    "minibatches": "--minibatches",
+    "lr": "--lr",
+    "update_threads": "--threads",
+    "entropy_coef": "--entropy",
 }
 """Config fields set by `cefc-train highlevel` flags: their errors name the flag the user typed."""
-CLI_FIELDS = ("variant", "seed", "obstacle_density", "adversary", "episode_steps", "low_level", "pretrain_share",
-              "consmac_every", "consmac_steps", "consmac_batch", "consmac_lr", "replay_capacity", "eval_episodes")
+CLI_FIELDS = (
+    "variant",
+    "seed",
+    "obstacle_density",
+    "adversary",
+    "episode_steps",
+    "low_level",
+    "pretrain_share",
+    "consmac_every",
+    "consmac_steps",
+    "consmac_batch",
+    "consmac_lr",
+    "replay_capacity",
+    "eval_episodes",
+)
 CLI_PPO_FIELDS = ("n_envs", "epochs", "minibatches", "lr", "update_threads", "entropy_coef")
 
 
 def config_from_args(args, budget: Budget) -> HighLevelConfig:
     """The HighLevelConfig of `cefc-train highlevel` arguments (flags left out keep the config's
     defaults); a bad value raises ConfigError naming the flag."""
-    return config_from_flags(HighLevelConfig, args, budget, CLI_FIELDS, CLI_PPO_FIELDS, _paper_ppo(),
-                             _FLAG_OF_FIELD)
+    return config_from_flags(HighLevelConfig, args, budget, CLI_FIELDS, CLI_PPO_FIELDS, _paper_ppo(), _FLAG_OF_FIELD)
 
 
 def summary_lines(card: dict, policies_dir: Path) -> list[str]:
     """What `cefc-train highlevel` prints when a run ends."""
     phases = ", ".join(f"{p['phase']} ({p['low_level']}): {p['iterations']} it" for p in card["phases"])
-    lines = [f"{card['name']}: {card['iterations']} iterations ({phases}), {card['episodes']} episodes, "
-             f"{card['train_wall_clock_s']} s -> {policies_dir / (card['name'] + '.pt')} (run {card['run_dir']})"]
+    lines = [
+        f"{card['name']}: {card['iterations']} iterations ({phases}), {card['episodes']} episodes, "
+        f"{card['train_wall_clock_s']} s -> {policies_dir / (card['name'] + '.pt')} (run {card['run_dir']})"
+    ]
     if card.get("consmac_training"):
         c = card["consmac_training"]
-        lines.append(f"ConsMAC: {c['rounds']} rounds, {c['steps']} steps of batch {c['batch']} "
-                     f"(paper: {c['paper']['steps']} steps every {c['paper']['every_episodes']} episodes)")
+        lines.append(
+            f"ConsMAC: {c['rounds']} rounds, {c['steps']} steps of batch {c['batch']} "
+            f"(paper: {c['paper']['steps']} steps every {c['paper']['every_episodes']} episodes)"
+        )
     if card.get("wo_ft"):
         lines.append(f"pre-trained weights (wo-FT) -> {policies_dir / (card['wo_ft'] + '.pt')}")
     if "evaluation" in card:
         o = card["evaluation"]["ours"]
-        lines.append(f"evaluation ({card['evaluation']['protocol']['episodes']} episodes): R_H {o['R_H']:.1f} = "
-                     f"R_t {o['R_t']:.1f} + R_n {o['R_n']:.1f} + R_e {o['R_e']:.1f}; E {o['E']:.1f}  F {o['F']:.1f}  "
-                     f"C {o['C']:.2f}%")
+        lines.append(
+            f"evaluation ({card['evaluation']['protocol']['episodes']} episodes): R_H {o['R_H']:.1f} = "
+            f"R_t {o['R_t']:.1f} + R_n {o['R_n']:.1f} + R_e {o['R_e']:.1f}; E {o['E']:.1f}  F {o['F']:.1f}  "
+            f"C {o['C']:.2f}%"
+        )
     return lines

@@ -39,8 +39,15 @@ class RunLogger:
             self.csv_path.unlink()
         # purge_step hides TensorBoard points past the resumed iteration (also when resuming from 0).
         self.writer = SummaryWriter(str(Path(run_dir) / "tb"), purge_step=resume_iteration + 1)
-        self.bar = tqdm(total=total, initial=resume_iteration, desc=desc, unit="it", disable=not show_progress,
-                        dynamic_ncols=True, mininterval=2.0)
+        self.bar = tqdm(
+            total=total,
+            initial=resume_iteration,
+            desc=desc,
+            unit="it",
+            disable=not show_progress,
+            dynamic_ncols=True,
+            mininterval=2.0,
+        )
 
     def _write_rows(self, rows: list[dict]) -> None:
         with self.csv_path.open("w", newline="") as f:

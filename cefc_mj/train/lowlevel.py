@@ -39,14 +39,14 @@ from cefc_mj.errors import CheckpointError, ConfigError
 from cefc_mj.fileio import write_atomic
 from cefc_mj.nn.atm import ATMActor, ATMConfig, Critic, merge_step3
 from cefc_mj.nn.policy_io import atomic_torch_save, load_actor, resolve_policy_path, save_policy
+from cefc_mj.nn.registry import lowlevel_name
 from cefc_mj.provenance import file_sha256
 from cefc_mj.task.config import FORMATION_EPISODE_STEPS, RewardConfig, TaskConfig
+from cefc_mj.train import run_state
 from cefc_mj.train.config import LowLevelConfig
 from cefc_mj.train.logger import RunLogger
 from cefc_mj.train.mappo import MAPPO
-from cefc_mj.nn.registry import lowlevel_name
 from cefc_mj.train.model_card import display_path, table3_figures, write_model_card
-from cefc_mj.train import run_state
 from cefc_mj.train.ppo import ValueNorm
 from cefc_mj.train.run_state import STATE_FILE
 
@@ -60,14 +60,26 @@ def task_config_for(cfg: LowLevelConfig, density: float | None = None) -> TaskCo
     density = cfg.density if density is None else density
     rewards = RewardConfig()
     if cfg.collision_margin:
-        rewards = dataclasses.replace(rewards, safety_distance=rewards.safety_distance + cfg.collision_margin,
-                                      collision_alert_distance=rewards.collision_alert_distance + cfg.collision_margin)
+        rewards = dataclasses.replace(
+            rewards,
+            safety_distance=rewards.safety_distance + cfg.collision_margin,
+            collision_alert_distance=rewards.collision_alert_distance + cfg.collision_margin,
+        )
     if cfg.navigation_weight is not None:
         rewards = dataclasses.replace(rewards, navigation_weight_low=float(cfg.navigation_weight))
-    return TaskConfig(n_agents=cfg.formation, mode="formation", obstacle_density=density, deviation=cfg.deviation,
-                      deviation_sampling=cfg.deviation_sampling, response_time=cfg.response_time,
-                      velocity_noise=cfg.velocity_noise, rewards=rewards, lidar_sees_agents=cfg.lidar_sees_uavs,
-                      straggler_fraction=float(cfg.straggler_fraction), **_anchor_periods(cfg.anchor_periods))
+    return TaskConfig(
+        n_agents=cfg.formation,
+        mode="formation",
+        obstacle_density=density,
+        deviation=cfg.deviation,
+        deviation_sampling=cfg.deviation_sampling,
+        response_time=cfg.response_time,
+        velocity_noise=cfg.velocity_noise,
+        rewards=rewards,
+        lidar_sees_agents=cfg.lidar_sees_uavs,
+        straggler_fraction=float(cfg.straggler_fraction),
+        **_anchor_periods(cfg.anchor_periods),
+    )
 
 
 def _anchor_periods(periods: int) -> dict:
@@ -97,8 +109,10 @@ def _fresh_networks(cfg: LowLevelConfig, task: TaskConfig) -> tuple[ATMActor, Cr
 def _source_state(out: Path, name: str, cfg: LowLevelConfig) -> tuple[dict, ATMActor]:
     path = out / name / STATE_FILE
     if not path.is_file():
-        raise ConfigError(f"{cfg.name} starts from {name}: no training state at {path}; train that stage first, "
-                          f"or start from a trained policy with --init-from {stage_name(cfg.formation, 3)}")
+        raise ConfigError(
+            f"{cfg.name} starts from {name}: no training state at {path}; train that stage first, "
+            f"or start from a trained policy with --init-from {stage_name(cfg.formation, 3)}"
+        )
     payload = read_state(path)
     src_cfg = LowLevelConfig.from_dict(payload["config"])
     src_task = task_config_for(src_cfg)
@@ -120,10 +134,13 @@ def load_init_policy(path_or_name: str | Path, cfg: LowLevelConfig) -> tuple[ATM
     record for its model card. `path_or_name` is a file or a name in the shipped policies folder.
     The file holds only the actor: the critic and value normalisation start fresh."""
     if cfg.step != 3:
-        raise ConfigError(f"--init-from: {cfg.name} (AT-M Step {cfg.step}) starts from random weights; --init-from "
-                          "is for Step 3 stages (Step 3 itself, --safe, --deviation, --response-time/--velocity-noise)")
-    expected = ATMConfig.from_task(task_config_for(cfg), hidden=cfg.hidden, safe=cfg.safe,
-                                   log_std_init=cfg.log_std_init)
+        raise ConfigError(
+            f"--init-from: {cfg.name} (AT-M Step {cfg.step}) starts from random weights; --init-from "
+            "is for Step 3 stages (Step 3 itself, --safe, --deviation, --response-time/--velocity-noise)"
+        )
+    expected = ATMConfig.from_task(
+        task_config_for(cfg), hidden=cfg.hidden, safe=cfg.safe, log_std_init=cfg.log_std_init
+    )
     try:
         path = resolve_policy_path(path_or_name)
         actor, meta = load_actor(path, obs_dim=expected.obs_dim)
@@ -133,19 +150,25 @@ def load_init_policy(path_or_name: str | Path, cfg: LowLevelConfig) -> tuple[ATM
     if differ:
         shown = ", ".join(
             f if f == "layout" else f"{f} {getattr(actor.cfg, f)!r} (this stage: {getattr(expected, f)!r})"
-            for f in differ)
+            for f in differ
+        )
         raise CheckpointError(f"--init-from {path}: made for another network: {shown}")
     origin = {
         "actor": f"policy file {display_path(path)}",
         "critic": "fresh (random), value normalisation fresh: a policy file holds only the actor",
-        "init_from": {"path": display_path(path), "sha256": file_sha256(path.resolve()),
-                      "name": meta.get("name"), "iterations": meta.get("iterations")},
+        "init_from": {
+            "path": display_path(path),
+            "sha256": file_sha256(path.resolve()),
+            "name": meta.get("name"),
+            "iterations": meta.get("iterations"),
+        },
     }
     return actor, origin
 
 
-def initial_networks(cfg: LowLevelConfig, task: TaskConfig, out: Path,
-                     init_from: tuple[ATMActor, dict] | None = None) -> tuple[ATMActor, Critic, ValueNorm, dict]:
+def initial_networks(
+    cfg: LowLevelConfig, task: TaskConfig, out: Path, init_from: tuple[ATMActor, dict] | None = None
+) -> tuple[ATMActor, Critic, ValueNorm, dict]:
     """Actor, critic and value norm a stage starts from, and where they came from (for the model card).
     `init_from`: the (actor, origin) of `load_init_policy`, used instead of earlier stages' states."""
     actor, critic = _fresh_networks(cfg, task)
@@ -166,8 +189,7 @@ def initial_networks(cfg: LowLevelConfig, task: TaskConfig, out: Path,
         _, step1_actor = _source_state(out, step1, cfg)
         src, step2_actor = _source_state(out, step2, cfg)
         actor.load_state_dict(merge_step3(step1_actor, step2_actor).state_dict())
-        origin = {"actor": f"formation & output modules, log-std: {step1}; obstacle module: {step2}",
-                  "critic": step2}
+        origin = {"actor": f"formation & output modules, log-std: {step1}; obstacle module: {step2}", "critic": step2}
     critic.load_state_dict(src["trainer"]["critic"])
     value_norm.load_state_dict(src["trainer"]["value_norm"])
     origin["source_iterations"] = int(src["trainer"]["counters"]["iteration"])
@@ -195,8 +217,11 @@ def enter_curriculum_phase(trainer: MAPPO, cfg: LowLevelConfig, tasks: list[Task
 
 def _curriculum_card(cfg: LowLevelConfig, progress: dict) -> dict:
     """The curriculum as the model card records it: each phase's density and iterations trained."""
-    return {"schedule": "equal shares of the budget, in order", "final_phase": progress["phase"],
-            "phases": [{"density": d, "iterations": n} for d, n in zip(cfg.curriculum, progress["iterations"])]}
+    return {
+        "schedule": "equal shares of the budget, in order",
+        "final_phase": progress["phase"],
+        "phases": [{"density": d, "iterations": n} for d, n in zip(cfg.curriculum, progress["iterations"])],
+    }
 
 
 def _last_csv_row(run_dir: Path) -> dict:
@@ -205,9 +230,17 @@ def _last_csv_row(run_dir: Path) -> dict:
     return rows[-1] if rows else {}
 
 
-def train_lowlevel(cfg: LowLevelConfig, out: Path, policies_dir: Path, resume: bool = False,
-                   show_progress: bool = True, evaluate: bool = True, init_from: str | Path | None = None,
-                   command: str | None = None, policy_name: str | None = None) -> dict:
+def train_lowlevel(
+    cfg: LowLevelConfig,
+    out: Path,
+    policies_dir: Path,
+    resume: bool = False,
+    show_progress: bool = True,
+    evaluate: bool = True,
+    init_from: str | Path | None = None,
+    command: str | None = None,
+    policy_name: str | None = None,
+) -> dict:
     """Train one stage under its budget; export the policy and its model card. Returns the card.
     policy_name: the exported policy's name and file stem (default the stage name; a seed sweep
     adds _s<seed>).
@@ -228,8 +261,10 @@ def train_lowlevel(cfg: LowLevelConfig, out: Path, policies_dir: Path, resume: b
         saved = read_state(state_path)
         run_state.check_same_run(saved["config"], cfg, state_path, free=("budget", "checkpoint_every"))
         if init is not None and saved["origin"].get("init_from", {}).get("sha256") != init[1]["init_from"]["sha256"]:
-            raise ConfigError(f"--init-from {init_from}: the run in {run_dir} started from {saved['origin']['actor']}; "
-                              "resume it without --init-from, or choose another --out")
+            raise ConfigError(
+                f"--init-from {init_from}: the run in {run_dir} started from {saved['origin']['actor']}; "
+                "resume it without --init-from, or choose another --out"
+            )
         actor, critic = _fresh_networks(cfg, task)
         value_norm, origin = ValueNorm(), saved["origin"]
     else:
@@ -247,11 +282,20 @@ def train_lowlevel(cfg: LowLevelConfig, out: Path, policies_dir: Path, resume: b
     write_atomic(run_dir / "config.json", json.dumps(run_config, indent=2) + "\n")
 
     def checkpoint() -> None:
-        atomic_torch_save({"format": STATE_FORMAT, "config": cfg.to_dict(), "origin": origin,
-                           "trainer": trainer.state_dict(), "curriculum": curriculum}, state_path)
+        atomic_torch_save(
+            {
+                "format": STATE_FORMAT,
+                "config": cfg.to_dict(),
+                "origin": origin,
+                "trainer": trainer.state_dict(),
+                "curriculum": curriculum,
+            },
+            state_path,
+        )
 
     if saved is None:
         checkpoint()  # iteration 0: a run killed before its first periodic checkpoint can still --resume
+
     def iterate() -> dict:
         if curriculum is None:
             return trainer.iterate()
@@ -262,16 +306,25 @@ def train_lowlevel(cfg: LowLevelConfig, out: Path, policies_dir: Path, resume: b
         return row
 
     logger = RunLogger(run_dir, trainer.iteration, cfg.budget.iterations, desc=cfg.name, show_progress=show_progress)
-    last_row = run_state.train_under_budget(trainer, cfg.budget, cfg.checkpoint_every, logger, PROGRESS_KEYS,
-                                            checkpoint, iterate)
+    last_row = run_state.train_under_budget(
+        trainer, cfg.budget, cfg.checkpoint_every, logger, PROGRESS_KEYS, checkpoint, iterate
+    )
     if not last_row and trainer.iteration:  # a finished run re-exported: report its last logged iteration
         last_row = {k: float(v) for k, v in _last_csv_row(run_dir).items()}
 
     name = policy_name or cfg.name
-    policy_path = save_policy(actor, policies_dir / f"{name}.pt", meta={
-        "name": name, "method": cfg.method, "formation": cfg.formation, "seed": cfg.seed,
-        "iterations": trainer.iteration, "agent_steps": trainer.agent_steps,
-    })
+    policy_path = save_policy(
+        actor,
+        policies_dir / f"{name}.pt",
+        meta={
+            "name": name,
+            "method": cfg.method,
+            "formation": cfg.formation,
+            "seed": cfg.seed,
+            "iterations": trainer.iteration,
+            "agent_steps": trainer.agent_steps,
+        },
+    )
     card = {
         "name": name,
         "method": cfg.method,

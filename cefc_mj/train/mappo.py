@@ -61,15 +61,24 @@ class Rollout:
 class MAPPO:
     """The MAPPO learner for one low-level training stage."""
 
-    def __init__(self, task_cfg: TaskConfig, ppo: PPOConfig, actor: ATMActor, critic: Critic, seed: int,
-                 value_norm: ValueNorm | None = None):
+    def __init__(
+        self,
+        task_cfg: TaskConfig,
+        ppo: PPOConfig,
+        actor: ATMActor,
+        critic: Critic,
+        seed: int,
+        value_norm: ValueNorm | None = None,
+    ):
         self.task_cfg = task_cfg
         self.ppo = ppo
         self.seed = seed
         self.env = BatchedCEFCEnv(task_cfg, n_envs=ppo.n_envs, seed=seed)
         if critic.state_dim != self.env.state_size + self.env.layout.size:
-            raise ValueError(f"critic input {critic.state_dim} != global state {self.env.state_size} + "
-                             f"observation {self.env.layout.size}")
+            raise ValueError(
+                f"critic input {critic.state_dim} != global state {self.env.state_size} + "
+                f"observation {self.env.layout.size}"
+            )
         self.actor = actor
         self.critic = critic
         self.value_norm = value_norm if value_norm is not None else ValueNorm()
@@ -101,10 +110,16 @@ class MAPPO:
             next_obs, reward, done, info = env.step(self.actor.to_acceleration(action, obs_t).numpy())
             next_state = env.global_state()
             agent_reward = self.agent_rewards(reward, info["reward_terms"]["R_c"], env.agent_collision_penalty, w)
-            for k, v in (("obs", obs_t), ("next_obs", torch.from_numpy(next_obs.copy())), ("actions", action),
-                         ("logp", logp), ("states", torch.from_numpy(state)),
-                         ("next_states", torch.from_numpy(next_state)), ("rewards", torch.from_numpy(agent_reward)),
-                         ("episode_end", torch.from_numpy(done.copy()))):
+            for k, v in (
+                ("obs", obs_t),
+                ("next_obs", torch.from_numpy(next_obs.copy())),
+                ("actions", action),
+                ("logp", logp),
+                ("states", torch.from_numpy(state)),
+                ("next_states", torch.from_numpy(next_state)),
+                ("rewards", torch.from_numpy(agent_reward)),
+                ("episode_end", torch.from_numpy(done.copy())),
+            ):
                 buf[k].append(v)
             episode_return += reward
             for name, value in info["reward_terms"].items():
@@ -127,8 +142,7 @@ class MAPPO:
         }
         return Rollout(**{k: torch.stack(v) for k, v in buf.items()}, stats=stats)
 
-    def agent_rewards(self, team_reward: np.ndarray, team_collision: np.ndarray, own: np.ndarray,
-                      w) -> np.ndarray:
+    def agent_rewards(self, team_reward: np.ndarray, team_collision: np.ndarray, own: np.ndarray, w) -> np.ndarray:
         """Per-agent learning rewards [B, N] from the team reward [B] and each agent's collision
         penalty CR_i >= 0 [B, N] (see the module docstring)."""
         n = self.env.n_agents
@@ -165,8 +179,20 @@ class MAPPO:
             dist = self.actor.distribution(obs[mb])
             return dist.log_prob(actions[mb]).sum(-1), dist.entropy().sum(-1).mean()
 
-        stats = ppo_epochs(t * b, ppo, self.generator, policy_terms, old_logp, adv, self.actor_opt,
-                           list(self.actor.parameters()), self.critic, critic_in, targets, self.critic_opt)
+        stats = ppo_epochs(
+            t * b,
+            ppo,
+            self.generator,
+            policy_terms,
+            old_logp,
+            adv,
+            self.actor_opt,
+            list(self.actor.parameters()),
+            self.critic,
+            critic_in,
+            targets,
+            self.critic_opt,
+        )
         stats["explained_variance"] = ev
         stats["action_std"] = float(self.actor.log_std.detach().exp().mean())
         return stats
@@ -198,8 +224,10 @@ class MAPPO:
 
     # ------------------------------------------------------------------ checkpoint state
     def state_dict(self) -> dict:
-        return {**learner_state(self),
-                "counters": {"iteration": self.iteration, "agent_steps": self.agent_steps, "elapsed": self.elapsed}}
+        return {
+            **learner_state(self),
+            "counters": {"iteration": self.iteration, "agent_steps": self.agent_steps, "elapsed": self.elapsed},
+        }
 
     def load_state_dict(self, state: dict) -> None:
         load_learner_state(self, state)

@@ -9,7 +9,6 @@ import datetime as _dt
 import json
 from pathlib import Path
 
-from cefc_mj import paths
 from cefc_mj.eval.table3 import PAPER_TABLE3, evaluate_lowlevel
 from cefc_mj.fileio import write_atomic
 from cefc_mj.nn.policy_io import load_policy
@@ -21,8 +20,14 @@ def table3_figures(policy_path: Path, formation: int, method: str | None, seed: 
     """The policy's Table III-protocol row for formation c, with the paper's row beside it."""
     row = evaluate_lowlevel(load_policy(policy_path), formation, seed=seed)
     return {
-        "protocol": {"backend": "particle", "density": TABLE3_DENSITY, "episodes": TABLE3_EPISODES,
-                     "steps": TABLE3_STEPS, "seed": seed, "formation": formation},
+        "protocol": {
+            "backend": "particle",
+            "density": TABLE3_DENSITY,
+            "episodes": TABLE3_EPISODES,
+            "steps": TABLE3_STEPS,
+            "seed": seed,
+            "formation": formation,
+        },
         "ours": row,
         "paper": PAPER_TABLE3.get(str(formation), {}).get(method) if method else None,
     }

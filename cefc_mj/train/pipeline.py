@@ -45,8 +45,14 @@ class Stage:
         return self.lowlevel.name if self.lowlevel is not None else "atm_student"
 
 
-def plan(budget: Budget, formations=PIPELINE_ORDER, seed: int = 0, ppo: PPOConfig | None = None,
-         tuples_per_formation: int = 60_000, workers: int = 1) -> list[Stage]:
+def plan(
+    budget: Budget,
+    formations=PIPELINE_ORDER,
+    seed: int = 0,
+    ppo: PPOConfig | None = None,
+    tuples_per_formation: int = 60_000,
+    workers: int = 1,
+) -> list[Stage]:
     """The ordered stages with their budgets (shares of `budget`; with `workers` processes training
     side by side, the shares of one worker's stages add up to the whole budget)."""
     ppo = ppo or PPOConfig()
@@ -63,8 +69,15 @@ def plan(budget: Budget, formations=PIPELINE_ORDER, seed: int = 0, ppo: PPOConfi
         cfg = LowLevelConfig(formation=c, step=step, safe=safe, budget=b, seed=seed, ppo=ppo)
         stages.append(Stage("lowlevel", b, lowlevel=cfg))
     b = _distill_budget(budget)
-    stages.append(Stage("distill", b, distill=DistillConfig(budget=b, formations=tuple(sorted(formations)), seed=seed,
-                                                            tuples_per_formation=tuples_per_formation)))
+    stages.append(
+        Stage(
+            "distill",
+            b,
+            distill=DistillConfig(
+                budget=b, formations=tuple(sorted(formations)), seed=seed, tuples_per_formation=tuples_per_formation
+            ),
+        )
+    )
     return stages
 
 
@@ -75,9 +88,19 @@ def _distill_budget(budget: Budget) -> Budget:
     return replace(scaled, iterations=None if budget.iterations is None else max(1, 100 * scaled.iterations))
 
 
-def run_pipeline(budget: Budget, out: Path, policies_dir: Path, seed: int = 0, resume: bool = False,
-                 formations=PIPELINE_ORDER, ppo: PPOConfig | None = None, show_progress: bool = True,
-                 tuples_per_formation: int = 60_000, workers: int = 1, command: str | None = None) -> list[dict]:
+def run_pipeline(
+    budget: Budget,
+    out: Path,
+    policies_dir: Path,
+    seed: int = 0,
+    resume: bool = False,
+    formations=PIPELINE_ORDER,
+    ppo: PPOConfig | None = None,
+    show_progress: bool = True,
+    tuples_per_formation: int = 60_000,
+    workers: int = 1,
+    command: str | None = None,
+) -> list[dict]:
     """Run every stage of `plan(...)`; returns the model cards (AT-M stages, then the student).
 
     resume: continue the pipeline whose stage runs are under `out` (stages not started yet start
@@ -90,12 +113,14 @@ def run_pipeline(budget: Budget, out: Path, policies_dir: Path, seed: int = 0, r
     stages = plan(budget, formations, seed, ppo, tuples_per_formation, workers)
     started = [s.name for s in stages if _started(out, s.name)]
     if resume and not started:
-        raise ConfigError(f"--resume: no run to continue in {out} (no stage folder with {STATE_FILE}); "
-                          "drop --resume to start one")
+        raise ConfigError(
+            f"--resume: no run to continue in {out} (no stage folder with {STATE_FILE}); drop --resume to start one"
+        )
     if not resume and started:
         shown = ", ".join(started[:3]) + (", ..." if len(started) > 3 else "")
-        raise ConfigError(f"{out} already holds runs of a pipeline ({shown}); pass --resume to continue it, "
-                          "or choose another --out")
+        raise ConfigError(
+            f"{out} already holds runs of a pipeline ({shown}); pass --resume to continue it, or choose another --out"
+        )
     lowlevel, distill = stages[:-1], stages[-1]
     start = time.perf_counter()
     order = [c for c in PIPELINE_ORDER if c in set(formations)]
@@ -104,17 +129,31 @@ def run_pipeline(budget: Budget, out: Path, policies_dir: Path, seed: int = 0, r
     if len(groups) == 1:
         cards = _run_stages(groups[0], out, policies_dir, resume, show_progress, "", command)
     else:
-        _log(f"[lowlevel-all] {len(groups)} workers: " + "; ".join(
-            "w{}: c = {}".format(i, ", ".join(str(c) for c in dict.fromkeys(s.lowlevel.formation for s in g)))
-            for i, g in enumerate(groups)))
+        _log(
+            f"[lowlevel-all] {len(groups)} workers: "
+            + "; ".join(
+                "w{}: c = {}".format(i, ", ".join(str(c) for c in dict.fromkeys(s.lowlevel.formation for s in g)))
+                for i, g in enumerate(groups)
+            )
+        )
         with ProcessPoolExecutor(len(groups), mp_context=multiprocessing.get_context("spawn")) as pool:
-            futures = [pool.submit(_run_stages, g, out, policies_dir, resume, False, f"w{i} ", command)
-                       for i, g in enumerate(groups)]
+            futures = [
+                pool.submit(_run_stages, g, out, policies_dir, resume, False, f"w{i} ", command)
+                for i, g in enumerate(groups)
+            ]
             cards = [card for f in futures for card in f.result()]
-    _log(f"[lowlevel-all] stage {distill.name}: budget {distill.budget} "
-        f"(pipeline wall-clock so far {time.perf_counter() - start:.0f} s)")
-    card = train_student(distill.distill, policies_dir, out, resume=resume and _started(out, distill.name),
-                         show_progress=show_progress, command=command)
+    _log(
+        f"[lowlevel-all] stage {distill.name}: budget {distill.budget} "
+        f"(pipeline wall-clock so far {time.perf_counter() - start:.0f} s)"
+    )
+    card = train_student(
+        distill.distill,
+        policies_dir,
+        out,
+        resume=resume and _started(out, distill.name),
+        show_progress=show_progress,
+        command=command,
+    )
     _log(f"[lowlevel-all] {distill.name} done: {_summary(card)}")
     _log(f"[lowlevel-all] finished in {time.perf_counter() - start:.0f} s")
     return cards + [card]
@@ -125,16 +164,31 @@ def _started(out: Path, stage_name: str) -> bool:
     return (Path(out) / stage_name / STATE_FILE).exists()
 
 
-def _run_stages(stages: list[Stage], out: Path, policies_dir: Path, resume: bool, show_progress: bool,
-                prefix: str, command: str | None = None) -> list[dict]:
+def _run_stages(
+    stages: list[Stage],
+    out: Path,
+    policies_dir: Path,
+    resume: bool,
+    show_progress: bool,
+    prefix: str,
+    command: str | None = None,
+) -> list[dict]:
     """Train AT-M stages in order (one worker's share of the pipeline)."""
     cards = []
     start = time.perf_counter()
     for stage in stages:
-        _log(f"[lowlevel-all] {prefix}{stage.name}: budget {stage.budget} (worker wall-clock "
-            f"{time.perf_counter() - start:.0f} s)")
-        card = train_lowlevel(stage.lowlevel, out, policies_dir, resume=resume and _started(out, stage.name),
-                              show_progress=show_progress, command=command)
+        _log(
+            f"[lowlevel-all] {prefix}{stage.name}: budget {stage.budget} (worker wall-clock "
+            f"{time.perf_counter() - start:.0f} s)"
+        )
+        card = train_lowlevel(
+            stage.lowlevel,
+            out,
+            policies_dir,
+            resume=resume and _started(out, stage.name),
+            show_progress=show_progress,
+            command=command,
+        )
         cards.append(card)
         _log(f"[lowlevel-all] {prefix}{stage.name} done after {card['iterations']} it: {_summary(card)}")
     return cards
@@ -146,8 +200,9 @@ def _summary(card: dict) -> str:
         o = t3["ours"]
         return f"Table III protocol R_L {o['R_L']:.1f} F {o['F']:.1f} N {o['N']:.1f} C {o['C']:.2f}%"
     if t3:
-        return "; ".join(f"c={c}: F {v['ours']['F']:.1f} N {v['ours']['N']:.1f} C {v['ours']['C']:.2f}%"
-                         for c, v in t3.items())
+        return "; ".join(
+            f"c={c}: F {v['ours']['F']:.1f} N {v['ours']['N']:.1f} C {v['ours']['C']:.2f}%" for c, v in t3.items()
+        )
     return "exported"
 
 

@@ -65,10 +65,20 @@ def clipped_policy_loss(
 PPO_STATS = ("policy_loss", "value_loss", "entropy", "approx_kl", "clipfrac", "actor_grad_norm", "critic_grad_norm")
 
 
-def ppo_epochs(n_samples: int, ppo, generator: torch.Generator, policy_terms, old_logp: torch.Tensor,
-               advantages: torch.Tensor, policy_opt: torch.optim.Optimizer, policy_params: list,
-               critic: torch.nn.Module, critic_in: torch.Tensor, targets: torch.Tensor,
-               critic_opt: torch.optim.Optimizer) -> dict[str, float]:
+def ppo_epochs(
+    n_samples: int,
+    ppo,
+    generator: torch.Generator,
+    policy_terms,
+    old_logp: torch.Tensor,
+    advantages: torch.Tensor,
+    policy_opt: torch.optim.Optimizer,
+    policy_params: list,
+    critic: torch.nn.Module,
+    critic_in: torch.Tensor,
+    targets: torch.Tensor,
+    critic_opt: torch.optim.Optimizer,
+) -> dict[str, float]:
     """PPO's epochs over one rollout of `n_samples` samples in shuffled minibatches: per minibatch,
     the clipped surrogate minus the entropy bonus for the policy and 0.5 MSE to the (normalized)
     targets for the critic, each with its own optimizer and gradient-norm clip.
@@ -94,9 +104,15 @@ def ppo_epochs(n_samples: int, ppo, generator: torch.Generator, policy_terms, ol
             value_loss.backward()
             critic_norm = torch.nn.utils.clip_grad_norm_(critic.parameters(), ppo.max_grad_norm)
             critic_opt.step()
-            for k, v in (("policy_loss", policy_loss.item()), ("value_loss", value_loss.item()),
-                         ("entropy", entropy.item()), ("approx_kl", st["approx_kl"]), ("clipfrac", st["clipfrac"]),
-                         ("actor_grad_norm", actor_norm.item()), ("critic_grad_norm", critic_norm.item())):
+            for k, v in (
+                ("policy_loss", policy_loss.item()),
+                ("value_loss", value_loss.item()),
+                ("entropy", entropy.item()),
+                ("approx_kl", st["approx_kl"]),
+                ("clipfrac", st["clipfrac"]),
+                ("actor_grad_norm", actor_norm.item()),
+                ("critic_grad_norm", critic_norm.item()),
+            ):
                 sums[k] += v
             count += 1
     return {k: v / count for k, v in sums.items()}
@@ -108,8 +124,10 @@ LEARNER_PARTS = ("actor", "critic", "value_norm", "actor_opt", "critic_opt")
 
 def learner_state(learner) -> dict:
     """The state dicts of a learner's LEARNER_PARTS and its torch generator's state."""
-    return {**{name: getattr(learner, name).state_dict() for name in LEARNER_PARTS},
-            "generator": learner.generator.get_state()}
+    return {
+        **{name: getattr(learner, name).state_dict() for name in LEARNER_PARTS},
+        "generator": learner.generator.get_state(),
+    }
 
 
 def load_learner_state(learner, state: dict) -> None:
@@ -177,4 +195,3 @@ def advantages_and_targets(rewards, values, next_values, episode_end, ppo, value
     if ppo.normalize_advantages:
         advantages = (advantages - advantages.mean()) / (advantages.std() + 1e-8)
     return advantages, targets, ev
-

@@ -30,8 +30,9 @@ def read_state(path: Path, state_format: str, what: str) -> dict:
     return payload
 
 
-def train_under_budget(trainer, budget, checkpoint_every: int, logger, progress_keys: tuple[str, ...], checkpoint,
-                       iterate=None) -> dict:
+def train_under_budget(
+    trainer, budget, checkpoint_every: int, logger, progress_keys: tuple[str, ...], checkpoint, iterate=None
+) -> dict:
     """Iterate until `budget` is spent (counted by trainer.iteration and trainer.elapsed, so across
     resumes), logging every row and calling `checkpoint()` every `checkpoint_every` iterations and
     at the end; the logger is closed even on an error. iterate: one iteration returning its row
@@ -53,6 +54,7 @@ def train_under_budget(trainer, budget, checkpoint_every: int, logger, progress_
 def check_same_run(saved: dict, cfg, path: Path, free: tuple[str, ...]) -> None:
     """A resumed run keeps the settings of its config `cfg` (a dataclass with to_dict / from_dict;
     fields added later load as defaults) except the `free` fields and the PPO thread counts."""
+
     def comparable(config) -> dict:
         d = config.to_dict()
         for key in free:

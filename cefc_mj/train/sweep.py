@@ -84,9 +84,16 @@ def _has_run(folder: Path, name: str) -> bool:
     return (folder / name / STATE_FILE).is_file()
 
 
-def plan_seeds(cfg: LowLevelConfig, seeds, out: Path, policies_dir: Path, resume: bool = False,
-               init_from: str | None = None, command: str | None = None,
-               show_progress: bool = False) -> list[SeedRun]:
+def plan_seeds(
+    cfg: LowLevelConfig,
+    seeds,
+    out: Path,
+    policies_dir: Path,
+    resume: bool = False,
+    init_from: str | None = None,
+    command: str | None = None,
+    show_progress: bool = False,
+) -> list[SeedRun]:
     """The seed runs of a sweep, checked before any of them starts (ConfigError, one line).
 
     Without `resume` no seed may have a run of this stage yet; with it at least one must, and the
@@ -99,30 +106,53 @@ def plan_seeds(cfg: LowLevelConfig, seeds, out: Path, policies_dir: Path, resume
     out, policies_dir = Path(out).absolute(), Path(policies_dir).absolute()
     started = [s for s in seeds if _has_run(seed_folder(out, s), cfg.name)]
     if resume and not started:
-        raise ConfigError(f"--resume: no run to continue in {out}/seed<k>/{cfg.name} for seeds "
-                          f"{','.join(map(str, seeds))}; drop --resume to start them")
+        raise ConfigError(
+            f"--resume: no run to continue in {out}/seed<k>/{cfg.name} for seeds "
+            f"{','.join(map(str, seeds))}; drop --resume to start them"
+        )
     if not resume and started:
-        raise ConfigError(f"{seed_folder(out, started[0]) / cfg.name} already holds a run; pass --resume to continue "
-                          "the sweep, or choose another --out")
+        raise ConfigError(
+            f"{seed_folder(out, started[0]) / cfg.name} already holds a run; pass --resume to continue "
+            "the sweep, or choose another --out"
+        )
     if cfg.step == 3 and init_from is None:
         sources = cfg.source_stages
         for s in seeds:
             missing = [n for n in sources if s not in started and not _has_run(seed_folder(out, s), n)]
             if missing:
-                raise ConfigError(f"{cfg.name} of seed {s} starts from {missing[0]}: no training state in "
-                                  f"{seed_folder(out, s) / missing[0]}; run that stage with the same --seeds and "
-                                  f"--out first, or start from a trained policy with --init-from")
-    return [SeedRun(cfg=replace(cfg, seed=s), out=seed_folder(out, s), policies_dir=policies_dir,
-                    resume=s in started, init_from=init_from, command=command, show_progress=show_progress)
-            for s in seeds]
+                raise ConfigError(
+                    f"{cfg.name} of seed {s} starts from {missing[0]}: no training state in "
+                    f"{seed_folder(out, s) / missing[0]}; run that stage with the same --seeds and "
+                    f"--out first, or start from a trained policy with --init-from"
+                )
+    return [
+        SeedRun(
+            cfg=replace(cfg, seed=s),
+            out=seed_folder(out, s),
+            policies_dir=policies_dir,
+            resume=s in started,
+            init_from=init_from,
+            command=command,
+            show_progress=show_progress,
+        )
+        for s in seeds
+    ]
 
 
 def train_seed(run: SeedRun) -> dict:
     """Train one seed of a sweep (in this process, a pool worker or a Ray worker); returns its model card."""
     from cefc_mj.train.lowlevel import train_lowlevel
 
-    return train_lowlevel(run.cfg, run.out, run.policies_dir, resume=run.resume, show_progress=run.show_progress,
-                          init_from=run.init_from, command=run.command, policy_name=seed_policy_name(run.cfg))
+    return train_lowlevel(
+        run.cfg,
+        run.out,
+        run.policies_dir,
+        resume=run.resume,
+        show_progress=run.show_progress,
+        init_from=run.init_from,
+        command=run.command,
+        policy_name=seed_policy_name(run.cfg),
+    )
 
 
 def sweep_executor(runs: list[SeedRun], executor: ExecutorConfig | None = None) -> tuple[ExecutorConfig, dict | None]:

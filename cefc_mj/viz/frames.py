@@ -139,7 +139,7 @@ class TopDownFrames:
         rows, cols = self._window(centre, radius)
         if not len(rows) or not len(cols):
             return None, None
-        box = np.s_[rows[0]:rows[-1] + 1, cols[0]:cols[-1] + 1]
+        box = np.s_[rows[0] : rows[-1] + 1, cols[0] : cols[-1] + 1]
         d = np.hypot(self.x[cols][None, :] - centre[0], self.y[rows][:, None] - centre[1])
         return box, d
 
@@ -185,8 +185,9 @@ class MujocoFrames:
         source = world.models[0]
         limit = (source.vis.global_.offheight, source.vis.global_.offwidth)
         if height > limit[0] or width > limit[1]:
-            raise ConfigError(f"render_size=({height}, {width}): the MuJoCo scene renders at most "
-                              f"{limit[0]} x {limit[1]}")
+            raise ConfigError(
+                f"render_size=({height}, {width}): the MuJoCo scene renders at most {limit[0]} x {limit[1]}"
+            )
         self.height, self.width = height, width
         self.n_agents = config.n_agents
         n_drones = int(getattr(world, "n_drones", self.n_agents))
@@ -303,9 +304,14 @@ class MujocoFrames:
     def _disc(self, scene, centre, radius, rgba) -> None:
         if scene.ngeom >= scene.maxgeom:
             return
-        self.mujoco.mjv_initGeom(scene.geoms[scene.ngeom], self.mujoco.mjtGeom.mjGEOM_CYLINDER,
-                                 np.array([radius, 0.01, 0.0]), np.asarray(centre, dtype=np.float64),
-                                 np.eye(3).ravel(), np.asarray(rgba, dtype=np.float32))
+        self.mujoco.mjv_initGeom(
+            scene.geoms[scene.ngeom],
+            self.mujoco.mjtGeom.mjGEOM_CYLINDER,
+            np.array([radius, 0.01, 0.0]),
+            np.asarray(centre, dtype=np.float64),
+            np.eye(3).ravel(),
+            np.asarray(rgba, dtype=np.float32),
+        )
         scene.ngeom += 1
 
 
@@ -318,8 +324,14 @@ def view_box(config: TaskConfig, top: float) -> np.ndarray:
         floor = max(floor, config.target_corner + config.target_radius)
     walls = config.arena_half_size + VIEW_MARGIN
     floor += VIEW_MARGIN
-    return np.array([(sx * half, sy * half, z) for half, z in ((floor, 0.0), (walls, top))
-                     for sx in (-1.0, 1.0) for sy in (-1.0, 1.0)])
+    return np.array(
+        [
+            (sx * half, sy * half, z)
+            for half, z in ((floor, 0.0), (walls, top))
+            for sx in (-1.0, 1.0)
+            for sy in (-1.0, 1.0)
+        ]
+    )
 
 
 def fit_camera(points, elevation: float, azimuth: float, fovy: float, aspect: float) -> tuple[np.ndarray, float]:
@@ -362,8 +374,9 @@ def _forward(elevation: float, azimuth: float) -> np.ndarray:
 def _circle(centre, radius: float, n: int) -> np.ndarray:
     """[n + 1, 3] a closed horizontal circle around centre (x, y, z)."""
     angle = np.linspace(0.0, 2.0 * np.pi, n + 1)
-    return np.stack([centre[0] + radius * np.cos(angle), centre[1] + radius * np.sin(angle),
-                     np.full(n + 1, centre[2])], axis=1)
+    return np.stack(
+        [centre[0] + radius * np.cos(angle), centre[1] + radius * np.sin(angle), np.full(n + 1, centre[2])], axis=1
+    )
 
 
 def _render_model(world):
@@ -374,8 +387,15 @@ def _render_model(world):
     source = world.models[0]
     if not isinstance(world, MujocoWorld) or world.config.visual_geoms:
         return copy.deepcopy(source)
-    model = build_scene(dataclasses.replace(world.config, visual_geoms=True), world.n_agents, world.n_obstacles,
-                        world.with_adversary, world.uav_radius, world.obstacle_radius, airframe=world.airframe)
+    model = build_scene(
+        dataclasses.replace(world.config, visual_geoms=True),
+        world.n_agents,
+        world.n_obstacles,
+        world.with_adversary,
+        world.uav_radius,
+        world.obstacle_radius,
+        airframe=world.airframe,
+    )
     if (model.nq, model.nbody) != (source.nq, source.nbody):
         raise ConfigError("render_mode='rgb_array': the scene with visual geoms does not match the world's bodies")
     return model
@@ -397,8 +417,8 @@ def _lighten_floor(mujoco, model, half: float) -> None:
             done.add(texture)
             start = model.tex_adr[texture]
             size = model.tex_height[texture] * model.tex_width[texture] * model.tex_nchannel[texture]
-            texels = model.tex_data[start:start + size].astype(np.float64)
-            model.tex_data[start:start + size] = np.round(255.0 - (255.0 - texels) * (1.0 - _FLOOR_LIGHTNESS))
+            texels = model.tex_data[start : start + size].astype(np.float64)
+            model.tex_data[start : start + size] = np.round(255.0 - (255.0 - texels) * (1.0 - _FLOOR_LIGHTNESS))
 
 
 def _close_if_alive(ref) -> None:

@@ -2,10 +2,11 @@
 matrices (the paper's Fig. 12).
 
 `play_highlevel_episode` flies one episode with the evaluation's own loop (`play_highlevel`, so
-seed s gives the episode of a 1-episode evaluation with seed s) and keeps every low-level step's state and every decision's anchors and
-messages in a `HighLevelEpisode`. `log_highlevel_episode` sends it to a Rerun recording (entity
-paths in docs/rerun.md, "The hierarchical game"), `record_highlevel_episode` writes it as a `.rrd`
-file, and `plot_similarity_matrices` draws a PNG of the message similarity at a few decisions.
+seed s gives the episode of a 1-episode evaluation with seed s) and keeps every low-level step's
+state and every decision's anchors and messages in a `HighLevelEpisode`. `log_highlevel_episode`
+sends it to a Rerun recording (entity paths in docs/rerun.md, "The hierarchical game"),
+`record_highlevel_episode` writes it as a `.rrd` file, and `plot_similarity_matrices` draws a PNG of
+the message similarity at a few decisions.
 
 Rows of the per-step arrays are states: row s is the state after s low-level steps (row 0 the reset
 state, row T the end), so decision k is taken at row k * decision_interval, from the state shown
@@ -33,9 +34,9 @@ import rerun.blueprint as rrb
 import torch
 
 from cefc_mj.errors import ConfigError
+from cefc_mj.eval.highlevel import play_highlevel
 from cefc_mj.eval.record import code_provenance
 from cefc_mj.fileio import atomic_write
-from cefc_mj.eval.highlevel import play_highlevel
 from cefc_mj.hierarchy import DECISION_INTERVAL, HierarchicalCEFCEnv, LowLevel
 from cefc_mj.nn.highlevel_policy import HighLevelPolicy
 from cefc_mj.sim.particle import ParticleWorld
@@ -193,24 +194,42 @@ class _StepTap:
 
 
 @torch.no_grad()
-def play_highlevel_episode(policy: HighLevelPolicy, task: TaskConfig, low_level: LowLevel, seed: int = 0,
-                           world=None, decision_interval: int = DECISION_INTERVAL,
-                           adversary_policy=None) -> HighLevelEpisode:
+def play_highlevel_episode(
+    policy: HighLevelPolicy,
+    task: TaskConfig,
+    low_level: LowLevel,
+    seed: int = 0,
+    world=None,
+    decision_interval: int = DECISION_INTERVAL,
+    adversary_policy=None,
+) -> HighLevelEpisode:
     """Fly one episode of the hierarchical game (mode of each anchor distribution, as the evaluation)
     and record it. world: a physics world of 1 env (default the particle world); adversary_policy:
     the trained adversary of a task with adversary='learned' (its goal drawn is the nearest group of
     >= 3, the point it is trained to chase)."""
     if not isinstance(seed, int) or isinstance(seed, bool) or seed < 0:
         raise ConfigError(f"seed={seed!r}: must be an integer >= 0")
-    game = HierarchicalCEFCEnv(task, low_level, n_envs=1, seed=seed, decision_interval=decision_interval, world=world,
-                               adversary_policy=adversary_policy)
+    game = HierarchicalCEFCEnv(
+        task,
+        low_level,
+        n_envs=1,
+        seed=seed,
+        decision_interval=decision_interval,
+        world=world,
+        adversary_policy=adversary_policy,
+    )
     env = game.env
     goal_rule = "nearest_group" if task.adversary == LEARNED_ADVERSARY else task.adversary
-    weights = {"R_t": task.rewards.task_weight, "R_n": task.rewards.navigation_weight_high,
-               "R_e": task.rewards.evasion_weight}
+    weights = {
+        "R_t": task.rewards.task_weight,
+        "R_n": task.rewards.navigation_weight_high,
+        "R_e": task.rewards.evasion_weight,
+    }
     has_adversary = task.adversary != "none"
-    rows: dict[str, list] = {k: [] for k in ("agent_pos", "agent_vel", "adversary_pos", "adversary_goal", "urgency",
-                                             "group_label", "group_size")}
+    rows: dict[str, list] = {
+        k: []
+        for k in ("agent_pos", "agent_vel", "adversary_pos", "adversary_goal", "urgency", "group_label", "group_size")
+    }
     step_rewards: list[float] = []
     step_parts: dict[str, list[float]] = {name: [] for name in weights}
 
@@ -223,8 +242,9 @@ def play_highlevel_episode(policy: HighLevelPolicy, task: TaskConfig, low_level:
         rows["group_size"].append(game.agent_group_size()[0].copy())
         if has_adversary:  # the goal env.step computes first thing in the next step, from this state
             rows["adversary_pos"].append(w.adversary_pos[0].copy())
-            rows["adversary_goal"].append(adversary_goal(goal_rule, w.adversary_pos, w.agent_pos,
-                                                         env.group_size, env.group_centre)[0].copy())
+            rows["adversary_goal"].append(
+                adversary_goal(goal_rule, w.adversary_pos, w.agent_pos, env.group_size, env.group_centre)[0].copy()
+            )
 
     def on_step(reward, terms) -> None:
         step_rewards.append(float(reward[0]))
@@ -250,19 +270,33 @@ def play_highlevel_episode(policy: HighLevelPolicy, task: TaskConfig, low_level:
     anchor_index = np.stack(indices)
     sent = np.stack(messages) if messages else None
     return HighLevelEpisode(
-        variant=policy.variant, seed=seed,
+        variant=policy.variant,
+        seed=seed,
         backend="particle" if isinstance(env.world, ParticleWorld) else "mujoco",
-        adversary_rule=task.adversary, low_level={"name": low_level.name, **low_level.describe()},
-        dt=task.dt, decision_interval=decision_interval, arena_half_size=task.arena_half_size,
-        obstacle_radius=task.obstacle_radius, target_radius=task.target_radius,
+        adversary_rule=task.adversary,
+        low_level={"name": low_level.name, **low_level.describe()},
+        dt=task.dt,
+        decision_interval=decision_interval,
+        arena_half_size=task.arena_half_size,
+        obstacle_radius=task.obstacle_radius,
+        target_radius=task.target_radius,
         alert_distance=task.rewards.evasion_alert_distance,
-        obstacles=env.obstacles[0].copy(), targets=env.targets[0].copy(), anchor_grid=game.grid.copy(),
-        agent_pos=arr["agent_pos"], agent_vel=arr["agent_vel"],
-        adversary_pos=arr.get("adversary_pos"), adversary_goal=arr.get("adversary_goal"),
-        urgency=arr["urgency"], group_label=arr["group_label"], group_size=arr["group_size"],
-        reward=np.asarray(step_rewards), reward_parts={k: np.asarray(v) for k, v in step_parts.items()},
-        anchor_index=anchor_index, anchors=game.grid[anchor_index],
-        received=np.stack(received) if received else None, messages=sent,
+        obstacles=env.obstacles[0].copy(),
+        targets=env.targets[0].copy(),
+        anchor_grid=game.grid.copy(),
+        agent_pos=arr["agent_pos"],
+        agent_vel=arr["agent_vel"],
+        adversary_pos=arr.get("adversary_pos"),
+        adversary_goal=arr.get("adversary_goal"),
+        urgency=arr["urgency"],
+        group_label=arr["group_label"],
+        group_size=arr["group_size"],
+        reward=np.asarray(step_rewards),
+        reward_parts={k: np.asarray(v) for k, v in step_parts.items()},
+        anchor_index=anchor_index,
+        anchors=game.grid[anchor_index],
+        received=np.stack(received) if received else None,
+        messages=sent,
         similarity=None if sent is None else message_similarity(sent),
         metrics={m: float(game.episode_metrics()[m][0]) for m in ("F", "N", "C", "E")},
         returns={name: float(result[name][0]) for name in ("R_H", *weights)},
@@ -273,19 +307,25 @@ def play_highlevel_episode(policy: HighLevelPolicy, task: TaskConfig, low_level:
 def highlevel_blueprint() -> rrb.Blueprint:
     """The arena seen from above on the left; on the right the message similarity matrix of the
     current decision, the reward parts per step, the mean similarity per decision, the episode card."""
-    top_down = rrb.EyeControls3D(kind=rrb.Eye3DKind.Orbital, position=[0.0, -4.0, 30.0],
-                                 look_target=[0.0, 0.0, 0.0], eye_up=[0.0, 0.0, 1.0])
+    top_down = rrb.EyeControls3D(
+        kind=rrb.Eye3DKind.Orbital, position=[0.0, -4.0, 30.0], look_target=[0.0, 0.0, 0.0], eye_up=[0.0, 0.0, 1.0]
+    )
     return rrb.Blueprint(
         rrb.Horizontal(
             rrb.Spatial3DView(name="Arena", origin="world", eye_controls=top_down),
             rrb.Vertical(
-                rrb.TensorView(name="Message similarity (row i, column j)", origin="messages/similarity",
-                               scalar_mapping=rrb.TensorScalarMapping(mag_filter="Nearest", colormap="Viridis"),
-                               view_fit="Fill"),
+                rrb.TensorView(
+                    name="Message similarity (row i, column j)",
+                    origin="messages/similarity",
+                    scalar_mapping=rrb.TensorScalarMapping(mag_filter="Nearest", colormap="Viridis"),
+                    view_fit="Fill",
+                ),
                 rrb.TimeSeriesView(name="R_H = R_t + R_n + R_e per step (weighted)", origin="rewards"),
                 rrb.TimeSeriesView(name="Mean message similarity", origin="messages/mean"),
-                rrb.Tabs(rrb.TextDocumentView(name="Episode", origin="episode"),
-                         rrb.TextLogView(name="Decisions", origin="decisions")),
+                rrb.Tabs(
+                    rrb.TextDocumentView(name="Episode", origin="episode"),
+                    rrb.TextLogView(name="Decisions", origin="decisions"),
+                ),
                 row_shares=[3, 2, 2, 2],
             ),
             column_shares=[3, 2],
@@ -294,11 +334,13 @@ def highlevel_blueprint() -> rrb.Blueprint:
     )
 
 
-def record_highlevel_episode(episode: HighLevelEpisode, rrd_path: str | os.PathLike,
-                             recording_id: str | None = None) -> Path:
+def record_highlevel_episode(
+    episode: HighLevelEpisode, rrd_path: str | os.PathLike, recording_id: str | None = None
+) -> Path:
     """Write the episode to a `.rrd` file with its blueprint; returns the path."""
-    recording = open_recording(rrd_path=rrd_path, recording_id=recording_id or str(uuid.uuid4()),
-                               blueprint=highlevel_blueprint())
+    recording = open_recording(
+        rrd_path=rrd_path, recording_id=recording_id or str(uuid.uuid4()), blueprint=highlevel_blueprint()
+    )
     try:
         log_highlevel_episode(episode, recording)
     finally:
@@ -322,63 +364,121 @@ def log_highlevel_episode(episode: HighLevelEpisode, recording: rr.RecordingStre
     rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
     rec.log("episode", rr.TextDocument(_episode_markdown(ep), media_type="text/markdown"), static=True)
     a = ep.arena_half_size
-    rec.log("world/arena", rr.LineStrips3D([on_plane(np.array([[-a, -a], [a, -a], [a, a], [-a, a], [-a, -a]]))],
-                                           colors=[160, 160, 160], radii=0.03), static=True)
+    rec.log(
+        "world/arena",
+        rr.LineStrips3D(
+            [on_plane(np.array([[-a, -a], [a, -a], [a, a], [-a, a], [-a, -a]]))], colors=[160, 160, 160], radii=0.03
+        ),
+        static=True,
+    )
     if len(ep.obstacles):
         m = len(ep.obstacles)
-        rec.log("world/obstacles", rr.Cylinders3D(
-            lengths=np.full(m, 1.0), radii=np.full(m, ep.obstacle_radius),
-            centers=on_plane(ep.obstacles) + [0.0, 0.0, 0.5], colors=[150, 150, 150, 160], fill_mode="solid",
-        ), static=True)
-    rec.log("world/anchor_grid", rr.Points3D(on_plane(ep.anchor_grid), radii=0.12, colors=[0, 200, 80, 120],
-                                             labels=[str(i) for i in range(len(ep.anchor_grid))]), static=True)
+        rec.log(
+            "world/obstacles",
+            rr.Cylinders3D(
+                lengths=np.full(m, 1.0),
+                radii=np.full(m, ep.obstacle_radius),
+                centers=on_plane(ep.obstacles) + [0.0, 0.0, 0.5],
+                colors=[150, 150, 150, 160],
+                fill_mode="solid",
+            ),
+            static=True,
+        )
+    rec.log(
+        "world/anchor_grid",
+        rr.Points3D(
+            on_plane(ep.anchor_grid),
+            radii=0.12,
+            colors=[0, 200, 80, 120],
+            labels=[str(i) for i in range(len(ep.anchor_grid))],
+        ),
+        static=True,
+    )
     circle = 2 * np.pi * np.arange(_ALERT_SEGMENTS + 1) / _ALERT_SEGMENTS
     unit_circle = np.column_stack([np.cos(circle), np.sin(circle), np.zeros_like(circle)])
 
     # UAVs: positions and group colours per step, labels static
     colors = group_colors(ep.group_label)  # [rows, N, 3]
     rec.log("world/uavs", rr.Points3D.from_fields(radii=0.2, labels=[f"uav {i}" for i in range(n)]), static=True)
-    rr.send_columns("world/uavs", index, rr.Points3D.columns(
-        positions=on_plane(ep.agent_pos).reshape(-1, 3), colors=colors.reshape(-1, 3)).partition(np.full(rows, n)),
-        recording=rec)
+    rr.send_columns(
+        "world/uavs",
+        index,
+        rr.Points3D.columns(positions=on_plane(ep.agent_pos).reshape(-1, 3), colors=colors.reshape(-1, 3)).partition(
+            np.full(rows, n)
+        ),
+        recording=rec,
+    )
 
     # anchors: each agent's anchor from this row on, and a line to it in the agent's group colour
     anchor = ep.anchor_per_row()  # [rows, N, 2]
     rec.log("world/anchors", rr.Points3D.from_fields(radii=0.3, colors=[0, 200, 80]), static=True)
-    rr.send_columns("world/anchors", index, rr.Points3D.columns(
-        positions=on_plane(anchor).reshape(-1, 3), labels=_anchor_labels(ep, anchor)).partition(np.full(rows, n)),
-        recording=rec)
+    rr.send_columns(
+        "world/anchors",
+        index,
+        rr.Points3D.columns(positions=on_plane(anchor).reshape(-1, 3), labels=_anchor_labels(ep, anchor)).partition(
+            np.full(rows, n)
+        ),
+        recording=rec,
+    )
     rec.log("world/anchors/lines", rr.LineStrips3D.from_fields(radii=0.02), static=True)
     lines = np.stack([on_plane(ep.agent_pos), on_plane(anchor)], axis=2).reshape(rows * n, 2, 3)
-    rr.send_columns("world/anchors/lines", index, rr.LineStrips3D.columns(
-        strips=_segments_arrow(lines), colors=colors.reshape(-1, 3)).partition(np.full(rows, n)), recording=rec)
+    rr.send_columns(
+        "world/anchors/lines",
+        index,
+        rr.LineStrips3D.columns(strips=_segments_arrow(lines), colors=colors.reshape(-1, 3)).partition(
+            np.full(rows, n)
+        ),
+        recording=rec,
+    )
 
     # targets: the radius grows with the urgency, the label shows it
     if j:
         rec.log("world/targets", rr.Points3D.from_fields(colors=[230, 180, 0]), static=True)
-        rr.send_columns("world/targets", index, rr.Points3D.columns(
-            positions=np.broadcast_to(on_plane(ep.targets), (rows, j, 3)).reshape(-1, 3),
-            radii=(0.15 + 0.45 * ep.urgency).reshape(-1),
-            labels=[f"target {t}: urgency {u:.2f}" for row in ep.urgency for t, u in enumerate(row)],
-        ).partition(np.full(rows, j)), recording=rec)
-        rec.log("world/targets/zone", rr.LineStrips3D(
-            [on_plane(t) + ep.target_radius * unit_circle for t in ep.targets], colors=[230, 180, 0], radii=0.02,
-        ), static=True)
+        rr.send_columns(
+            "world/targets",
+            index,
+            rr.Points3D.columns(
+                positions=np.broadcast_to(on_plane(ep.targets), (rows, j, 3)).reshape(-1, 3),
+                radii=(0.15 + 0.45 * ep.urgency).reshape(-1),
+                labels=[f"target {t}: urgency {u:.2f}" for row in ep.urgency for t, u in enumerate(row)],
+            ).partition(np.full(rows, j)),
+            recording=rec,
+        )
+        rec.log(
+            "world/targets/zone",
+            rr.LineStrips3D(
+                [on_plane(t) + ep.target_radius * unit_circle for t in ep.targets],
+                colors=[230, 180, 0],
+                radii=0.02,
+            ),
+            static=True,
+        )
 
     # adversary: position, the goal its rule chases, the alert circle of the E metric
     if ep.adversary_pos is not None:
         adv, goal = on_plane(ep.adversary_pos), on_plane(ep.adversary_goal)
-        rec.log("world/adversary", rr.Points3D.from_fields(radii=0.3, colors=[200, 0, 0], labels="adversary"),
-                static=True)
+        rec.log(
+            "world/adversary", rr.Points3D.from_fields(radii=0.3, colors=[200, 0, 0], labels="adversary"), static=True
+        )
         rr.send_columns("world/adversary", index, rr.Points3D.columns(positions=adv), recording=rec)
-        rec.log("world/adversary/goal", rr.Points3D.from_fields(radii=0.12, colors=[255, 90, 90], labels="goal"),
-                static=True)
+        rec.log(
+            "world/adversary/goal",
+            rr.Points3D.from_fields(radii=0.12, colors=[255, 90, 90], labels="goal"),
+            static=True,
+        )
         rr.send_columns("world/adversary/goal", index, rr.Points3D.columns(positions=goal), recording=rec)
         rec.log("world/adversary/chase", rr.LineStrips3D.from_fields(radii=0.015, colors=[255, 90, 90]), static=True)
-        rr.send_columns("world/adversary/chase", index, rr.LineStrips3D.columns(
-            strips=_segments_arrow(np.stack([adv, goal], axis=1))), recording=rec)
-        rec.log("world/adversary/alert", rr.LineStrips3D([ep.alert_distance * unit_circle], colors=[200, 0, 0],
-                                                         radii=0.015), static=True)
+        rr.send_columns(
+            "world/adversary/chase",
+            index,
+            rr.LineStrips3D.columns(strips=_segments_arrow(np.stack([adv, goal], axis=1))),
+            recording=rec,
+        )
+        rec.log(
+            "world/adversary/alert",
+            rr.LineStrips3D([ep.alert_distance * unit_circle], colors=[200, 0, 0], radii=0.015),
+            static=True,
+        )
         rr.send_columns("world/adversary/alert", index, rr.Transform3D.columns(translation=adv), recording=rec)
 
     # reward parts of each low-level step, logged at the row the step ends in
@@ -390,24 +490,36 @@ def log_highlevel_episode(episode: HighLevelEpisode, recording: rr.RecordingStre
     # decisions: the anchors (text) and, with communication, the message similarity
     at = ep.decision_rows
     when = [rr.TimeColumn("step", sequence=at), rr.TimeColumn("sim_time", duration=at * ep.dt)]
-    rr.send_columns("decisions", when, rr.TextLog.columns(
-        text=[_decision_line(ep, k) for k in range(ep.n_decisions)], level=["INFO"] * ep.n_decisions),
-        recording=rec)
+    rr.send_columns(
+        "decisions",
+        when,
+        rr.TextLog.columns(
+            text=[_decision_line(ep, k) for k in range(ep.n_decisions)], level=["INFO"] * ep.n_decisions
+        ),
+        recording=rec,
+    )
     if ep.similarity is not None:
         low = similarity_floor(ep.similarity)
         for k, row in enumerate(at):
             rec.set_time("step", sequence=int(row))
             rec.set_time("sim_time", duration=float(row * ep.dt))
-            rec.log("messages/similarity", rr.Tensor(ep.similarity[k].astype(np.float32),
-                                                     dim_names=["agent i", "agent j"], value_range=[low, 1.0]))
+            rec.log(
+                "messages/similarity",
+                rr.Tensor(
+                    ep.similarity[k].astype(np.float32), dim_names=["agent i", "agent j"], value_range=[low, 1.0]
+                ),
+            )
         rec.reset_time()
         same, other = _mean_similarity(ep)
         for name, series in (("same_anchor", same), ("other_anchor", other)):
             keep = ~np.isnan(series)  # no pair of that kind at this decision: no point
             if keep.any():
-                rr.send_columns(f"messages/mean/{name}", [rr.TimeColumn("step", sequence=at[keep]),
-                                                          rr.TimeColumn("sim_time", duration=at[keep] * ep.dt)],
-                                rr.Scalars.columns(scalars=series[keep]), recording=rec)
+                rr.send_columns(
+                    f"messages/mean/{name}",
+                    [rr.TimeColumn("step", sequence=at[keep]), rr.TimeColumn("sim_time", duration=at[keep] * ep.dt)],
+                    rr.Scalars.columns(scalars=series[keep]),
+                    recording=rec,
+                )
 
 
 def provenance_fields(episode: HighLevelEpisode) -> dict[str, str | int | float]:
@@ -416,11 +528,21 @@ def provenance_fields(episode: HighLevelEpisode) -> dict[str, str | int | float]
     ep = episode
     low_file = ep.low_level.get("file") or {}
     fields: dict[str, str | int | float] = {
-        "policy": ep.policy, "policy_sha256": ep.policy_sha256, "variant": ep.variant,
-        "low_level": ep.low_level.get("name", ""), "low_level_sha256": low_file.get("sha256", ""),
-        "backend": ep.backend, "adversary": ep.adversary_rule, "seed": ep.seed, "agents": ep.n_agents,
-        "steps": ep.n_steps, "decision_interval": ep.decision_interval, "dt": ep.dt,
-        **ep.metrics, **ep.returns, **ep.provenance,
+        "policy": ep.policy,
+        "policy_sha256": ep.policy_sha256,
+        "variant": ep.variant,
+        "low_level": ep.low_level.get("name", ""),
+        "low_level_sha256": low_file.get("sha256", ""),
+        "backend": ep.backend,
+        "adversary": ep.adversary_rule,
+        "seed": ep.seed,
+        "agents": ep.n_agents,
+        "steps": ep.n_steps,
+        "decision_interval": ep.decision_interval,
+        "dt": ep.dt,
+        **ep.metrics,
+        **ep.returns,
+        **ep.provenance,
     }
     return {k: "n/a" if v == "" else v for k, v in fields.items()}
 
@@ -471,37 +593,43 @@ def _episode_markdown(ep: HighLevelEpisode) -> str:
     code = ep.provenance
     libraries = ", ".join(f"{name} {code[name]}" for name in ("python", "numpy", "torch") if name in code)
     low_file = ep.low_level.get("file") or {}
-    comm = ("no communication" if ep.messages is None
-            else f"{ep.messages.shape[-1]} numbers per message, once per decision")
-    return "\n".join([
-        f"# Hierarchical game, {ep.policy or ep.variant}, seed {ep.seed}",
-        "",
-        "| | |", "|---|---|",
-        f"| high level | {ep.variant} ({comm}) |",
-        f"| low level | {ep.low_level.get('name', 'n/a')} |",
-        f"| backend, adversary | {ep.backend}, {ep.adversary_rule} |",
-        f"| UAVs, targets, obstacles | {ep.n_agents}, {len(ep.targets)}, {len(ep.obstacles)} |",
-        f"| steps | {ep.n_steps} (dt = {ep.dt} s), a decision every {ep.decision_interval} |",
-        f"| R_H = R_t + R_n + R_e | {ep.returns['R_H']:.1f} = {ep.returns['R_t']:.1f} + {ep.returns['R_n']:.1f} "
-        f"+ {ep.returns['R_e']:.1f} (per-episode sums) |",
-        f"| F, N, C, E | {ep.metrics['F']:.1f}, {ep.metrics['N']:.0f}, {ep.metrics['C']:.2f} %, "
-        f"{ep.metrics['E']:.0f} |",
-        "",
-        "## Provenance",
-        "",
-        "| | |", "|---|---|",
-        f"| policy | {ep.policy or 'n/a'} |",
-        f"| policy SHA-256 | `{ep.policy_sha256 or 'n/a'}` |",
-        f"| low-level SHA-256 | `{low_file.get('sha256') or 'n/a'}` |",
-        f"| git commit | `{code.get('git_commit') or 'n/a'}` |",
-        f"| cefc-mj | {code.get('cefc_mj', 'n/a')} (code `{code.get('code_version', 'n/a')}`) |",
-        f"| libraries | {libraries or 'n/a'} |",
-    ])
+    comm = (
+        "no communication" if ep.messages is None else f"{ep.messages.shape[-1]} numbers per message, once per decision"
+    )
+    return "\n".join(
+        [
+            f"# Hierarchical game, {ep.policy or ep.variant}, seed {ep.seed}",
+            "",
+            "| | |",
+            "|---|---|",
+            f"| high level | {ep.variant} ({comm}) |",
+            f"| low level | {ep.low_level.get('name', 'n/a')} |",
+            f"| backend, adversary | {ep.backend}, {ep.adversary_rule} |",
+            f"| UAVs, targets, obstacles | {ep.n_agents}, {len(ep.targets)}, {len(ep.obstacles)} |",
+            f"| steps | {ep.n_steps} (dt = {ep.dt} s), a decision every {ep.decision_interval} |",
+            f"| R_H = R_t + R_n + R_e | {ep.returns['R_H']:.1f} = {ep.returns['R_t']:.1f} + {ep.returns['R_n']:.1f} "
+            f"+ {ep.returns['R_e']:.1f} (per-episode sums) |",
+            f"| F, N, C, E | {ep.metrics['F']:.1f}, {ep.metrics['N']:.0f}, {ep.metrics['C']:.2f} %, "
+            f"{ep.metrics['E']:.0f} |",
+            "",
+            "## Provenance",
+            "",
+            "| | |",
+            "|---|---|",
+            f"| policy | {ep.policy or 'n/a'} |",
+            f"| policy SHA-256 | `{ep.policy_sha256 or 'n/a'}` |",
+            f"| low-level SHA-256 | `{low_file.get('sha256') or 'n/a'}` |",
+            f"| git commit | `{code.get('git_commit') or 'n/a'}` |",
+            f"| cefc-mj | {code.get('cefc_mj', 'n/a')} (code `{code.get('code_version', 'n/a')}`) |",
+            f"| libraries | {libraries or 'n/a'} |",
+        ]
+    )
 
 
 # ---------------------------------------------------------------------------- PNG
-def plot_similarity_matrices(episode: HighLevelEpisode, png_path: str | os.PathLike,
-                             decisions: list[int] | None = None, dpi: int = 110) -> Path:
+def plot_similarity_matrices(
+    episode: HighLevelEpisode, png_path: str | os.PathLike, decisions: list[int] | None = None, dpi: int = 110
+) -> Path:
     """A PNG grid of the message similarity matrices at a few decisions (default 6 evenly spaced),
     each titled with its decision and step, the axes labelled with every agent's anchor and group,
     and the mean same- and other-anchor similarity over the episode beneath. Written atomically.
@@ -535,8 +663,15 @@ def plot_similarity_matrices(episode: HighLevelEpisode, png_path: str | os.PathL
         for i in range(ep.n_agents):
             for jj in range(ep.n_agents):
                 value = ep.similarity[k, i, jj]
-                ax.text(jj, i, f"{value:.2f}", ha="center", va="center", fontsize=5.5,
-                        color="black" if value > low + 0.6 * (1.0 - low) else "white")
+                ax.text(
+                    jj,
+                    i,
+                    f"{value:.2f}",
+                    ha="center",
+                    va="center",
+                    fontsize=5.5,
+                    color="black" if value > low + 0.6 * (1.0 - low) else "white",
+                )
         matrices.append(ax)
     fig.colorbar(image, ax=matrices, shrink=0.8, label="cos(m_i, m_j)")
     ax = fig.add_subplot(spec[grid_rows, :])
@@ -547,8 +682,10 @@ def plot_similarity_matrices(episode: HighLevelEpisode, png_path: str | os.PathL
     ax.set_ylabel("mean similarity")
     ax.legend(fontsize=8, loc="best")
     ax.grid(True, linewidth=0.3, alpha=0.5)
-    fig.suptitle(f"Message similarity, {ep.policy or ep.variant}, seed {ep.seed} "
-                 "(rows: agent (its anchor) g<group label>)", fontsize=10)
+    fig.suptitle(
+        f"Message similarity, {ep.policy or ep.variant}, seed {ep.seed} (rows: agent (its anchor) g<group label>)",
+        fontsize=10,
+    )
     path = Path(png_path)
     atomic_write(path, lambda fh: fig.savefig(fh, format="png"))
     return path

@@ -56,8 +56,15 @@ def plot_episode(record: EpisodeRecord, path: str | os.PathLike, dpi: int = 120)
     changes = np.flatnonzero(np.any(np.diff(record.anchor, axis=0) != 0, axis=1)) + 1
     for k, (x, y) in enumerate(record.anchor[np.concatenate([[0], changes])]):
         ax.add_patch(Circle((x, y), _ZONE_RADIUS, fill=False, edgecolor="tab:green", linestyle="--"))
-        ax.plot(x, y, marker="*", markersize=14, color="tab:green", markeredgecolor="k",
-                label="anchor (1 m zone)" if k == 0 else None)
+        ax.plot(
+            x,
+            y,
+            marker="*",
+            markersize=14,
+            color="tab:green",
+            markeredgecolor="k",
+            label="anchor (1 m zone)" if k == 0 else None,
+        )
         ax.annotate(str(k + 1), (x, y), textcoords="offset points", xytext=(6, 6), color="tab:green")
 
     cmap = matplotlib.colormaps["tab10"]
@@ -74,11 +81,27 @@ def plot_episode(record: EpisodeRecord, path: str | os.PathLike, dpi: int = 120)
     onset = record.collision & ~np.concatenate([np.zeros((1, record.n_agents), bool), record.collision[:-1]])
     if onset.any():
         hits = xy[onset]
-        ax.scatter(hits[:, 0], hits[:, 1], marker="x", s=60, color="red", linewidths=2, zorder=5,
-                   label=f"collision ({len(hits)})")
+        ax.scatter(
+            hits[:, 0],
+            hits[:, 1],
+            marker="x",
+            s=60,
+            color="red",
+            linewidths=2,
+            zorder=5,
+            label=f"collision ({len(hits)})",
+        )
     if len(record.targets):
-        ax.scatter(record.targets[:, 0], record.targets[:, 1], marker="s", s=80, color="gold", edgecolor="k",
-                   zorder=4, label="target")
+        ax.scatter(
+            record.targets[:, 0],
+            record.targets[:, 1],
+            marker="s",
+            s=80,
+            color="gold",
+            edgecolor="k",
+            zorder=4,
+            label="target",
+        )
     if record.adversary_pos is not None:
         ax.plot(record.adversary_pos[:, 0], record.adversary_pos[:, 1], color="k", linestyle=":", label="adversary")
 

@@ -41,15 +41,18 @@ def spawn_viewer() -> None:
     if _viewer_listening():
         return
     if sys.platform.startswith("linux") and not has_display():
-        raise ConfigError("render_mode='human': no display for a Rerun viewer (DISPLAY is unset) and none listening "
-                          f"on port {RERUN_VIEWER_PORT}; use render_mode='rgb_array'")
+        raise ConfigError(
+            "render_mode='human': no display for a Rerun viewer (DISPLAY is unset) and none listening "
+            f"on port {RERUN_VIEWER_PORT}; use render_mode='rgb_array'"
+        )
     import rerun as rr
 
     try:
         rr.spawn(port=RERUN_VIEWER_PORT, connect=False)
     except Exception as e:  # the viewer executable is missing or cannot start
-        raise ConfigError(f"render_mode='human': cannot start the Rerun viewer ({e}); "
-                          "use render_mode='rgb_array'") from None
+        raise ConfigError(
+            f"render_mode='human': cannot start the Rerun viewer ({e}); use render_mode='rgb_array'"
+        ) from None
 
 
 _SCALARS = ("hd_error", "anchor_distance", "wind_speed", "F_so_far", "N_so_far", "C_so_far")
@@ -130,11 +133,16 @@ class RerunRecorder:
         world = env.world
         rows, n, m = cfg.steps + 1, cfg.n_agents, cfg.n_lidar_rays
         self._rows = {
-            "agent_pos": np.zeros((rows, n, 3)), "agent_quat": np.zeros((rows, n, 4)),
-            "agent_vel": np.zeros((rows, n, 2)), "anchor": np.zeros((rows, 2)),
-            "lidar_origins": np.zeros((rows, n, 2)), "lidar_ranges": np.zeros((rows, n, m)),
-            "group_id": np.zeros((rows, n), dtype=np.int64), "template_world": np.full((rows, n, 2), np.nan),
-            "collision": np.zeros((rows, n), dtype=bool), "adversary_pos": np.zeros((rows, 3)),
+            "agent_pos": np.zeros((rows, n, 3)),
+            "agent_quat": np.zeros((rows, n, 4)),
+            "agent_vel": np.zeros((rows, n, 2)),
+            "anchor": np.zeros((rows, 2)),
+            "lidar_origins": np.zeros((rows, n, 2)),
+            "lidar_ranges": np.zeros((rows, n, m)),
+            "group_id": np.zeros((rows, n), dtype=np.int64),
+            "template_world": np.full((rows, n, 2), np.nan),
+            "collision": np.zeros((rows, n), dtype=bool),
+            "adversary_pos": np.zeros((rows, 3)),
             **{name: np.zeros(rows) for name in _SCALARS},
         }
         wind = getattr(world, "wind_config", None)
@@ -150,11 +158,16 @@ class RerunRecorder:
         seed = self.env.episode_seed
         self._static = dict(
             backend="particle" if isinstance(world, ParticleWorld) else "mujoco",
-            condition="+".join(condition) or "SITL-S", formation=n, seed=-1 if seed is None else int(seed), dt=cfg.dt,
+            condition="+".join(condition) or "SITL-S",
+            formation=n,
+            seed=-1 if seed is None else int(seed),
+            dt=cfg.dt,
             flight_altitude=getattr(mujoco_config, "flight_altitude", FLIGHT_ALTITUDE),
-            obstacles=env.obstacles[0].copy(), obstacle_radius=cfg.obstacle_radius,
+            obstacles=env.obstacles[0].copy(),
+            obstacle_radius=cfg.obstacle_radius,
             obstacle_height=getattr(mujoco_config, "obstacle_height", OBSTACLE_HEIGHT),
-            targets=env.targets[0].copy(), lidar_range=cfg.lidar_range,
+            targets=env.targets[0].copy(),
+            lidar_range=cfg.lidar_range,
             airframe_parts=self._airframe_parts,
         )
         self._template = formation_template(n, cfg.formation_spacing) if cfg.mode == "formation" else None
@@ -194,8 +207,20 @@ class RerunRecorder:
 
         rows = self._rows
         scalars = {k: rows[k][:length] for k in _SCALARS}
-        arrays = {k: rows[k][:length] for k in ("agent_pos", "agent_quat", "agent_vel", "anchor", "lidar_origins",
-                                               "lidar_ranges", "group_id", "template_world", "collision")}
+        arrays = {
+            k: rows[k][:length]
+            for k in (
+                "agent_pos",
+                "agent_quat",
+                "agent_vel",
+                "anchor",
+                "lidar_origins",
+                "lidar_ranges",
+                "group_id",
+                "template_world",
+                "collision",
+            )
+        }
         adversary = rows["adversary_pos"][:length] if self._has_adversary else None
         return EpisodeRecord(**self._static, **arrays, scalars=scalars, adversary_pos=adversary)
 

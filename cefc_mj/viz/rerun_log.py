@@ -38,8 +38,18 @@ VIEWER_PORT = 9876  # Rerun's default: `rr.spawn` starts (or finds) the viewer h
 
 # Group colours: a group is labelled by its smallest member index, so label g takes palette[g % 10].
 _PALETTE = np.array(
-    [[31, 119, 180], [255, 127, 14], [44, 160, 44], [214, 39, 40], [148, 103, 189],
-     [140, 86, 75], [227, 119, 194], [188, 189, 34], [23, 190, 207], [127, 127, 127]],
+    [
+        [31, 119, 180],
+        [255, 127, 14],
+        [44, 160, 44],
+        [214, 39, 40],
+        [148, 103, 189],
+        [140, 86, 75],
+        [227, 119, 194],
+        [188, 189, 34],
+        [23, 190, 207],
+        [127, 127, 127],
+    ],
     dtype=np.uint8,
 )
 _ISOLATED = np.array([90, 90, 90], dtype=np.uint8)
@@ -67,27 +77,35 @@ def episode_blueprint() -> rrb.Blueprint:
     Trails (`world/trails`, one segment per step) are shown from the start of the episode up to the
     time cursor; everything else in the 3D view shows the state at the cursor.
     """
-    from_start = rrb.VisibleTimeRanges([
-        rrb.VisibleTimeRange(timeline, start=rrb.TimeRangeBoundary.infinite(),
-                             end=rrb.TimeRangeBoundary.cursor_relative())
-        for timeline in ("step", "sim_time")
-    ])
+    from_start = rrb.VisibleTimeRanges(
+        [
+            rrb.VisibleTimeRange(
+                timeline, start=rrb.TimeRangeBoundary.infinite(), end=rrb.TimeRangeBoundary.cursor_relative()
+            )
+            for timeline in ("step", "sim_time")
+        ]
+    )
     named = [name for _, names in _SERIES_VIEWS for name in names]
     series = [
         rrb.TimeSeriesView(name=title, origin="metrics", contents=[f"$origin/{n}" for n in names])
         for title, names in _SERIES_VIEWS
     ]
-    series.append(rrb.TimeSeriesView(
-        name="Wind speed (m/s) and other series", origin="metrics",
-        contents=["$origin/**", *(f"- $origin/{n}" for n in named)],
-    ))
+    series.append(
+        rrb.TimeSeriesView(
+            name="Wind speed (m/s) and other series",
+            origin="metrics",
+            contents=["$origin/**", *(f"- $origin/{n}" for n in named)],
+        )
+    )
     return rrb.Blueprint(
         rrb.Horizontal(
             rrb.Spatial3DView(name="Scene", origin="world", overrides={"world/trails": from_start}),
             rrb.Vertical(
                 *series,
-                rrb.Tabs(rrb.TextLogView(name="Collisions", origin="events"),
-                         rrb.TextDocumentView(name="Episode", origin="episode")),
+                rrb.Tabs(
+                    rrb.TextLogView(name="Collisions", origin="events"),
+                    rrb.TextDocumentView(name="Episode", origin="episode"),
+                ),
             ),
             column_shares=[3, 2],
         ),
@@ -111,7 +129,8 @@ def check_spawn_possible(port: int | None = None) -> None:
     raise ConfigError(
         f"--spawn: no display to open a Rerun viewer on (DISPLAY and WAYLAND_DISPLAY are unset) and no viewer "
         f"listens on port {port}; record with --rrd PATH and open it with `rerun PATH`, or start `rerun` yourself "
-        f"and run again (on your desktop, reaching the machine that runs cefc-eval with `ssh -R {port}:localhost:{port}`; "
+        f"and run again (on your desktop, reaching the machine that runs cefc-eval with "
+        f"`ssh -R {port}:localhost:{port}`; "
         f"or headless here: `rerun --port {port} --save live.rrd`)"
     )
 
@@ -187,27 +206,44 @@ def log_static(record: EpisodeRecord, recording: rr.RecordingStream) -> None:
     k = len(record.obstacles)
     if k:
         h = record.obstacle_height
-        rec.log("world/obstacles", rr.Cylinders3D(
-            lengths=np.full(k, h), radii=np.full(k, record.obstacle_radius),
-            centers=np.column_stack([record.obstacles, np.full(k, h / 2)]),
-            colors=[150, 150, 150, 160], fill_mode="solid",
-        ), static=True)
+        rec.log(
+            "world/obstacles",
+            rr.Cylinders3D(
+                lengths=np.full(k, h),
+                radii=np.full(k, record.obstacle_radius),
+                centers=np.column_stack([record.obstacles, np.full(k, h / 2)]),
+                colors=[150, 150, 150, 160],
+                fill_mode="solid",
+            ),
+            static=True,
+        )
     if len(record.targets):
         j = len(record.targets)
-        rec.log("world/targets", rr.Points3D(
-            np.column_stack([record.targets, np.full(j, record.flight_altitude)]),
-            radii=0.3, colors=[230, 180, 0], labels=[f"target {t}" for t in range(j)],
-        ), static=True)
+        rec.log(
+            "world/targets",
+            rr.Points3D(
+                np.column_stack([record.targets, np.full(j, record.flight_altitude)]),
+                radii=0.3,
+                colors=[230, 180, 0],
+                labels=[f"target {t}" for t in range(j)],
+            ),
+            static=True,
+        )
     circle = 2 * np.pi * np.arange(49) / 48
-    rec.log("world/anchor", rr.Points3D([0.0, 0.0, 0.0], radii=0.15, colors=[0, 200, 80], labels="anchor"),
-            static=True)
-    rec.log("world/anchor/zone", rr.LineStrips3D(
-        [np.column_stack([_ZONE_RADIUS * np.cos(circle), _ZONE_RADIUS * np.sin(circle), np.zeros_like(circle)])],
-        colors=[0, 200, 80], radii=0.02,
-    ), static=True)
+    rec.log("world/anchor", rr.Points3D([0.0, 0.0, 0.0], radii=0.15, colors=[0, 200, 80], labels="anchor"), static=True)
+    rec.log(
+        "world/anchor/zone",
+        rr.LineStrips3D(
+            [np.column_stack([_ZONE_RADIUS * np.cos(circle), _ZONE_RADIUS * np.sin(circle), np.zeros_like(circle)])],
+            colors=[0, 200, 80],
+            radii=0.02,
+        ),
+        static=True,
+    )
     if record.adversary_pos is not None:
-        rec.log("world/adversary", rr.Points3D.from_fields(radii=0.25, colors=[200, 0, 0], labels="adversary"),
-                static=True)
+        rec.log(
+            "world/adversary", rr.Points3D.from_fields(radii=0.25, colors=[200, 0, 0], labels="adversary"), static=True
+        )
     rec.log("world/trails", rr.LineStrips3D.from_fields(radii=0.02), static=True)
     if _has_wind(record):
         rec.log("world/wind", rr.Arrows3D.from_fields(radii=0.04, colors=[60, 160, 255]), static=True)
@@ -216,8 +252,11 @@ def log_static(record: EpisodeRecord, recording: rr.RecordingStream) -> None:
     body = _body_archetypes(record)
     for i in range(record.n_agents):
         uav = f"world/uav_{i}"
-        rec.log(uav, rr.Points3D.from_fields(positions=[0.0, 0.0, _MARKER_HEIGHT], radii=0.06, labels=f"uav {i}"),
-                static=True)
+        rec.log(
+            uav,
+            rr.Points3D.from_fields(positions=[0.0, 0.0, _MARKER_HEIGHT], radii=0.06, labels=f"uav {i}"),
+            static=True,
+        )
         for entity, archetype in body:
             rec.log(f"{uav}/body/{entity}", archetype, static=True)
         rec.log(f"{uav}/lidar", rr.LineStrips3D.from_fields(radii=0.005, colors=[120, 160, 255, 70]), static=True)
@@ -247,34 +286,54 @@ def log_steps(record: EpisodeRecord, recording: rr.RecordingStream, start: int, 
 
     if _has_wind(record):  # an arrow above the swarm centre, 1 m long per m/s of wind
         wind = record.wind_vector[start:stop]
-        rr.send_columns("world/wind", index, rr.Arrows3D.columns(
-            origins=pos.mean(axis=1) + [0.0, 0.0, _WIND_ARROW_LIFT],
-            vectors=np.column_stack([wind, np.zeros(rows)]),
-            labels=[f"wind {speed:.1f} m/s" for speed in np.linalg.norm(wind, axis=1)],
-        ), recording=rec)
+        rr.send_columns(
+            "world/wind",
+            index,
+            rr.Arrows3D.columns(
+                origins=pos.mean(axis=1) + [0.0, 0.0, _WIND_ARROW_LIFT],
+                vectors=np.column_stack([wind, np.zeros(rows)]),
+                labels=[f"wind {speed:.1f} m/s" for speed in np.linalg.norm(wind, axis=1)],
+            ),
+            recording=rec,
+        )
 
     anchor = np.column_stack([record.anchor[start:stop], np.full(rows, alt)])
     rr.send_columns("world/anchor", index, rr.Transform3D.columns(translation=anchor), recording=rec)
     if record.adversary_pos is not None:
-        rr.send_columns("world/adversary", index,
-                        rr.Points3D.columns(positions=record.adversary_pos[start:stop]), recording=rec)
+        rr.send_columns(
+            "world/adversary", index, rr.Points3D.columns(positions=record.adversary_pos[start:stop]), recording=rec
+        )
 
     # Trails: one segment per agent and step, from the previous position, in the group's colour.
     first = record.agent_pos[start - 1] if start > 0 else pos[0]
     prev = np.concatenate([first[None], pos[:-1]], axis=0)
     segments = np.stack([prev, pos], axis=2).reshape(rows * n, 2, 3)
-    rr.send_columns("world/trails", index, rr.LineStrips3D.columns(
-        strips=_segments_arrow(segments), colors=colors.reshape(-1, 3)).partition(np.full(rows, n)), recording=rec)
+    rr.send_columns(
+        "world/trails",
+        index,
+        rr.LineStrips3D.columns(strips=_segments_arrow(segments), colors=colors.reshape(-1, 3)).partition(
+            np.full(rows, n)
+        ),
+        recording=rec,
+    )
 
     template = record.template_world[start:stop]
     has_point = ~np.isnan(template).any(axis=-1)  # [rows, N]
     template_xyz = np.concatenate([template[has_point], np.full((has_point.sum(), 1), alt)], axis=-1)
-    rr.send_columns("world/template", index, rr.Points3D.columns(
-        positions=template_xyz, colors=colors[has_point]).partition(has_point.sum(axis=1)), recording=rec)
+    rr.send_columns(
+        "world/template",
+        index,
+        rr.Points3D.columns(positions=template_xyz, colors=colors[has_point]).partition(has_point.sum(axis=1)),
+        recording=rec,
+    )
 
     colliding = record.collision[start:stop]
-    rr.send_columns("world/collisions", index, rr.Points3D.columns(positions=pos[colliding]).partition(
-        colliding.sum(axis=1)), recording=rec)
+    rr.send_columns(
+        "world/collisions",
+        index,
+        rr.Points3D.columns(positions=pos[colliding]).partition(colliding.sum(axis=1)),
+        recording=rec,
+    )
     _log_collision_events(record, rec, start, stop)
 
     angles = 2 * np.pi * np.arange(m) / m
@@ -287,16 +346,29 @@ def log_steps(record: EpisodeRecord, recording: rr.RecordingStream, start: int, 
     quat_xyzw = record.agent_quat[start:stop][..., [1, 2, 3, 0]]
     for i in range(n):
         uav = f"world/uav_{i}"
-        rr.send_columns(uav, index, [
-            *rr.Transform3D.columns(translation=pos[:, i]),
-            *rr.Points3D.columns(colors=colors[:, i]),
-        ], recording=rec)
+        rr.send_columns(
+            uav,
+            index,
+            [
+                *rr.Transform3D.columns(translation=pos[:, i]),
+                *rr.Points3D.columns(colors=colors[:, i]),
+            ],
+            recording=rec,
+        )
         rr.send_columns(f"{uav}/body", index, rr.Transform3D.columns(quaternion=quat_xyzw[:, i]), recording=rec)
         beams = np.stack([np.broadcast_to(offset[:, i, None, :], (rows, m, 3)), ends[:, i]], axis=2)
-        rr.send_columns(f"{uav}/lidar", index, rr.LineStrips3D.columns(
-            strips=_segments_arrow(beams.reshape(rows * m, 2, 3))).partition(np.full(rows, m)), recording=rec)
-        rr.send_columns(f"{uav}/lidar/hits", index, rr.Points3D.columns(
-            positions=ends[:, i][hit[:, i]]).partition(hit[:, i].sum(axis=1)), recording=rec)
+        rr.send_columns(
+            f"{uav}/lidar",
+            index,
+            rr.LineStrips3D.columns(strips=_segments_arrow(beams.reshape(rows * m, 2, 3))).partition(np.full(rows, m)),
+            recording=rec,
+        )
+        rr.send_columns(
+            f"{uav}/lidar/hits",
+            index,
+            rr.Points3D.columns(positions=ends[:, i][hit[:, i]]).partition(hit[:, i].sum(axis=1)),
+            recording=rec,
+        )
 
 
 def provenance_fields(record: EpisodeRecord) -> dict[str, str | int | float]:
@@ -304,11 +376,19 @@ def provenance_fields(record: EpisodeRecord) -> dict[str, str | int | float]:
     episode's condition and size, its final F, N, C, and the code that flew it (git commit, code
     version, library versions). Rerun drops empty values, so unknown ones read "n/a"."""
     fields: dict[str, str | int | float] = {
-        "policy": record.policy, "policy_sha256": record.policy_sha256,
-        "backend": record.backend, "condition": record.condition, "formation": record.formation,
-        "seed": record.seed, "wind": record.wind, "deviation": record.deviation, "steps": record.n_steps,
+        "policy": record.policy,
+        "policy_sha256": record.policy_sha256,
+        "backend": record.backend,
+        "condition": record.condition,
+        "formation": record.formation,
+        "seed": record.seed,
+        "wind": record.wind,
+        "deviation": record.deviation,
+        "steps": record.n_steps,
         "wind_direction_deg": "n/a" if record.wind_direction is None else round(record.wind_direction, 3),
-        "dt": record.dt, **record.final_metrics, **record.provenance,
+        "dt": record.dt,
+        **record.final_metrics,
+        **record.provenance,
     }
     return {k: "n/a" if v == "" else v for k, v in fields.items()}
 
@@ -338,16 +418,23 @@ def _log_collision_events(record: EpisodeRecord, rec: rr.RecordingStream, start:
     t = start + rows
     xy = record.agent_pos[t, agents, :2]
     text = [f"uav {a} collision at step {s} ({x:.2f}, {y:.2f})" for s, a, (x, y) in zip(t, agents, xy)]
-    rr.send_columns("events/collisions",
-                    [rr.TimeColumn("step", sequence=t), rr.TimeColumn("sim_time", duration=t * record.dt)],
-                    rr.TextLog.columns(text=text, level=["WARN"] * len(text)), recording=rec)
+    rr.send_columns(
+        "events/collisions",
+        [rr.TimeColumn("step", sequence=t), rr.TimeColumn("sim_time", duration=t * record.dt)],
+        rr.TextLog.columns(text=text, level=["WARN"] * len(text)),
+        recording=rec,
+    )
 
 
 def _body_archetypes(record: EpisodeRecord) -> list[tuple[str, rr.AsComponents]]:
     """(entity name, archetype) per kind of airframe part, as Rerun primitives in the drone frame."""
     out: list[tuple[str, rr.AsComponents]] = []
-    for kind, entity in (("box", "boxes"), ("cylinder", "cylinders"), ("capsule", "capsules"),
-                         ("ellipsoid", "ellipsoids")):
+    for kind, entity in (
+        ("box", "boxes"),
+        ("cylinder", "cylinders"),
+        ("capsule", "capsules"),
+        ("ellipsoid", "ellipsoids"),
+    ):
         parts = [p for p in record.airframe_parts if p.kind == kind or (kind == "ellipsoid" and p.kind == "sphere")]
         if not parts:
             continue
@@ -358,14 +445,20 @@ def _body_archetypes(record: EpisodeRecord) -> list[tuple[str, rr.AsComponents]]
         if kind == "box":
             arch = rr.Boxes3D(half_sizes=size, centers=pos, quaternions=rot, colors=rgba, fill_mode="solid")
         elif kind == "cylinder":
-            arch = rr.Cylinders3D(lengths=2 * size[:, 1], radii=size[:, 0], centers=pos, quaternions=rot,
-                                  colors=rgba, fill_mode="solid")
+            arch = rr.Cylinders3D(
+                lengths=2 * size[:, 1], radii=size[:, 0], centers=pos, quaternions=rot, colors=rgba, fill_mode="solid"
+            )
         elif kind == "capsule":
             # Rerun's capsule runs from its translation along +z; MuJoCo's is centred on pos.
             axis = _rotate(np.array([p.quat for p in parts]), np.array([0.0, 0.0, 1.0]))
-            arch = rr.Capsules3D(lengths=2 * size[:, 1], radii=size[:, 0],
-                                 translations=pos - size[:, 1:2] * axis, quaternions=rot, colors=rgba,
-                                 fill_mode="solid")
+            arch = rr.Capsules3D(
+                lengths=2 * size[:, 1],
+                radii=size[:, 0],
+                translations=pos - size[:, 1:2] * axis,
+                quaternions=rot,
+                colors=rgba,
+                fill_mode="solid",
+            )
         else:
             semi = np.array([[p.size[0]] * 3 if p.kind == "sphere" else p.size for p in parts])
             arch = rr.Ellipsoids3D(half_sizes=semi, centers=pos, quaternions=rot, colors=rgba, fill_mode="solid")
@@ -384,29 +477,34 @@ def _episode_markdown(record: EpisodeRecord) -> str:
     adversary = "yes" if record.adversary_pos is not None else "no"
     result = ", ".join(f"{m} = {v:g}" for m, v in record.final_metrics.items()) or "n/a"
     code = record.provenance
-    libraries = ", ".join(f"{name} {code[name]}" for name in ("python", "numpy", "numba", "mujoco", "torch")
-                          if name in code)
-    return "\n".join([
-        f"# {record.condition}, c = {record.formation}",
-        "",
-        "| | |", "|---|---|",
-        f"| backend | {record.backend} |",
-        f"| seed | {record.seed} |",
-        f"| UAVs | {record.n_agents} |",
-        f"| steps | {record.n_steps} (dt = {record.dt} s) |",
-        f"| obstacles | {len(record.obstacles)} (r = {record.obstacle_radius} m) |",
-        f"| LiDAR | {record.n_beams} beams, {record.lidar_range} m |",
-        f"| adversary | {adversary} |",
-        f"| wind, deviation | {record.wind:g} m/s, {record.deviation:g} m |",
-        f"| result | {result} |",
-        "",
-        "## Provenance",
-        "",
-        "| | |", "|---|---|",
-        f"| policy | {record.policy or 'n/a'} |",
-        f"| policy SHA-256 | `{record.policy_sha256 or 'n/a'}` |",
-        f"| git commit | `{code.get('git_commit') or 'n/a'}` |",
-        f"| cefc-mj | {code.get('cefc_mj', 'n/a')} (code `{code.get('code_version', 'n/a')}`) |",
-        f"| libraries | {libraries or 'n/a'} |",
-        f"| CPU | {code.get('cpu', 'n/a')} |",
-    ])
+    libraries = ", ".join(
+        f"{name} {code[name]}" for name in ("python", "numpy", "numba", "mujoco", "torch") if name in code
+    )
+    return "\n".join(
+        [
+            f"# {record.condition}, c = {record.formation}",
+            "",
+            "| | |",
+            "|---|---|",
+            f"| backend | {record.backend} |",
+            f"| seed | {record.seed} |",
+            f"| UAVs | {record.n_agents} |",
+            f"| steps | {record.n_steps} (dt = {record.dt} s) |",
+            f"| obstacles | {len(record.obstacles)} (r = {record.obstacle_radius} m) |",
+            f"| LiDAR | {record.n_beams} beams, {record.lidar_range} m |",
+            f"| adversary | {adversary} |",
+            f"| wind, deviation | {record.wind:g} m/s, {record.deviation:g} m |",
+            f"| result | {result} |",
+            "",
+            "## Provenance",
+            "",
+            "| | |",
+            "|---|---|",
+            f"| policy | {record.policy or 'n/a'} |",
+            f"| policy SHA-256 | `{record.policy_sha256 or 'n/a'}` |",
+            f"| git commit | `{code.get('git_commit') or 'n/a'}` |",
+            f"| cefc-mj | {code.get('cefc_mj', 'n/a')} (code `{code.get('code_version', 'n/a')}`) |",
+            f"| libraries | {libraries or 'n/a'} |",
+            f"| CPU | {code.get('cpu', 'n/a')} |",
+        ]
+    )
