@@ -76,7 +76,11 @@ def test_table5_rows_units_seeds_and_missing_methods(policies):
     assert result["rows"]["MAPPO+AT-M"]["vs_reference"]["E"]["verdict"] == "no significant difference"
     assert result["rows"]["CI-HRL"]["paper"]["E"] == 4.46
     text = format_highlevel_table(result)
-    assert "Over training seeds" in text and "E vs rule (s)" in text and "reference" in text
+    assert "Over training seeds" in text and "E vs rule (s)" in text and "reference" in text and "R_e/N" in text
+    # R_e/N is the summed R_e over the game's 8 agents, both printed
+    r_e = seeds["ci95"]["R_e"]["mean"]
+    mappo_line = next(line for line in text.splitlines() if line.startswith("MAPPO+AT-M") and "[" in line)
+    assert f"{r_e:.0f} [" in mappo_line and f"{r_e / 8:.0f} [" in mappo_line
     assert "MAPPO+AT-M" in text and "2 training seeds" in text and "missing policies: TarMAC+AT-M" in text
     assert "Table IV, message size per agent and decision: MAPPO+AT-M 0 (paper 0), CI-HRL 64 (paper 64)" in text
     # The same seed flies the same episodes: bit-identical figures.

@@ -618,7 +618,8 @@ def seed_table_lines(result: dict) -> list[str]:
         f"Over training seeds (each seed's mean over the {result['protocol']['episodes']} episodes; mean "
         "[95 % CI of the mean, Student's t]). E: steps with any agent within 2 m of the adversary, in steps "
         "and in seconds (x 0.1 s); E_agents: agent-steps within 2 m. R_* are per-episode sums, not "
-        "scaled. p: Welch's t-test against CI-HRL over the seeds; a difference counts only where "
+        "scaled; R_e sums over the agents, R_e/N is its per-agent mean. p: Welch's t-test against CI-HRL "
+        "over the seeds; a difference counts only where "
         f"p < {ALPHA}.",
     ]
     header = [
@@ -628,6 +629,7 @@ def seed_table_lines(result: dict) -> list[str]:
         "R_t",
         "R_n",
         "R_e",
+        "R_e/N",
         "E (steps)",
         "E (s)",
         "E_agents",
@@ -657,6 +659,7 @@ def seed_table_lines(result: dict) -> list[str]:
                 _ci_text(ci["R_t"]),
                 _ci_text(ci["R_n"], fmt=".0f"),
                 _ci_text(ci["R_e"], fmt=".0f"),
+                _ci_text(ci["R_e"], 1 / result["protocol"]["n_agents"], ".0f"),
                 _ci_text(ci["E"]),
                 _ci_text(ci["E"], DT, ".2f"),
                 _ci_text(ci["E_agents"], fmt=".0f"),
