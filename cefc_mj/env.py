@@ -4,6 +4,20 @@
 wrapper (`cefc_mj.pettingzoo_env`) exposes one env of it. Both backends run through this class, so
 observations, rewards and metrics are the same code for particles and quadrotors.
 
+The game's pieces, in the order a step uses them (read this file top to bottom, then each module):
+
+| piece | where | in this class |
+|---|---|---|
+| task parameters | `task/config.py` (`TaskConfig`, `RewardConfig`) | `__init__` |
+| scenario: starts, obstacles, targets, anchors, adversary start | `task/scenario.py` | `reset` |
+| world: particles or MuJoCo quadrotors | `sim/particle.py`, `sim/mujoco_world.py` (`sim/backends.py`) | `step` |
+| adversary: rules and the learned one's observation | `task/adversary.py` | `step`, `rule_adversary_*` |
+| groups and formation error | `task/formation.py` | `_groups` |
+| sensing: deviation, position estimate, LiDAR | `task/deviation.py`, `estimator.py`, `lidar.py` | `_observe` |
+| observation | `task/observation.py` | `_observe` |
+| reward terms R_f, R_n, R_t, R_e, R_c | `task/rewards.py` | `_rewards` |
+| metrics F, N, C, E, E_agents | here | `_accumulate_metrics`, `episode_metrics` |
+
 >>> from cefc_mj.env import BatchedCEFCEnv
 >>> from cefc_mj.task.config import TaskConfig
 >>> env = BatchedCEFCEnv(TaskConfig(n_agents=5, mode="formation"), n_envs=4, seed=0)
