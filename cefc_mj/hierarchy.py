@@ -339,3 +339,108 @@ class HierarchicalCEFCEnv:
         if "metrics" in info:
             out["metrics"] = info["metrics"]
         return obs.copy(), total, done.copy(), out
+
+
+# ---------------------------------------------------------------------------- one agent's hierarchy
+def agent_cefc_observation(
+    task: TaskConfig,
+    own: np.ndarray,
+    neighbours: np.ndarray,
+    targets: np.ndarray,
+    adversary: np.ndarray,
+    lidar: np.ndarray,
+) -> np.ndarray:
+    """One agent's CEFC observation [D] (float32) from what it senses itself: own [px, py, vx, vy]
+    (perceived position, velocity), the neighbours it heard, neighbours [k, 5] = [id, px, py, vx, vy]
+    in increasing id, targets [J, 3] = [x, y, urgency], adversary [px, py, vx, vy], its LiDAR [M].
+
+    It is `build_cefc_observation`'s row of this agent, bit for bit, computed by the same function on
+    a local swarm [itself, its neighbours] (the neighbour kernel breaks distance ties by index, and
+    the local order keeps the UAV ids' order), as long as the same neighbours are within the
+    observation distance (always with exact sensing). The SITL-M game's agents build their
+    observation with it (docs/sitl_m.md, "The game over SITL-M")."""
+    from cefc_mj.task.observation import build_cefc_observation
+
+    rows = np.asarray(neighbours, dtype=np.float64).reshape(-1, 5)
+    own = np.asarray(own, dtype=np.float64)
+    pos = np.concatenate([own[None, :2], rows[:, 1:3]])[None]
+    vel = np.concatenate([own[None, 2:4], rows[:, 3:5]])[None]
+    lidar_rows = np.zeros((1, pos.shape[1], len(lidar)))
+    lidar_rows[0, 0] = lidar
+    targets = np.asarray(targets, dtype=np.float64).reshape(-1, 3)
+    adversary = np.asarray(adversary, dtype=np.float64)
+    obs = build_cefc_observation(
+        task, pos, vel, targets[None, :, :2], targets[None, :, 2], adversary[None, :2], adversary[None, 2:4], lidar_rows
+    )
+    return obs[0, 0]
+
+
+def agent_inbox(own_message: np.ndarray, sender, distance, messages, slots: int):
+    """One agent's `Inbox` ([1, 1, ...] arrays, K = `slots`) from the messages it received, in the
+    channel's order (nearest first): sender [k] ids, distance [k] (m), messages [k, D]; own_message
+    [D] is its own previous message (the memory input). Empty slots as the channel pads them (zeros,
+    mask False, sender -1), so an absent neighbour and a missing message read the same."""
+    from cefc_mj.task.messages import Inbox
+
+    own_message = np.asarray(own_message, dtype=np.float32)
+    dim = own_message.shape[-1]
+    sender = np.asarray(sender, dtype=np.int64).reshape(-1)[:slots]
+    k = len(sender)
+    box = np.zeros((1, 1, slots, dim), dtype=np.float32)
+    box[0, 0, :k] = np.asarray(messages, dtype=np.float32).reshape(-1, dim)[:k]
+    mask = np.zeros((1, 1, slots), dtype=bool)
+    mask[0, 0, :k] = True
+    dist = np.zeros((1, 1, slots))
+    dist[0, 0, :k] = np.asarray(distance, dtype=np.float64).reshape(-1)[:k]
+    senders = np.full((1, 1, slots), -1, dtype=np.int64)
+    senders[0, 0, :k] = sender
+    return Inbox(box, mask, dist, senders, np.array([[k]], dtype=np.int64), own_message.reshape(1, 1, dim))
+
+
+class AgentHierarchy:
+    """One UAV's whole CI-HRL hierarchy, deciding from its own observations only: what a SITL-M game
+    agent runs (`cefc_mj.deploy.agent --game`).
+
+    - `decide(cefc_obs, sender, distance, messages)`: ConsMAC and the anchor selector, every
+      high-level decision, through `HighLevelPolicy.agent_decider` (the same anchor and message as
+      `HighLevelPolicy.decide` on this agent's row, bit for bit); its memory (the GRU's hidden state,
+      ConsMAC's m_i0) is the agent's own previous message, kept here. The anchor is decoded on the
+      game's grid (`HierarchicalCEFCEnv.decode`).
+    - `act(low_obs)`: the low level toward that anchor, every step (`LowLevel.act` on one row).
+
+    Low levels that need the agent's group size (the per-group teachers) are refused: a lone agent
+    does not know the swarm's connected components."""
+
+    def __init__(self, policy, low_level: LowLevel, task: TaskConfig, anchor_values: tuple[float, ...] = ANCHOR_VALUES):
+        if isinstance(low_level, PerGroupPolicies):
+            raise ConfigError("the per-group low level needs each agent's group size, which one agent does not know")
+        self.policy, self.low_level, self.task = policy, low_level, task
+        self.grid = anchor_grid(tuple(anchor_values))
+        self.decider = policy.agent_decider()
+        self.message_dim = policy.message_dim
+        self.slots = task.n_agents - 1
+        self.own = np.zeros(self.message_dim, dtype=np.float32)
+        self.anchor_index = None
+        self.anchor = np.zeros(2)
+
+    @property
+    def communicates(self) -> bool:
+        return self.message_dim > 0
+
+    def decide(self, cefc_obs: np.ndarray, sender=(), distance=(), messages=()) -> tuple[int, np.ndarray | None]:
+        """(anchor index, message [D] float32 or None) for this agent's CEFC observation [D_obs] and
+        the messages it received for this decision; sets `anchor` and the memory."""
+        inbox = None
+        if self.communicates:
+            inbox = agent_inbox(self.own, sender, distance, np.reshape(messages, (-1, self.message_dim)), self.slots)
+        index, message = self.decider(np.asarray(cefc_obs, dtype=np.float32)[None, None], inbox)
+        self.anchor_index = int(index[0, 0])
+        self.anchor = self.grid[self.anchor_index].astype(np.float64)
+        if message is None:
+            return self.anchor_index, None
+        self.own = np.asarray(message[0, 0], dtype=np.float32)
+        return self.anchor_index, self.own
+
+    def act(self, low_obs: np.ndarray) -> np.ndarray:
+        """The acceleration setpoint [2] (m/s^2) for this agent's low-level observation [D_low]."""
+        return np.asarray(self.low_level.act(np.asarray(low_obs)[None, None], np.ones((1, 1), dtype=np.int64))[0, 0])

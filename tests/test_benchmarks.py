@@ -35,6 +35,7 @@ CASES = {
         ],
     ),
     "particle": (["bench_particle.py", "--smoke"], [r"(?m)^ +4 +[\d,]+ +[\d,]+ +[\d.]+x$"]),
+    "consmac": (["bench_consmac.py", "--smoke"], [r"new / old: [\d.]+"]),
     "highlevel": (["bench_highlevel.py", "--smoke"], [r"full decision +[\d.]+ us = [\d.]+ x the low level alone"]),
     "rerun": (["bench_rerun.py", "--smoke"], [r"overhead vs a \d+ s episode at +\d+x real time .*: +[\d.]+ %"]),
 }

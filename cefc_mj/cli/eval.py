@@ -162,7 +162,8 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="SITL-M: every UAV's policy in its own OS process over ZeroMQ, asynchronous (single: the "
         "asked condition flown that way, vs the one-process calm reference; table8: adds the SITL-M "
-        "row); docs/sitl_m.md",
+        "row; table5 with --policy: the game with every UAV's whole hierarchy in its own process, one "
+        "game per seed beside the lock-step game); docs/sitl_m.md",
     )
     p.add_argument(
         "--link-delay",
@@ -306,7 +307,7 @@ def refuse_flags(args: argparse.Namespace) -> None:
             for flag, on in (
                 ("--formation", args.formation is not None),
                 ("--steps", args.steps is not None),
-                ("--sitl-m", args.sitl_m),
+                ("--sitl-m", args.sitl_m and proto != "table5"),
                 ("--drop", args.drop is not None),
                 ("--airframe", args.airframe is not None),
                 ("--estimator", args.estimator is not None),
@@ -409,6 +410,7 @@ def to_request(args: argparse.Namespace) -> SingleRequest | Table8Request | Tabl
             png=args.png,
             report_dir=args.report_dir,
             json=args.json,
+            sitl=sitl,
             **_given(episodes=args.episodes, seed=args.seed, policy=args.policy, adversary=args.adversary),
         )
     grid = _given(

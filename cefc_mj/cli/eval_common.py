@@ -38,10 +38,14 @@ def write_outputs(writes: list[tuple[Path, object]]) -> list[Path]:
     return written
 
 
-def deploy_runners(sitl: bool, dropout: bool) -> RowRunners:
-    """`cefc_mj.deploy`'s episode runners for the rows asked for (SITL-M, dropout), as table8 takes them;
-    deploy (the agent-process layer) is imported only when one is."""
-    sitl_runner = dropout_runner = None
+def deploy_runners(sitl: bool, dropout: bool, game: bool = False) -> RowRunners:
+    """`cefc_mj.deploy`'s episode runners for the rows asked for (SITL-M, dropout, the SITL-M game), as
+    table8 and table5 take them; deploy (the agent-process layer) is imported only when one is."""
+    sitl_runner = dropout_runner = game_runner = None
+    if game:
+        from cefc_mj.deploy.game import run_sitl_game
+
+        game_runner = run_sitl_game
     if sitl:
         from cefc_mj.deploy.episode import run_sitl_episode
 
@@ -50,7 +54,7 @@ def deploy_runners(sitl: bool, dropout: bool) -> RowRunners:
         from cefc_mj.deploy.dropout import run_dropout_episode
 
         dropout_runner = run_dropout_episode
-    return RowRunners(sitl=sitl_runner, dropout=dropout_runner)
+    return RowRunners(sitl=sitl_runner, dropout=dropout_runner, game=game_runner)
 
 
 def sitl_config(sitl: SitlM | None, drop: tuple[int, int] | None = None):

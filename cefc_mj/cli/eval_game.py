@@ -7,7 +7,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from cefc_mj.cli.eval_common import PROG, wind_direction_text, write_outputs
+from cefc_mj.cli.eval_common import PROG, deploy_runners, sitl_config, wind_direction_text, write_outputs
 from cefc_mj.errors import ConfigError
 from cefc_mj.eval.highlevel import (
     GAME_AGENTS,
@@ -15,11 +15,13 @@ from cefc_mj.eval.highlevel import (
     LOW_LEVEL,
     TABLE7_SIZES,
     format_highlevel_table,
+    format_sitl_game,
     game_task,
     highlevel_policy_path,
     plot_highlevel_table,
     resolve_adversary,
     run_table5,
+    run_table5_sitl,
     run_table6,
     run_table7,
 )
@@ -61,6 +63,8 @@ def run(request: GameTablesRequest, prov: dict, command: str) -> int:
     )
     prov = {k: v for k, v in prov.items() if k != "policies"}
     common = {"episodes": request.episodes, "seed": request.seed, "provenance": prov, "where": where}
+    if request.sitl is not None:
+        return _run_sitl_game(request, common, command)
     if proto == "table5":
         result = run_table5(policy=request.policy, adversary=request.played_adversary, **common)
     elif proto == "table6":
@@ -85,6 +89,35 @@ def run(request: GameTablesRequest, prov: dict, command: str) -> int:
     if request.rrd is not None or request.png is not None:
         for path in _record_game(request):
             print(f"wrote {path}")
+    return 0
+
+
+def _run_sitl_game(request: GameTablesRequest, common: dict, command: str) -> int:
+    """--sitl-m: one game per seed with every UAV's hierarchy in its own process, beside the lock-step
+    game of each seed; the table, timing and bytes on the wire."""
+    result = run_table5_sitl(
+        deploy_runners(False, False, game=True).game,
+        sitl_config(request.sitl),
+        policy=request.policy,
+        adversary=request.played_adversary,
+        **common,
+    )
+    result["protocol"]["command"] = command
+    text = format_sitl_game(result)
+    print(text)
+    data = json.dumps(result, indent=2, default=float) + "\n"
+    writes: list[tuple[Path, object]] = []
+    if request.report_dir is not None:
+        writes += [
+            (
+                request.report_dir / "table5_sitl_m.md",
+                f"# table5, SITL-M game\n\n```\n{text}\n```\n\nCommand: `{command}`\n",
+            ),
+            (request.report_dir / "table5_sitl_m.json", data),
+        ]
+    if request.json is not None:
+        writes.append((request.json, data))
+    write_outputs(writes)
     return 0
 
 

@@ -688,7 +688,16 @@ def _highlevel_parser(sub) -> None:
         "--variant",
         choices=("consmac-a", "consmac-o", "mappo", "tarmac"),
         default=None,
-        help="consmac-a (default), consmac-o, mappo (no communication), tarmac (communication trained by RL)",
+        help="consmac-a (default), consmac-o, mappo (no communication), tarmac (messages trained end to end by RL)",
+    )
+    p.add_argument(
+        "--ablation",
+        choices=("none", "wo-com", "wo-mem", "wo-de", "wt-rl", "consmac-g"),
+        default=None,
+        help="one of the paper's Fig. 7 ablations of ConsMAC (consmac-a/-o only; default none): wo-com (no "
+        "message received), wo-mem (no GRU memory), wo-de (no distance encoder), wt-rl (the RL loss also "
+        "trains ConsMAC), consmac-g (the estimate g_hat is sent as the message). Written as "
+        "cihrl_<variant>_<ablation>",
     )
     p.add_argument(
         "--low-level",

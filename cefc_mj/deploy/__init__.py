@@ -3,6 +3,8 @@
 - `run_sitl_episode(spec, SitlConfig(...))`: one episode, the world and task core here, the agents
   as processes (local, or on other machines with `cefc-agent --connect tcp://HOST:PORT --uav I`).
 - `run_dropout_episode(spec, (k, step))`: the lock-step agent-dropout run (Fig. 4b), both backends.
+- `run_sitl_game(GameSpec(...), SitlConfig(...))`: the CI-HRL game (Table V) with every UAV's whole
+  hierarchy in its own process (`cefc-agent --game`) and the ConsMAC messages over the transport.
 - `cefc_mj.deploy.agent`: the agent process; `cefc_mj.deploy.wire`: the message format.
 
 docs/sitl_m.md describes the timing model, the wire format and the fault handling. The names below
@@ -21,12 +23,14 @@ _EXPORTS = {
     "MavlinkLinkConfig": "cefc_mj.deploy.mavlink_link",
     "SitlConfig": "cefc_mj.deploy.episode",
     "SitlEpisodeResult": "cefc_mj.deploy.results",
+    "SitlGameResult": "cefc_mj.deploy.game",
     "SitlStats": "cefc_mj.deploy.results",
     "choose_dropouts": "cefc_mj.deploy.dropout",
     "parse_drop": "cefc_mj.deploy.dropout",
     "run_dropout_episode": "cefc_mj.deploy.dropout",
     "run_latency_model_episode": "cefc_mj.deploy.episode",
     "run_sitl_episode": "cefc_mj.deploy.episode",
+    "run_sitl_game": "cefc_mj.deploy.game",
 }
 
 __all__ = sorted(_EXPORTS)

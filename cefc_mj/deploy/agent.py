@@ -12,6 +12,12 @@ its measured decision latency (packet received -> reply ready, wall clock). If s
 queued up while it was busy, it answers only the newest (a queue of one, like a ROS topic with
 queue size 1); the simulator counts the skipped ones.
 
+With --game the agent runs its UAV's whole CI-HRL hierarchy in the SITL-M game (`GameAgent`,
+`cefc_mj.deploy.game`): --policy is then the high-level policy (e.g. cihrl_consmac_a); ConsMAC and
+the anchor selector decide every 10 steps from its own game sensor packet and the inbox of
+neighbours' messages, the game's low level flies toward the chosen anchor every step, and the agent
+sends its 64-number message after each decision.
+
 It exits on its own when the simulator says `stop`, when the simulator has been silent for the
 heartbeat timeout, when the process given with --parent-pid (the simulator) is gone, or on
 SIGINT/SIGTERM. With several `--uav` indices the process is a launcher: it does the heavy imports
@@ -87,6 +93,8 @@ def _parent_alive(parent_pid: int | None) -> bool:
 class Agent:
     """The agent's state machine over one DEALER socket (see the module docstring)."""
 
+    SENSOR_KIND = "sensor"
+
     def __init__(
         self,
         connect: str,
@@ -138,14 +146,20 @@ class Agent:
                 if len(frames) != 1:
                     raise wire.WireError("multipart frame")
                 message = wire.decode(frames[0], wire.SIM_TO_AGENT)
-                if message["type"] == "sensor" and self.cfg is not None:
-                    wire.check_sensor(message, self.cfg.n_lidar_rays, self.cfg.n_agents, self.uav)
+                self._check(message)
             except wire.WireError as e:
                 self.malformed += 1
                 self.log(f"dropped a malformed message ({e})")
                 continue
             out.append((message, arrived))
         return out
+
+    def _check(self, message: dict) -> None:
+        """The checks of a decoded message that need the game (WireError)."""
+        if message["type"] in ("game_sensor", "inbox"):
+            raise wire.WireError("game frame to a low-level agent")
+        if message["type"] == "sensor" and self.cfg is not None:
+            wire.check_sensor(message, self.cfg.n_lidar_rays, self.cfg.n_agents, self.uav)
 
     def _welcome(self, message: dict) -> int | None:
         """Load the policy for the game in `welcome`; an exit code if the agent cannot fly it."""
@@ -187,6 +201,9 @@ class Agent:
         print(f"cefc-agent uav {self.uav}: {reason}", file=sys.stderr, flush=True)
         time.sleep(0.1)  # let the error frame leave before the socket closes
         return EXIT_USAGE
+
+    def _inbox(self, message: dict) -> None:  # only the game agent receives inboxes
+        pass
 
     def _act(self, packet: dict, arrived: float) -> None:
         obs = observation_from_packet(self.cfg, packet)
@@ -231,8 +248,10 @@ class Agent:
                     code = self._welcome(message)
                     if code is not None:
                         return code
-                elif kind == "sensor" and self.cfg is not None:
+                elif kind == self.SENSOR_KIND and self.cfg is not None:
                     newest = (message, arrived)
+                elif kind == "inbox" and self.cfg is not None:
+                    self._inbox(message)
             if newest is not None:  # the reply first, the housekeeping after it
                 self._act(*newest)
             now = time.monotonic()
@@ -259,6 +278,145 @@ class Agent:
 
     def close(self) -> None:
         self.sock.close(0)
+
+
+class GameAgent(Agent):
+    """One UAV's whole CI-HRL hierarchy (`cefc-agent --game`): at each high-level decision (every
+    `decision_interval` low-level steps) ConsMAC and the anchor selector on its own CEFC observation
+    and the inbox of neighbours' messages it received (`AgentHierarchy`, the in-process game's code),
+    then, every step, the low level toward its chosen anchor. It answers each game sensor packet
+    with the acceleration setpoint (its latency covers the whole decision) and, after each
+    high-level decision, sends its message (with the anchor it chose and the high-level latency).
+    An inbox that did not arrive (dropped, malformed, late) reads as no neighbour in range."""
+
+    SENSOR_KIND = "game_sensor"
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.hierarchy = None
+        self.interval = 10
+        self.inboxes: dict[int, dict] = {}
+        self.decided = -1
+        self.missing_inboxes = 0
+        self.late_inboxes = 0
+
+    def _check(self, message: dict) -> None:
+        kind, cfg = message["type"], self.cfg
+        if kind == "sensor":
+            raise wire.WireError("low-level sensor packet to a game agent")
+        if cfg is None or self.hierarchy is None:
+            return
+        if kind == "game_sensor":
+            wire.check_game_sensor(message, cfg.n_lidar_rays, cfg.n_targets, cfg.n_agents, self.uav)
+        elif kind == "inbox":
+            wire.check_inbox(message, self.hierarchy.message_dim, cfg.n_agents, self.uav, cfg.observation_distance)
+
+    def _welcome(self, message: dict) -> int | None:
+        from cefc_mj.errors import CefcError
+        from cefc_mj.eval.highlevel import highlevel_policy_path
+        from cefc_mj.hierarchy import AgentHierarchy, agent_cefc_observation, load_low_level
+        from cefc_mj.nn.highlevel_policy import load_highlevel_policy
+        from cefc_mj.task.config import TaskConfig
+
+        if message["uav"] != self.uav:
+            return self._fail("the simulator welcomed another UAV index")
+        game = message.get("game")
+        try:
+            if not isinstance(game, dict) or not isinstance(game.get("low_level"), str):
+                raise CefcError("the simulator runs no game (a low-level SITL-M episode?): drop --game")
+            interval = game.get("decision_interval")
+            if not isinstance(interval, int) or isinstance(interval, bool) or interval < 1:
+                raise CefcError("welcome: decision_interval must be an integer >= 1")
+            cfg = TaskConfig.from_dict(message["task"])
+            if cfg.mode != "cefc" or not 0 <= self.uav < cfg.n_agents:
+                raise CefcError(f"uav {self.uav}: not an agent of this CEFC game")
+            policy, _ = load_highlevel_policy(highlevel_policy_path(self.policy_choice))
+            hierarchy = AgentHierarchy(policy, load_low_level(game["low_level"], cfg), cfg)
+        except (CefcError, TypeError, ValueError) as e:
+            return self._fail(str(e).splitlines()[0] if str(e) else type(e).__name__)
+        if self.heartbeat_override is None:
+            self.heartbeat_timeout_s = message["heartbeat_timeout_s"]
+        self.cfg, self.hierarchy, self.interval = cfg, hierarchy, interval
+        own, lidar = [0.0, 0.0, 0.0, 0.0], [cfg.lidar_range] * cfg.n_lidar_rays
+        neighbours = [[(self.uav + 1) % cfg.n_agents, 1.0, 0.0, 0.0, 0.0]]
+        targets = [[1.0, 1.0, 0.5]] * cfg.n_targets
+        probe = {"pos": own[:2], "vel": own[2:], "anchor": [1.0, 1.0], "lidar": lidar, "neighbours": neighbours}
+        for _ in range(WARMUP_CALLS):  # the first calls (numba kernels, the TorchScript trace) are slow
+            obs = agent_cefc_observation(cfg, own, neighbours, targets, [2.0, 2.0, 0.0, 0.0], lidar)
+            hierarchy.decide(obs, [(self.uav + 1) % cfg.n_agents], [1.0], np.zeros((1, hierarchy.message_dim)))
+            hierarchy.act(observation_from_packet(cfg, probe))
+        hierarchy.own[:] = 0.0  # the warm-up leaves no memory behind
+        hierarchy.anchor_index, hierarchy.anchor = None, np.zeros(2)
+        self.send({"type": "ready", "uav": self.uav})
+        self.log(f"playing {policy.variant} ({self.policy_choice}) over {game['low_level']}, N = {cfg.n_agents}")
+        return None
+
+    def _inbox(self, message: dict) -> None:
+        if message["seq"] <= self.decided:
+            self.late_inboxes += 1
+            return
+        self.inboxes[message["seq"]] = message
+        for old in [d for d in self.inboxes if d < message["seq"] - 4]:  # never more than a few kept
+            del self.inboxes[old]
+
+    def _act(self, packet: dict, arrived: float) -> None:
+        from cefc_mj.hierarchy import agent_cefc_observation
+
+        hierarchy, cfg = self.hierarchy, self.cfg
+        decision = packet["seq"] // self.interval
+        sent_message = None
+        if decision > self.decided:  # a high-level decision (late if its packet was skipped)
+            neighbours = sorted(packet["neighbours"])
+            obs = agent_cefc_observation(
+                cfg,
+                [*packet["pos"], *packet["vel"]],
+                neighbours,
+                packet["targets"],
+                [*packet["adversary_pos"], *packet["adversary_vel"]],
+                packet["lidar"],
+            )
+            box = self.inboxes.pop(decision, None)
+            if box is None and hierarchy.communicates:
+                self.missing_inboxes += 1
+            if box is None:
+                index, message = hierarchy.decide(obs)
+            else:
+                index, message = hierarchy.decide(obs, box["sender"], box["distance"], box["messages"])
+            high_ms = (time.perf_counter() - arrived) * 1e3
+            self.decided = decision
+            for old in [d for d in self.inboxes if d <= decision]:
+                del self.inboxes[old]
+            sent_message = {
+                "type": "message",
+                "seq": decision,
+                "uav": self.uav,
+                "latency_ms": high_ms,
+                "anchor": index,
+                "message": message if message is not None else np.zeros(0, dtype=np.float32),
+            }
+        if hierarchy.anchor_index is None:  # no decision yet (cannot happen: packet 0 is a decision)
+            return
+        low_packet = {
+            "pos": packet["pos"],
+            "vel": packet["vel"],
+            "anchor": hierarchy.anchor.tolist(),
+            "lidar": packet["lidar"],
+            "neighbours": packet["neighbours"],
+        }
+        accel = hierarchy.act(observation_from_packet(cfg, low_packet))
+        latency_ms = (time.perf_counter() - arrived) * 1e3
+        self.send(
+            {
+                "type": "action",
+                "uav": self.uav,
+                "seq": packet["seq"],
+                "accel": [float(accel[0]), float(accel[1])],
+                "latency_ms": latency_ms,
+            }
+        )
+        self.answered += 1
+        if sent_message is not None:
+            self.send(sent_message)
 
 
 class _Parser(argparse.ArgumentParser):
@@ -304,6 +462,12 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="S",
         help="exit after this long without a message from the simulator (default: the simulator's value)",
     )
+    p.add_argument(
+        "--game",
+        action="store_true",
+        help="run the UAV's whole CI-HRL hierarchy in the game (--policy: the high-level policy, e.g. "
+        "cihrl_consmac_a): ConsMAC + anchor selector every decision, the low level every step",
+    )
     p.add_argument("--verbose", action="store_true", help="log to stderr")
     return p
 
@@ -313,7 +477,7 @@ def _run_agent(args, uav: int) -> int:
     agent = None
     try:
         try:
-            agent = Agent(
+            agent = (GameAgent if args.game else Agent)(
                 args.connect, uav, args.policy, args.parent_pid, args.wait, args.heartbeat_timeout, args.verbose
             )
         except Exception as e:  # zmq.ZMQError: a malformed endpoint
@@ -405,6 +569,9 @@ def main(argv: list[str] | None = None) -> int:
         import torch
 
         import cefc_mj.eval.runner  # noqa: F401 - the heavy imports (torch, numba kernels) before saying hello
+
+        if args.game:
+            import cefc_mj.eval.highlevel  # noqa: F401 - the game's networks and observation code
         from cefc_mj.task.config import TaskConfig
 
         torch.set_num_threads(1)

@@ -292,6 +292,8 @@ class _Vehicle:
         self.round_trip_ms: list[float] = []
         self.age_ms: list[float] = []
         self.late = self.skipped = self.ignored = 0
+        self.wire_bytes: collections.Counter = collections.Counter()
+        """Bytes on the wire by direction and message type ("up:action", "down:sensor", ...)."""
 
 
 class SitlServer:
@@ -383,13 +385,16 @@ class SitlServer:
     def _send(self, vehicle: _Vehicle, message: dict) -> None:
         if vehicle.identity is None:
             return
-        self._send_to(vehicle.identity, message)
+        vehicle.wire_bytes["down:" + message["type"]] += self._send_to(vehicle.identity, message)
 
-    def _send_to(self, identity: bytes, message: dict) -> None:
+    def _send_to(self, identity: bytes, message: dict) -> int:
+        """Send one message; returns its frame's size in bytes (0 if the socket refused it)."""
+        frame = wire.encode({"v": wire.WIRE_VERSION, **message})
         try:  # ROUTER never blocks: it drops frames for a peer that is gone or whose queue is full
-            self.sock.send_multipart([identity, wire.encode({"v": wire.WIRE_VERSION, **message})], self.zmq.NOBLOCK)
+            self.sock.send_multipart([identity, frame], self.zmq.NOBLOCK)
         except self.zmq.ZMQError:
-            pass
+            return 0
+        return len(frame)
 
     # ------------------------------------------------------------------ receiving
     def receive(self, timeout_s: float = 0.0) -> int:
@@ -431,6 +436,7 @@ class SitlServer:
         if vehicle is None or vehicle.index != uav:
             self._malformed("uav does not match the sender")
             return
+        vehicle.wire_bytes["up:" + kind] += len(payload)
         if kind == "ready":
             if vehicle.state == "connected":
                 vehicle.state = "flying"
@@ -439,6 +445,12 @@ class SitlServer:
             self.event(uav, "agent_error", message["reason"])
         elif kind == "action":
             self._action(vehicle, message, wall)
+        elif kind == "message":
+            self._message(vehicle, message, wall)
+
+    def _message(self, vehicle: _Vehicle, message: dict, wall: float) -> None:
+        """A ConsMAC message: only the game's server (`cefc_mj.deploy.game`) expects them."""
+        self._malformed("message outside a game")
 
     def _hello(self, identity: bytes, message: dict) -> None:
         vehicle = self.vehicles[message["uav"]]

@@ -456,10 +456,21 @@ class GameTablesRequest:
     """--report-dir: where table<k>.md/.json/.png go; None: no report folder."""
     json: Path | None = None
     """--json: also write the table here as JSON."""
+    sitl: SitlM | None = None
+    """--sitl-m (table5 with --policy): each game played with every UAV's hierarchy in its own process,
+    one game per seed, beside the same seeds' lock-step games (docs/sitl_m.md, "The game over SITL-M")."""
 
     def __post_init__(self) -> None:
         if self.protocol not in GAME_TABLES:
             raise ConfigError(f"--protocol {self.protocol}: must be one of {', '.join(GAME_TABLES)}")
+        if self.sitl is not None:
+            if self.protocol != "table5" or self.policy is None:
+                raise ConfigError(
+                    "--sitl-m: the SITL-M game plays one policy of table5: add --protocol table5 --policy NAME"
+                )
+            for flag, path in (("--rrd", self.rrd), ("--png", self.png)):
+                if path is not None:
+                    raise ConfigError(f"{flag}: the SITL-M game is not recorded yet; drop {flag} or --sitl-m")
         if self.adversary is not None and self.protocol == "table6":
             raise adversary_refused(self.adversary)
         if self.policy is not None:

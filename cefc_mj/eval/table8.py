@@ -165,6 +165,8 @@ class RowRunners:
     """`run_sitl_episode(spec, sitl, record=...)`: SITL-M, every UAV's policy in its own process."""
     dropout: Callable | None = None
     """`run_dropout_episode(spec, drop, policy=...)`: lock-step, agents leaving mid-episode."""
+    game: Callable | None = None
+    """`run_sitl_game(GameSpec, sitl)`: the CI-HRL game, every UAV's hierarchy in its own process."""
 
 
 def _runner(runners: RowRunners | None, row: str) -> Callable:

@@ -28,6 +28,20 @@ Decisions where the paper is silent (docs/high_level.md gives the reasons):
   only through the attention weights (and not at all with fewer than two neighbours);
 - the global-state labels order agents nearest first (`label_order`).
 
+The paper's Fig. 7 ablations are one flag, `ConsMACConfig.ablation`, each changing only what it names:
+- "wo-com": no message is received: the inbox is treated as empty (mask all False), so the attention
+  contributes exactly zero and m_i^(t+1) = LayerNorm(m'_i0) (0 with `residual=False`);
+- "wo-mem": no memory: the GRU's hidden input is zero at every decision instead of m_i0^(t), so
+  m'_i0 = GRU(o_i, 0) is a feed-forward (gated) map of o_i alone; the parameters are unchanged;
+- "wo-de": no distance encoder: Phi_d is replaced by zeros (for E_mi and E_m-i alike), so the
+  attention cannot tell near senders from far ones; the shapes and parameters are unchanged;
+- "wt-rl": the network is unchanged; the high level lets the RL loss flow into ConsMAC besides
+  eq. (11) (`cefc_mj.nn.highlevel_policy`, `cefc_mj.train.highlevel`);
+- "consmac-g": the estimate g_hat_i replaces m_i^(t+1) wherever the message is used: it is broadcast
+  (so neighbour messages and the own message m_i0 have `global_dim` numbers), and it is the
+  selector's consensus input. The memory's hidden state stays `message_dim` wide: the own message
+  g_hat_i^(t-1) enters it zero-padded. Needs global_dim <= message_dim.
+
 >>> from cefc_mj.task.config import TaskConfig
 >>> net = ConsMAC(ConsMACConfig.from_task(TaskConfig(n_agents=8)), seed=0)
 >>> obs = torch.zeros(2, 8, net.cfg.env_obs_dim)
@@ -48,6 +62,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 from torch import nn
+from torch.nn import functional as F
 
 from cefc_mj.errors import ConfigError
 from cefc_mj.nn.layers import layer_init, mlp
@@ -58,6 +73,8 @@ LOCAL_PARTS = ("targets", "adversary", "neighbours")
 """The parts of the CEFC observation that form the paper's local observation o_i, in this order."""
 VARIANTS = ("A", "O")
 LABEL_ORDERS = ("nearest", "index")
+ABLATIONS = ("none", "wo-com", "wo-mem", "wo-de", "wt-rl", "consmac-g")
+"""The paper's Fig. 7 ablations of ConsMAC (module docstring); "none" is ConsMAC itself."""
 
 
 class LocalObservationSizes:
@@ -109,6 +126,9 @@ class ConsMACConfig(LocalObservationSizes):
     False: m_i^(t+1) = MHA(...), eq. (9) as printed (zero for an agent without neighbours)."""
     obs_scale: float = 0.125
     """Multiplies o_i before the memory, so that target offsets of up to 16 m become O(1)."""
+    ablation: str = "none"
+    """One of ABLATIONS (the paper's Fig. 7; see the module docstring); "none" for ConsMAC itself.
+    Policy files written before this field existed load as "none"."""
 
     def __post_init__(self) -> None:
         names = [name for name, _ in self.layout]
@@ -133,6 +153,19 @@ class ConsMACConfig(LocalObservationSizes):
             raise ConfigError(f"n_heads={self.n_heads}: must divide attention_dim={self.attention_dim}")
         if not (math.isfinite(self.obs_scale) and self.obs_scale > 0):
             raise ConfigError(f"obs_scale={self.obs_scale!r}: must be a finite number > 0")
+        if self.ablation not in ABLATIONS:
+            raise ConfigError(f"ablation={self.ablation!r}: must be one of {', '.join(ABLATIONS)}")
+        if self.ablation == "consmac-g" and self.global_dim > self.message_dim:
+            raise ConfigError(
+                f"ablation='consmac-g': the estimate ({self.global_dim} numbers) must fit the memory "
+                f"(message_dim={self.message_dim})"
+            )
+
+    @property
+    def sent_dim(self) -> int:
+        """Size of what an agent broadcasts (and gets back as its own message m_i0): message_dim,
+        or global_dim for ConsMAC-G, which sends its estimate g_hat_i."""
+        return self.global_dim if self.ablation == "consmac-g" else self.message_dim
 
     @property
     def global_dim(self) -> int:
@@ -173,7 +206,8 @@ class ConsMACOutput:
     """One ConsMAC step for every agent; leading shape [B, N]."""
 
     message: torch.Tensor
-    """m_i^(t+1) [B, N, message_dim]: broadcast next step, and the selector's consensus input, eq. (12)."""
+    """m_i^(t+1) [B, N, message_dim]: broadcast next step, and the selector's consensus input, eq. (12).
+    ConsMAC-G: the estimate g_hat_i [B, N, global_dim] in its place."""
     estimate: torch.Tensor | None
     """g_hat_i^(t) [B, N, global_dim], eq. (10): the supervised output."""
     memory: torch.Tensor
@@ -216,7 +250,15 @@ class DistanceEncoder(nn.Module):
 class MaskedMultiHeadAttention(nn.Module):
     """Scaled dot-product attention of one query over K masked keys (Vaswani et al.), with its own
     query/key/value/output projections (psi_A). Empty slots get weight exactly 0 and their inputs are
-    never read, so whatever they hold changes nothing; with no key at all the output is exactly 0."""
+    never read, so whatever they hold changes nothing; with no key at all the output is exactly 0.
+
+    Two orders of the same products: `fast=False` (acting, evaluation, deployment: bit for bit what
+    the shipped policies were trained and measured with) projects every key and value; `fast=True`
+    (ConsMAC's supervised update) moves the key projection onto the single query,
+    q_h . (W_K,h e_j + b_K,h) = (W_K,h^T q_h) . e_j + q_h . b_K,h, and the value projection after the
+    weighted sum, sum_j w_hj (W_V,h e_j + b_V,h) = W_V,h (sum_j w_hj e_j) + b_V,h sum_j w_hj, which
+    with one query per row needs about a fifth of the multiplications. Equal to float rounding
+    (tests/test_ablations.py); the parameters are the same."""
 
     def __init__(self, query_dim: int, key_dim: int, attention_dim: int, out_dim: int, n_heads: int):
         super().__init__()
@@ -226,21 +268,38 @@ class MaskedMultiHeadAttention(nn.Module):
         self.value = layer_init(nn.Linear(key_dim, attention_dim), 1.0)
         self.out = layer_init(nn.Linear(attention_dim, out_dim), 1.0)
 
-    def forward(self, query: torch.Tensor, keys: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def forward(
+        self, query: torch.Tensor, keys: torch.Tensor, mask: torch.Tensor, fast: bool = False
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """query [L, Eq], keys [L, K, Ek], mask [L, K] bool -> (out [L, out_dim], weights [L, H, K])."""
         n_rows, k = keys.shape[:2]
         h, hd = self.n_heads, self.head_dim
-        keys = torch.where(mask.unsqueeze(-1), keys, torch.zeros((), dtype=keys.dtype))  # never read empty slots
-        q = self.query(query).view(n_rows, h, 1, hd)
-        key = self.key(keys).view(n_rows, k, h, hd).transpose(1, 2)  # [L, H, K, hd]
-        value = self.value(keys).view(n_rows, k, h, hd).transpose(1, 2)
-        scores = (q @ key.transpose(-1, -2)).squeeze(-2) / math.sqrt(hd)  # [L, H, K]
+        keys = keys.masked_fill(~mask.unsqueeze(-1), 0.0)  # never read empty slots
+        has_neighbour = mask.any(dim=-1, keepdim=True)
         open_slot = mask.unsqueeze(1)
+        if fast:
+            q = self.query(query).view(n_rows, h, hd)
+            key_dim = keys.shape[-1]
+            w_key = self.key.weight.view(h, hd, key_dim)
+            q_key = (q.transpose(0, 1) @ w_key).transpose(0, 1)  # [L, H, Ek]: W_K,h^T q_h
+            scores = (q_key @ keys.transpose(1, 2) + (q * self.key.bias.view(h, hd)).sum(-1, keepdim=True)) / math.sqrt(
+                hd
+            )  # [L, H, K]
+        else:
+            q = self.query(query).view(n_rows, h, 1, hd)
+            key = self.key(keys).view(n_rows, k, h, hd).transpose(1, 2)  # [L, H, K, hd]
+            scores = (q @ key.transpose(-1, -2)).squeeze(-2) / math.sqrt(hd)  # [L, H, K]
         scores = scores.masked_fill(~open_slot, torch.finfo(scores.dtype).min)
         # A row without any open slot would spread its weight uniformly over padding: zero it instead.
         weights = torch.softmax(scores, dim=-1) * open_slot
-        heads = (weights.unsqueeze(-2) @ value).reshape(n_rows, h * hd)  # [L, H*hd]; zeros when K = 0
-        has_neighbour = mask.any(dim=-1, keepdim=True)
+        if fast:
+            w_value = self.value.weight.view(h, hd, -1).transpose(1, 2)  # [H, Ek, hd]
+            pooled = weights @ keys  # [L, H, Ek]: sum_j w_hj e_j
+            heads = (pooled.transpose(0, 1) @ w_value).transpose(0, 1)  # [L, H, hd]
+            heads = (heads + weights.sum(-1, keepdim=True) * self.value.bias.view(h, hd)).reshape(n_rows, h * hd)
+        else:
+            value = self.value(keys).view(n_rows, k, h, hd).transpose(1, 2)
+            heads = (weights.unsqueeze(-2) @ value).reshape(n_rows, h * hd)  # [L, H*hd]; zeros when K = 0
         return self.out(heads) * has_neighbour, weights
 
 
@@ -260,14 +319,15 @@ class ConsMAC(nn.Module):
                 else:
                     nn.init.zeros_(p)
             self.distance_encoder = DistanceEncoder(e)  # psi_D
-            self.attention = MaskedMultiHeadAttention(d + e, d + e, cfg.attention_dim, d, cfg.n_heads)  # psi_A
+            # psi_A; the keys are what neighbours sent (g_hat for ConsMAC-G) with their distance code
+            self.attention = MaskedMultiHeadAttention(d + e, cfg.sent_dim + e, cfg.attention_dim, d, cfg.n_heads)
             self.norm = nn.LayerNorm(d) if cfg.residual else nn.Identity()
             # psi_E: the global estimator, 3 layers
             self.estimator = mlp([d, cfg.hidden, cfg.hidden, cfg.global_dim], activate_last=False, last_gain=1.0)
 
     def initial_message(self, *lead: int) -> torch.Tensor:
-        """Zeros [*lead, message_dim]: the own message m_i0^(0) before anything was sent."""
-        return torch.zeros(*lead, self.cfg.message_dim)
+        """Zeros [*lead, sent_dim]: the own message m_i0^(0) before anything was sent."""
+        return torch.zeros(*lead, self.cfg.sent_dim)
 
     def local_observation(self, obs: torch.Tensor) -> torch.Tensor:
         """o_i [..., obs_dim] from the full CEFC observation [..., env_obs_dim] (unscaled)."""
@@ -281,21 +341,25 @@ class ConsMAC(nn.Module):
         mask: torch.Tensor,
         distance: torch.Tensor,
         with_estimate: bool = True,
+        fast: bool = False,
     ) -> ConsMACOutput:
         """One step for every agent (`with_estimate=False`: skip the global estimator, whose output
-        only the supervised loss reads; the output's estimate is then None).
+        only the supervised loss reads, the output's estimate is then None, except for ConsMAC-G,
+        which sends it; `fast=True`: the attention's reassociated products, for training,
+        `MaskedMultiHeadAttention`).
 
-        obs [B, N, env_obs_dim] (the env's CEFC observation), own_message [B, N, message_dim] (m_i0^(t)),
-        messages [B, N, K, message_dim], mask [B, N, K] (bool or 0/1), distance [B, N, K] (m): the
+        obs [B, N, env_obs_dim] (the env's CEFC observation), own_message [B, N, sent_dim] (m_i0^(t)),
+        messages [B, N, K, sent_dim], mask [B, N, K] (bool or 0/1), distance [B, N, K] (m): the
         inbox of `cefc_mj.task.messages` (any K >= 0; K = N - 1 there). Any leading shape works.
+        sent_dim is message_dim except for ConsMAC-G (global_dim).
         """
         cfg = self.cfg
         lead = obs.shape[:-1]
         k = messages.shape[-2] if messages.dim() >= 2 else -1
         expected = {
             "obs": (obs, (*lead, cfg.env_obs_dim)),
-            "own_message": (own_message, (*lead, cfg.message_dim)),
-            "messages": (messages, (*lead, k, cfg.message_dim)),
+            "own_message": (own_message, (*lead, cfg.sent_dim)),
+            "messages": (messages, (*lead, k, cfg.sent_dim)),
             "mask": (mask, (*lead, k)),
             "distance": (distance, (*lead, k)),
         }
@@ -306,18 +370,30 @@ class ConsMAC(nn.Module):
         dtype = self.distance_encoder.frequency.weight.dtype
         obs, own_message, messages, distance = (t.to(dtype) for t in (obs, own_message, messages, distance))
         mask = mask.to(torch.bool)
+        ablation = cfg.ablation
+        if ablation == "wo-com":  # nothing is received
+            mask = torch.zeros_like(mask)
 
         o = self.local_observation(obs) * cfg.obs_scale
-        memory = self.memory(o.reshape(rows, cfg.obs_dim), own_message.reshape(rows, cfg.message_dim))  # eq. (7)
-        query = torch.cat([memory, self.distance_encoder(memory.new_zeros(rows))], dim=-1)  # E_mi, d_0 = 0
-        keys = torch.cat(
-            [messages.reshape(rows, k, cfg.message_dim), self.distance_encoder(distance.reshape(rows, k))], dim=-1
-        )  # E_m-i, eq. (8)
-        attended, weights = self.attention(query, keys, mask.reshape(rows, k))  # eq. (9)
+        hidden = own_message.reshape(rows, cfg.sent_dim)
+        if ablation == "wo-mem":  # no memory: the GRU starts from zero at every decision
+            hidden = torch.zeros(rows, cfg.message_dim, dtype=dtype)
+        elif cfg.sent_dim < cfg.message_dim:  # ConsMAC-G: the own estimate, zero-padded to the memory's width
+            hidden = F.pad(hidden, (0, cfg.message_dim - cfg.sent_dim))
+        memory = self.memory(o.reshape(rows, cfg.obs_dim), hidden)  # eq. (7)
+        query_code = self.distance_encoder(memory.new_zeros(rows))
+        key_code = self.distance_encoder(distance.reshape(rows, k))
+        if ablation == "wo-de":  # no distance encoder: the codes are zeros
+            query_code, key_code = torch.zeros_like(query_code), torch.zeros_like(key_code)
+        query = torch.cat([memory, query_code], dim=-1)  # E_mi, d_0 = 0
+        keys = torch.cat([messages.reshape(rows, k, cfg.sent_dim), key_code], dim=-1)  # E_m-i, eq. (8)
+        attended, weights = self.attention(query, keys, mask.reshape(rows, k), fast=fast)  # eq. (9)
         message = self.norm(memory + attended) if cfg.residual else attended
-        estimate = self.estimator(message).reshape(*lead, cfg.global_dim) if with_estimate else None  # eq. (10)
+        estimate = None
+        if with_estimate or ablation == "consmac-g":
+            estimate = self.estimator(message).reshape(*lead, cfg.global_dim)  # eq. (10)
         return ConsMACOutput(
-            message=message.reshape(*lead, cfg.message_dim),
+            message=estimate if ablation == "consmac-g" else message.reshape(*lead, cfg.message_dim),
             estimate=estimate,
             memory=memory.reshape(*lead, cfg.message_dim),
             attention=weights.reshape(*lead, cfg.n_heads, k),

@@ -14,13 +14,15 @@ import torch
 from torch import nn
 
 from cefc_mj.errors import CheckpointError, ConfigError
-from cefc_mj.nn.consmac import ConsMAC, ConsMACConfig, inbox_tensors
+from cefc_mj.nn.consmac import ABLATIONS, ConsMAC, ConsMACConfig, inbox_tensors
 from cefc_mj.nn.policy_io import read_policy_payload, write_policy_payload
 from cefc_mj.nn.selector import AnchorSelector, SelectorConfig
 from cefc_mj.task.config import TaskConfig
 from cefc_mj.task.messages import Inbox
 
 VARIANTS = ("consmac-a", "consmac-o", "mappo", "tarmac")
+CONSMAC_VARIANTS = ("consmac-a", "consmac-o")
+"""The variants whose communication module learns from eq. (11): the ones ConsMAC's ablations apply to."""
 POLICY_FORMAT = "cefc-mj/highlevel-policy"
 POLICY_VERSION = 1
 
@@ -33,22 +35,41 @@ class HighLevelPolicy(nn.Module):
         self.selector, self.comm, self.variant = selector, comm, variant
 
     @classmethod
-    def build(cls, variant: str, task: TaskConfig, seed: int = 0, hidden: int = 128) -> "HighLevelPolicy":
+    def build(
+        cls, variant: str, task: TaskConfig, seed: int = 0, hidden: int = 128, ablation: str = "none"
+    ) -> "HighLevelPolicy":
         """Fresh networks of a variant: consmac-a / consmac-o (ConsMAC with either label), tarmac (the
-        same module, its output left attached so the RL loss trains it) or mappo (no communication)."""
+        same module, its output left attached so the RL loss trains it end to end) or mappo (no
+        communication). ablation: one of the paper's Fig. 7 ablations of ConsMAC
+        (`cefc_mj.nn.consmac.ABLATIONS`), for the ConsMAC variants only; "wt-rl" leaves the
+        selector's consensus input attached, so the RL loss reaches ConsMAC too."""
         if variant not in VARIANTS:
             raise ConfigError(f"variant={variant!r}: must be one of {', '.join(VARIANTS)}")
+        if ablation not in ABLATIONS:
+            raise ConfigError(f"ablation={ablation!r}: must be one of {', '.join(ABLATIONS)}")
+        if ablation != "none" and variant not in CONSMAC_VARIANTS:
+            raise ConfigError(
+                f"ablation={ablation!r}: ablates ConsMAC, so it needs variant consmac-a or consmac-o, not {variant!r}"
+            )
         comm = None
         if variant != "mappo":
-            comm = ConsMAC(ConsMACConfig.from_task(task, variant="O" if variant == "consmac-o" else "A"), seed=seed)
-            s_cfg = SelectorConfig.from_consmac(comm.cfg, hidden=hidden, consensus_gradient=variant == "tarmac")
+            label = "O" if variant == "consmac-o" else "A"
+            comm = ConsMAC(ConsMACConfig.from_task(task, variant=label, ablation=ablation), seed=seed)
+            live = variant == "tarmac" or ablation == "wt-rl"
+            s_cfg = SelectorConfig.from_consmac(comm.cfg, hidden=hidden, consensus_gradient=live)
         else:
             s_cfg = SelectorConfig.from_task(task, consensus_dim=0, hidden=hidden)
         return cls(AnchorSelector(s_cfg, seed=seed + 1), comm, variant)
 
     @property
     def message_dim(self) -> int:
-        return self.comm.cfg.message_dim if self.comm is not None else 0
+        """Numbers each agent sends per decision (0 without communication; global_dim for ConsMAC-G)."""
+        return self.comm.cfg.sent_dim if self.comm is not None else 0
+
+    @property
+    def ablation(self) -> str:
+        """ConsMAC's ablation ("none" for the paper's ConsMAC and for the other variants)."""
+        return self.comm.cfg.ablation if self.comm is not None else "none"
 
     def comm_inputs(self, obs: torch.Tensor, inbox: Inbox | None) -> tuple[torch.Tensor, ...]:
         """(obs, own, messages, mask, distance) as ConsMAC takes them; () without communication."""

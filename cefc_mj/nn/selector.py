@@ -57,8 +57,8 @@ class SelectorConfig(LocalObservationSizes):
     """Multiplies o_i before the encoder (the same convention as ConsMACConfig.obs_scale)."""
     consensus_gradient: bool = False
     """False (ConsMAC, the paper): the selector detaches its consensus input, so the RL loss never
-    reaches the module that made it. True: the RL gradient flows into that module (a communication
-    baseline trained end to end, TarMAC-style); never for ConsMAC."""
+    reaches the module that made it. True: the RL gradient flows into that module (the TarMAC baseline,
+    trained end to end, and ConsMAC's "wt-rl" ablation); never for ConsMAC itself."""
 
     def __post_init__(self) -> None:
         names = [name for name, _ in self.layout]
@@ -92,9 +92,9 @@ class SelectorConfig(LocalObservationSizes):
     def from_consmac(cls, consmac_cfg: ConsMACConfig, consensus: str = "message", **overrides) -> "SelectorConfig":
         """A selector that reads `ConsMACOutput.detach_for_policy(consensus)` of this ConsMAC."""
         sizes = {
-            "message": consmac_cfg.message_dim,
+            "message": consmac_cfg.sent_dim,  # m_i^(t+1), or g_hat_i for ConsMAC-G
             "estimate": consmac_cfg.global_dim,
-            "message+estimate": consmac_cfg.message_dim + consmac_cfg.global_dim,
+            "message+estimate": consmac_cfg.sent_dim + consmac_cfg.global_dim,
         }
         if consensus not in sizes:
             raise ConfigError(f"consensus={consensus!r}: must be one of {CONSENSUS_KINDS}")

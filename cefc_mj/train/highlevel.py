@@ -21,11 +21,17 @@ One iteration, CleanRL-style:
 Algorithm 2 pre-trains with a navigation-only low level and then fine-tunes with the trained one:
 the first `pretrain_share` of the budget flies `NavigationOnly`, the rest `low_level` (default the
 distilled student); networks, optimizers and the critic carry over. Variants: consmac-a, consmac-o
-(the paper), mappo (no communication: the selector reads o_i only), tarmac (a TarMAC-style
-baseline: the same communication module, trained end to end by the RL loss instead of eq. (11)).
+(the paper), mappo (no communication: the selector reads o_i only), tarmac (the TarMAC baseline:
+the same communication module, its messages trained end to end by the RL loss instead of eq. (11):
+in the update each receiver's inbox is recomputed, with gradients, from its senders' stored inputs
+of the previous decision, so the PPO loss of decision t reaches the network that sent the messages
+read at t; the senders' own inboxes are taken as stored, a one-step truncation of TarMAC's
+backpropagation through time). `ablation` (consmac variants only) selects one of the paper's
+Fig. 7 ablations of ConsMAC (`cefc_mj.nn.consmac.ABLATIONS`); "wt-rl" also lets the PPO loss into
+ConsMAC, whose optimizer then steps on both losses.
 
     run folder   <out>/<name>/   config.json, progress.csv, tb/, state.pt (resumable)
-    policy file  <policies_dir>/<name>.pt  + <name>.json model card      name = cihrl_<variant>
+    policy file  <policies_dir>/<name>.pt  + <name>.json model card      name = cihrl_<variant>[_<ablation>]
 
 Every iteration's episodes are seeded from (seed, iteration) and `state.pt` holds networks,
 optimizers, value normalisation, the torch RNG, counters and the replay, so `--resume` continues a
@@ -49,8 +55,9 @@ from cefc_mj.eval.highlevel import GAME_ADVERSARY, evaluate_highlevel, resolve_a
 from cefc_mj.fileio import write_atomic
 from cefc_mj.hierarchy import DECISION_INTERVAL, NAVIGATION, HierarchicalCEFCEnv, LowLevel, load_low_level
 from cefc_mj.nn.atm import Critic
-from cefc_mj.nn.consmac import ConsMACConfig, consmac_loss, global_labels, seeded
+from cefc_mj.nn.consmac import ABLATIONS, ConsMACConfig, consmac_loss, global_labels, seeded
 from cefc_mj.nn.highlevel_policy import (
+    CONSMAC_VARIANTS,
     VARIANTS,
     HighLevelPolicy,
     load_highlevel_policy,  # noqa: F401  (re-exported: tests/test_highlevel.py)
@@ -73,8 +80,20 @@ METHODS = {
     "consmac-a": "CI-HRL (ConsMAC-A)",
     "consmac-o": "CI-HRL (ConsMAC-O)",
     "mappo": "MAPPO high level, no communication",
-    "tarmac": "TarMAC-style communication, trained by RL",
+    "tarmac": "TarMAC: attention-based communication, messages trained end to end by RL (one-step truncation)",
 }
+ABLATION_METHODS = {
+    "wo-com": "without communication (wo-Com: no message received)",
+    "wo-mem": "without memory (wo-Mem: the GRU's hidden input is zero at every decision)",
+    "wo-de": "without distance encoder (wo-DE: distance codes are zeros)",
+    "wt-rl": "with the RL loss (wt-RL: ConsMAC trained by eq. (11) and the PPO loss)",
+    "consmac-g": "ConsMAC-G (the estimate g_hat is sent as the message)",
+}
+"""The model card's method suffix of each of ConsMAC's ablations (paper Fig. 7)."""
+TARMAC_MESSAGES = "end-to-end-1step"
+"""How the tarmac variant trains its messages (saved in its resumable state, checked on --resume): the
+PPO loss reaches the senders through the inbox recomputed from their previous decision's inputs.
+States written before this had no gradient through received messages."""
 PHASES = ("pretrain", "finetune")
 PAPER_CONSMAC = {"every_episodes": 20, "steps": 5000, "batch": 2048}
 """Algorithm 2's ConsMAC schedule (paper Sec. V-A), recorded beside what a run did."""
@@ -110,6 +129,10 @@ class HighLevelConfig(BudgetPPODict):
     variant: str = "consmac-a"
     """consmac-a / consmac-o: ConsMAC with the anchors / the observations of all agents as labels;
     mappo: no communication; tarmac: the communication module trained end to end by the RL loss."""
+    ablation: str = "none"
+    """One of the paper's Fig. 7 ablations of ConsMAC (consmac variants only): none, wo-com (no message
+    received), wo-mem (no GRU memory), wo-de (no distance encoder), wt-rl (the RL loss reaches ConsMAC
+    too), consmac-g (the estimate g_hat is sent as the message); see `cefc_mj.nn.consmac`."""
     seed: int = 0
     """Seeds network init, anchor sampling, minibatches, replay sampling and every iteration's episodes."""
     n_agents: int = 8
@@ -168,19 +191,26 @@ class HighLevelConfig(BudgetPPODict):
     @property
     def name(self) -> str:
         """Run folder and policy file stem: cihrl_<variant> (cihrl_consmac_a, cihrl_consmac_o, cihrl_mappo,
-        cihrl_tarmac), then _dt for direct training (no pre-training, the paper's CI-HRL-DT) and
-        _seed<k> for seeds other than 0, so the runs of a comparison never overwrite each other."""
+        cihrl_tarmac), then _<ablation> for an ablation of ConsMAC (cihrl_consmac_a_wo_com, ..._wo_mem,
+        ..._wo_de, ..._wt_rl, ..._consmac_g), _dt for direct training (no pre-training, the paper's
+        CI-HRL-DT) and _seed<k> for seeds other than 0, so the runs of a comparison never overwrite each other."""
         return (
             "cihrl_"
             + self.variant.replace("-", "_")
+            + ("" if self.ablation == "none" else "_" + self.ablation.replace("-", "_"))
             + ("_dt" if self.pretrain_share == 0 else "")
             + (f"_seed{self.seed}" if self.seed else "")
         )
 
     @property
     def supervised(self) -> bool:
-        """ConsMAC variants: the communication module learns from eq. (11) only."""
-        return self.variant in ("consmac-a", "consmac-o")
+        """ConsMAC variants: the communication module learns from eq. (11) (only, unless wt-rl)."""
+        return self.variant in CONSMAC_VARIANTS
+
+    @property
+    def rl_into_comm(self) -> bool:
+        """The PPO loss reaches the communication module: tarmac, and ConsMAC's wt-rl ablation."""
+        return self.variant == "tarmac" or self.ablation == "wt-rl"
 
     @property
     def decision_steps(self) -> int:
@@ -210,6 +240,14 @@ class HighLevelConfig(BudgetPPODict):
     def validate(self) -> None:
         if self.variant not in VARIANTS:
             _fail("variant", self.variant, f"must be one of {', '.join(VARIANTS)}")
+        if self.ablation not in ABLATIONS:
+            _fail("ablation", self.ablation, f"must be one of {', '.join(ABLATIONS)}")
+        if self.ablation != "none" and self.variant not in CONSMAC_VARIANTS:
+            _fail(
+                "ablation",
+                self.ablation,
+                f"ablates ConsMAC, so it needs variant consmac-a or consmac-o, not {self.variant!r}",
+            )
         if not isinstance(self.budget, Budget):
             _fail("budget", self.budget, "must be a Budget")
         _check_int("seed", self.seed, 0, MAX_SEED)
@@ -264,7 +302,7 @@ class ConsMACReplay:
     FIELDS = ("obs", "own", "messages", "mask", "distance", "label")
 
     def __init__(self, capacity: int, cfg: ConsMACConfig):
-        k, d = cfg.n_agents - 1, cfg.message_dim
+        k, d = cfg.n_agents - 1, cfg.sent_dim
         shapes = {
             "obs": ((cfg.env_obs_dim,), torch.float32),
             "own": ((d,), torch.float32),
@@ -316,9 +354,25 @@ class HighRollout:
     rewards: torch.Tensor  # [T, B] R_H summed over the decision's low-level steps
     episode_end: torch.Tensor  # [T, B] bool
     stats: dict[str, float]
+    senders: torch.Tensor | None = None  # tarmac: [T, B, N, K] each inbox slot's sender (-1: empty), else None
 
 
 # ---------------------------------------------------------------------------- trainer
+class _Joint:
+    """Optimizers stepped as one by `ppo_epochs` (wt-rl: the selector's and ConsMAC's own)."""
+
+    def __init__(self, *optimizers: torch.optim.Optimizer):
+        self.optimizers = optimizers
+
+    def zero_grad(self, set_to_none: bool = True) -> None:
+        for opt in self.optimizers:
+            opt.zero_grad(set_to_none=set_to_none)
+
+    def step(self) -> None:
+        for opt in self.optimizers:
+            opt.step()
+
+
 class HighLevelTrainer:
     """Algorithm 2's learner: the policy (ConsMAC + selector), the critic, their optimizers, the
     value normalizer, the replay B_C and a torch RNG; one `iterate()` = collect, RL update, ConsMAC."""
@@ -333,7 +387,7 @@ class HighLevelTrainer:
         if adversary_policy is None and self.task.adversary == LEARNED_ADVERSARY:  # the one cfg names
             _, adversary_policy, self.adversary_record = resolve_adversary(cfg.adversary)
         self.adversary_policy = adversary_policy  # the trained adversary of a 'learned' game, else None
-        self.policy = HighLevelPolicy.build(cfg.variant, self.task, cfg.seed, cfg.hidden)
+        self.policy = HighLevelPolicy.build(cfg.variant, self.task, cfg.seed, cfg.hidden, cfg.ablation)
         probe = HierarchicalCEFCEnv(
             self.task,
             low_levels[1],
@@ -353,6 +407,8 @@ class HighLevelTrainer:
         self.consmac_opt = (
             torch.optim.Adam(self.policy.comm.parameters(), lr=cfg.consmac_lr) if cfg.supervised else None
         )
+        # wt-rl: the PPO step also steps ConsMAC, with ConsMAC's own optimizer (one Adam state for both losses)
+        self.rl_step = _Joint(self.policy_opt, self.consmac_opt) if cfg.ablation == "wt-rl" else self.policy_opt
         self.replay = ConsMACReplay(cfg.replay_capacity, self.policy.comm.cfg) if cfg.supervised else None
         self.generator = torch.Generator().manual_seed(cfg.seed)
         self.iteration = 0
@@ -399,6 +455,8 @@ class HighLevelTrainer:
         keys = ("obs", "next_obs", "consensus", "actions", "logp", "states", "next_states", "rewards", "episode_end")
         buf: dict[str, list] = {k: [] for k in keys}
         comm_buf: list[tuple[torch.Tensor, ...]] = []
+        sender_buf: list[torch.Tensor] = []
+        keep_inputs = cfg.rl_into_comm  # the update recomputes the consensus with gradients
         episode_return = np.zeros(env.n_envs)
         weighted = {"R_t": weights.task_weight, "R_n": weights.navigation_weight_high, "R_e": weights.evasion_weight}
         term_sums = {name: np.zeros(env.n_envs) for name in weighted}
@@ -434,8 +492,10 @@ class HighLevelTrainer:
                 ("episode_end", torch.from_numpy(done)),
             ):
                 buf[k].append(v)
-            if cfg.variant == "tarmac":
+            if keep_inputs:
                 comm_buf.append(comm_inputs)
+            if cfg.variant == "tarmac":
+                sender_buf.append(torch.from_numpy(inbox.sender))
             anchor_counts += np.bincount(index.numpy().ravel(), minlength=env.n_anchors)
             episode_return += reward
             for name, w in weighted.items():
@@ -462,7 +522,10 @@ class HighLevelTrainer:
             "episodes": len(finished["return"]),
         }
         comm_inputs = tuple(torch.stack(parts) for parts in zip(*comm_buf)) if comm_buf else ()
-        return HighRollout(**{k: torch.stack(v) for k, v in buf.items()}, comm_inputs=comm_inputs, stats=stats)
+        senders = torch.stack(sender_buf) if sender_buf else None
+        return HighRollout(
+            **{k: torch.stack(v) for k, v in buf.items()}, comm_inputs=comm_inputs, stats=stats, senders=senders
+        )
 
     def critic_input(self, states: torch.Tensor, obs: torch.Tensor) -> torch.Tensor:
         """[..., S] global states and [..., N, D] observations -> [..., N, S + D] (V(s, o_i))."""
@@ -470,13 +533,48 @@ class HighLevelTrainer:
 
     # ------------------------------------------------------------------ RL update
     def policy_terms(
-        self, obs: torch.Tensor, consensus: torch.Tensor, comm_inputs: tuple[torch.Tensor, ...], actions: torch.Tensor
+        self,
+        obs: torch.Tensor,
+        consensus: torch.Tensor,
+        comm_inputs: tuple[torch.Tensor, ...],
+        actions: torch.Tensor,
+        senders: tuple[torch.Tensor, ...] | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """(log-probabilities, entropies) of taken anchors under the current policy. The ConsMAC
-        variants act on the stored (detached) consensus; tarmac recomputes it with gradients."""
-        if self.cfg.variant == "tarmac":
+        variants act on the stored (detached) consensus; tarmac and wt-rl recompute it with gradients.
+
+        senders (tarmac): (the previous decision's comm inputs (obs, own, messages, mask, distance)
+        [M, N, ...], each inbox slot's sender [M, N, K], fresh [M] (True where the episode began at
+        this decision: nothing was sent before)). With them the inbox of this decision is recomputed
+        live (`live_inbox`), so the loss reaches the senders' message network; without them the
+        stored inbox is used (the received messages are constants)."""
+        if self.cfg.rl_into_comm:
+            if senders is not None:
+                comm_inputs = self.live_inbox(comm_inputs, *senders)
             consensus, _ = self.policy.consensus(comm_inputs, tuple(obs.shape[:-1]))
         return self.policy.selector.evaluate(obs, consensus, actions)
+
+    def live_inbox(
+        self,
+        comm_inputs: tuple[torch.Tensor, ...],
+        previous: tuple[torch.Tensor, ...],
+        sender: torch.Tensor,
+        fresh: torch.Tensor,
+    ) -> tuple[torch.Tensor, ...]:
+        """TarMAC's end-to-end messages: the comm inputs of one decision with the own message and every
+        received message replaced by the senders' messages recomputed, with gradients, from their
+        inputs of the previous decision (which are constants: the gradient is truncated one step back).
+        Where `fresh` (an episode's first decision) the stored inbox (silence) is kept."""
+        obs, own, messages, mask, distance = comm_inputs
+        sent = self.policy.comm(*previous, with_estimate=False).message  # [M, N, D]: what each agent sent
+        m, n, k = sender.shape
+        slot_sender = sender.clamp_min(0).reshape(m, n * k, 1).expand(m, n * k, sent.shape[-1])
+        received = torch.gather(sent, 1, slot_sender).reshape(m, n, k, -1)
+        received = torch.where(mask.unsqueeze(-1), received, messages)  # empty slots stay as stored (zeros)
+        live = ~fresh.reshape(m, 1, 1)
+        own = torch.where(live, sent, own)
+        messages = torch.where(live.unsqueeze(-1), received, messages)
+        return obs, own, messages, mask, distance
 
     def update(self, ro: HighRollout) -> dict[str, float]:
         """PPO epochs over one rollout (the low level's MAPPO, for a categorical policy)."""
@@ -493,12 +591,23 @@ class HighLevelTrainer:
         flat = lambda x: x.reshape(t * b, *x.shape[2:])  # noqa: E731 - a sample is one env-decision, all agents
         obs, consensus, actions, old_logp = flat(ro.obs), flat(ro.consensus), flat(ro.actions), flat(ro.logp)
         comm_inputs = tuple(flat(x) for x in ro.comm_inputs)
+        senders = None
+        if ro.senders is not None:  # tarmac: each decision's senders' inputs at the previous decision
+            previous = tuple(flat(torch.cat([x[:1], x[:-1]])) for x in ro.comm_inputs)
+            fresh = torch.cat([torch.ones_like(ro.episode_end[:1]), ro.episode_end[:-1]])
+            senders = (previous, flat(ro.senders), flat(fresh))
         adv, critic_in, targets = flat(advantages), flat(critic_in), flat(targets)
-        rl_params = [p for group in self.policy_opt.param_groups for p in group["params"]]
+        rl_params = list(self.policy.selector.parameters())
+        if self.cfg.rl_into_comm:
+            rl_params += list(self.policy.comm.parameters())
 
         def policy_terms(mb):
             new_logp, entropy = self.policy_terms(
-                obs[mb], consensus[mb], tuple(x[mb] for x in comm_inputs), actions[mb]
+                obs[mb],
+                consensus[mb],
+                tuple(x[mb] for x in comm_inputs),
+                actions[mb],
+                None if senders is None else (tuple(x[mb] for x in senders[0]), senders[1][mb], senders[2][mb]),
             )
             return new_logp, entropy.mean()
 
@@ -509,7 +618,7 @@ class HighLevelTrainer:
             policy_terms,
             old_logp,
             adv,
-            self.policy_opt,
+            self.rl_step,
             rl_params,
             self.critic,
             critic_in,
@@ -526,7 +635,7 @@ class HighLevelTrainer:
         losses = []
         for _ in range(steps):
             batch = self.replay.sample(self.cfg.consmac_batch, self.generator)
-            out = comm(batch["obs"], batch["own"], batch["messages"], batch["mask"], batch["distance"])
+            out = comm(batch["obs"], batch["own"], batch["messages"], batch["mask"], batch["distance"], fast=True)
             loss = consmac_loss(out.estimate, batch["label"])
             opt.zero_grad()
             loss.backward()
@@ -666,6 +775,11 @@ def train_highlevel(
                 f"--resume: {state_path} was trained with another fine-tuning low level "
                 f"({saved['low_level']['finetune'].get('name')}); use another --out"
             )
+        if cfg.variant == "tarmac" and saved.get("tarmac_messages") != TARMAC_MESSAGES:
+            raise ConfigError(
+                f"--resume: {state_path} was trained without gradient through received messages "
+                "(the TarMAC-style row before end-to-end messages); use another --out"
+            )
         if saved.get("adversary", {"rule": cfg.adversary}) != adversary_record:
             raise ConfigError(
                 f"--resume: {state_path} was trained against another adversary file "
@@ -702,6 +816,7 @@ def train_highlevel(
                 "low_level": low_level_record,
                 "adversary": adversary_record,
                 "trainer": trainer.state_dict(),
+                **({"tarmac_messages": TARMAC_MESSAGES} if cfg.variant == "tarmac" else {}),
             },
             state_path,
         )
@@ -719,7 +834,7 @@ def train_highlevel(
         trainer.policy, cfg, task, low_levels, trainer, policies_dir, run_dir, command, last_row=last_row
     )
     if trainer.pretrained is not None and trainer.progress["iterations"][1] > 0:
-        pretrained = HighLevelPolicy.build(cfg.variant, task, cfg.seed, cfg.hidden)
+        pretrained = HighLevelPolicy.build(cfg.variant, task, cfg.seed, cfg.hidden, cfg.ablation)
         pretrained.load_state_dict(trainer.pretrained)
         card["wo_ft"] = export_policy(
             pretrained, cfg, task, low_levels, trainer, policies_dir, run_dir, command, wo_ft=True
@@ -756,6 +871,7 @@ def export_policy(
         meta={
             "name": name,
             "variant": cfg.variant,
+            "ablation": cfg.ablation,
             "seed": cfg.seed,
             "iterations": iterations,
             "decision_interval": cfg.decision_interval,
@@ -769,8 +885,11 @@ def export_policy(
     ]
     card = {
         "name": name,
-        "method": METHODS[cfg.variant] + (", without fine-tuning (wo-FT)" if wo_ft else ""),
+        "method": METHODS[cfg.variant]
+        + (f", {ABLATION_METHODS[cfg.ablation]}" if cfg.ablation != "none" else "")
+        + (", without fine-tuning (wo-FT)" if wo_ft else ""),
         "variant": cfg.variant,
+        "ablation": cfg.ablation,
         "seed": cfg.seed,
         "config": cfg.to_dict(),
         "task": task.to_dict(),
@@ -794,6 +913,17 @@ def export_policy(
             "lr": cfg.consmac_lr,
             "replay_capacity": cfg.replay_capacity,
             "paper": PAPER_CONSMAC,
+        },
+        "messages": None
+        if policy.comm is None
+        else {
+            "numbers": policy.message_dim,
+            "content": "g_hat (ConsMAC-G)" if cfg.ablation == "consmac-g" else "m_i^(t+1)",
+            "received": "nothing (wo-Com)" if cfg.ablation == "wo-com" else "neighbours within 3 m, one decision late",
+            "rl_gradient": {
+                "tarmac": "end to end through the received messages, truncated one decision back",
+                "wt-rl": "into ConsMAC through the agent's own message (besides eq. (11))",
+            }.get(cfg.variant if cfg.variant == "tarmac" else cfg.ablation, "none (stop-gradient)"),
         },
         "iterations": iterations,
         "episodes": episodes,
@@ -836,6 +966,7 @@ def export_policy(
 # ---------------------------------------------------------------------------- command line
 _FLAG_OF_FIELD = {
     "variant": "--variant",
+    "ablation": "--ablation",
     "seed": "--seed",
     "obstacle_density": "--density",
     "adversary": "--adversary",
@@ -858,6 +989,7 @@ _FLAG_OF_FIELD = {
 """Config fields set by `cefc-train highlevel` flags: their errors name the flag the user typed."""
 CLI_FIELDS = (
     "variant",
+    "ablation",
     "seed",
     "obstacle_density",
     "adversary",
