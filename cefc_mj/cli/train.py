@@ -398,16 +398,8 @@ def _names(text: str) -> tuple[str, ...]:
     return names
 
 
-def _adversary_parser(sub) -> None:
-    """`cefc-train adversary`; flags left out keep AdversaryConfig's defaults (cefc_mj/train/adversary.py)."""
-    p = sub.add_parser(
-        "adversary",
-        help="the PPO adversary (the paper's predator) against a population of UAV teams",
-        description="Single-agent PPO with the low level's network shape: chase the nearest group "
-        "of >= 3 UAVs, avoid obstacles, against a population of teams (trained high "
-        "levels and rule-driven teams, one drawn per game) over a trained low level. "
-        "Written as adversary_ppo[_seed<k>].",
-    )
+def _population_game_args(p: argparse.ArgumentParser) -> None:
+    """The flags both adversary trainers share: the population of teams, the game and the reward."""
     p.add_argument(
         "--teams",
         type=_names,
@@ -431,6 +423,62 @@ def _adversary_parser(sub) -> None:
         metavar="NAME|PATH|per-group",
         help="the UAV team's low level (default atm_student)",
     )
+    p.add_argument(
+        "--action",
+        choices=("velocity", "heading", "acceleration"),
+        default=None,
+        help="what the actor outputs: its heading at top speed, the velocity it wants, or the "
+        "acceleration (default heading)",
+    )
+    p.add_argument(
+        "--alert-weight",
+        type=float,
+        default=None,
+        metavar="W",
+        help="reward per step for the share of UAVs within the alert distance (default 1)",
+    )
+    p.add_argument(
+        "--progress-weight",
+        type=float,
+        default=None,
+        metavar="W",
+        help="reward per metre the step approached the nearest group (default 10)",
+    )
+    p.add_argument(
+        "--collision-weight",
+        type=float,
+        default=None,
+        metavar="W",
+        help="penalty per step inside an obstacle (default 30)",
+    )
+    p.add_argument(
+        "--density",
+        type=float,
+        default=None,
+        dest="obstacle_density",
+        metavar="D",
+        help="obstacle density per m^2 (default 0.03)",
+    )
+    p.add_argument(
+        "--eval-episodes",
+        type=int,
+        default=None,
+        metavar="N",
+        help="episodes evaluated for the model card (default 20; 0 skips)",
+    )
+
+
+def _adversary_parser(sub) -> None:
+    """`cefc-train adversary`; flags left out keep AdversaryConfig's defaults (cefc_mj/train/adversary.py)."""
+    p = sub.add_parser(
+        "adversary",
+        help="the PPO adversary (the paper's predator) against a population of UAV teams",
+        description="Single-agent PPO with the low level's network shape: chase the nearest group "
+        "of >= 3 UAVs, avoid obstacles, against a population of teams (trained high "
+        "levels and rule-driven teams, one drawn per game) over a trained low level. "
+        "Written as adversary_ppo[_seed<k>].",
+    )
+    _population_game_args(p)
     p.add_argument(
         "--imitation-episodes",
         type=int,
@@ -474,49 +522,6 @@ def _adversary_parser(sub) -> None:
         metavar="N",
         help="first PPO iterations in which only the critic learns (default 20)",
     )
-    p.add_argument(
-        "--action",
-        choices=("velocity", "heading", "acceleration"),
-        default=None,
-        help="what the actor outputs: its heading at top speed, the velocity it wants, or the "
-        "acceleration (default heading)",
-    )
-    p.add_argument(
-        "--alert-weight",
-        type=float,
-        default=None,
-        metavar="W",
-        help="reward per step for the share of UAVs within the alert distance (default 1)",
-    )
-    p.add_argument(
-        "--progress-weight",
-        type=float,
-        default=None,
-        metavar="W",
-        help="reward per metre the step approached the nearest group (default 10)",
-    )
-    p.add_argument(
-        "--density",
-        type=float,
-        default=None,
-        dest="obstacle_density",
-        metavar="D",
-        help="obstacle density per m^2 (default 0.03)",
-    )
-    p.add_argument(
-        "--collision-weight",
-        type=float,
-        default=None,
-        metavar="W",
-        help="penalty per step inside an obstacle (default 30)",
-    )
-    p.add_argument(
-        "--eval-episodes",
-        type=int,
-        default=None,
-        metavar="N",
-        help="episodes evaluated for the model card (default 20; 0 skips)",
-    )
     p.add_argument("--envs", type=int, default=None, dest="n_envs", metavar="N", help="parallel envs (default 20)")
     p.add_argument("--epochs", type=int, default=None, metavar="N", help="PPO epochs per iteration (default 5)")
     p.add_argument("--lr", type=float, default=None, metavar="LR", help="Adam learning rate (default 3e-4)")
@@ -543,72 +548,7 @@ def _adversary_ddpg_parser(sub) -> None:
         "adversary_ddpg[_seed<k>]; Table VI (cefc-eval --protocol table6) flies it once "
         "it is in the policies folder (--install).",
     )
-    p.add_argument(
-        "--teams",
-        type=_names,
-        default=None,
-        metavar="NAME,...",
-        help="the population: trained high levels (names or files) and rule teams ("
-        + ", ".join(RULE_TEAMS)
-        + "); default every shipped method over its training seeds and "
-        "every rule team",
-    )
-    p.add_argument(
-        "--teams-per-iteration",
-        type=int,
-        default=None,
-        metavar="K",
-        help="games per iteration, each with a team drawn from the population (default 4; must divide --envs)",
-    )
-    p.add_argument(
-        "--low-level",
-        default=None,
-        metavar="NAME|PATH|per-group",
-        help="the UAV team's low level (default atm_student)",
-    )
-    p.add_argument(
-        "--action",
-        choices=("velocity", "heading", "acceleration"),
-        default=None,
-        help="what the actor outputs: its heading at top speed, the velocity it wants, or the "
-        "acceleration (default heading)",
-    )
-    p.add_argument(
-        "--alert-weight",
-        type=float,
-        default=None,
-        metavar="W",
-        help="reward per step for the share of UAVs within the alert distance (default 1)",
-    )
-    p.add_argument(
-        "--progress-weight",
-        type=float,
-        default=None,
-        metavar="W",
-        help="reward per metre the step approached the nearest group (default 10)",
-    )
-    p.add_argument(
-        "--collision-weight",
-        type=float,
-        default=None,
-        metavar="W",
-        help="penalty per step inside an obstacle (default 30)",
-    )
-    p.add_argument(
-        "--density",
-        type=float,
-        default=None,
-        dest="obstacle_density",
-        metavar="D",
-        help="obstacle density per m^2 (default 0.03)",
-    )
-    p.add_argument(
-        "--eval-episodes",
-        type=int,
-        default=None,
-        metavar="N",
-        help="episodes evaluated for the model card (default 20; 0 skips)",
-    )
+    _population_game_args(p)
     p.add_argument(
         "--envs",
         type=int,
