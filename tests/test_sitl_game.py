@@ -4,9 +4,11 @@ games (4 UAVs, 40-60 low-level steps) on the particle world."""
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 import struct
+import sys
 import time
 
 import numpy as np
@@ -297,8 +299,8 @@ def test_cli_plays_the_sitl_game_and_writes_its_report(tmp_path, monkeypatch, ca
         (["--protocol", "table5", "--sitl-m"], "--sitl-m: the SITL-M game plays one policy of table5"),
         (["--protocol", "table6", "--sitl-m"], "--sitl-m: --protocol table6 plays the paper's game"),
         (
-            ["--protocol", "table5", "--sitl-m", "--policy", "cihrl_consmac_a", "--rrd", "g.rrd"],
-            "--rrd: the SITL-M game is not recorded yet",
+            ["--protocol", "table5", "--sitl-m", "--policy", "cihrl_mappo", "--png", "figs"],
+            "--png: cihrl_mappo sends no messages",
         ),
     ],
 )
@@ -310,3 +312,139 @@ def test_cli_refuses_what_the_sitl_game_cannot_do(argv, needle, tmp_path, monkey
         main(["--backend", "particle", *argv])
     err = capsys.readouterr().err
     assert exc.value.code == 2 and err.count("\n") == 1 and needle in err, err
+
+
+# ------------------------------------------------------------------ the recorded game (Figs. 11, 12)
+_CAPTURING_AGENT = """
+import sys
+import numpy as np
+from cefc_mj.deploy import agent
+
+send = agent.GameAgent.send
+
+def capture(self, message):
+    if message["type"] == "message":  # the agent's own message, before it is framed
+        path = f"{folder}/uav{{self.uav}}_d{{message['seq']}}.npz"
+        np.savez(path, message=message["message"], anchor=message["anchor"])
+    send(self, message)
+
+agent.GameAgent.send = capture
+sys.exit(agent.main())
+"""
+
+
+def _cosine(a: np.ndarray, b: np.ndarray) -> float:
+    a, b = a.astype(np.float64), b.astype(np.float64)
+    return float(a @ b / np.linalg.norm(a) / np.linalg.norm(b))
+
+
+def _png_is_a_figure(path) -> None:
+    from matplotlib.image import imread
+
+    assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and path.stat().st_size > 20_000
+    pixels = imread(path)[..., :3]
+    assert pixels.shape[0] > 300 and pixels.shape[1] > 300
+    assert len(np.unique(pixels.reshape(-1, 3), axis=0)) > 50 and pixels.std() > 0.05  # drawn, not blank
+
+
+def test_recorded_sitl_game_holds_the_messages_the_agents_sent(tmp_path):
+    """The SITL-M game's recording: per decision every UAV's message and anchor as the simulator
+    received them, equal bit for bit to what each agent process sent (captured inside the agents),
+    a killed agent's missing messages NaN (never invented); the .rrd read back holds one similarity
+    matrix per decision equal to the cosine similarities of the sent messages; Figs. 11 and 12 drawn."""
+    from rrd_reader import read_rrd
+
+    from cefc_mj.viz.highlevel_log import record_highlevel_episode, write_game_figures
+
+    sent = tmp_path / "sent"
+    sent.mkdir()
+    command = (sys.executable, "-c", _CAPTURING_AGENT.format(folder=sent), "--game")
+    spec = GameSpec(seed=1, steps=40, n_agents=4, where=Conditions("particle"))
+    result = run_sitl_game(spec, SitlConfig(agent_command=command, faults=(AgentFault(1, 12, "kill"),)))
+    n, k_count = 4, 4
+    assert result.steps == 40 and result.sitl["late_messages"] == [0] * n
+    captured = {}
+    for path in sent.iterdir():
+        uav, d = (int(part[1:] if part[0] == "d" else part[3:]) for part in path.stem.split("_"))
+        with np.load(path) as f:
+            captured[d, uav] = (f["message"], int(f["anchor"]))
+    assert {(d, 1) for d in range(k_count)} & set(captured) == {(0, 1), (1, 1)}  # UAV 1 killed at step 12
+    assert len(captured) == k_count * (n - 1) + 2
+    messages = result.messages
+    assert messages.shape == (k_count, n, D) and messages.dtype == np.float32
+    assert len(result.anchors) == k_count
+    for d in range(k_count):
+        for i in range(n):
+            if (d, i) in captured:
+                message, anchor = captured[d, i]
+                assert messages[d, i].tobytes() == message.astype(np.float32).tobytes(), (d, i)  # bit for bit
+                assert result.anchors[d][i] == anchor
+            else:
+                assert np.isnan(messages[d, i]).all() and result.anchors[d][i] == -1, (d, i)
+
+    episode = result.episode()
+    assert episode.condition == "SITL-M" and episode.n_decisions == k_count and episode.agent_pos.shape == (41, n, 2)
+    assert np.isnan(episode.anchors[2:, 1]).all() and np.isfinite(episode.anchors[:, [0, 2, 3]]).all()
+    rrd = record_highlevel_episode(episode, tmp_path / "game.rrd")
+    data = read_rrd(rrd)
+    tensors = data["/messages/similarity"]["Tensor:data"]
+    assert sorted(tensors) == [10 * d for d in range(k_count)]  # one matrix per decision, at its step
+    for d in range(k_count):
+        tensor = tensors[10 * d][0]
+        assert tensor["shape"] == [n, n]
+        recorded = np.array(tensor["buffer"], dtype=np.float64).reshape(n, n)
+        expected = np.full((n, n), np.nan)
+        for i in range(n):
+            for j in range(n):
+                if (d, i) in captured and (d, j) in captured:
+                    expected[i, j] = _cosine(captured[d, i][0], captured[d, j][0])
+        np.testing.assert_allclose(recorded, expected, atol=1e-6)  # NaN where a message is missing
+    anchors = data["/world/anchors"]["Points3D:positions"]
+    for d in range(k_count):
+        shown = np.array(anchors[10 * d])[:, :2]
+        for i in range(n):
+            if (d, i) in captured:
+                np.testing.assert_allclose(shown[i], episode.anchor_grid[captured[d, i][1]], atol=1e-6)
+            else:
+                assert np.isnan(shown[i]).all()
+    np.testing.assert_allclose(np.array(data["/world/uavs"]["Points3D:positions"][25])[:, :2], episode.agent_pos[25])
+    assert "no message from [1]" in data["/decisions"]["TextLog:text"][20][0]
+    prov = {name: values[None][0] for name, values in data["/__properties/provenance"].items()}
+    assert (prov["condition"], prov["seed"], prov["agents"], prov["R_H"]) == ("SITL-M", 1, n, result.figures["R_H"])
+
+    figures = write_game_figures(episode, tmp_path, "game")
+    assert [p.name for p in figures] == ["game_fig11.png", "game_fig12.png"]
+    for path in figures:
+        _png_is_a_figure(path)
+
+
+def test_cli_records_the_sitl_game_of_the_seed(tmp_path, monkeypatch, capsys):
+    """`cefc-eval --protocol table5 --sitl-m --policy P --rrd --png` records the SITL-M game of --seed
+    (the first of the batch, as the one-process game records the game of --seed); short games here
+    (8 UAVs, 40 steps instead of 400)."""
+    from rrd_reader import read_rrd
+
+    import cefc_mj.cli.eval_game as eval_game
+    from cefc_mj.cli.eval import main
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(eval_game, "run_table5_sitl", functools.partial(eval_game.run_table5_sitl, steps=40))
+    argv = ["--backend", "particle", "--protocol", "table5", "--sitl-m", "--policy", "cihrl_consmac_a"]
+    out = tmp_path / "game.json"
+    assert (
+        main([*argv, "--episodes", "2", "--seed", "3", "--rrd", "game.rrd", "--png", "figs", "--json", str(out)]) == 0
+    )
+    text = capsys.readouterr().out
+    assert "wrote game.rrd" in text and "cihrl_consmac_a_s3_sitl_m_fig12.png" in text
+    assert json.loads(out.read_text())["protocol"]["seeds"] == [3, 4]
+    assert sorted(p.name for p in (tmp_path / "figs").iterdir()) == [
+        "cihrl_consmac_a_s3_sitl_m_fig11.png",
+        "cihrl_consmac_a_s3_sitl_m_fig12.png",
+    ]
+    data = read_rrd(tmp_path / "game.rrd")
+    tensors = data["/messages/similarity"]["Tensor:data"]
+    assert sorted(tensors) == [0, 10, 20, 30] and all(t[0]["shape"] == [8, 8] for t in tensors.values())
+    prov = {name: values[None][0] for name, values in data["/__properties/provenance"].items()}
+    assert (prov["policy"], prov["seed"], prov["condition"], prov["steps"]) == ("cihrl_consmac_a", 3, "SITL-M", 40)
+    for path in (tmp_path / "figs").iterdir():
+        _png_is_a_figure(path)

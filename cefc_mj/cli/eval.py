@@ -239,7 +239,7 @@ def build_parser() -> argparse.ArgumentParser:
         type=Path,
         metavar="DIR",
         help="write a top-down PNG of each episode into DIR (single; table5 with --policy: the game's "
-        "message-similarity matrices)",
+        "message-similarity matrices; with --sitl-m the paper's Figs. 11 and 12)",
     )
     p.add_argument("--json", type=Path, metavar="PATH", help="also write the results as JSON (docs/evaluation.md)")
     p.add_argument(

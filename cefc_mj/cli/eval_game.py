@@ -95,8 +95,17 @@ def run(request: GameTablesRequest, prov: dict, command: str) -> int:
 def _run_sitl_game(request: GameTablesRequest, common: dict, command: str) -> int:
     """--sitl-m: one game per seed with every UAV's hierarchy in its own process, beside the lock-step
     game of each seed; the table, timing and bytes on the wire."""
+    runner = deploy_runners(False, False, game=True).game
+    recorded = []  # the game of --seed (the first), when it is to be recorded
+
+    def play(spec, sitl):
+        game = runner(spec, sitl)
+        if not recorded and (request.rrd is not None or request.png is not None):
+            recorded.append(game)
+        return game
+
     result = run_table5_sitl(
-        deploy_runners(False, False, game=True).game,
+        play,
         sitl_config(request.sitl),
         policy=request.policy,
         adversary=request.played_adversary,
@@ -118,7 +127,35 @@ def _run_sitl_game(request: GameTablesRequest, common: dict, command: str) -> in
     if request.json is not None:
         writes.append((request.json, data))
     write_outputs(writes)
+    if recorded:
+        for path in _record_sitl_game(request, recorded[0], result["protocol"]["low_level"]):
+            print(f"wrote {path}")
     return 0
+
+
+def _record_sitl_game(request: GameTablesRequest, game, low_level: dict) -> list[Path]:
+    """--rrd / --png with --sitl-m: the SITL-M game of --seed (the first of the batch), as the
+    simulator kept it (every UAV's message and anchor as received, NaN / -1 where none arrived),
+    recorded by the one-process game's recorder; the PNGs are the paper's Figs. 11 and 12 at four
+    evenly spaced decisions. low_level: the table's record of the low level (the agents load it
+    from their own policies/, the simulator's for local agents)."""
+    from cefc_mj.viz.highlevel_log import record_highlevel_episode, write_game_figures  # imports rerun
+
+    path = highlevel_policy_path(request.policy)
+    episode = game.episode()
+    episode.policy, episode.policy_sha256 = path.stem, file_sha256(path)
+    episode.low_level = dict(low_level)
+    adversary = request.played_adversary
+    episode.adversary_rule = adversary if resolve_adversary(adversary)[1] is None else f"{adversary} (trained)"
+    name = f"{path.stem}_s{game.spec.seed}_sitl_m"
+    written: list[Path] = []
+    if request.rrd is not None:
+        request.rrd.parent.mkdir(parents=True, exist_ok=True)
+        written.append(record_highlevel_episode(episode, request.rrd, recording_id=name))
+    if request.png is not None:
+        request.png.mkdir(parents=True, exist_ok=True)
+        written += write_game_figures(episode, request.png, name)
+    return written
 
 
 def _record_game(request: GameTablesRequest) -> list[Path]:

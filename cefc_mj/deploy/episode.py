@@ -225,6 +225,18 @@ TIMING_SCALARS = {
 """Per-step SITL-M timing recorded for Rerun (name -> the per-vehicle sample list it reads)."""
 
 
+def note_exits_and_faults(server: SitlServer, fleet: AgentFleet | None, faults) -> None:
+    """Before a step: tell the server which agent processes exited, and inject this step's faults
+    (SIGKILL or SIGSTOP to the UAV's local process), each logged as an event."""
+    if fleet is not None:
+        for uav in fleet.poll_exits():
+            server.agent_exited(uav)
+    for fault in faults:
+        sig = signal.SIGKILL if fault.action == "kill" else signal.SIGSTOP
+        delivered = fleet is not None and fleet.signal(fault.uav, sig)
+        server.event(fault.uav, f"fault_{fault.action}", "injected" if delivered else "no local process to signal")
+
+
 def _fly(spec, sitl, env, world, server: SitlServer, fleet: AgentFleet | None, drop, startup_s, record):
     from cefc_mj.eval.runner import _Recorder
 
@@ -252,13 +264,7 @@ def _fly(spec, sitl, env, world, server: SitlServer, fleet: AgentFleet | None, d
         step_index = k
         t = k * config.dt
         server.step, server.t_now = k, t
-        if fleet is not None:
-            for uav in fleet.poll_exits():
-                server.agent_exited(uav)
-        for fault in faults.get(k, []):
-            sig = signal.SIGKILL if fault.action == "kill" else signal.SIGSTOP
-            delivered = fleet is not None and fleet.signal(fault.uav, sig)
-            server.event(fault.uav, f"fault_{fault.action}", "injected" if delivered else "no local process to signal")
+        note_exits_and_faults(server, fleet, faults.get(k, []))
         if drop and k == drop[1]:
             for uav in dropped:
                 if fleet is not None:

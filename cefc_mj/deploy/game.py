@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import collections
 import math
-import signal
 import sys
 import time
 from dataclasses import dataclass, field
@@ -29,7 +28,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from cefc_mj.deploy import wire
-from cefc_mj.deploy.episode import SitlConfig
+from cefc_mj.deploy.episode import SitlConfig, note_exits_and_faults
 from cefc_mj.deploy.results import _percentiles
 from cefc_mj.deploy.sim_server import AgentFleet, SitlServer, _Request, block_sigint, restore_sigint
 from cefc_mj.deploy.tick_world import make_ticked_world
@@ -37,13 +36,15 @@ from cefc_mj.errors import ConfigError, SimulationDiverged
 from cefc_mj.eval.highlevel import GameSpec, game_figures, highlevel_policy_path
 from cefc_mj.hierarchy import DECISION_INTERVAL
 from cefc_mj.nn.registry import HIERARCHY_LOWLEVEL
-from cefc_mj.nn.selector import ANCHOR_VALUES
+from cefc_mj.nn.selector import ANCHOR_VALUES, anchor_grid
+from cefc_mj.task.adversary import adversary_goal
+from cefc_mj.task.config import LEARNED_ADVERSARY
 from cefc_mj.task.messages import MessageChannel
 
 PER_STEP_KINDS = ("down:game_sensor", "up:action", "up:message", "down:inbox")
 """The traffic of a game in flight (the startup's hello/welcome/ready and the pings are left out)."""
 
-__all__ = ["GameServer", "SitlGameResult", "game_sensor_packets", "inbox_frames", "run_sitl_game"]
+__all__ = ["GameServer", "GameTrace", "SitlGameResult", "game_sensor_packets", "inbox_frames", "run_sitl_game"]
 
 
 def game_sensor_packets(step: int, t: float, env, radio_range: float, in_swarm: np.ndarray, uavs: list[int]) -> list:
@@ -124,6 +125,8 @@ class GameServer(SitlServer):
         """Messages each UAV received (inbox rows)."""
         self.anchors: list[list[int]] = []
         """Per decision: each UAV's chosen anchor index (-1: none arrived)."""
+        self.messages: list[np.ndarray] = []
+        """Per decision: [N, D] float32, each UAV's message as received (a NaN row: none arrived)."""
         self.received_counts: list[list[int]] = []
         """Per decision: how many messages each UAV received."""
 
@@ -158,10 +161,7 @@ class GameServer(SitlServer):
         flying agent its inbox. Call before the decision step's sensor packets."""
         if decision > 0:
             self._wait_messages(decision)
-            anchors = [-1] * self.n_agents
-            for i, m in self.arrived.items():
-                anchors[i] = m["anchor"]
-            self.anchors.append(anchors)
+            self._keep_decision()
             for v in self.flying():
                 if v.index not in self.arrived:
                     self.missing_messages[v.index] += 1
@@ -183,6 +183,24 @@ class GameServer(SitlServer):
                 self._send(self.vehicles[i], frames[i])
         self.arrived = {}
         self.decision = decision
+
+    def close_decisions(self) -> None:
+        """At the game's end: keep the last open decision's anchors and messages, waiting for them as
+        `open_decision` would have (within the same wall-clock budget). The game is not changed."""
+        if self.decision >= 0 and len(self.anchors) == self.decision:
+            self._wait_messages(self.decision + 1)
+            self._keep_decision()
+
+    def _keep_decision(self) -> None:
+        """Keep the open decision's anchors and messages as they arrived (-1 and a NaN row: none)."""
+        anchors = [-1] * self.n_agents
+        messages = np.full((self.n_agents, self.message_dim), np.nan, dtype=np.float32)
+        for i, m in self.arrived.items():
+            anchors[i] = m["anchor"]
+            if self.message_dim:
+                messages[i] = m["message"]
+        self.anchors.append(anchors)
+        self.messages.append(messages)
 
     def _wait_messages(self, decision: int) -> None:
         """Wait for the open decision's messages of the flying agents until the wall clock has
@@ -220,6 +238,46 @@ class GameServer(SitlServer):
             self._send(v, packet)
 
 
+class GameTrace:
+    """What the simulator saw of one game, for its recording (`SitlGameResult.episode`): the state
+    after the reset and after each low-level step (true positions and velocities, the adversary and
+    the point its rule chases, urgency, the groups) and each step's reward and weighted parts, as
+    `cefc_mj.viz.highlevel_log.play_highlevel_episode` keeps them in the one-process game."""
+
+    def __init__(self, env, task, weights: dict[str, float]):
+        self.env, self.weights = env, weights
+        self.has_adversary = task.adversary != "none"
+        self.goal_rule = "nearest_group" if task.adversary == LEARNED_ADVERSARY else task.adversary
+        self.rows: dict[str, list] = collections.defaultdict(list)
+        self.reward: list[float] = []
+        self.parts: dict[str, list[float]] = {name: [] for name in weights}
+
+    def capture(self) -> None:
+        """Keep the env's state now (call after the reset and after each step)."""
+        env, rows = self.env, self.rows
+        w = env.world
+        rows["agent_pos"].append(w.agent_pos[0].copy())
+        rows["agent_vel"].append(w.agent_vel[0].copy())
+        rows["urgency"].append(env.urgency[0].copy())
+        rows["group_label"].append(env.labels[0].copy())
+        rows["group_size"].append(np.take_along_axis(env.group_size, env.labels, axis=1)[0].copy())
+        if self.has_adversary:
+            rows["adversary_pos"].append(w.adversary_pos[0].copy())
+            rows["adversary_goal"].append(
+                adversary_goal(self.goal_rule, w.adversary_pos, w.agent_pos, env.group_size, env.group_centre)[0].copy()
+            )
+
+    def step(self, reward: float, terms: dict) -> None:
+        """Keep one low-level step's reward and weighted parts, then the state after it."""
+        self.reward.append(float(reward))
+        for name, weight in self.weights.items():
+            self.parts[name].append(float(weight * terms[name][0]))
+        self.capture()
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        return {k: np.asarray(v) for k, v in self.rows.items() if v}
+
+
 @dataclass
 class SitlGameResult:
     """One SITL-M game: its figures (as the lock-step game reports them) and the deployment's."""
@@ -235,8 +293,65 @@ class SitlGameResult:
     samples: dict[str, np.ndarray] = field(repr=False, default_factory=dict)
     """Pooled raw samples: low/high_latency_ms, low/high_round_trip_ms."""
     anchors: list[list[int]] = field(repr=False, default_factory=list)
-    """Per decision (from the second on): each UAV's chosen anchor (-1: its message did not arrive)."""
+    """Per decision: each UAV's chosen anchor (-1: its message did not arrive)."""
+    messages: np.ndarray | None = field(repr=False, default=None)
+    """[K, N, D] float32: each UAV's message at each decision as the simulator received it (a NaN
+    row: it did not arrive, or came late); None for a policy without messages."""
+    received: list[list[int]] = field(repr=False, default_factory=list)
+    """Per decision: how many neighbours' messages each UAV's inbox held."""
+    trace: GameTrace | None = field(repr=False, default=None)
+    """The states and rewards of the game, step by step (for its recording)."""
+    scene: dict = field(repr=False, default_factory=dict)
+    """The game's fixed parts for its recording: variant, task, obstacles, targets, metrics."""
     diverged: str | None = None
+
+    def episode(self):
+        """The game as a `cefc_mj.viz.highlevel_log.HighLevelEpisode` (what `record_highlevel_episode`
+        and the PNG figures draw), from what the simulator kept: the states step by step and, per
+        decision, every UAV's anchor and message as received (-1 / NaN where none arrived: a missing
+        anchor has NaN coordinates, a missing message a NaN similarity row and column). Imports rerun."""
+        from cefc_mj.viz.highlevel_log import HighLevelEpisode, message_similarity
+
+        if self.trace is None:
+            raise ConfigError("this SITL-M game kept no trace to record")
+        task, scene, rows = self.scene["task"], self.scene, self.trace.arrays()
+        index = np.asarray(self.anchors, dtype=np.int64).reshape(-1, self.spec.n_agents)
+        grid = anchor_grid(ANCHOR_VALUES)
+        anchors = np.where((index >= 0)[..., None], grid[np.clip(index, 0, None)], np.nan)
+        messages = self.messages
+        return HighLevelEpisode(
+            variant=scene["variant"],
+            seed=self.spec.seed,
+            backend=self.spec.where.backend,
+            adversary_rule=task.adversary,
+            low_level={"name": HIERARCHY_LOWLEVEL},
+            dt=task.dt,
+            decision_interval=scene["decision_interval"],
+            arena_half_size=task.arena_half_size,
+            obstacle_radius=task.obstacle_radius,
+            target_radius=task.target_radius,
+            alert_distance=task.rewards.evasion_alert_distance,
+            obstacles=scene["obstacles"],
+            targets=scene["targets"],
+            anchor_grid=grid,
+            agent_pos=rows["agent_pos"],
+            agent_vel=rows["agent_vel"],
+            adversary_pos=rows.get("adversary_pos"),
+            adversary_goal=rows.get("adversary_goal"),
+            urgency=rows["urgency"],
+            group_label=rows["group_label"],
+            group_size=rows["group_size"],
+            reward=np.asarray(self.trace.reward),
+            reward_parts={k: np.asarray(v) for k, v in self.trace.parts.items()},
+            anchor_index=index,
+            anchors=anchors,
+            received=np.asarray(self.received, dtype=np.int64) if messages is not None else None,
+            messages=messages,
+            similarity=None if messages is None else message_similarity(messages),
+            metrics=dict(scene["metrics"]),
+            returns={m: self.figures[m] for m in ("R_H", "R_t", "R_n", "R_e")},
+            condition="SITL-M",
+        )
 
     def to_dict(self) -> dict:
         return {
@@ -332,7 +447,7 @@ def run_sitl_game(spec: GameSpec, sitl: SitlConfig = SitlConfig()) -> SitlGameRe
             for uav in local:
                 if not fleet.adopt(uav, server.vehicles[uav].info.get("pid", -1)):
                     server.event(uav, "not_adopted", "the agent's pid is not a local agent process")
-        return _play(spec, sitl, task, env, world, server, fleet, startup_s, policy.message_dim, interval)
+        return _play(spec, sitl, task, env, world, server, fleet, startup_s, policy, interval)
     finally:  # Ctrl-C waits until every agent process is gone
         previous = block_sigint()
         try:
@@ -344,7 +459,8 @@ def run_sitl_game(spec: GameSpec, sitl: SitlConfig = SitlConfig()) -> SitlGameRe
             restore_sigint(previous)
 
 
-def _play(spec, sitl, task, env, world, server: GameServer, fleet, startup_s, message_dim, interval):
+def _play(spec, sitl, task, env, world, server: GameServer, fleet, startup_s, policy, interval):
+    message_dim, variant = policy.message_dim, policy.variant
     n_ticks = world.n_ticks
     faults = collections.defaultdict(list)
     for fault in sitl.faults:
@@ -361,6 +477,8 @@ def _play(spec, sitl, task, env, world, server: GameServer, fleet, startup_s, me
     w = task.rewards
     weights = {"R_t": w.task_weight, "R_n": w.navigation_weight_high, "R_e": w.evasion_weight}
     env.reset(seed=spec.seed)
+    trace = GameTrace(env, task, weights)
+    trace.capture()
     total, parts = 0.0, {name: 0.0 for name in weights}
     block, terms = 0.0, {}
     info: dict = {}
@@ -371,13 +489,7 @@ def _play(spec, sitl, task, env, world, server: GameServer, fleet, startup_s, me
         step_index = k
         t = k * task.dt
         server.step, server.t_now = k, t
-        if fleet is not None:
-            for uav in fleet.poll_exits():
-                server.agent_exited(uav)
-        for fault in faults.get(k, []):
-            sig = signal.SIGKILL if fault.action == "kill" else signal.SIGSTOP
-            delivered = fleet is not None and fleet.signal(fault.uav, sig)
-            server.event(fault.uav, f"fault_{fault.action}", "injected" if delivered else "no local process to signal")
+        note_exits_and_faults(server, fleet, faults.get(k, []))
         if k % interval == 0:
             server.open_decision(k // interval, world.agent_pos[0])
         server.send_game_sensors(k, t, env, task.observation_distance)
@@ -388,6 +500,7 @@ def _play(spec, sitl, task, env, world, server: GameServer, fleet, startup_s, me
             diverged = str(e)
             break
         steps += 1
+        trace.step(reward[0], info["reward_terms"])
         block += reward[0]  # summed as the lock-step game sums: per decision, then over decisions
         for name in weights:
             terms[name] = terms.get(name, 0.0) + info["reward_terms"][name][0]
@@ -400,6 +513,7 @@ def _play(spec, sitl, task, env, world, server: GameServer, fleet, startup_s, me
             break
     loop_wall = time.perf_counter() - start
     server.receive(0.0)
+    server.close_decisions()  # the last decision's messages, kept for the recording
     metrics = info.get("metrics") or env.episode_metrics()
     figures = game_figures(total, parts, metrics)
     vehicles = server.vehicles
@@ -453,5 +567,16 @@ def _play(spec, sitl, task, env, world, server: GameServer, fleet, startup_s, me
         sitl=summary,
         samples=pooled,
         anchors=list(server.anchors),
+        messages=np.stack(server.messages) if message_dim and server.messages else None,
+        received=list(server.received_counts),
+        trace=trace,
+        scene={
+            "task": task,
+            "variant": variant,
+            "decision_interval": interval,
+            "obstacles": env.obstacles[0].copy(),
+            "targets": env.targets[0].copy(),
+            "metrics": {m: float(np.asarray(metrics[m]).reshape(-1)[0]) for m in ("F", "N", "C", "E")},
+        },
         diverged=diverged,
     )

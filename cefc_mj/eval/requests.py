@@ -449,9 +449,11 @@ class GameTablesRequest:
     """--adversary: table5 and table7's adversary, a rule or a trained adversary's name or file; None:
     GAME_ADVERSARY. Table VI plays each adversary in turn and takes none."""
     rrd: Path | None = None
-    """--rrd: record one game of --policy (table5) to this Rerun file."""
+    """--rrd: record one game of --policy (table5) to this Rerun file: the game of --seed (with
+    --sitl-m, the SITL-M game of --seed, the first of the batch)."""
     png: Path | None = None
-    """--png: draw the game's message-similarity matrices (table5 with --policy) into this folder."""
+    """--png: draw the game's message-similarity matrices (table5 with --policy) into this folder;
+    with --sitl-m the paper's Figs. 11 and 12 of the SITL-M game of --seed."""
     report_dir: Path | None = None
     """--report-dir: where table<k>.md/.json/.png go; None: no report folder."""
     json: Path | None = None
@@ -468,9 +470,6 @@ class GameTablesRequest:
                 raise ConfigError(
                     "--sitl-m: the SITL-M game plays one policy of table5: add --protocol table5 --policy NAME"
                 )
-            for flag, path in (("--rrd", self.rrd), ("--png", self.png)):
-                if path is not None:
-                    raise ConfigError(f"{flag}: the SITL-M game is not recorded yet; drop {flag} or --sitl-m")
         if self.adversary is not None and self.protocol == "table6":
             raise adversary_refused(self.adversary)
         if self.policy is not None:

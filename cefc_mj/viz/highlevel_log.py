@@ -6,7 +6,11 @@ seed s gives the episode of a 1-episode evaluation with seed s) and keeps every 
 state and every decision's anchors and messages in a `HighLevelEpisode`. `log_highlevel_episode`
 sends it to a Rerun recording (entity paths in docs/rerun.md, "The hierarchical game"),
 `record_highlevel_episode` writes it as a `.rrd` file, and `plot_similarity_matrices` draws a PNG of
-the message similarity at a few decisions.
+the message similarity at a few decisions. `plot_game_moments` draws the paper's Fig. 11 (paths,
+groups and chosen anchors at four moments) and `write_game_figures` Figs. 11 and 12 at the same four
+evenly spaced decisions. A game played over SITL-M (`cefc_mj.deploy.game.SitlGameResult.episode`)
+comes as the same `HighLevelEpisode`, its messages and anchors as the simulator received them: a
+missing message is a NaN row (NaN similarity row and column), a missing anchor index -1.
 
 Rows of the per-step arrays are states: row s is the state after s low-level steps (row 0 the reset
 state, row T the end), so decision k is taken at row k * decision_interval, from the state shown
@@ -105,15 +109,18 @@ class HighLevelEpisode:
     reward_parts: dict[str, np.ndarray]
     """R_t, R_n, R_e (weighted, they sum to R_H) of each low-level step, each [T]."""
     anchor_index: np.ndarray
-    """[K, N] each agent's chosen anchor index at decision k."""
+    """[K, N] each agent's chosen anchor index at decision k (-1: unknown, in a SITL-M game an agent
+    whose message did not reach the simulator)."""
     anchors: np.ndarray
-    """[K, N, 2] the chosen anchors' coordinates."""
+    """[K, N, 2] the chosen anchors' coordinates (NaN where the index is -1)."""
     received: np.ndarray | None
     """[K, N] how many messages each agent heard at decision k (None without communication)."""
     messages: np.ndarray | None
-    """[K, N, D] the message each agent sent at decision k (None without communication)."""
+    """[K, N, D] the message each agent sent at decision k (None without communication; a NaN row:
+    the message did not arrive, in a SITL-M game)."""
     similarity: np.ndarray | None
-    """[K, N, N] `message_similarity(messages)` (None without communication)."""
+    """[K, N, N] `message_similarity(messages)` (None without communication; NaN rows and columns
+    for missing messages)."""
     metrics: dict[str, float]
     """The episode's F, N (steps), C (% of agent-steps), E (steps)."""
     returns: dict[str, float]
@@ -124,6 +131,9 @@ class HighLevelEpisode:
     """The SHA-256 of the policy file, when the caller knows it."""
     provenance: dict[str, str] = field(default_factory=code_provenance)
     """The code that flew the episode (`cefc_mj.eval.record.code_provenance`)."""
+    condition: str = ""
+    """How the game was played, when not in one process: "SITL-M" (every UAV's hierarchy in its own
+    process, `cefc_mj.deploy.game.SitlGameResult.episode`)."""
 
     @property
     def n_steps(self) -> int:
@@ -153,22 +163,29 @@ def message_similarity(messages: np.ndarray) -> np.ndarray:
 
     S_ij = m_i . m_j / (|m_i| |m_j|), and 0 in every entry of a zero message's row and column
     (its diagonal entry included). Exactly symmetric, 1 on the diagonal of nonzero messages,
-    clipped to [-1, 1]; computed in float64."""
+    clipped to [-1, 1]; computed in float64. A message with a NaN or infinite number (a missing one,
+    in a SITL-M game) has NaN in its row and column."""
     m = np.asarray(messages, dtype=np.float64)
+    missing = ~np.isfinite(m).all(axis=-1)
+    m = np.where(missing[..., None], 0.0, m)
     norm = np.linalg.norm(m, axis=-1, keepdims=True)
     unit = np.divide(m, norm, out=np.zeros_like(m), where=norm > 0)
     s = unit @ np.swapaxes(unit, -1, -2)
     s = np.clip(0.5 * (s + np.swapaxes(s, -1, -2)), -1.0, 1.0)
     diagonal = np.arange(m.shape[-2])
     s[..., diagonal, diagonal] = (norm[..., 0] > 0).astype(np.float64)
+    if missing.any():
+        s[missing[..., :, None] | missing[..., None, :]] = np.nan
     return s
 
 
 def similarity_floor(similarity: np.ndarray) -> float:
     """The low end of the colour scale: the smallest value rounded down to 0.05, at most 0.9. Messages
     are often alike to 0.85 and more (an untrained ConsMAC's are), so a [-1, 1] scale would show one
-    colour; the paper's Fig. 12 also spans only the values it shows."""
-    return min(0.9, float(np.floor(np.min(similarity) * 20) / 20))
+    colour; the paper's Fig. 12 also spans only the values it shows. NaN entries are left out."""
+    values = np.asarray(similarity, dtype=np.float64)
+    values = values[~np.isnan(values)]
+    return min(0.9, float(np.floor(np.min(values) * 20) / 20)) if values.size else 0.0
 
 
 # ---------------------------------------------------------------------------- playing
@@ -359,7 +376,7 @@ def log_highlevel_episode(episode: HighLevelEpisode, recording: rr.RecordingStre
     on_plane = lambda xy: np.concatenate([xy, np.full((*xy.shape[:-1], 1), PLANE_Z)], axis=-1)  # noqa: E731
 
     # static scene
-    rec.send_recording_name(f"{ep.policy or ep.variant} seed={ep.seed} ({ep.backend})")
+    rec.send_recording_name(f"{ep.policy or ep.variant} seed={ep.seed} ({_played_text(ep)})")
     rec.send_property("provenance", rr.AnyValues(**provenance_fields(ep)))
     rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
     rec.log("episode", rr.TextDocument(_episode_markdown(ep), media_type="text/markdown"), static=True)
@@ -534,6 +551,7 @@ def provenance_fields(episode: HighLevelEpisode) -> dict[str, str | int | float]
         "low_level": ep.low_level.get("name", ""),
         "low_level_sha256": low_file.get("sha256", ""),
         "backend": ep.backend,
+        "condition": ep.condition or "one process",
         "adversary": ep.adversary_rule,
         "seed": ep.seed,
         "agents": ep.n_agents,
@@ -548,12 +566,14 @@ def provenance_fields(episode: HighLevelEpisode) -> dict[str, str | int | float]
 
 
 def _anchor_labels(ep: HighLevelEpisode, anchor: np.ndarray) -> list[str]:
-    """One label per anchor point and row: the first agent at an anchor names all who chose it."""
+    """One label per anchor point and row: the first agent at an anchor names all who chose it (an
+    unknown anchor, NaN, has none)."""
     labels = []
     for row in anchor:
         seen: dict[tuple, list[int]] = {}
         for i, point in enumerate(map(tuple, row)):
-            seen.setdefault(point, []).append(i)
+            if np.isfinite(point).all():
+                seen.setdefault(point, []).append(i)
         first = {members[0]: (point, members) for point, members in seen.items()}
         for i in range(len(row)):
             if i in first:
@@ -566,10 +586,22 @@ def _anchor_labels(ep: HighLevelEpisode, anchor: np.ndarray) -> list[str]:
 
 def _decision_line(ep: HighLevelEpisode, k: int) -> str:
     row = ep.decision_rows[k]
-    picks = ", ".join(f"{i}->({x:g},{y:g})" for i, (x, y) in enumerate(ep.anchors[k]))
+    picks = ", ".join(f"{i}->{_anchor_text(xy)}" for i, xy in enumerate(ep.anchors[k]))
     groups = _group_text(ep.group_label[row])
     heard = "" if ep.received is None else f"; heard {ep.received[k].tolist()}"
-    return f"decision {k} at step {row}: anchors {picks}; groups {groups}{heard}"
+    missing = [] if ep.messages is None else np.flatnonzero(~np.isfinite(ep.messages[k]).all(axis=-1)).tolist()
+    lost = f"; no message from {missing}" if missing else ""
+    return f"decision {k} at step {row}: anchors {picks}; groups {groups}{heard}{lost}"
+
+
+def _anchor_text(xy) -> str:
+    """ "(x,y)" of an anchor, "none" for an unknown one (NaN)."""
+    x, y = xy
+    return f"({x:g},{y:g})" if np.isfinite(xy).all() else "none"
+
+
+def _played_text(ep: HighLevelEpisode) -> str:
+    return f"{ep.backend}, {ep.condition}" if ep.condition else ep.backend
 
 
 def _group_text(labels: np.ndarray) -> str:
@@ -581,12 +613,21 @@ def _mean_similarity(ep: HighLevelEpisode) -> tuple[np.ndarray, np.ndarray]:
     anchors ([K] each, NaN where there is no such pair)."""
     same_anchor = ep.anchor_index[:, :, None] == ep.anchor_index[:, None, :]  # [K, N, N]
     off_diagonal = ~np.eye(ep.n_agents, dtype=bool)
+    known = ~np.isnan(ep.similarity) & (ep.anchor_index >= 0)[:, :, None] & (ep.anchor_index >= 0)[:, None, :]
     out = []
-    for mask in (same_anchor & off_diagonal, ~same_anchor):
+    for mask in (same_anchor & off_diagonal & known, ~same_anchor & known):
         count = mask.sum(axis=(1, 2))
         total = np.where(mask, ep.similarity, 0.0).sum(axis=(1, 2))
         out.append(np.where(count > 0, total / np.maximum(count, 1), np.nan))
     return out[0], out[1]
+
+
+def _missing_text(ep: HighLevelEpisode) -> str:
+    """How many (decision, UAV) messages did not arrive (NaN rows; only a SITL-M game has any)."""
+    if ep.messages is None:
+        return "n/a (no communication)"
+    missing = ~np.isfinite(ep.messages).all(axis=-1)
+    return f"{int(missing.sum())} of {missing.size} (recorded as NaN, never invented)"
 
 
 def _episode_markdown(ep: HighLevelEpisode) -> str:
@@ -598,13 +639,16 @@ def _episode_markdown(ep: HighLevelEpisode) -> str:
     )
     return "\n".join(
         [
-            f"# Hierarchical game, {ep.policy or ep.variant}, seed {ep.seed}",
+            f"# Hierarchical game, {ep.policy or ep.variant}, seed {ep.seed}"
+            + (f" ({ep.condition})" if ep.condition else ""),
             "",
             "| | |",
             "|---|---|",
             f"| high level | {ep.variant} ({comm}) |",
             f"| low level | {ep.low_level.get('name', 'n/a')} |",
             f"| backend, adversary | {ep.backend}, {ep.adversary_rule} |",
+            f"| played | {ep.condition or 'one process'} |",
+            f"| messages missing | {_missing_text(ep)} |",
             f"| UAVs, targets, obstacles | {ep.n_agents}, {len(ep.targets)}, {len(ep.obstacles)} |",
             f"| steps | {ep.n_steps} (dt = {ep.dt} s), a decision every {ep.decision_interval} |",
             f"| R_H = R_t + R_n + R_e | {ep.returns['R_H']:.1f} = {ep.returns['R_t']:.1f} + {ep.returns['R_n']:.1f} "
@@ -628,12 +672,21 @@ def _episode_markdown(ep: HighLevelEpisode) -> str:
 
 # ---------------------------------------------------------------------------- PNG
 def plot_similarity_matrices(
-    episode: HighLevelEpisode, png_path: str | os.PathLike, decisions: list[int] | None = None, dpi: int = 110
+    episode: HighLevelEpisode,
+    png_path: str | os.PathLike,
+    decisions: list[int] | None = None,
+    dpi: int = 110,
+    agents: list[int] | None = None,
+    cols: int | None = None,
+    title: str | None = None,
 ) -> Path:
     """A PNG grid of the message similarity matrices at a few decisions (default 6 evenly spaced),
     each titled with its decision and step, the axes labelled with every agent's anchor and group,
-    and the mean same- and other-anchor similarity over the episode beneath. Written atomically.
-    ConfigError for an episode without messages or a decision out of range."""
+    and the mean same- and other-anchor similarity over the episode (all agents) beneath. agents:
+    only these agents' rows and columns (default all; the paper's Fig. 12 shows UAVs 1-4, agents
+    0-3 here); cols: matrices per row (default up to 3). A missing message (NaN, a SITL-M game) is
+    a blank row and column marked "-". Written atomically. ConfigError for an episode without
+    messages or a decision or agent out of range."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
@@ -645,8 +698,13 @@ def plot_similarity_matrices(
     decisions = [int(k) for k in decisions]
     if not decisions or any(not 0 <= k < ep.n_decisions for k in decisions):
         raise ConfigError(f"decisions={decisions}: give decisions in 0..{ep.n_decisions - 1}")
-    low = similarity_floor(ep.similarity[decisions])
-    cols = min(3, len(decisions))
+    agents = list(range(ep.n_agents)) if agents is None else [int(i) for i in agents]
+    if not agents or any(not 0 <= i < ep.n_agents for i in agents):
+        raise ConfigError(f"agents={agents}: give agents in 0..{ep.n_agents - 1}")
+    shown = ep.similarity[np.ix_(decisions, agents, agents)]  # [len(decisions), n, n]
+    n = len(agents)
+    low = similarity_floor(shown)
+    cols = min(cols or 3, len(decisions))
     grid_rows = -(-len(decisions) // cols)
     fig = Figure(figsize=(4.6 * cols + 1.0, 4.0 * grid_rows + 2.4), dpi=dpi, layout="constrained")
     FigureCanvasAgg(fig)
@@ -654,23 +712,23 @@ def plot_similarity_matrices(
     matrices = []
     for slot, k in enumerate(decisions):
         ax = fig.add_subplot(spec[slot // cols, slot % cols])
-        image = ax.imshow(ep.similarity[k], vmin=low, vmax=1.0, cmap="viridis")
+        image = ax.imshow(shown[slot], vmin=low, vmax=1.0, cmap="viridis")
         row = ep.decision_rows[k]
-        ticks = [f"{i} ({x:g},{y:g}) g{g}" for i, ((x, y), g) in enumerate(zip(ep.anchors[k], ep.group_label[row]))]
-        ax.set_xticks(range(ep.n_agents), [str(i) for i in range(ep.n_agents)], fontsize=7)
-        ax.set_yticks(range(ep.n_agents), ticks, fontsize=7)
+        ticks = [f"{i} {_anchor_text(ep.anchors[k, i])} g{ep.group_label[row, i]}" for i in agents]
+        ax.set_xticks(range(n), [str(i) for i in agents], fontsize=7)
+        ax.set_yticks(range(n), ticks, fontsize=7)
         ax.set_title(f"decision {k} (step {row})", fontsize=9)
-        for i in range(ep.n_agents):
-            for jj in range(ep.n_agents):
-                value = ep.similarity[k, i, jj]
+        for i in range(n):
+            for jj in range(n):
+                value = shown[slot, i, jj]
                 ax.text(
                     jj,
                     i,
-                    f"{value:.2f}",
+                    "-" if np.isnan(value) else f"{value:.2f}",
                     ha="center",
                     va="center",
                     fontsize=5.5,
-                    color="black" if value > low + 0.6 * (1.0 - low) else "white",
+                    color="black" if np.isnan(value) or value > low + 0.6 * (1.0 - low) else "white",
                 )
         matrices.append(ax)
     fig.colorbar(image, ax=matrices, shrink=0.8, label="cos(m_i, m_j)")
@@ -683,9 +741,108 @@ def plot_similarity_matrices(
     ax.legend(fontsize=8, loc="best")
     ax.grid(True, linewidth=0.3, alpha=0.5)
     fig.suptitle(
-        f"Message similarity, {ep.policy or ep.variant}, seed {ep.seed} (rows: agent (its anchor) g<group label>)",
+        title
+        or f"Message similarity, {ep.policy or ep.variant}, seed {ep.seed} (rows: agent (its anchor) g<group label>)",
         fontsize=10,
     )
     path = Path(png_path)
     atomic_write(path, lambda fh: fig.savefig(fh, format="png"))
     return path
+
+
+def game_moments(episode: HighLevelEpisode, count: int = 4) -> list[int]:
+    """The decisions the paper's Figs. 11 and 12 show: `count` evenly spaced over the game, the
+    first and the last included (fewer in a game of fewer decisions)."""
+    k = episode.n_decisions
+    return sorted(set(np.linspace(0, k - 1, min(count, k)).round().astype(int).tolist()))
+
+
+def plot_game_moments(
+    episode: HighLevelEpisode, png_path: str | os.PathLike, decisions: list[int] | None = None, dpi: int = 110
+) -> Path:
+    """The paper's Fig. 11: the arena from above at a few decisions (default `game_moments`, four
+    evenly spaced), one panel each: every UAV's path so far and its position in its group's colour
+    (groups as the env labels them: connected under the observation distance), a dashed line to the
+    anchor it chose at that decision (a cross; none where its choice is unknown), the targets with
+    their urgency, the obstacles, and the adversary's path and alert circle. Written atomically.
+    ConfigError for a decision out of range."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+    from matplotlib.patches import Circle
+
+    ep = episode
+    decisions = game_moments(ep) if decisions is None else [int(k) for k in decisions]
+    if not decisions or any(not 0 <= k < ep.n_decisions for k in decisions):
+        raise ConfigError(f"decisions={decisions}: give decisions in 0..{ep.n_decisions - 1}")
+    cols = min(2, len(decisions))
+    grid_rows = -(-len(decisions) // cols)
+    fig = Figure(figsize=(5.2 * cols, 5.2 * grid_rows + 0.6), dpi=dpi, layout="constrained")
+    FigureCanvasAgg(fig)
+    a = ep.arena_half_size
+    for slot, k in enumerate(decisions):
+        ax = fig.add_subplot(grid_rows, cols, slot + 1)
+        row = int(ep.decision_rows[k])
+        colors = group_colors(ep.group_label[row]) / 255.0  # [N, 3]
+        ax.plot([-a, a, a, -a, -a], [-a, -a, a, a, -a], color="0.6", linewidth=0.8)
+        for centre in ep.obstacles:
+            ax.add_patch(Circle(centre, ep.obstacle_radius, color="0.6", alpha=0.6, linewidth=0))
+        ax.scatter(*ep.anchor_grid.T, s=12, color=(0.0, 0.78, 0.31), alpha=0.35, marker="s", linewidths=0)
+        for t, (x, y) in enumerate(ep.targets):
+            ax.add_patch(Circle((x, y), ep.target_radius, fill=False, color=(0.9, 0.7, 0.0), linewidth=0.8))
+            ax.scatter([x], [y], s=90, marker="*", color=(0.9, 0.7, 0.0), zorder=3)
+            ax.annotate(f"u={ep.urgency[row, t]:.2f}", (x, y), textcoords="offset points", xytext=(6, 6), fontsize=7)
+        if ep.adversary_pos is not None:
+            adv = ep.adversary_pos[: row + 1]
+            ax.plot(*adv.T, color=(0.78, 0.0, 0.0), linewidth=1.0, alpha=0.7)
+            ax.scatter(*adv[-1], s=60, color=(0.78, 0.0, 0.0), zorder=4)
+            ax.add_patch(Circle(adv[-1], ep.alert_distance, fill=False, color=(0.78, 0.0, 0.0), linestyle=":"))
+        for i in range(ep.n_agents):
+            path = ep.agent_pos[: row + 1, i]
+            ax.plot(*path.T, color=colors[i], linewidth=0.9, alpha=0.8)
+            ax.scatter(*path[-1], s=30, color=colors[i], edgecolors="black", linewidths=0.4, zorder=5)
+            ax.annotate(str(i), path[-1], textcoords="offset points", xytext=(3, -9), fontsize=7)
+            anchor = ep.anchors[k, i]
+            if np.isfinite(anchor).all():
+                ax.plot(*np.stack([path[-1], anchor]).T, color=colors[i], linestyle="--", linewidth=0.7)
+                ax.scatter(*anchor, s=70, marker="x", color=colors[i], linewidths=1.6, zorder=4)
+        missing = [i for i in range(ep.n_agents) if not np.isfinite(ep.anchors[k, i]).all()]
+        note = f"; anchor unknown: {missing}" if missing else ""
+        ax.set_title(
+            f"decision {k}, step {row} (t = {row * ep.dt:.1f} s)\ngroups {_group_text(ep.group_label[row])}{note}",
+            fontsize=8,
+        )
+        ax.set_xlim(-a - 0.5, a + 0.5)
+        ax.set_ylim(-a - 0.5, a + 0.5)
+        ax.set_aspect("equal")
+        ax.tick_params(labelsize=7)
+    fig.suptitle(
+        f"Paths, groups (colours) and chosen anchors (x), {ep.policy or ep.variant}, seed {ep.seed} "
+        f"({_played_text(ep)}), at {len(decisions)} evenly spaced decisions",
+        fontsize=10,
+    )
+    path = Path(png_path)
+    atomic_write(path, lambda fh: fig.savefig(fh, format="png"))
+    return path
+
+
+def write_game_figures(episode: HighLevelEpisode, folder: str | os.PathLike, stem: str) -> list[Path]:
+    """The paper's Figs. 11 and 12 of one game at the same moments (`game_moments`: four evenly
+    spaced decisions): `<stem>_fig11.png` (`plot_game_moments`) and, for a policy with messages,
+    `<stem>_fig12.png` (`plot_similarity_matrices` of UAVs 1-4, agents 0-3 here, one row)."""
+    folder = Path(folder)
+    moments = game_moments(episode)
+    written = [plot_game_moments(episode, folder / f"{stem}_fig11.png", moments)]
+    if episode.similarity is not None:
+        written.append(
+            plot_similarity_matrices(
+                episode,
+                folder / f"{stem}_fig12.png",
+                moments,
+                agents=list(range(min(4, episode.n_agents))),
+                cols=len(moments),
+                title=f"Cosine similarity of UAVs 1-4's messages (agents 0-3), {episode.policy or episode.variant}, "
+                f"seed {episode.seed} ({_played_text(episode)}), at the decisions of Fig. 11 "
+                "(rows: agent (its anchor) g<group label>)",
+            )
+        )
+    return written
