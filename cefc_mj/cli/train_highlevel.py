@@ -1,0 +1,140 @@
+"""`cefc-train highlevel`: the high level's flags, which default to None so that HighLevelConfig
+(cefc_mj/train/highlevel.py) owns the defaults and the range checks, and its run."""
+
+from __future__ import annotations
+
+from cefc_mj.cli.train_common import add_common_args, check_destinations, install
+from cefc_mj.train.config import Budget
+
+COMMANDS = ("highlevel",)
+
+
+def add_parser(sub) -> None:
+    """`cefc-train highlevel`; flags left out keep HighLevelConfig's defaults (cefc_mj/train/highlevel.py)."""
+    p = sub.add_parser(
+        "highlevel",
+        help="the high level (ConsMAC + anchor selector) over a trained low level",
+        description="Algorithm 2: MAPPO anchor selection every 10 low-level steps, ConsMAC trained "
+        "alternately by supervised learning; pre-training with a navigation-only low "
+        "level, then fine-tuning with --low-level. Written as cihrl_<variant>.",
+    )
+    p.add_argument(
+        "--variant",
+        choices=("consmac-a", "consmac-o", "mappo", "tarmac"),
+        default=None,
+        help="consmac-a (default), consmac-o, mappo (no communication), tarmac (messages trained end to end by RL)",
+    )
+    p.add_argument(
+        "--ablation",
+        choices=("none", "wo-com", "wo-mem", "wo-de", "wt-rl", "consmac-g"),
+        default=None,
+        help="one of the paper's Fig. 7 ablations of ConsMAC (consmac-a/-o only; default none): wo-com (no "
+        "message received), wo-mem (no GRU memory), wo-de (no distance encoder), wt-rl (the RL loss also "
+        "trains ConsMAC), consmac-g (the estimate g_hat is sent as the message). Written as "
+        "cihrl_<variant>_<ablation>",
+    )
+    p.add_argument(
+        "--low-level",
+        default=None,
+        metavar="NAME|PATH|per-group",
+        help="fine-tuning low level: a policy name or file (default atm_student) or per-group "
+        "(atm_c<C>_step3 by group size)",
+    )
+    p.add_argument(
+        "--pretrain-share",
+        type=float,
+        default=None,
+        metavar="F",
+        help="share of the budget with the navigation-only low level (default 2/3, the paper's 1000 of "
+        "1500 episodes; 0: direct training)",
+    )
+    p.add_argument(
+        "--density",
+        type=float,
+        default=None,
+        dest="obstacle_density",
+        metavar="D",
+        help="obstacle density per m^2 (default 0.03)",
+    )
+    p.add_argument(
+        "--adversary",
+        default=None,
+        metavar="RULE|NAME|PATH",
+        help="the game's adversary: a rule (nearest_group, r_nearest, r_largest, none) or a trained "
+        "adversary's policy name or file (default adversary_ppo, the shipped PPO adversary)",
+    )
+    p.add_argument(
+        "--episode-steps",
+        type=int,
+        default=None,
+        metavar="N",
+        help="low-level steps per episode, a multiple of 10 (default 400)",
+    )
+    p.add_argument(
+        "--consmac-every",
+        type=int,
+        default=None,
+        metavar="IT",
+        help="train ConsMAC after every IT iterations (default 1)",
+    )
+    p.add_argument(
+        "--consmac-steps",
+        type=int,
+        default=None,
+        metavar="N",
+        help="Adam steps per ConsMAC round (default 200; the paper's 5000)",
+    )
+    p.add_argument("--consmac-batch", type=int, default=None, metavar="N", help="ConsMAC batch (default 2048)")
+    p.add_argument(
+        "--consmac-lr", type=float, default=None, metavar="LR", help="ConsMAC learning rate (default 1e-4, the paper's)"
+    )
+    p.add_argument(
+        "--replay",
+        type=int,
+        default=None,
+        metavar="N",
+        dest="replay_capacity",
+        help="ConsMAC replay capacity in agent-decisions (default 50000)",
+    )
+    p.add_argument(
+        "--eval-episodes",
+        type=int,
+        default=None,
+        metavar="N",
+        help="episodes evaluated for the model card (default 20; 0 skips)",
+    )
+    p.add_argument("--envs", type=int, default=None, dest="n_envs", metavar="N", help="parallel envs (default 20)")
+    p.add_argument("--epochs", type=int, default=None, metavar="N", help="PPO epochs per iteration (default 15)")
+    p.add_argument("--minibatches", type=int, default=None, metavar="N", help="minibatches per epoch (default 4)")
+    p.add_argument(
+        "--lr", type=float, default=None, metavar="LR", help="Adam learning rate of selector and critic (default 1e-4)"
+    )
+    p.add_argument(
+        "--entropy", type=float, default=None, dest="entropy_coef", metavar="C", help="entropy bonus (default 0.01)"
+    )
+    p.add_argument(
+        "--threads",
+        type=int,
+        default=None,
+        dest="update_threads",
+        metavar="N",
+        help="torch threads of the updates and ConsMAC (default 2)",
+    )
+    add_common_args(p, "highlevel", "75it")
+
+
+def run(args, budget: Budget, command: str | None = None) -> list[dict]:
+    """Check the config and folders, train, export and, with --install, install the policy and its
+    pre-trained (wo-FT) weights; returns the model card."""
+    from cefc_mj.nn.highlevel_policy import load_highlevel_policy
+    from cefc_mj.train.highlevel import config_from_args, summary_lines, train_highlevel
+
+    cfg = config_from_args(args, budget)
+    policies_dir = check_destinations(args)
+    card = train_highlevel(
+        cfg, args.out, policies_dir, resume=args.resume, show_progress=not args.no_progress, command=command
+    )
+    print("\n".join(summary_lines(card, policies_dir)))
+    if args.install:
+        install(filter(None, (card["name"], card.get("wo_ft"))), policies_dir, load=load_highlevel_policy)
+    return [card]
