@@ -299,13 +299,14 @@ def test_cli_bad_input_exits_2_with_one_line_and_writes_nothing(argv, needle, tm
 # Bands from the measured spread: 20 games against the shipped CI-HRL seed 0 (seeds 100 / 200 / 300),
 # E in steps and the share of the adversary's steps inside an obstacle's keep-out disc (the rule steers
 # around them, as the game's rules do):
-#     shipped adversary_ppo    E 71.8 / 72.5 / 84.6    inside 0.11 / 0.19 / 0.00 %
-#     nearest-group rule       E 77.3 / 103.4 / 81.5   inside 0.11 / 0.16 / 0.00 %
-#     random walk (uniform)    E 0 / 0 / 0             inside 2.61 / 2.61 / 1.74 %
-#     untrained network        E 0 / 0 / 0             inside 5.00 / 6.64 / 0.00 %
+#     shipped adversary_ppo    E 137.3 / 131.8 / 138.3   inside 0.11 / 0.16 / 0.11 %
+#     nearest-group rule       E 144.8 / 136.2 / 154.9   inside 0.11 / 0.18 / 0.00 %
+#     random walk (uniform)    E 0 / 0 / 0               inside 2.61 / 2.61 / 1.74 %
+#     untrained network        E 0 / 0 / 0               inside 0.14 / 0.68 / 0.83 %
 # A 20-game mean of E moves by up to 30 steps between seeds; the floor sits one such spread under the
-# lowest measured mean, the ceiling at five times the highest measured share.
-E_FLOOR = 40.0
+# lowest measured mean, the ceiling at five times the highest measured share. A network that fails
+# either band fails the test (the untrained one chases nobody: it flies off at top speed).
+E_FLOOR = 100.0
 IN_CEILING = 0.01
 SEED = 100
 
@@ -330,7 +331,7 @@ def test_shipped_ppo_adversary_chases_the_swarm_and_keeps_out_of_obstacles():
     assert shipped["E"] >= E_FLOOR, f"E {shipped['E']:.1f} steps below the band {E_FLOOR}"
     assert shipped["adversary_collision_share"] <= IN_CEILING, shipped["adversary_collision_share"]
     untrained = _pressure(AdversaryPolicy(policy.cfg, seed=0).act)  # the bands fail it
-    assert untrained["E"] < E_FLOOR and untrained["adversary_collision_share"] > IN_CEILING
+    assert untrained["E"] < E_FLOOR or untrained["adversary_collision_share"] > IN_CEILING
 
 
 def test_shipped_adversary_beats_a_random_walk_by_the_measured_margin():
