@@ -123,6 +123,15 @@ class SitlConfig:
                 raise ConfigError(f"faults: {fault!r} is not an AgentFault with action kill or stop")
 
 
+def check_faults(sitl: SitlConfig, n_uavs: int, steps: int, what: str) -> None:
+    """ConfigError unless every injected fault names a local UAV and a step of the `what` (episode, game)."""
+    for fault in sitl.faults:
+        if not 0 <= fault.uav < n_uavs or not 0 <= fault.step < steps:
+            raise ConfigError(f"faults: {fault} is outside the {what} (uav 0..{n_uavs - 1}, step 0..{steps - 1})")
+        if fault.uav in sitl.remote_agents:
+            raise ConfigError(f"faults: uav {fault.uav}'s agent is remote; only local processes can be signalled")
+
+
 def _check(spec: EpisodeSpec, sitl: SitlConfig) -> tuple[float, tuple[int, int] | None, TaskConfig]:
     """Everything checked before a process starts; returns (control tick, drop, the game with the
     policy's LiDAR)."""
@@ -139,13 +148,7 @@ def _check(spec: EpisodeSpec, sitl: SitlConfig) -> tuple[float, tuple[int, int] 
     for uav in sitl.remote_agents:
         if not isinstance(uav, int) or not 0 <= uav < spec.formation:
             raise ConfigError(f"remote_agents: {uav!r} is not a UAV index 0..{spec.formation - 1}")
-    for fault in sitl.faults:
-        if not 0 <= fault.uav < spec.formation or not 0 <= fault.step < spec.steps:
-            raise ConfigError(
-                f"faults: {fault} is outside the episode (uav 0..{spec.formation - 1}, step 0..{spec.steps - 1})"
-            )
-        if fault.uav in sitl.remote_agents:
-            raise ConfigError(f"faults: uav {fault.uav}'s agent is remote; only local processes can be signalled")
+    check_faults(sitl, spec.formation, spec.steps, "episode")
     policy = load_policy_for(spec.policy, spec.formation)  # an unknown policy fails here, not in N processes
     return tick, drop, policy.task_for(config)
 

@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from cefc_mj.deploy import wire
-from cefc_mj.deploy.episode import SitlConfig, note_exits_and_faults
+from cefc_mj.deploy.episode import SitlConfig, check_faults, note_exits_and_faults
 from cefc_mj.deploy.results import _percentiles
 from cefc_mj.deploy.sim_server import AgentFleet, SitlServer, _Request, block_sigint, restore_sigint
 from cefc_mj.deploy.tick_world import make_ticked_world
@@ -372,13 +372,7 @@ def _check(spec: GameSpec, sitl: SitlConfig):
         raise ConfigError("drop: the SITL-M game has no dropout yet (use faults)")
     if sitl.remote_agents and any(not isinstance(u, int) or not 0 <= u < spec.n_agents for u in sitl.remote_agents):
         raise ConfigError(f"remote_agents: UAV indices 0..{spec.n_agents - 1}")
-    for fault in sitl.faults:
-        if not 0 <= fault.uav < spec.n_agents or not 0 <= fault.step < spec.steps:
-            raise ConfigError(
-                f"faults: {fault} is outside the game (uav 0..{spec.n_agents - 1}, step 0..{spec.steps - 1})"
-            )
-        if fault.uav in sitl.remote_agents:
-            raise ConfigError(f"faults: uav {fault.uav}'s agent is remote; only local processes can be signalled")
+    check_faults(sitl, spec.n_agents, spec.steps, "game")
 
 
 def run_sitl_game(spec: GameSpec, sitl: SitlConfig = SitlConfig()) -> SitlGameResult:
