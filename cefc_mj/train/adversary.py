@@ -322,7 +322,7 @@ class _Sampler:
 
 class PopulationGames:
     """What every adversary trainer (PPO, DDPG) shares: the team of each game, drawn from the
-    population. Needs cfg (seed, teams), population and games."""
+    population, and the games themselves. Needs cfg (seed, teams), task and population."""
 
     def draw_teams(self, iteration: int, stream: int = TEAM_DRAW_STREAM) -> list[str]:
         """The team of each game of `iteration`: uniform draws from the population, a function of
@@ -333,6 +333,24 @@ class PopulationGames:
 
     def team_for(self, name: str, game: HierarchicalCEFCEnv):
         return RuleTeam(name, game) if self.population[name] is None else self.population[name]
+
+    def build_games(self, samplers: list, low_level: LowLevel, n_envs: int, decision_interval: int) -> None:
+        """One game of n_envs / len(samplers) envs per sampler, the sampler flying its adversary and
+        reading its env: sets self.samplers and self.games."""
+        self.samplers = samplers
+        self.games = [
+            HierarchicalCEFCEnv(
+                self.task,
+                low_level,
+                n_envs=n_envs // len(samplers),
+                seed=self.cfg.seed,
+                decision_interval=decision_interval,
+                adversary_policy=sampler,
+            )
+            for sampler in samplers
+        ]
+        for sampler, game in zip(self.samplers, self.games):
+            sampler.env = game.env
 
 
 class AdversaryTrainer(PopulationGames):
@@ -368,21 +386,9 @@ class AdversaryTrainer(PopulationGames):
         self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=cfg.ppo.lr, eps=1e-5)
         self.generator = torch.Generator().manual_seed(cfg.seed)
         self.iteration, self.episodes, self.elapsed = 0, 0, 0.0
-        per_game = cfg.ppo.n_envs // cfg.teams_per_iteration
-        self.samplers = [_Sampler(self) for _ in range(cfg.teams_per_iteration)]
-        self.games = [
-            HierarchicalCEFCEnv(
-                self.task,
-                low_level,
-                n_envs=per_game,
-                seed=cfg.seed,
-                decision_interval=decision_interval,
-                adversary_policy=sampler,
-            )
-            for sampler in self.samplers
-        ]
-        for sampler, game in zip(self.samplers, self.games):
-            sampler.env = game.env
+        self.build_games(
+            [_Sampler(self) for _ in range(cfg.teams_per_iteration)], low_level, cfg.ppo.n_envs, decision_interval
+        )
 
     @torch.no_grad()
     def demonstrations(self, round_: int) -> tuple[torch.Tensor, torch.Tensor]:

@@ -41,7 +41,7 @@ from torch import nn
 from cefc_mj.errors import ConfigError
 from cefc_mj.eval.highlevel import play_highlevel
 from cefc_mj.fileio import write_atomic
-from cefc_mj.hierarchy import DECISION_INTERVAL, HierarchicalCEFCEnv, LowLevel
+from cefc_mj.hierarchy import DECISION_INTERVAL, LowLevel
 from cefc_mj.nn.adversary_policy import (
     AdversaryNetConfig,
     AdversaryPolicy,
@@ -340,21 +340,9 @@ class DDPGAdversaryTrainer(PopulationGames):
         self.action_scale = net.accel_max if net.action == "acceleration" else 1.0
         self.generator = torch.Generator().manual_seed(cfg.seed)
         self.iteration, self.episodes, self.updates, self.elapsed = 0, 0, 0, 0.0
-        per_game = cfg.n_envs // cfg.teams_per_iteration
-        self.samplers = [_NoisySampler(self) for _ in range(cfg.teams_per_iteration)]
-        self.games = [
-            HierarchicalCEFCEnv(
-                self.task,
-                low_level,
-                n_envs=per_game,
-                seed=cfg.seed,
-                decision_interval=decision_interval,
-                adversary_policy=sampler,
-            )
-            for sampler in self.samplers
-        ]
-        for sampler, game in zip(self.samplers, self.games):
-            sampler.env = game.env
+        self.build_games(
+            [_NoisySampler(self) for _ in range(cfg.teams_per_iteration)], low_level, cfg.n_envs, decision_interval
+        )
 
     @property
     def warming_up(self) -> bool:
