@@ -436,7 +436,9 @@ def test_cli_records_the_sitl_game_of_the_seed(tmp_path, monkeypatch, capsys):
     )
     text = capsys.readouterr().out
     assert "wrote game.rrd" in text and "cihrl_consmac_a_s3_sitl_m_fig12.png" in text
-    assert json.loads(out.read_text())["protocol"]["seeds"] == [3, 4]
+    assert "paired t-test p" in text and "fidelity: mean R_t" in text
+    report = json.loads(out.read_text())
+    assert report["protocol"]["seeds"] == [3, 4] and set(report["fidelity"]) >= {"R_t_met", "E_met"}
     assert sorted(p.name for p in (tmp_path / "figs").iterdir()) == [
         "cihrl_consmac_a_s3_sitl_m_fig11.png",
         "cihrl_consmac_a_s3_sitl_m_fig12.png",

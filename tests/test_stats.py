@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from cefc_mj.eval.stats import seed_interval, verdict, welch_p
+from cefc_mj.eval.highlevel import sitl_fidelity
+from cefc_mj.eval.stats import paired_difference, seed_interval, verdict, welch_p
 
 
 def test_interval_is_students_t_and_needs_two_seeds():
@@ -24,3 +25,26 @@ def test_welch_and_verdicts():
     close = [5.1, 6.2, 5.4, 6.4, 5.3]
     assert verdict(close, b, higher_is_better=True) == "no significant difference"
     assert welch_p([1.0], b) is None and verdict([1.0], b, True) == "no significant difference"
+
+
+def test_paired_difference_is_scipys_paired_t_test():
+    a, b = [10.0, 12.0, 9.0, 14.0, 11.0], [9.0, 12.5, 7.0, 12.0, 10.0]
+    d = np.subtract(a, b)
+    out = paired_difference(a, b)
+    assert out["n"] == 5 and out["mean"] == pytest.approx(d.mean())
+    assert out["se"] == pytest.approx(d.std(ddof=1) / np.sqrt(5))
+    assert out["p"] == pytest.approx(stats.ttest_rel(a, b).pvalue)
+    assert paired_difference([1.0], [2.0])["p"] is None
+    assert paired_difference([1.0, 2.0], [0.0, 1.0])["p"] is None  # every difference the same
+
+
+def test_sitl_fidelity_targets():
+    """R_t at least 95 % of lock-step; E at most lock-step + one se of the paired difference."""
+    ref = {"R_t": np.array([100.0, 200.0]), "E": np.array([100.0, 120.0])}
+    close = {"R_t": np.array([96.0, 190.0]), "E": np.array([104.0, 120.0])}
+    fid = sitl_fidelity(close, ref, {"E": paired_difference(close["E"], ref["E"])})
+    assert fid["R_t_met"] and fid["R_t_share"] == pytest.approx(286 / 300)
+    assert fid["E_limit"] == pytest.approx(110.0 + 2.0) and fid["E_met"]
+    worse = {"R_t": np.array([90.0, 180.0]), "E": np.array([110.0, 126.0])}
+    fid = sitl_fidelity(worse, ref, {"E": paired_difference(worse["E"], ref["E"])})
+    assert not fid["R_t_met"] and not fid["E_met"]  # E limit 110 + 2, mean 118

@@ -32,6 +32,7 @@ import torch
 from cefc_mj import paths
 from cefc_mj.errors import CheckpointError, ConfigError
 from cefc_mj.eval.conditions import Conditions
+from cefc_mj.eval.stats import paired_difference
 from cefc_mj.hierarchy import DECISION_INTERVAL, HierarchicalCEFCEnv, LowLevel, load_low_level
 from cefc_mj.nn.highlevel_policy import HighLevelPolicy, load_highlevel_policy
 from cefc_mj.nn.policy_io import resolve_policy_path
@@ -632,15 +633,28 @@ def run_table5_sitl(
         ref_row = _stats(ref)
         ref_row.update({"policy": path.name, "sha256": file_sha256(path), "paper": None, "condition": "lock-step"})
         result["rows"][f"{path.stem} (lock-step)"] = ref_row
-        diff = {m: per_episode[m] - ref[m] for m in GAME_METRICS}
-        result["paired_difference"] = {
-            m: {
-                "mean": float(d.mean()),
-                "se": float(d.std(ddof=1) / np.sqrt(len(d))) if len(d) > 1 else None,
-            }
-            for m, d in diff.items()
-        }
+        result["paired_difference"] = {m: paired_difference(per_episode[m], ref[m]) for m in GAME_METRICS}
+        result["fidelity"] = sitl_fidelity(per_episode, ref, result["paired_difference"])
     return result
+
+
+SITL_RT_SHARE = 0.95
+"""Fidelity target: the SITL-M game's mean R_t at least this share of the lock-step game's."""
+
+
+def sitl_fidelity(sitl: dict, lockstep: dict, diff: dict) -> dict:
+    """The SITL-M game's fidelity targets on the same seeds: mean R_t >= SITL_RT_SHARE x the lock-step
+    mean, and mean E no worse than the lock-step mean + one standard error of the paired difference
+    (E counts steps near the adversary: lower is better)."""
+    rt, rt_ref = float(np.mean(sitl["R_t"])), float(np.mean(lockstep["R_t"]))
+    e, e_ref, e_se = float(np.mean(sitl["E"])), float(np.mean(lockstep["E"])), diff["E"]["se"]
+    return {
+        "R_t_share": rt / rt_ref if rt_ref > 0 else None,
+        "R_t_target": SITL_RT_SHARE,
+        "R_t_met": bool(rt >= SITL_RT_SHARE * rt_ref),
+        "E_limit": e_ref + (e_se or 0.0),
+        "E_met": bool(e <= e_ref + (e_se or 0.0)),
+    }
 
 
 def pooled_game_timing(games) -> dict:
@@ -690,9 +704,18 @@ def format_sitl_game(result: dict) -> str:
                 ),
             ]
         )
+        table.append(["paired t-test p", *("-" if diff[m].get("p") is None else f"{diff[m]['p']:.2f}" for m in names)])
     widths = [max(len(r[i]) for r in table) for i in range(len(table[0]))]
     for r in table:
         lines.append("  ".join(c.ljust(w) if i == 0 else c.rjust(w) for i, (c, w) in enumerate(zip(r, widths))))
+    if "fidelity" in result:
+        fid, e = result["fidelity"], result["paired_difference"]["E"]
+        share = "-" if fid["R_t_share"] is None else f"{100 * fid['R_t_share']:.1f} %"
+        lines.append(
+            f"fidelity: mean R_t {share} of lock-step (target >= {100 * fid['R_t_target']:.0f} %: "
+            f"{'met' if fid['R_t_met'] else 'not met'}); E {e['mean']:+.1f} steps (target: at most lock-step + one "
+            f"se of the difference, {fid['E_limit']:.1f}: {'met' if fid['E_met'] else 'not met'})"
+        )
     sitl_row = next(r for r in result["rows"].values() if r.get("condition") == "SITL-M")
     pooled = sitl_row["sitl_pooled"]
 

@@ -46,3 +46,16 @@ def verdict(values, reference, higher_is_better: bool) -> str:
         return "no significant difference"
     ahead = float(np.mean(values)) > float(np.mean(reference))
     return "better" if ahead == higher_is_better else "worse"
+
+
+def paired_difference(values, reference) -> dict[str, float | int | None]:
+    """{"n", "mean", "se", "p"} of per-game differences values - reference on the same games: the mean
+    difference, its standard error and the two-sided p of the paired t-test (None with fewer than
+    two games, or where every difference is the same)."""
+    d = np.asarray(values, dtype=np.float64) - np.asarray(reference, dtype=np.float64)
+    n = int(d.size)
+    if n < 2:
+        return {"n": n, "mean": float(d.mean()) if n else math.nan, "se": None, "p": None}
+    se = float(d.std(ddof=1) / math.sqrt(n))
+    p = float(stats.ttest_rel(values, reference).pvalue) if se > 0 else None
+    return {"n": n, "mean": float(d.mean()), "se": se, "p": p}
