@@ -44,9 +44,11 @@ class _Parser(argparse.ArgumentParser):
 
 
 def agent_processes() -> list[str]:
-    """`ps` lines of SITL-M agent processes (other than ps and grep themselves)."""
+    """`ps` lines of the SITL-M agent processes this simulator started (their command line names it
+    with --parent-pid; an orphan keeps that line after its parent has gone)."""
     out = subprocess.run(["ps", "-eo", "pid,ppid,args"], capture_output=True, text=True, check=True).stdout
-    return [line.strip() for line in out.splitlines() if AGENT_MODULE in line or "cefc-agent" in line]
+    mine = f"--parent-pid {os.getpid()}"
+    return [line.strip() for line in out.splitlines() if AGENT_MODULE in line and mine in line]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -69,9 +71,6 @@ def main(argv: list[str] | None = None) -> int:
         usage_error(f"--uav {args.uav}: must be in 0..{GAME_AGENTS - 1}")
     if not 1 <= args.step < GAME_STEPS:
         usage_error(f"--step {args.step}: must be in 1..{GAME_STEPS - 1}")
-    before = agent_processes()
-    if before:
-        usage_error(f"agent processes are already running (stop them first): {before[0]}")
     spec = GameSpec(policy=args.policy, seed=args.seed, where=Conditions(args.backend))
     sitl = SitlConfig(faults=(AgentFault(uav=args.uav, step=args.step, action=args.action),))
     try:
