@@ -66,3 +66,8 @@ def test_outputs_are_redirected_and_timing_is_not_compared(tmp_path):
     new = {"rows": [{"F": 1.0, "wall_s": 4.0}, {"condition": "SITL-M", "F": 5.0}], "provenance": {"git_commit": "b"}}
     assert compare(old, new) == (1, [])
     assert compare(old, {**new, "rows": [{"F": 1.5}, new["rows"][1]]})[1] == ["/rows/0/F: 1.0 != 1.5"]
+    table8_old = {"rows": {"5": {"SITL-S": {"F": 1.0}, "SITL-M": {"F": 2.0, "retention": 1.0}}}}
+    table8_new = {"rows": {"5": {"SITL-S": {"F": 1.0}, "SITL-M": {"F": 3.0, "retention": 0.9}}}}
+    assert compare(table8_old, table8_new) == (1, [])
+    table8_new["rows"]["5"]["SITL-S"]["F"] = 1.25
+    assert compare(table8_old, table8_new)[1] == ["/rows/5/SITL-S/F: 1.0 != 1.25"]
