@@ -7,7 +7,7 @@ import pytest
 
 from cefc_mj.cli import train_lowlevel
 from cefc_mj.cli.train import build_parser
-from cefc_mj.train import adversary, adversary_ddpg, highlevel
+from cefc_mj.train import adversary, adversary_ddpg, benchmarl_config, highlevel
 from cefc_mj.train.config import CLM_CURRICULUM, Budget, DistillConfig, LowLevelConfig, PPOConfig
 
 BUDGET = Budget(iterations=1)
@@ -65,6 +65,10 @@ def _ddpg(sub):
     return _by_field((adversary_ddpg.DDPGAdversaryConfig(budget=BUDGET),), adversary_ddpg.FLAG_OF_FIELD)
 
 
+def _benchmarl(sub):
+    return _by_field((benchmarl_config.BenchMARLConfig(),), benchmarl_config.FLAG_OF_FIELD)
+
+
 CASES = {
     # command: (flag -> the config's default, of the subcommand's parser; fewest flags checked)
     "adversary": (_by_dest(adversary.AdversaryConfig, adversary.CLI_FIELDS, adversary.CLI_PPO_FIELDS), 5),
@@ -74,6 +78,7 @@ CASES = {
     "clm": (_clm, 5),
     "distill": (_distill, 3),
     "lowlevel-all": (_pipeline, 5),
+    "highlevel-benchmarl": (_benchmarl, 5),
 }
 
 

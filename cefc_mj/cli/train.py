@@ -9,6 +9,7 @@ the CL-M baseline).
     cefc-train highlevel --variant consmac-a --budget 75it   # the high level (Algorithm 2) over atm_student
     cefc-train adversary                                     # the PPO adversary (imitation, critic warm-up)
     cefc-train adversary-ddpg --budget 150it                 # the DDPG adversary (Table VI)
+    cefc-train highlevel-benchmarl --algorithm masac --budget 1500ep   # BenchMARL's MASAC (benchmarl extra)
 
 Everything a run writes goes under --out (default runs/<command>, relative to the current folder):
 run folders (config, CSV and TensorBoard logs, resumable state) and the exported policies with their
@@ -23,16 +24,17 @@ import argparse
 import shlex
 import sys
 
-from cefc_mj.cli import train_adversary, train_highlevel, train_lowlevel
+from cefc_mj.cli import train_adversary, train_benchmarl, train_highlevel, train_lowlevel
 from cefc_mj.cli.train_common import EXIT_USAGE, PROG, check_destinations
 from cefc_mj.errors import CefcError, ConfigError
 from cefc_mj.train.config import Budget
 
 __all__ = ["EXIT_USAGE", "build_parser", "check_destinations", "main", "run"]
 
-FAMILIES = (train_lowlevel, train_highlevel, train_adversary)
+FAMILIES = (train_lowlevel, train_highlevel, train_adversary, train_benchmarl)
 """The trainer modules, in the order their subcommands are listed: each has COMMANDS, add_parser(sub)
-adding their parsers, and run(args, budget, command) -> the model cards."""
+adding their parsers, and run(args, budget, command) -> the model cards; a module with parse_budget(text)
+reads its own --budget (highlevel-benchmarl: episodes), the others get a Budget."""
 
 RUNNERS = {command: family for family in FAMILIES for command in family.COMMANDS}
 """The module that runs each subcommand."""
@@ -84,8 +86,9 @@ def _as_flag_error(e: ConfigError) -> ConfigError:
 def run(args, command: str | None = None) -> list[dict]:
     """Validate the arguments, train, export (and install); returns the model cards. Configs and
     folders are checked before the training modules (torch, numba) are imported."""
-    budget = Budget.parse(args.budget)
-    return RUNNERS[args.command].run(args, budget, command)
+    family = RUNNERS[args.command]
+    budget = getattr(family, "parse_budget", Budget.parse)(args.budget)
+    return family.run(args, budget, command)
 
 
 def main(argv: list[str] | None = None) -> int:

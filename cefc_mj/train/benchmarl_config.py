@@ -1,0 +1,281 @@
+"""The configuration of a BenchMARL run on the high-level game (`cefc_mj.train.benchmarl_game`), kept
+apart from that module so that `cefc-train highlevel-benchmarl --help` and its flag checks need
+neither BenchMARL nor torchrl (the `benchmarl` extra is optional, and CI does not install it).
+
+>>> cfg = BenchMARLConfig(algorithm="masac", seed=3)
+>>> cfg.name, cfg.decision_steps, cfg.frames_per_batch, cfg.iterations, cfg.max_frames
+('benchmarl_masac_seed3', 40, 800, 75, 60000)
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import re
+from dataclasses import dataclass
+
+from cefc_mj.errors import ConfigError
+from cefc_mj.nn.registry import HIERARCHY_LOWLEVEL
+from cefc_mj.train.config import MAX_DENSITY, MAX_ENVS, MAX_LR, MAX_SEED, MAX_THREADS
+
+ALGORITHMS = ("masac", "mappo")
+"""BenchMARL's algorithms this integration runs: MASAC (the stand-in for the paper's HASAC) and MAPPO
+(the cross-check of `cefc-train highlevel --variant mappo`)."""
+DECISION_INTERVAL = 10
+"""Low-level steps per high-level decision (`cefc_mj.hierarchy.DECISION_INTERVAL`, the paper's 10)."""
+GAME_ADVERSARY = "adversary_ppo"
+"""The adversary of our high-level training and of Table V (`cefc_mj.eval.highlevel.GAME_ADVERSARY`)."""
+BENCHMARL_EXTRA = "cefc-train highlevel-benchmarl: needs the benchmarl extra (pip install -e '.[benchmarl]')"
+"""The one line the subcommand prints (exit 2) when BenchMARL is not installed."""
+MAX_EPISODES = 10_000_000
+
+
+def _fail(name: str, value: object, why: str) -> None:
+    raise ConfigError(f"{name}={value!r}: {why}")
+
+
+def _check_int(name: str, value: object, least: int, most: int) -> None:
+    if not isinstance(value, int) or isinstance(value, bool) or not least <= value <= most:
+        _fail(name, value, f"must be an integer in [{least}, {most}]")
+
+
+def _check_real(name: str, value: object, low: float, high: float, low_open: bool = False) -> None:
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+    ok = ok and (low < value if low_open else low <= value) and value <= high
+    if not ok:
+        _fail(name, value, f"must be a number in {'(' if low_open else '['}{low:g}, {high:g}]")
+
+
+def parse_episode_budget(text: str) -> int:
+    """'1500ep' or '1500' -> 1500 episodes (the budget of `cefc-train highlevel-benchmarl`)."""
+    text = str(text)
+    shown = text if len(text) <= 40 else text[:37] + "..."
+    m = re.fullmatch(r"\s*(\d+)\s*(ep)?\s*", text)
+    if not m:
+        raise ConfigError(f"--budget {shown!r}: expected a number of episodes ('1500ep' or '1500')")
+    episodes = int(m.group(1))
+    if not 1 <= episodes <= MAX_EPISODES:
+        raise ConfigError(f"--budget {shown!r}: must be 1 to {MAX_EPISODES} episodes")
+    return episodes
+
+
+@dataclass(frozen=True)
+class BenchMARLConfig:
+    """One BenchMARL run (MASAC or MAPPO) on the high-level game of `cefc-train highlevel`.
+
+    The game fields (n_agents, obstacle_density, adversary, episode_steps, low_level) are
+    HighLevelConfig's, with its defaults and checks, and build the same TaskConfig. The budget is
+    counted in episodes: one iteration collects one episode in each of the `n_envs` envs (the
+    `n_envs` x 40 decisions BenchMARL calls frames), as our trainer's iteration does. The other
+    hyperparameters are BenchMARL 1.5.2's defaults (conf/experiment/base_experiment.yaml,
+    conf/algorithm/*.yaml) except gamma (the game's discount per decision), the reward's scale (for the
+    critics' sake) and the actor's widths (our anchor selector's, so that the trained actor exports into
+    our policy format).
+    """
+
+    algorithm: str = "masac"
+    """masac (BenchMARL's MASAC, the stand-in for the paper's HASAC) or mappo (BenchMARL's MAPPO)."""
+    seed: int = 0
+    """BenchMARL's seed (networks, sampling) and the seed of every iteration's episodes."""
+    budget_episodes: int = 1500
+    """Training episodes (paper: 1000 + 500 = 1500); a multiple of n_envs. 1500 at 20 envs is 75
+    iterations of 800 frames, 60000 frames (env-decisions) in all."""
+    n_agents: int = 8
+    """N, UAVs in the game (paper: 8)."""
+    obstacle_density: float = 0.03
+    """Obstacles per m^2 (HighLevelConfig's default)."""
+    adversary: str = GAME_ADVERSARY
+    """The game's adversary: a rule or a trained adversary's policy name or file (default the shipped PPO
+    adversary, as in `cefc-train highlevel` and Table V)."""
+    episode_steps: int = 400
+    """Low-level steps per episode (paper: 400, 40 decisions); a multiple of 10."""
+    low_level: str = HIERARCHY_LOWLEVEL
+    """The low level that flies to the anchors: our trainer's fine-tuning low level (default the distilled
+    student). There is no navigation-only pre-training phase."""
+    n_envs: int = 20
+    """Envs stepped as one batch; each iteration collects one episode per env (our trainer's 20)."""
+    reward_scale: float = 1e-3
+    """Factor on R_H before BenchMARL sees it (1: unscaled). A positive factor leaves the optimal policy
+    alone; it stands in for what BenchMARL lacks and our trainer has (value normalisation, advantage
+    standardisation): R_H is -500 to -2000 per decision, and Adam at lr 5e-5 moves a critic's output
+    bias by about lr per step, so unscaled values are out of the critics' reach in 75 iterations
+    (measured: MASAC's Q loss 1e7 unscaled, about 1 at 1e-3; docs/baselines.md)."""
+    gamma: float = 0.8
+    """Discount per decision (our trainer's and the paper's 0.8; BenchMARL's default is 0.99)."""
+    lr: float = 5e-5
+    """Adam learning rate of every network (BenchMARL's default)."""
+    masac_updates: int = 1000
+    """MASAC: gradient steps after each iteration (BenchMARL's off_policy_n_optimizer_steps)."""
+    masac_batch: int = 128
+    """MASAC: frames per gradient step, drawn uniformly from the replay (BenchMARL's default)."""
+    mappo_epochs: int = 45
+    """MAPPO: passes over each iteration's frames (BenchMARL's on_policy_n_minibatch_iters)."""
+    mappo_minibatch: int = 400
+    """MAPPO: frames per minibatch (BenchMARL's default; 800 frames make 2 minibatches)."""
+    hidden: int = 128
+    """Actor width: 4 linear layers 38 -> hidden -> hidden -> hidden -> 9 with tanh, our anchor selector's
+    shape (BenchMARL's default actor is 2 layers of 256)."""
+    critic_cells: tuple[int, ...] = (256, 256)
+    """Hidden layers of the centralised critic, which reads the global state (BenchMARL's default MLP)."""
+    eval_episodes: int = 20
+    """Episodes (batch seed cefc_mj.seeds.GAME_VALIDATION_SEED) of the exported policy evaluated for the
+    model card; 0 skips."""
+    threads: int = 1
+    """torch threads of the whole run (collection and updates)."""
+
+    def __post_init__(self) -> None:
+        if isinstance(self.critic_cells, list):
+            object.__setattr__(self, "critic_cells", tuple(self.critic_cells))
+        for name in ("obstacle_density", "reward_scale", "gamma", "lr"):
+            value = getattr(self, name)
+            if isinstance(value, int) and not isinstance(value, bool):
+                object.__setattr__(self, name, float(value))
+        self.validate()
+
+    # ------------------------------------------------------------------ derived
+    @property
+    def name(self) -> str:
+        """Run folder and policy file stem: benchmarl_<algorithm>, then _seed<k> for seeds other than 0
+        (the `_seed<k>` convention Table V reads)."""
+        return f"benchmarl_{self.algorithm}" + (f"_seed{self.seed}" if self.seed else "")
+
+    @property
+    def on_policy(self) -> bool:
+        return self.algorithm == "mappo"
+
+    @property
+    def decision_steps(self) -> int:
+        """Decisions per episode (40)."""
+        return self.episode_steps // DECISION_INTERVAL
+
+    @property
+    def frames_per_batch(self) -> int:
+        """BenchMARL frames (env-decisions) per iteration: one episode in every env."""
+        return self.n_envs * self.decision_steps
+
+    @property
+    def iterations(self) -> int:
+        return self.budget_episodes // self.n_envs
+
+    @property
+    def max_frames(self) -> int:
+        return self.budget_episodes * self.decision_steps
+
+    def game_config(self):
+        """The HighLevelConfig of the same game (its `task()` is the TaskConfig trained on)."""
+        from cefc_mj.train.config import Budget
+        from cefc_mj.train.highlevel import HighLevelConfig
+
+        return HighLevelConfig(
+            budget=Budget(iterations=self.iterations),
+            variant="mappo",
+            seed=self.seed,
+            n_agents=self.n_agents,
+            obstacle_density=self.obstacle_density,
+            adversary=self.adversary,
+            episode_steps=self.episode_steps,
+            low_level=self.low_level,
+            pretrain_share=0.0,
+            hidden=self.hidden,
+            eval_episodes=0,
+        )
+
+    def to_dict(self) -> dict:
+        d = dataclasses.asdict(self)
+        d["critic_cells"] = list(self.critic_cells)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "BenchMARLConfig":
+        return cls(**d)
+
+    # ------------------------------------------------------------------ validation
+    def validate(self) -> None:
+        if self.algorithm not in ALGORITHMS:
+            _fail("algorithm", self.algorithm, f"must be one of {', '.join(ALGORITHMS)}")
+        _check_int("seed", self.seed, 0, MAX_SEED)
+        _check_int("n_envs", self.n_envs, 1, MAX_ENVS)
+        _check_int("budget_episodes", self.budget_episodes, 1, MAX_EPISODES)
+        if self.budget_episodes % self.n_envs:
+            _fail(
+                "budget_episodes",
+                self.budget_episodes,
+                f"must be a multiple of the {self.n_envs} envs (n_envs, --envs): one episode per env per iteration",
+            )
+        _check_int("n_agents", self.n_agents, 2, 8)
+        _check_real("obstacle_density", self.obstacle_density, 0.0, MAX_DENSITY)
+        if not isinstance(self.adversary, str) or not self.adversary:
+            _fail("adversary", self.adversary, "must be a rule or a trained adversary's policy name or file")
+        _check_int("episode_steps", self.episode_steps, DECISION_INTERVAL, 100_000)
+        if self.episode_steps % DECISION_INTERVAL:
+            _fail("episode_steps", self.episode_steps, f"must be a multiple of {DECISION_INTERVAL}")
+        if not isinstance(self.low_level, str) or not self.low_level:
+            _fail("low_level", self.low_level, "must be a policy name or file, or 'per-group'")
+        _check_real("reward_scale", self.reward_scale, 0.0, 1e6, low_open=True)
+        _check_real("gamma", self.gamma, 0.0, 1.0)
+        _check_real("lr", self.lr, 0.0, MAX_LR, low_open=True)
+        _check_int("masac_updates", self.masac_updates, 1, 1_000_000)
+        _check_int("masac_batch", self.masac_batch, 1, 1_000_000)
+        _check_int("mappo_epochs", self.mappo_epochs, 1, 10_000)
+        _check_int("mappo_minibatch", self.mappo_minibatch, 1, 1_000_000)
+        if self.on_policy and self.mappo_minibatch > self.frames_per_batch:
+            _fail(
+                "mappo_minibatch",
+                self.mappo_minibatch,
+                f"must be at most the {self.frames_per_batch} frames of an iteration (n_envs x decisions)",
+            )
+        _check_int("hidden", self.hidden, 1, 4096)
+        if (
+            not isinstance(self.critic_cells, tuple)
+            or not self.critic_cells
+            or not all(isinstance(c, int) and not isinstance(c, bool) and 1 <= c <= 4096 for c in self.critic_cells)
+        ):
+            _fail("critic_cells", self.critic_cells, "must be a non-empty tuple of widths in [1, 4096]")
+        _check_int("eval_episodes", self.eval_episodes, 0, 1000)
+        _check_int("threads", self.threads, 1, MAX_THREADS)
+
+
+# ---------------------------------------------------------------------------- command line
+FLAG_OF_FIELD = {
+    "algorithm": "--algorithm",
+    "seed": "--seed",
+    "budget_episodes": "--budget",
+    "n_envs": "--envs",
+    "episode_steps": "--episode-steps",
+    "obstacle_density": "--density",
+    "adversary": "--adversary",
+    "low_level": "--low-level",
+    "reward_scale": "--reward-scale",
+    "gamma": "--gamma",
+    "lr": "--lr",
+    "masac_updates": "--updates",
+    "masac_batch": "--batch-size",
+    "mappo_epochs": "--epochs",
+    "mappo_minibatch": "--minibatch-size",
+    "eval_episodes": "--eval-episodes",
+    "threads": "--threads",
+}
+"""Config fields set by `cefc-train highlevel-benchmarl` flags (argparse dest = field): their errors name
+the flag the user typed."""
+
+
+def config_from_args(args, budget_episodes: int) -> BenchMARLConfig:
+    """The BenchMARLConfig of `cefc-train highlevel-benchmarl` arguments (flags left out keep the config's
+    defaults), its game checked as HighLevelConfig checks it; a bad value raises ConfigError naming the flag."""
+    from cefc_mj.train.config import flag_error
+
+    given = {
+        name: getattr(args, name)
+        for name in FLAG_OF_FIELD
+        if name != "budget_episodes" and getattr(args, name, None) is not None
+    }
+    try:
+        algorithm = given.get("algorithm", BenchMARLConfig.algorithm)
+        for name in given:
+            if name.split("_")[0] in ALGORITHMS and name.split("_")[0] != algorithm:
+                raise ConfigError(f"{FLAG_OF_FIELD[name]}: a {name.split('_')[0]} setting, not {algorithm}'s")
+        cfg = BenchMARLConfig(budget_episodes=budget_episodes, **given)
+        cfg.game_config()  # the game: adversary, low level, obstacle packing
+    except ConfigError as e:
+        raise flag_error(e, FLAG_OF_FIELD) from None
+    return cfg
