@@ -18,6 +18,7 @@ import pytest
 from cefc_mj.deploy import wire
 from cefc_mj.deploy.episode import AgentFault, SitlConfig
 from cefc_mj.deploy.game import GameServer, game_sensor_packets, run_sitl_game
+from cefc_mj.errors import ConfigError
 from cefc_mj.eval.conditions import Conditions
 from cefc_mj.eval.highlevel import GameSpec, game_task, play_game
 from cefc_mj.hierarchy import agent_cefc_observation, agent_inbox
@@ -261,6 +262,22 @@ def test_sitl_game_over_the_wire_is_the_lockstep_game_and_async_stays_close(tmp_
     assert s["high_latency_ms"]["count"] == 4 * 4 and s["low_latency_ms"]["count"] == 4 * 40
     assert s["bytes_per_s_by_kind_per_uav"]["up:message"] == pytest.approx(284 / 1.0)  # one per 1 s decision
     (tmp_path / "game.json").write_text(json.dumps(live.to_dict(), default=float))
+
+
+def test_lockstep_with_a_fixed_delay_is_deterministic_and_delays_every_command_one_tick():
+    """SitlConfig(lockstep=True, lockstep_delay_s=0.01): quadrotors at the 0.01 s control tick, every
+    command in force from one tick after its packet, the same figures on every run."""
+    spec = GameSpec(seed=4, steps=40, n_agents=4, where=Conditions("mujoco"))
+    sitl = SitlConfig(lockstep=True, lockstep_delay_s=0.01)
+    first, second = run_sitl_game(spec, sitl), run_sitl_game(spec, sitl)
+    assert first.figures == second.figures
+    age = first.sitl["command_age_ms"]
+    assert age["p50"] == age["max"] == 10.0 and sum(first.sitl["late_commands"]) == 0
+    assert first.figures != play_game(spec)  # the tick of delay changes the flight
+    with pytest.raises(ConfigError, match="lockstep_delay_s"):
+        run_sitl_game(spec, SitlConfig(lockstep_delay_s=0.01))
+    with pytest.raises(ConfigError, match="lockstep_delay_s"):
+        run_sitl_game(spec, SitlConfig(lockstep=True, lockstep_delay_s=-1.0))
 
 
 def test_killed_agent_holds_its_messages_stop_and_the_game_goes_on(tmp_path):

@@ -95,6 +95,11 @@ class SitlConfig:
     """Agents exit after this many wall seconds without a message from the simulator."""
     lockstep_timeout_s: float = 10.0
     """Lock-step mode: wall seconds to wait for a reply before the vehicle holds."""
+    lockstep_delay_s: float = 0.0
+    """Lock-step mode only: each command takes effect this long (simulated s, rounded up to the
+    control tick) after its packet, the world then advancing by control ticks; 0: for the whole step,
+    the one-process game's semantics. One tick (0.01 s on MuJoCo) is the delay an asynchronous run
+    has when every decision comes back within the tick, without the scheduler's variation."""
     verbose_agents: bool = False
     """Let the agents log to their (captured) stderr."""
 
@@ -116,11 +121,25 @@ class SitlConfig:
             raise ConfigError(f"control_tick_s={self.control_tick_s!r}: must be a finite number > 0 or None")
         if "://" not in str(self.bind):
             raise ConfigError(f"bind={self.bind!r}: not a ZeroMQ endpoint (e.g. tcp://127.0.0.1:5555)")
+        delay = self.lockstep_delay_s
+        if not isinstance(delay, (int, float)) or not math.isfinite(delay) or delay < 0:
+            raise ConfigError(f"lockstep_delay_s={delay!r}: must be a finite number >= 0")
+        if delay and not self.lockstep:
+            raise ConfigError("lockstep_delay_s: only for lockstep=True (an asynchronous run has its measured delays)")
         if self.drop_action not in FAULT_ACTIONS:
             raise ConfigError(f"drop_action={self.drop_action!r}: must be one of {', '.join(FAULT_ACTIONS)}")
         for fault in self.faults:
             if not isinstance(fault, AgentFault) or fault.action not in FAULT_ACTIONS:
                 raise ConfigError(f"faults: {fault!r} is not an AgentFault with action kill or stop")
+
+
+def control_tick(sitl: SitlConfig, backend: str, dt: float) -> float:
+    """The tick (s) at which setpoints take effect: the whole step in plain lock-step mode, else
+    `control_tick_s` (default 0.01 s on MuJoCo, one PX4 position-loop period; the step on the particle
+    world, which has no finer step)."""
+    if sitl.lockstep and not sitl.lockstep_delay_s:
+        return dt
+    return sitl.control_tick_s if sitl.control_tick_s is not None else (0.01 if backend == "mujoco" else dt)
 
 
 def check_faults(sitl: SitlConfig, n_uavs: int, steps: int, what: str) -> None:
@@ -141,9 +160,7 @@ def _check(spec: EpisodeSpec, sitl: SitlConfig) -> tuple[float, tuple[int, int] 
     config = spec.task_config()  # validates the game
     if spec.backend not in ("mujoco", "particle"):
         raise ConfigError(f"backend={spec.backend!r}: must be mujoco or particle")
-    tick = sitl.control_tick_s if sitl.control_tick_s is not None else (0.01 if spec.backend == "mujoco" else config.dt)
-    if sitl.lockstep:
-        tick = config.dt
+    tick = control_tick(sitl, spec.backend, config.dt)
     drop = check_drop(sitl.drop, spec.formation, spec.steps)
     for uav in sitl.remote_agents:
         if not isinstance(uav, int) or not 0 <= uav < spec.formation:
@@ -187,6 +204,7 @@ def run_sitl_episode(spec: EpisodeSpec, sitl: SitlConfig = SitlConfig(), record:
         sitl.lockstep,
         sitl.lockstep_timeout_s,
         spec.seed,
+        lockstep_delay_s=sitl.lockstep_delay_s,
     )
     fleet = None
     try:

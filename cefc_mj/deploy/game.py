@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from cefc_mj.deploy import wire
-from cefc_mj.deploy.episode import SitlConfig, check_faults, note_exits_and_faults
+from cefc_mj.deploy.episode import SitlConfig, check_faults, control_tick, note_exits_and_faults
 from cefc_mj.deploy.results import _percentiles
 from cefc_mj.deploy.sim_server import AgentFleet, SitlServer, _Request, block_sigint, restore_sigint
 from cefc_mj.deploy.tick_world import make_ticked_world
@@ -389,9 +389,7 @@ def run_sitl_game(spec: GameSpec, sitl: SitlConfig = SitlConfig()) -> SitlGameRe
     if spec.steps % interval:
         raise ConfigError(f"steps={spec.steps}: must be a multiple of the policy's decision interval {interval}")
     where = spec.where
-    tick = sitl.control_tick_s if sitl.control_tick_s is not None else (0.01 if where.backend == "mujoco" else task.dt)
-    if sitl.lockstep:
-        tick = task.dt
+    tick = control_tick(sitl, where.backend, task.dt)
     world = make_ticked_world(
         where.backend, task, tick, wind=where.wind, seed=spec.seed, wind_direction=where.wind_direction
     )
@@ -414,6 +412,7 @@ def run_sitl_game(spec: GameSpec, sitl: SitlConfig = SitlConfig()) -> SitlGameRe
         sitl.lockstep,
         sitl.lockstep_timeout_s,
         spec.seed,
+        lockstep_delay_s=sitl.lockstep_delay_s,
         message_dim=policy.message_dim,
         n_anchors=len(ANCHOR_VALUES) ** 2,
         comm_range=task.observation_distance,

@@ -311,6 +311,7 @@ class SitlServer:
             (verification mode: the lock-step runner over the wire).
         lockstep_timeout_s: in lock-step mode, how long (wall) to wait before the vehicle fails safe.
         seed: seeds the jitter draws.
+        lockstep_delay_s: in lock-step mode, each command takes effect this long after its packet.
     """
 
     def __init__(
@@ -326,6 +327,7 @@ class SitlServer:
         lockstep: bool = False,
         lockstep_timeout_s: float = 10.0,
         seed: int = 0,
+        lockstep_delay_s: float = 0.0,
     ):
         import zmq
 
@@ -348,6 +350,7 @@ class SitlServer:
         self.link_delay_s, self.jitter_s = link_delay_ms / 1e3, jitter_ms / 1e3
         self.offboard_loss_timeout_s = offboard_loss_timeout_s
         self.realtime, self.lockstep, self.lockstep_timeout_s = realtime, lockstep, lockstep_timeout_s
+        self.lockstep_delay_s = lockstep_delay_s
         self.rng = np.random.default_rng([int(seed), 0x5171])
         self.vehicles = [_Vehicle(i) for i in range(n_agents)]
         self.by_identity: dict[bytes, _Vehicle] = {}
@@ -499,7 +502,7 @@ class SitlServer:
         latency_s = max(0.0, min(message["latency_ms"] / 1e3, rtt_s))  # a decision cannot outlast its round trip
         vehicle.latency_ms.append(message["latency_ms"])
         vehicle.round_trip_ms.append(rtt_s * 1e3)
-        effective = request.t_obs if self.lockstep else request.t_obs + request.delay_s + latency_s
+        effective = request.t_obs + (self.lockstep_delay_s if self.lockstep else request.delay_s + latency_s)
         vehicle.replies.append(_Reply(seq, request.t_obs, effective, np.asarray(message["accel"], dtype=np.float64)))
 
     # ------------------------------------------------------------------ startup
