@@ -133,6 +133,19 @@ class SitlConfig:
                 raise ConfigError(f"faults: {fault!r} is not an AgentFault with action kill or stop")
 
 
+def server_options(sitl: SitlConfig) -> dict:
+    """The `SitlServer` keyword arguments a SitlConfig sets (timing, link, failsafe, lock-step)."""
+    return {
+        "link_delay_ms": sitl.link_delay_ms,
+        "jitter_ms": sitl.jitter_ms,
+        "offboard_loss_timeout_s": sitl.offboard_loss_timeout_s,
+        "realtime": sitl.realtime,
+        "lockstep": sitl.lockstep,
+        "lockstep_timeout_s": sitl.lockstep_timeout_s,
+        "lockstep_delay_s": sitl.lockstep_delay_s,
+    }
+
+
 def control_tick(sitl: SitlConfig, backend: str, dt: float) -> float:
     """The tick (s) at which setpoints take effect: the whole step in plain lock-step mode, else
     `control_tick_s` (default 0.01 s on MuJoCo, one PX4 position-loop period; the step on the particle
@@ -192,20 +205,7 @@ def run_sitl_episode(spec: EpisodeSpec, sitl: SitlConfig = SitlConfig(), record:
     )
     env = DropoutCEFCEnv(config, n_envs=1, seed=spec.seed, world=world)
     welcome = {"formation": spec.formation, "task": config.to_dict(), "heartbeat_timeout_s": sitl.heartbeat_timeout_s}
-    server = SitlServer(
-        sitl.bind,
-        spec.formation,
-        welcome,
-        world.tick_s,
-        sitl.link_delay_ms,
-        sitl.jitter_ms,
-        sitl.offboard_loss_timeout_s,
-        sitl.realtime,
-        sitl.lockstep,
-        sitl.lockstep_timeout_s,
-        spec.seed,
-        lockstep_delay_s=sitl.lockstep_delay_s,
-    )
+    server = SitlServer(sitl.bind, spec.formation, welcome, world.tick_s, seed=spec.seed, **server_options(sitl))
     fleet = None
     try:
         local = [i for i in range(spec.formation) if i not in sitl.remote_agents]

@@ -28,9 +28,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from cefc_mj.deploy import wire
-from cefc_mj.deploy.episode import SitlConfig, check_faults, control_tick, note_exits_and_faults
+from cefc_mj.deploy.episode import SitlConfig, check_faults, control_tick, note_exits_and_faults, server_options
 from cefc_mj.deploy.results import _percentiles
-from cefc_mj.deploy.sim_server import AgentFleet, SitlServer, _Request, block_sigint, restore_sigint
+from cefc_mj.deploy.sim_server import AgentFleet, SitlServer, block_sigint, restore_sigint
 from cefc_mj.deploy.tick_world import make_ticked_world
 from cefc_mj.errors import ConfigError, SimulationDiverged
 from cefc_mj.eval.highlevel import GameSpec, game_figures, highlevel_policy_path
@@ -218,24 +218,11 @@ class GameServer(SitlServer):
 
     def send_game_sensors(self, step: int, t: float, env, radio_range: float) -> None:
         """Game sensor packet `step` to every flying agent (the bookkeeping of `send_sensors`)."""
-        self.step = self.seq = step
-        self.t_now = t
-        if self.wall0 is None:
-            self.wall0 = time.perf_counter() - t
-        delays = self.link_delay_s + (
-            self.rng.uniform(0.0, self.jitter_s, size=(self.n_agents, 2))
-            if self.jitter_s
-            else np.zeros((self.n_agents, 2))
-        )
-        in_swarm = np.array([v.state != "removed" for v in self.vehicles])
-        flying = self.flying()
+        delays, in_swarm, flying = self.open_step(step, t)
         packets = game_sensor_packets(step, t, env, radio_range, in_swarm, [v.index for v in flying])
-        now = time.perf_counter()
         if step % self.decision_interval == 0:
-            self.decision_wall[step // self.decision_interval] = now
-        for v, packet in zip(flying, packets):
-            v.outstanding.append(_Request(step, t, time.perf_counter(), float(delays[v.index].sum())))
-            self._send(v, packet)
+            self.decision_wall[step // self.decision_interval] = time.perf_counter()
+        self.send_packets(step, t, flying, packets, delays)
 
 
 class GameTrace:
@@ -405,14 +392,8 @@ def run_sitl_game(spec: GameSpec, sitl: SitlConfig = SitlConfig()) -> SitlGameRe
         spec.n_agents,
         welcome,
         world.tick_s,
-        sitl.link_delay_ms,
-        sitl.jitter_ms,
-        sitl.offboard_loss_timeout_s,
-        sitl.realtime,
-        sitl.lockstep,
-        sitl.lockstep_timeout_s,
-        spec.seed,
-        lockstep_delay_s=sitl.lockstep_delay_s,
+        seed=spec.seed,
+        **server_options(sitl),
         message_dim=policy.message_dim,
         n_anchors=len(ANCHOR_VALUES) ** 2,
         comm_range=task.observation_distance,

@@ -547,6 +547,15 @@ class SitlServer:
         radio_range: float,
     ) -> None:
         """Sensor packet `step` (see `sensor_packets`) to every flying agent."""
+        delays, in_swarm, flying = self.open_step(step, t)
+        packets = sensor_packets(
+            step, t, perceived_pos, velocity, lidar, anchor, true_pos, radio_range, in_swarm, [v.index for v in flying]
+        )
+        self.send_packets(step, t, flying, packets, delays)
+
+    def open_step(self, step: int, t: float) -> tuple[np.ndarray, np.ndarray, list[_Vehicle]]:
+        """Start step `step` at simulated time `t`: (each UAV's link delays [N, 2] in s, which UAVs are
+        in the swarm [N], the flying vehicles) for the packets about to go out."""
         self.step = self.seq = step
         self.t_now = t
         if self.wall0 is None:
@@ -557,10 +566,10 @@ class SitlServer:
             else np.zeros((self.n_agents, 2))
         )
         in_swarm = np.array([v.state != "removed" for v in self.vehicles])
-        flying = self.flying()
-        packets = sensor_packets(
-            step, t, perceived_pos, velocity, lidar, anchor, true_pos, radio_range, in_swarm, [v.index for v in flying]
-        )
+        return delays, in_swarm, self.flying()
+
+    def send_packets(self, step: int, t: float, flying: list[_Vehicle], packets, delays: np.ndarray) -> None:
+        """Send each flying vehicle its packet of step `step` and keep the request its reply answers."""
         for v, packet in zip(flying, packets):
             v.outstanding.append(_Request(step, t, time.perf_counter(), float(delays[v.index].sum())))
             self._send(v, packet)
