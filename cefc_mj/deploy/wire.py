@@ -197,6 +197,18 @@ def _encode_game_binary(message: dict) -> bytes:
     return head + struct.pack(f"<{len(numbers)}d", *numbers)
 
 
+def _neighbour_rows(values: list[float], start: int) -> list[list]:
+    """The (id, px, py, vx, vy) rows of a sensor packet's body from `start` on, the id checked and made
+    an int; WireError for an id that is not an integer in 0..65535."""
+    rows = [values[k : k + 5] for k in range(start, len(values), 5)]
+    for row in rows:
+        uav = row[0]
+        if not (uav.is_integer() and 0 <= uav < 65536):
+            raise WireError("neighbours id: not an integer")
+        row[0] = int(uav)
+    return rows
+
+
 def _decode_game_binary(frame: bytes, kind: int, seq: int, a: int, b: int) -> dict:
     import numpy as np
 
@@ -254,12 +266,7 @@ def _decode_game_binary(frame: bytes, kind: int, seq: int, a: int, b: int) -> di
         raise WireError("not a finite number")
     j_end = _GAME_FIXED + spare
     lidar_end = j_end + a
-    rows = [values[k : k + 5] for k in range(lidar_end, n, 5)]
-    for row in rows:
-        uav = row[0]
-        if not (uav.is_integer() and 0 <= uav < 65536):
-            raise WireError("neighbours id: not an integer")
-        row[0] = int(uav)
+    rows = _neighbour_rows(values, lidar_end)
     return {
         "v": WIRE_VERSION,
         "type": "game_sensor",
@@ -312,12 +319,7 @@ def _decode_binary(frame: bytes, schema: dict[str, dict]) -> dict:
     if kind == _ACTION:
         return {"v": version, "type": "action", "uav": a, "seq": seq, "accel": values[:2], "latency_ms": values[2]}
     lidar_end = _SENSOR_FIXED + a
-    rows = [values[k : k + 5] for k in range(lidar_end, len(values), 5)]
-    for row in rows:
-        uav = row[0]
-        if not (uav.is_integer() and 0 <= uav < 65536):
-            raise WireError("neighbours id: not an integer")
-        row[0] = int(uav)
+    rows = _neighbour_rows(values, lidar_end)
     return {
         "v": version,
         "type": "sensor",
