@@ -1,5 +1,8 @@
 """Errors that the command-line tools turn into one clear line (exit code 2) instead of a traceback."""
 
+import argparse
+import sys
+
 
 class CefcError(Exception):
     """Base class of the project's user-facing errors."""
@@ -15,3 +18,12 @@ class CheckpointError(CefcError, ValueError):
 
 class SimulationDiverged(CefcError, RuntimeError):
     """The physics produced NaN/inf or a drone flipped; the episode is stopped and reported."""
+
+
+class OneLineParser(argparse.ArgumentParser):
+    """argparse whose errors are one line on stderr, `<prog>: error: <message>`, with exit code 2
+    (the project's convention for bad input; the usage is in --help)."""
+
+    def error(self, message: str):  # noqa: D102 (argparse API)
+        print(f"{self.prog}: error: {message}", file=sys.stderr)
+        raise SystemExit(2)

@@ -26,7 +26,7 @@ import sys
 
 from cefc_mj.cli import train_adversary, train_benchmarl, train_highlevel, train_lowlevel
 from cefc_mj.cli.train_common import EXIT_USAGE, PROG, check_destinations
-from cefc_mj.errors import CefcError, ConfigError
+from cefc_mj.errors import CefcError, ConfigError, OneLineParser
 from cefc_mj.train.config import Budget
 
 __all__ = ["EXIT_USAGE", "build_parser", "check_destinations", "main", "run"]
@@ -40,12 +40,7 @@ RUNNERS = {command: family for family in FAMILIES for command in family.COMMANDS
 """The module that runs each subcommand."""
 
 
-class _Parser(argparse.ArgumentParser):
-    """argparse with one-line errors (the usage is in --help)."""
-
-    def error(self, message: str):
-        print(f"{self.prog}: error: {message}", file=sys.stderr)
-        raise SystemExit(EXIT_USAGE)
+_Parser = OneLineParser
 
 
 class _VersionAction(argparse.Action):

@@ -73,7 +73,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from cefc_mj.deploy.sim_server import OFFBOARD_LOSS_TIMEOUT_S, offboard_lost
-from cefc_mj.errors import ConfigError
+from cefc_mj.errors import ConfigError, OneLineParser
 
 EXIT_USAGE = 2
 EXIT_DIVERGED = 1
@@ -936,10 +936,7 @@ class MavlinkLink:
 
 
 # ====================================================================== command line
-class _Parser(argparse.ArgumentParser):
-    def error(self, message: str) -> None:  # one line, exit 2 (the project's convention)
-        print(f"{self.prog}: error: {message}", file=sys.stderr)
-        raise SystemExit(EXIT_USAGE)
+_Parser = OneLineParser
 
 
 def build_parser() -> argparse.ArgumentParser:
