@@ -54,10 +54,19 @@ def test_table5_rows_units_seeds_and_missing_methods(policies):
     result = run_table5(episodes=2, seed=3, policies_dir=policies)
     assert list(result["rows"]) == ["MAPPO+AT-M", "CI-HRL"]
     assert result["protocol"]["missing"] == [
+        "MASAC+AT-M (BenchMARL; stands in for HASAC) (benchmarl_masac.pt)",
         "TarMAC+AT-M (cihrl_tarmac.pt)",
+        "MASIA+AT-M (cihrl_masia.pt)",
+        "NVIF+AT-M (cihrl_nvif.pt)",
         "CI-HRL-DT (cihrl_consmac_a_dt.pt)",
         "CI-HRL-wo-FT (cihrl_consmac_a_wo_ft.pt)",
         "CI-HRL (ConsMAC-O) (cihrl_consmac_o.pt)",
+        "MAPPO+AT-M (BenchMARL) (benchmarl_mappo.pt)",
+        "CI-HRL (ConsMAC-wo-Com) (cihrl_consmac_a_wo_com.pt)",
+        "CI-HRL (ConsMAC-wo-Mem) (cihrl_consmac_a_wo_mem.pt)",
+        "CI-HRL (ConsMAC-wo-DE) (cihrl_consmac_a_wo_de.pt)",
+        "CI-HRL (ConsMAC-wt-RL) (cihrl_consmac_a_wt_rl.pt)",
+        "CI-HRL (ConsMAC-G) (cihrl_consmac_a_consmac_g.pt)",
     ]
     for row in result["rows"].values():
         per = {k: np.array(v) for k, v in row["per_episode"].items()}
@@ -81,7 +90,7 @@ def test_table5_rows_units_seeds_and_missing_methods(policies):
     r_e = seeds["ci95"]["R_e"]["mean"]
     mappo_line = next(line for line in text.splitlines() if line.startswith("MAPPO+AT-M") and "[" in line)
     assert f"{r_e:.0f} [" in mappo_line and f"{r_e / 8:.0f} [" in mappo_line
-    assert "MAPPO+AT-M" in text and "2 training seeds" in text and "missing policies: TarMAC+AT-M" in text
+    assert "MAPPO+AT-M" in text and "2 training seeds" in text and "missing policies: MASAC+AT-M (BenchMARL; stands in for HASAC)" in text
     assert "Table IV, message size per agent and decision: MAPPO+AT-M 0 (paper 0), CI-HRL 64 (paper 64)" in text
     # The same seed flies the same episodes: bit-identical figures.
     again = run_table5(episodes=2, seed=3, policies_dir=policies, policy="cihrl_mappo")

@@ -51,17 +51,29 @@ DT = 0.1
 COLUMNS = ("R_H", "R_t", "R_n", "R_e", "E")
 EXTRA = ("F", "C")
 TABLE5_ROWS = (
-    ("MAPPO+AT-M", "cihrl_mappo", ""),
-    ("TarMAC+AT-M", "cihrl_tarmac", ""),
-    ("CI-HRL-DT", "cihrl_consmac_a_dt", ""),
-    ("CI-HRL-wo-FT", "cihrl_consmac_a", "_wo_ft"),
-    ("CI-HRL", "cihrl_consmac_a", ""),
-    ("CI-HRL (ConsMAC-O)", "cihrl_consmac_o", ""),
+    ("MAPPO+AT-M", "cihrl_mappo", "", "MAPPO+AT-M"),
+    ("MASAC+AT-M (BenchMARL; stands in for HASAC)", "benchmarl_masac", "", "HASAC+AT-M"),
+    ("TarMAC+AT-M", "cihrl_tarmac", "", "TarMAC+AT-M"),
+    ("MASIA+AT-M", "cihrl_masia", "", "MASIA+AT-M"),
+    ("NVIF+AT-M", "cihrl_nvif", "", "NVIF+AT-M"),
+    ("CI-HRL-DT", "cihrl_consmac_a_dt", "", "CI-HRL-DT"),
+    ("CI-HRL-wo-FT", "cihrl_consmac_a", "_wo_ft", "CI-HRL-wo-FT"),
+    ("CI-HRL", "cihrl_consmac_a", "", "CI-HRL"),
+    ("CI-HRL (ConsMAC-O)", "cihrl_consmac_o", "", None),
+    ("MAPPO+AT-M (BenchMARL)", "benchmarl_mappo", "", None),
+    ("CI-HRL (ConsMAC-wo-Com)", "cihrl_consmac_a_wo_com", "", None),
+    ("CI-HRL (ConsMAC-wo-Mem)", "cihrl_consmac_a_wo_mem", "", None),
+    ("CI-HRL (ConsMAC-wo-DE)", "cihrl_consmac_a_wo_de", "", None),
+    ("CI-HRL (ConsMAC-wt-RL)", "cihrl_consmac_a_wt_rl", "", None),
+    ("CI-HRL (ConsMAC-G)", "cihrl_consmac_a_consmac_g", "", None),
 )
-"""(the paper's row, the stem of our policy file, its suffix): seed 0 is <stem><suffix>.pt, seed k
-<stem>_seed<k><suffix>.pt (the names `cefc-train highlevel` writes). The last row, ConsMAC trained
-on the other label the paper defines (all agents' relative positions and velocities), has no
-paper figures: the paper's Table V lists ConsMAC-A only."""
+"""(our row, the stem of our policy file, its suffix, the paper's Table V row it is compared with or
+None): seed 0 is <stem><suffix>.pt, seed k <stem>_seed<k><suffix>.pt (the names `cefc-train highlevel`
+and `cefc-train highlevel-benchmarl` write). The paper's rows first, in its order; then the rows the
+paper's Table V does not list: ConsMAC trained on the other label the paper defines (all agents'
+relative positions and velocities), BenchMARL's MAPPO as a cross-check of ours, and the ablations of
+the paper's Fig. 7 (which the paper shows as learning curves only). BenchMARL's MASAC stands in for
+HASAC (docs/baselines.md); the row says so. The paper's CI-HRL-w-CL-M rows have no counterpart yet."""
 TABLE6_ROWS = (
     ("PPO", "adversary_ppo", None),
     ("DDPG", "adversary_ddpg", None),
@@ -400,13 +412,13 @@ def run_table5(
         return result
     rule_kind, _, rule_record = resolve_adversary("nearest_group")
     rule_task = game_task(rule_kind, deviation=where.deviation)
-    for method, stem, suffix in TABLE5_ROWS:
+    for method, stem, suffix, paper_row in TABLE5_ROWS:
         files = _seed_files(stem, suffix, policies_dir)
         if 0 not in files:
             result["protocol"]["missing"].append(f"{method} ({stem}{suffix}.pt)")
             continue
         row = _evaluate_file(files[0], task, low_level, episodes, seed, where, adversary_policy, record)
-        row["paper"] = dict(zip(COLUMNS, paper[method])) if method in paper else None
+        row["paper"] = dict(zip(COLUMNS, paper[paper_row])) if paper_row is not None else None
         per_seed = {
             k: (row if k == 0 else _evaluate_file(f, task, low_level, episodes, seed, where, adversary_policy, record))
             for k, f in files.items()
@@ -905,7 +917,14 @@ def table4_line(result: dict) -> str | None:
     """The paper's Table IV (numbers each agent sends per decision) for the methods of a Table V
     result, read from the policy files, beside the paper's; None without such a method (--policy)."""
     paper = _paper("table4_comm_dims")
-    named = {"MAPPO+AT-M": "MAPPO", "TarMAC+AT-M": "TarMAC", "CI-HRL": "ConsMAC"}
+    named = {
+        "MAPPO+AT-M": "MAPPO",
+        "MASAC+AT-M (BenchMARL; stands in for HASAC)": "HASAC",
+        "TarMAC+AT-M": "TarMAC",
+        "MASIA+AT-M": "MASIA",
+        "NVIF+AT-M": "NVIF",
+        "CI-HRL": "ConsMAC",
+    }
     cells = [
         f"{method} {row['message_dim']} (paper {paper[named[method]]})"
         for method, row in result["rows"].items()
