@@ -264,7 +264,9 @@ class BatchedCEFCEnv:
     def rule_adversary_velocity(self, rule: str) -> np.ndarray:
         """The velocity [B, 2] a rule adversary (task/adversary.py) wants at this step."""
         cfg = self.config
-        goal = adversary_goal(rule, self.world.adversary_pos, self.world.agent_pos, self.group_size, self.group_centre)
+        goal = adversary_goal(
+            rule, self.world.adversary_pos, self.world.agent_pos, self.group_size, self.group_centre, self.labels
+        )
         return pursuit_velocity(
             goal,
             self.world.adversary_pos,

@@ -125,6 +125,16 @@ def test_adversary_rules():
     # ... and from 3.2 m away it is not: the nearest group of >= 3 again
     far = np.array([[5.0, -2.8]])
     np.testing.assert_allclose(adversary_goal("nearest_group_strike", far, pos, size, centre)[0], pos[0, :3].mean(0))
+    # the member rule is not lured by the lone agent: it chases the group, and strikes at the group's
+    # nearest member once one is within 3 m
+    labels = connected_groups(pos, 3.0)
+    np.testing.assert_allclose(
+        adversary_goal("nearest_group_member", adv, pos, size, centre, labels)[0], pos[0, :3].mean(0)
+    )
+    close = np.array([[1.5, -1.5]])  # 2.1 m from agent 0, 1.6 m from agent 1: the nearest member
+    np.testing.assert_allclose(adversary_goal("nearest_group_member", close, pos, size, centre, labels)[0], [1, 0])
+    with pytest.raises(ValueError, match="group labels"):
+        adversary_goal("nearest_group_member", adv, pos, size, centre)
     # no group of 3: the nearest-group rule falls back to the nearest agent
     lone = pos[:, [0, 7]]
     _, size, centre = group_formation_error(lone, connected_groups(lone, 3.0))

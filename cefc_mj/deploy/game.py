@@ -251,7 +251,9 @@ class GameTrace:
         if self.has_adversary:
             rows["adversary_pos"].append(w.adversary_pos[0].copy())
             rows["adversary_goal"].append(
-                adversary_goal(self.goal_rule, w.adversary_pos, w.agent_pos, env.group_size, env.group_centre)[0].copy()
+                adversary_goal(
+                    self.goal_rule, w.adversary_pos, w.agent_pos, env.group_size, env.group_centre, env.labels
+                )[0].copy()
             )
 
     def step(self, reward: float, terms: dict) -> None:

@@ -5,7 +5,10 @@
 - "r_nearest": the nearest agent (R-Nearest).
 - "r_largest": the centre of the largest group, nearest first among equals (R-Largest).
 - "nearest_group_strike": "nearest_group", but the nearest agent once one is within STRIKE_DISTANCE
-  (not in the paper: the teacher the PPO adversary imitates before PPO, docs/high_level.md).
+  (not in the paper: the teacher the PPO adversary imitated before PPO, docs/high_level.md).
+- "nearest_group_member": "nearest_group", but the nearest member of that group once one is within
+  STRIKE_DISTANCE (not in the paper): unlike "nearest_group_strike" a lone UAV cannot lure it away
+  from the group it chases (docs/high_level.md).
 
 The adversary flies at top speed toward that point (`pursuit_acceleration`). With
 `TaskConfig.adversary_avoids_obstacles` it steers around the obstacle cylinders on the way
@@ -26,10 +29,16 @@ STRIKE_DISTANCE = 3.0
 
 
 def adversary_goal(
-    rule: str, adversary_pos: np.ndarray, agent_pos: np.ndarray, group_size: np.ndarray, group_centre: np.ndarray
+    rule: str,
+    adversary_pos: np.ndarray,
+    agent_pos: np.ndarray,
+    group_size: np.ndarray,
+    group_centre: np.ndarray,
+    labels: np.ndarray | None = None,
 ) -> np.ndarray:
     """The point [B, 2] the adversary chases. group_size [B, G] and group_centre [B, G, 2] describe
-    the agents' groups (as returned by `group_formation_error`)."""
+    the agents' groups (as returned by `group_formation_error`), indexed by the agents' group labels
+    [B, N] (`connected_groups`), which only "nearest_group_member" needs."""
     b = agent_pos.shape[0]
     offset = agent_pos - adversary_pos[:, None, :]
     square = (offset * offset).sum(-1)
@@ -42,6 +51,15 @@ def adversary_goal(
     size, centre = group_size, group_centre
     centre_offset = centre - adversary_pos[:, None, :]
     centre_dist = np.sqrt((centre_offset * centre_offset).sum(-1))
+    if rule == "nearest_group_member":
+        if labels is None:
+            raise ValueError("the nearest_group_member rule needs the agents' group labels")
+        eligible = size >= 3
+        chased = np.where(eligible, centre_dist, np.inf).argmin(axis=-1)
+        near_member = (labels == chased[:, None]) & eligible.any(-1)[:, None] & (square < STRIKE_DISTANCE**2)
+        member = agent_pos[np.arange(b), np.where(near_member, square, np.inf).argmin(axis=-1)]
+        group = adversary_goal("nearest_group", adversary_pos, agent_pos, group_size, group_centre)
+        return np.where(near_member.any(-1)[:, None], member, group)
     if rule == "r_largest":
         # Largest group first, ties broken by distance (a distance below 1e6 m never outweighs size).
         score = np.where(size > 0, size * 1e6 - centre_dist, -np.inf)

@@ -260,7 +260,9 @@ def play_highlevel_episode(
         if has_adversary:  # the goal env.step computes first thing in the next step, from this state
             rows["adversary_pos"].append(w.adversary_pos[0].copy())
             rows["adversary_goal"].append(
-                adversary_goal(goal_rule, w.adversary_pos, w.agent_pos, env.group_size, env.group_centre)[0].copy()
+                adversary_goal(goal_rule, w.adversary_pos, w.agent_pos, env.group_size, env.group_centre, env.labels)[
+                    0
+                ].copy()
             )
 
     def on_step(reward, terms) -> None:
