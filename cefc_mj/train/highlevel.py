@@ -1060,8 +1060,9 @@ def summary_lines(card: dict, policies_dir: Path) -> list[str]:
     ]
     if card.get("consmac_training"):
         c = card["consmac_training"]
+        module = {"masia": "MASIA's module", "nvif": "NVIF's module"}.get(card["variant"], "ConsMAC")
         lines.append(
-            f"ConsMAC: {c['rounds']} rounds, {c['steps']} steps of batch {c['batch']} "
+            f"{module}: {c['rounds']} rounds, {c['steps']} steps of batch {c['batch']} "
             f"(paper: {c['paper']['steps']} steps every {c['paper']['every_episodes']} episodes)"
         )
     if card.get("wo_ft"):
