@@ -20,9 +20,12 @@ def add_parser(sub) -> None:
     )
     p.add_argument(
         "--variant",
-        choices=("consmac-a", "consmac-o", "mappo", "tarmac"),
+        choices=("consmac-a", "consmac-o", "mappo", "tarmac", "masia", "nvif"),  # nn.highlevel_policy.VARIANTS
         default=None,
-        help="consmac-a (default), consmac-o, mappo (no communication), tarmac (messages trained end to end by RL)",
+        help="consmac-a (default), consmac-o, mappo (no communication), tarmac (messages trained end to end by "
+        "RL), masia (sends its 38-number local observation; attention aggregate trained to reconstruct the "
+        "global state), nvif (sends a 64-number variational latent + the local observation, 102; trained as "
+        "a VAE of local observations)",
     )
     p.add_argument(
         "--ablation",

@@ -75,6 +75,10 @@ VARIANTS = ("A", "O")
 LABEL_ORDERS = ("nearest", "index")
 ABLATIONS = ("none", "wo-com", "wo-mem", "wo-de", "wt-rl", "consmac-g")
 """The paper's Fig. 7 ablations of ConsMAC (module docstring); "none" is ConsMAC itself."""
+MESSAGE_CONTENTS = ("learned", "observation", "latent+observation")
+"""What an agent broadcasts (`ConsMACConfig.message_content`): "learned", ConsMAC's (and TarMAC's)
+message m_i^(t+1) (this module); "observation", the raw local observation o_i (MASIA); and
+"latent+observation", a variational latent and o_i (NVIF). The last two are `cefc_mj.nn.obs_comm`."""
 
 
 class LocalObservationSizes:
@@ -129,6 +133,14 @@ class ConsMACConfig(LocalObservationSizes):
     ablation: str = "none"
     """One of ABLATIONS (the paper's Fig. 7; see the module docstring); "none" for ConsMAC itself.
     Policy files written before this field existed load as "none"."""
+    message_content: str = "learned"
+    """One of MESSAGE_CONTENTS: "learned" is ConsMAC (this module); "observation" (MASIA) and
+    "latent+observation" (NVIF) are `cefc_mj.nn.obs_comm.ObservationComm`, which shares this
+    config, the distance code and the masked attention (docs/baselines.md). Policy files written
+    before this field existed load as "learned"."""
+    kl_weight: float = 0.01
+    """NVIF only: the weight beta of the KL term KL(q(z | o, inbox) || N(0, I)) beside the
+    reconstruction in its VAE loss (a beta-VAE; NVIF's paper gives no value we could use)."""
 
     def __post_init__(self) -> None:
         names = [name for name, _ in self.layout]
@@ -155,6 +167,12 @@ class ConsMACConfig(LocalObservationSizes):
             raise ConfigError(f"obs_scale={self.obs_scale!r}: must be a finite number > 0")
         if self.ablation not in ABLATIONS:
             raise ConfigError(f"ablation={self.ablation!r}: must be one of {', '.join(ABLATIONS)}")
+        if self.message_content not in MESSAGE_CONTENTS:
+            raise ConfigError(f"message_content={self.message_content!r}: must be one of {', '.join(MESSAGE_CONTENTS)}")
+        if self.ablation != "none" and self.message_content != "learned":
+            raise ConfigError(f"ablation={self.ablation!r}: ablates ConsMAC, whose message_content is 'learned'")
+        if not (isinstance(self.kl_weight, (int, float)) and math.isfinite(self.kl_weight) and self.kl_weight >= 0):
+            raise ConfigError(f"kl_weight={self.kl_weight!r}: must be a finite number >= 0")
         if self.ablation == "consmac-g" and self.global_dim > self.message_dim:
             raise ConfigError(
                 f"ablation='consmac-g': the estimate ({self.global_dim} numbers) must fit the memory "
@@ -164,8 +182,25 @@ class ConsMACConfig(LocalObservationSizes):
     @property
     def sent_dim(self) -> int:
         """Size of what an agent broadcasts (and gets back as its own message m_i0): message_dim,
-        or global_dim for ConsMAC-G, which sends its estimate g_hat_i."""
+        or global_dim for ConsMAC-G, which sends its estimate g_hat_i; obs_dim for MASIA (o_i),
+        message_dim + obs_dim for NVIF ([z_i || o_i])."""
+        if self.message_content == "observation":
+            return self.obs_dim
+        if self.message_content == "latent+observation":
+            return self.message_dim + self.obs_dim
         return self.global_dim if self.ablation == "consmac-g" else self.message_dim
+
+    @property
+    def feature_dim(self) -> int:
+        """Size of the selector's consensus input: the message itself for ConsMAC (sent_dim),
+        message_dim for MASIA (z_i) and NVIF (the latent mean), which send something else."""
+        return self.sent_dim if self.message_content == "learned" else self.message_dim
+
+    @property
+    def label_dim(self) -> int:
+        """Size of the supervised label the replay stores: global_dim, or 0 for NVIF, whose VAE
+        reconstructs observations that its inputs already hold."""
+        return 0 if self.message_content == "latent+observation" else self.global_dim
 
     @property
     def global_dim(self) -> int:
@@ -213,17 +248,27 @@ class ConsMACOutput:
     memory: torch.Tensor
     """m'_i0 [B, N, message_dim], eq. (7)."""
     attention: torch.Tensor
-    """[B, N, n_heads, K] attention weights over the neighbour slots; zero on empty slots."""
+    """[B, N, n_heads, K] attention weights over the neighbour slots; zero on empty slots
+    (MASIA/NVIF: K + 1, the agent's own token first)."""
+    feature: torch.Tensor | None = None
+    """The selector's consensus input where it is not the message (MASIA's z_i, NVIF's latent mean),
+    [B, N, message_dim]; None: the message is the consensus input (ConsMAC, TarMAC)."""
+
+    @property
+    def consensus(self) -> torch.Tensor:
+        """What the selector reads, eq. (12): `feature`, or the message where there is none."""
+        return self.message if self.feature is None else self.feature
 
     def detach_for_policy(self, consensus: str = "message") -> torch.Tensor:
         """The policy's view of this step, cut from ConsMAC's graph (the RL loss never reaches ConsMAC).
 
-        consensus: "message" (m_i^(t+1), eq. (12)), "estimate" (g_hat_i) or "message+estimate".
+        consensus: "message" (m_i^(t+1), eq. (12); MASIA/NVIF: their `feature`), "estimate" (g_hat_i)
+        or "message+estimate".
         """
         parts = {
-            "message": [self.message],
+            "message": [self.consensus],
             "estimate": [self.estimate],
-            "message+estimate": [self.message, self.estimate],
+            "message+estimate": [self.consensus, self.estimate],
         }
         if consensus not in parts:
             raise ConfigError(f"consensus={consensus!r}: must be one of {sorted(parts)}")
@@ -308,6 +353,10 @@ class ConsMAC(nn.Module):
 
     def __init__(self, cfg: ConsMACConfig, seed: int | None = None):
         super().__init__()
+        if cfg.message_content != "learned":
+            raise ConfigError(
+                f"message_content={cfg.message_content!r}: not ConsMAC's; build it with cefc_mj.nn.obs_comm.build_comm"
+            )
         self.cfg = cfg
         with seeded(seed):
             d, e = cfg.message_dim, cfg.distance_dim
@@ -398,6 +447,12 @@ class ConsMAC(nn.Module):
             memory=memory.reshape(*lead, cfg.message_dim),
             attention=weights.reshape(*lead, cfg.n_heads, k),
         )
+
+    def supervised_loss(self, batch: dict[str, torch.Tensor], generator: torch.Generator | None = None) -> torch.Tensor:
+        """Eq. (11) on a replay batch (`obs`, `own`, `messages`, `mask`, `distance`, `label`, each
+        [L, ...]), with the fast attention; generator: unused (ConsMAC draws nothing)."""
+        out = self(batch["obs"], batch["own"], batch["messages"], batch["mask"], batch["distance"], fast=True)
+        return consmac_loss(out.estimate, batch["label"])
 
 
 def inbox_tensors(inbox: Inbox) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:

@@ -1,5 +1,5 @@
-"""pi_H, the high level's policy: the communication module (ConsMAC, or none) and the anchor
-selector, with its own policy file format (docs/high_level.md).
+"""pi_H, the high level's policy: the communication module (ConsMAC, MASIA's or NVIF's, or none)
+and the anchor selector, with its own policy file format (docs/high_level.md).
 
 `HighLevelPolicy.decide(obs, inbox)` gives each agent's anchor index and the message it sends;
 `save_highlevel_policy` / `load_highlevel_policy` write and read `cefc-mj/highlevel-policy` files
@@ -15,22 +15,30 @@ from torch import nn
 
 from cefc_mj.errors import CheckpointError, ConfigError
 from cefc_mj.nn.consmac import ABLATIONS, ConsMAC, ConsMACConfig, inbox_tensors
+from cefc_mj.nn.obs_comm import ObservationComm, build_comm
 from cefc_mj.nn.policy_io import read_policy_payload, write_policy_payload
 from cefc_mj.nn.selector import AnchorSelector, SelectorConfig
 from cefc_mj.task.config import TaskConfig
 from cefc_mj.task.messages import Inbox
 
-VARIANTS = ("consmac-a", "consmac-o", "mappo", "tarmac")
+VARIANTS = ("consmac-a", "consmac-o", "mappo", "tarmac", "masia", "nvif")
 CONSMAC_VARIANTS = ("consmac-a", "consmac-o")
 """The variants whose communication module learns from eq. (11): the ones ConsMAC's ablations apply to."""
+SUPERVISED_VARIANTS = (*CONSMAC_VARIANTS, "masia", "nvif")
+"""The variants whose communication module learns from its own supervised loss on the replay
+(ConsMAC's eq. (11), MASIA's global-state reconstruction, NVIF's VAE), never from the RL loss
+(except ConsMAC's wt-rl ablation)."""
+MESSAGE_CONTENT = {"masia": "observation", "nvif": "latent+observation"}
+"""`ConsMACConfig.message_content` of the baselines that send their local observation (Table IV)."""
 POLICY_FORMAT = "cefc-mj/highlevel-policy"
 POLICY_VERSION = 1
 
 
 class HighLevelPolicy(nn.Module):
-    """pi_H: the communication module (ConsMAC, or None for the mappo variant) and the anchor selector."""
+    """pi_H: the communication module (ConsMAC, MASIA's or NVIF's `ObservationComm`, or None for the
+    mappo variant) and the anchor selector."""
 
-    def __init__(self, selector: AnchorSelector, comm: ConsMAC | None, variant: str):
+    def __init__(self, selector: AnchorSelector, comm: ConsMAC | ObservationComm | None, variant: str):
         super().__init__()
         self.selector, self.comm, self.variant = selector, comm, variant
 
@@ -39,8 +47,9 @@ class HighLevelPolicy(nn.Module):
         cls, variant: str, task: TaskConfig, seed: int = 0, hidden: int = 128, ablation: str = "none"
     ) -> "HighLevelPolicy":
         """Fresh networks of a variant: consmac-a / consmac-o (ConsMAC with either label), tarmac (the
-        same module, its output left attached so the RL loss trains it end to end) or mappo (no
-        communication). ablation: one of the paper's Fig. 7 ablations of ConsMAC
+        same module, its output left attached so the RL loss trains it end to end), masia / nvif
+        (`cefc_mj.nn.obs_comm`: raw local observations sent, a supervised module, detached) or mappo
+        (no communication). ablation: one of the paper's Fig. 7 ablations of ConsMAC
         (`cefc_mj.nn.consmac.ABLATIONS`), for the ConsMAC variants only; "wt-rl" leaves the
         selector's consensus input attached, so the RL loss reaches ConsMAC too."""
         if variant not in VARIANTS:
@@ -53,8 +62,10 @@ class HighLevelPolicy(nn.Module):
             )
         comm = None
         if variant != "mappo":
-            label = "O" if variant == "consmac-o" else "A"
-            comm = ConsMAC(ConsMACConfig.from_task(task, variant=label, ablation=ablation), seed=seed)
+            label = "O" if variant in ("consmac-o", "masia", "nvif") else "A"
+            content = MESSAGE_CONTENT.get(variant, "learned")
+            cfg = ConsMACConfig.from_task(task, variant=label, ablation=ablation, message_content=content)
+            comm = build_comm(cfg, seed=seed)
             live = variant == "tarmac" or ablation == "wt-rl"
             s_cfg = SelectorConfig.from_consmac(comm.cfg, hidden=hidden, consensus_gradient=live)
         else:
@@ -63,7 +74,8 @@ class HighLevelPolicy(nn.Module):
 
     @property
     def message_dim(self) -> int:
-        """Numbers each agent sends per decision (0 without communication; global_dim for ConsMAC-G)."""
+        """Numbers each agent sends per decision (0 without communication; global_dim for ConsMAC-G,
+        38 for MASIA, 102 for NVIF: the paper's Table IV)."""
         return self.comm.cfg.sent_dim if self.comm is not None else 0
 
     @property
@@ -76,26 +88,28 @@ class HighLevelPolicy(nn.Module):
         return (obs, *inbox_tensors(inbox)) if self.comm is not None else ()
 
     def consensus(self, comm_inputs: tuple[torch.Tensor, ...], lead: tuple[int, ...]):
-        """(the selector's consensus input, ConsMAC's output or None). The input is detached
-        unless the variant trains the communication module by RL (tarmac)."""
+        """(the selector's consensus input, the module's output or None). The input is detached
+        unless the variant trains the communication module by RL (tarmac, wt-rl). It is the
+        message for ConsMAC and TarMAC, the aggregated feature for MASIA and NVIF (`out.consensus`);
+        `out.message` is what is sent."""
         if self.comm is None:
             return torch.zeros(*lead, 0), None
         out = self.comm(*comm_inputs)
         live = self.selector.cfg.consensus_gradient
-        return (out.message if live else out.detach_for_policy("message")), out
+        return (out.consensus if live else out.detach_for_policy("message")), out
 
     @torch.no_grad()
     def decide(
         self, obs: np.ndarray, inbox: Inbox | None, deterministic: bool = True, generator: torch.Generator | None = None
     ) -> tuple[np.ndarray, np.ndarray | None]:
-        """(anchor index [B, N], message to send [B, N, 64] or None) for CEFC observations [B, N, D]
-        and the channel's inbox of this decision."""
+        """(anchor index [B, N], message to send [B, N, message_dim] or None) for CEFC observations
+        [B, N, D] and the channel's inbox of this decision."""
         obs_t = torch.as_tensor(obs, dtype=torch.float32)
         if self.comm is None:
             consensus, message = torch.zeros(*obs_t.shape[:-1], 0), None
-        else:  # the selector reads the message (eq. 12): the global estimate is not needed to act
-            consensus = self.comm(*self.comm_inputs(obs_t, inbox), with_estimate=False).message
-            message = consensus.numpy()
+        else:  # the selector reads the message (eq. 12; MASIA/NVIF: their feature), not the estimate
+            out = self.comm(*self.comm_inputs(obs_t, inbox), with_estimate=False)
+            consensus, message = out.consensus, out.message.numpy()
         if deterministic:  # the mode: the largest logit (no distribution object on the deployed path)
             return self.selector(obs_t, consensus).argmax(dim=-1).numpy(), message
         index, _ = self.selector.act(obs_t, consensus, deterministic=False, generator=generator)
@@ -120,8 +134,8 @@ class HighLevelPolicy(nn.Module):
             def forward(self, obs, *inbox):
                 if not inbox:
                     return self.policy.selector(obs, obs.new_zeros(*obs.shape[:-1], 0)).argmax(dim=-1)
-                message = self.policy.comm(obs, *inbox, with_estimate=False).message
-                return self.policy.selector(obs, message).argmax(dim=-1), message
+                out = self.policy.comm(obs, *inbox, with_estimate=False)
+                return self.policy.selector(obs, out.consensus).argmax(dim=-1), out.message
 
         def decide_one(obs: np.ndarray, inbox: Inbox | None) -> tuple[np.ndarray, np.ndarray | None]:
             if np.shape(obs)[:2] != (1, 1):
@@ -170,7 +184,7 @@ def load_highlevel_policy(path: Path) -> tuple[HighLevelPolicy, dict]:
     payload = read_policy_payload(path, POLICY_FORMAT, POLICY_VERSION, "a high-level policy")
     state = payload["state_dict"]
     try:
-        comm = None if payload.get("comm") is None else ConsMAC(ConsMACConfig.from_dict(payload["comm"]))
+        comm = None if payload.get("comm") is None else build_comm(ConsMACConfig.from_dict(payload["comm"]))
         selector = AnchorSelector(SelectorConfig.from_dict(payload["selector"]))
         policy = HighLevelPolicy(selector, comm, str(payload.get("variant")))
         policy.load_state_dict(state)

@@ -92,9 +92,9 @@ class SelectorConfig(LocalObservationSizes):
     def from_consmac(cls, consmac_cfg: ConsMACConfig, consensus: str = "message", **overrides) -> "SelectorConfig":
         """A selector that reads `ConsMACOutput.detach_for_policy(consensus)` of this ConsMAC."""
         sizes = {
-            "message": consmac_cfg.sent_dim,  # m_i^(t+1), or g_hat_i for ConsMAC-G
+            "message": consmac_cfg.feature_dim,  # m_i^(t+1), g_hat_i for ConsMAC-G, MASIA's z_i, NVIF's mean
             "estimate": consmac_cfg.global_dim,
-            "message+estimate": consmac_cfg.sent_dim + consmac_cfg.global_dim,
+            "message+estimate": consmac_cfg.feature_dim + consmac_cfg.global_dim,
         }
         if consensus not in sizes:
             raise ConfigError(f"consensus={consensus!r}: must be one of {CONSENSUS_KINDS}")

@@ -26,7 +26,11 @@ the same communication module, its messages trained end to end by the RL loss in
 in the update each receiver's inbox is recomputed, with gradients, from its senders' stored inputs
 of the previous decision, so the PPO loss of decision t reaches the network that sent the messages
 read at t; the senders' own inboxes are taken as stored, a one-step truncation of TarMAC's
-backpropagation through time). `ablation` (consmac variants only) selects one of the paper's
+backpropagation through time), masia and nvif (the paper's other communication baselines,
+`cefc_mj.nn.obs_comm`: they send the raw local observation, MASIA alone and NVIF after a
+variational latent, and their modules learn from their own supervised losses in the ConsMAC
+update's place and schedule, MASIA's reconstructing the global state and NVIF's the local
+observations; the RL loss never reaches them). `ablation` (consmac variants only) selects one of the paper's
 Fig. 7 ablations of ConsMAC (`cefc_mj.nn.consmac.ABLATIONS`); "wt-rl" also lets the PPO loss into
 ConsMAC, whose optimizer then steps on both losses.
 
@@ -55,9 +59,10 @@ from cefc_mj.eval.highlevel import GAME_ADVERSARY, evaluate_highlevel, resolve_a
 from cefc_mj.fileio import write_atomic
 from cefc_mj.hierarchy import DECISION_INTERVAL, NAVIGATION, HierarchicalCEFCEnv, LowLevel, load_low_level
 from cefc_mj.nn.atm import Critic
-from cefc_mj.nn.consmac import ABLATIONS, ConsMACConfig, consmac_loss, global_labels, seeded
+from cefc_mj.nn.consmac import ABLATIONS, ConsMACConfig, global_labels, seeded
 from cefc_mj.nn.highlevel_policy import (
     CONSMAC_VARIANTS,
+    SUPERVISED_VARIANTS,
     VARIANTS,
     HighLevelPolicy,
     load_highlevel_policy,  # noqa: F401  (re-exported: tests/test_highlevel.py)
@@ -81,7 +86,24 @@ METHODS = {
     "consmac-o": "CI-HRL (ConsMAC-O)",
     "mappo": "MAPPO high level, no communication",
     "tarmac": "TarMAC: attention-based communication, messages trained end to end by RL (one-step truncation)",
+    "masia": "MASIA+AT-M: raw local observations sent, aggregated by attention, decoded to the global state",
+    "nvif": "NVIF+AT-M: a variational latent and the raw local observation sent, a VAE of local observations",
 }
+COMMUNICATION = {
+    "consmac-a": ("m_i^(t+1)", "eq. (11): squared error of g_hat_i to every agent's anchor (ConsMAC-A)"),
+    "consmac-o": ("m_i^(t+1)", "eq. (11): squared error of g_hat_i to the others' relative positions and velocities"),
+    "tarmac": ("m_i^(t+1)", "the PPO loss, end to end through the received messages"),
+    "masia": (
+        "o_i, the sender's local observation (unscaled)",
+        "supervised: z_i's decoder reconstructs the global state (ConsMAC-O's label); MASIA's latent "
+        "future prediction is left out",
+    ),
+    "nvif": (
+        "[mu_i || o_i]: the variational latent's mean (64) and the sender's local observation (38, unscaled)",
+        "VAE: a sample of z_i reconstructs the own and the received local observations, plus kl_weight x KL to N(0, I)",
+    ),
+}
+"""The model card's message content and what trains the communication module, per variant."""
 ABLATION_METHODS = {
     "wo-com": "without communication (wo-Com: no message received)",
     "wo-mem": "without memory (wo-Mem: the GRU's hidden input is zero at every decision)",
@@ -128,7 +150,9 @@ class HighLevelConfig(BudgetPPODict):
     the shipped high levels ran those 75 and were continued with --resume to 150 (docs/decisions.md)."""
     variant: str = "consmac-a"
     """consmac-a / consmac-o: ConsMAC with the anchors / the observations of all agents as labels;
-    mappo: no communication; tarmac: the communication module trained end to end by the RL loss."""
+    mappo: no communication; tarmac: the communication module trained end to end by the RL loss;
+    masia / nvif: the paper's baselines that send the raw local observation (38 / 102 numbers),
+    trained by their own supervised losses (`cefc_mj.nn.obs_comm`)."""
     ablation: str = "none"
     """One of the paper's Fig. 7 ablations of ConsMAC (consmac variants only): none, wo-com (no message
     received), wo-mem (no GRU memory), wo-de (no distance encoder), wt-rl (the RL loss reaches ConsMAC
@@ -191,9 +215,10 @@ class HighLevelConfig(BudgetPPODict):
     @property
     def name(self) -> str:
         """Run folder and policy file stem: cihrl_<variant> (cihrl_consmac_a, cihrl_consmac_o, cihrl_mappo,
-        cihrl_tarmac), then _<ablation> for an ablation of ConsMAC (cihrl_consmac_a_wo_com, ..._wo_mem,
-        ..._wo_de, ..._wt_rl, ..._consmac_g), _dt for direct training (no pre-training, the paper's
-        CI-HRL-DT) and _seed<k> for seeds other than 0, so the runs of a comparison never overwrite each other."""
+        cihrl_tarmac, cihrl_masia, cihrl_nvif), then _<ablation> for an ablation of ConsMAC
+        (cihrl_consmac_a_wo_com, ..._wo_mem, ..._wo_de, ..._wt_rl, ..._consmac_g), _dt for direct training
+        (no pre-training, the paper's CI-HRL-DT) and _seed<k> for seeds other than 0, so the runs of a
+        comparison never overwrite each other."""
         return (
             "cihrl_"
             + self.variant.replace("-", "_")
@@ -204,8 +229,9 @@ class HighLevelConfig(BudgetPPODict):
 
     @property
     def supervised(self) -> bool:
-        """ConsMAC variants: the communication module learns from eq. (11) (only, unless wt-rl)."""
-        return self.variant in CONSMAC_VARIANTS
+        """ConsMAC, MASIA and NVIF: the communication module learns from its supervised loss on the
+        replay (eq. (11) for ConsMAC), only, unless wt-rl."""
+        return self.variant in SUPERVISED_VARIANTS
 
     @property
     def rl_into_comm(self) -> bool:
@@ -297,7 +323,10 @@ class HighLevelConfig(BudgetPPODict):
 
 
 class ConsMACReplay:
-    """B_C of Algorithm 2: a ring buffer of ConsMAC's inputs and labels, one row per agent-decision."""
+    """B_C of Algorithm 2: a ring buffer of the communication module's inputs and labels, one row per
+    agent-decision. Messages are stored at the module's sent size (64; ConsMAC-G's label size; 38 for
+    MASIA, 102 for NVIF), labels at `label_dim` (0 for NVIF, whose targets are the observations in
+    its inputs)."""
 
     FIELDS = ("obs", "own", "messages", "mask", "distance", "label")
 
@@ -309,7 +338,7 @@ class ConsMACReplay:
             "messages": ((k, d), torch.float32),
             "mask": ((k,), torch.bool),
             "distance": ((k,), torch.float32),
-            "label": ((cfg.global_dim,), torch.float32),
+            "label": ((cfg.label_dim,), torch.float32),
         }
         self.capacity = capacity
         self.data = {name: torch.zeros((capacity, *shape), dtype=dtype) for name, (shape, dtype) in shapes.items()}
@@ -472,12 +501,17 @@ class HighLevelTrainer:
                 channel.send(out.message.numpy())
             index, logp = policy.selector.act(obs_t, consensus, generator=self.generator)
             if self.replay is not None:
-                label = global_labels(
-                    policy.comm.cfg, env.world.agent_pos, env.world.agent_vel, anchors=env.decode(index.numpy())
-                )
+                comm_cfg = policy.comm.cfg
+                if comm_cfg.label_dim:
+                    label = global_labels(
+                        comm_cfg, env.world.agent_pos, env.world.agent_vel, anchors=env.decode(index.numpy())
+                    )
+                else:  # NVIF: nothing beyond its inputs
+                    label = np.zeros((*index.shape, 0), dtype=np.float32)
                 rows = dict(zip(ConsMACReplay.FIELDS[:-1], comm_inputs))
                 rows["label"] = torch.from_numpy(label)
-                self.replay.add({k: v.reshape(-1, *v.shape[2:]) for k, v in rows.items()})
+                rows_per_step = index.numel()  # one per agent-decision (a zero-width label cannot reshape by -1)
+                self.replay.add({k: v.reshape(rows_per_step, *v.shape[2:]) for k, v in rows.items()})
             next_obs, reward, done, info = env.step(index.numpy())
             next_state = env.global_state()
             for k, v in (
@@ -630,13 +664,13 @@ class HighLevelTrainer:
 
     # ------------------------------------------------------------------ ConsMAC update
     def train_consmac(self, steps: int) -> dict[str, float]:
-        """`steps` Adam steps of eq. (11) on batches from the replay; returns the round's losses."""
+        """`steps` Adam steps of the module's supervised loss (eq. (11) for ConsMAC; MASIA's and
+        NVIF's own: `supervised_loss`) on batches from the replay; returns the round's losses."""
         comm, opt = self.policy.comm, self.consmac_opt
         losses = []
         for _ in range(steps):
             batch = self.replay.sample(self.cfg.consmac_batch, self.generator)
-            out = comm(batch["obs"], batch["own"], batch["messages"], batch["mask"], batch["distance"], fast=True)
-            loss = consmac_loss(out.estimate, batch["label"])
+            loss = comm.supervised_loss(batch, generator=self.generator)
             opt.zero_grad()
             loss.backward()
             torch.nn.utils.clip_grad_norm_(comm.parameters(), self.cfg.ppo.max_grad_norm)
@@ -918,7 +952,12 @@ def export_policy(
         if policy.comm is None
         else {
             "numbers": policy.message_dim,
-            "content": "g_hat (ConsMAC-G)" if cfg.ablation == "consmac-g" else "m_i^(t+1)",
+            "content": "g_hat (ConsMAC-G)" if cfg.ablation == "consmac-g" else COMMUNICATION[cfg.variant][0],
+            "trained_by": COMMUNICATION[cfg.variant][1]
+            + (" and the PPO loss (wt-RL)" if cfg.ablation == "wt-rl" else ""),
+            "selector_reads": "the message"
+            if policy.comm.cfg.message_content == "learned"
+            else f"the aggregated feature ({policy.comm.cfg.feature_dim} numbers), detached",
             "received": "nothing (wo-Com)" if cfg.ablation == "wo-com" else "neighbours within 3 m, one decision late",
             "rl_gradient": {
                 "tarmac": "end to end through the received messages, truncated one decision back",
@@ -1021,8 +1060,9 @@ def summary_lines(card: dict, policies_dir: Path) -> list[str]:
     ]
     if card.get("consmac_training"):
         c = card["consmac_training"]
+        module = {"masia": "MASIA's module", "nvif": "NVIF's module"}.get(card["variant"], "ConsMAC")
         lines.append(
-            f"ConsMAC: {c['rounds']} rounds, {c['steps']} steps of batch {c['batch']} "
+            f"{module}: {c['rounds']} rounds, {c['steps']} steps of batch {c['batch']} "
             f"(paper: {c['paper']['steps']} steps every {c['paper']['every_episodes']} episodes)"
         )
     if card.get("wo_ft"):
