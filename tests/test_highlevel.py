@@ -289,6 +289,12 @@ def test_cli_trains_exports_and_resumes_a_run(tmp_path, monkeypatch, capsys):
     assert [p["iterations"] for p in card["phases"]] == [1, 1]
     assert [p["low_level"] for p in card["phases"]] == ["navigation", "atm_student"]
     assert card["consmac_training"]["steps"] == 6 and card["consmac_training"]["paper"]["steps"] == 5000
+    fit = card["consmac_training"]["label_fit"]  # the newest iteration's rows: 2 envs x 5 decisions x 8 agents
+    assert (
+        fit["rows"] == 2 * 5 * 8
+        and fit["loss"] > 0
+        and fit["explained"] == pytest.approx(1 - fit["loss"] / fit["mean_guess_loss"])
+    )
     assert card["low_level"]["finetune"]["file"]["sha256"] == digest(paths.POLICIES_DIR / "atm_student.pt")
     assert set(card["evaluation"]["ours"]) == {"R_H", "R_t", "R_n", "R_e", "E", "E_agents", "F", "C"}
     loaded, meta = load_highlevel_policy(policy)

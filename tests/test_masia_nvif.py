@@ -257,6 +257,8 @@ def test_cli_trains_a_policy_that_loads_and_decides_on_the_deployed_path(variant
     assert ("global state" if variant == "masia" else "KL") in card["messages"]["trained_by"]
     assert card["messages"]["rl_gradient"] == "none (stop-gradient)"
     assert card["consmac_training"]["steps"] == 6 and "evaluation" in card
+    fit = card["consmac_training"]["label_fit"]  # MASIA estimates the global state; NVIF has no such label
+    assert (fit["loss"] > 0 and fit["mean_guess_loss"] > 0) if variant == "masia" else fit is None
     policy, meta = load_highlevel_policy(path)
     assert meta["variant"] == variant and policy.message_dim == d
 

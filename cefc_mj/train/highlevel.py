@@ -359,6 +359,12 @@ class ConsMACReplay:
         index = torch.randint(0, self.size, (batch,), generator=generator)
         return {name: self.data[name][index] for name in self.FIELDS}
 
+    def newest(self, rows: int) -> dict[str, torch.Tensor]:
+        """The `rows` most recently added rows (fewer when the buffer holds fewer)."""
+        n = min(rows, self.size)
+        index = (self.next - n + torch.arange(n)) % self.capacity
+        return {name: self.data[name][index] for name in self.FIELDS}
+
     def state_dict(self) -> dict:
         return {"size": self.size, "next": self.next, "data": {k: v[: self.size].clone() for k, v in self.data.items()}}
 
@@ -366,6 +372,28 @@ class ConsMACReplay:
         self.size, self.next = int(state["size"]), int(state["next"])
         for name in self.FIELDS:
             self.data[name][: self.size] = state["data"][name]
+
+
+@torch.no_grad()
+def label_fit(comm, replay: ConsMACReplay, rows: int) -> dict | None:
+    """How well the module estimates its global-state label on the replay's newest `rows` rows (the
+    export passes the last iteration's agent-decisions, which at most the last supervised round has
+    trained on): its loss (eq. (11),
+    summed over the label's numbers, averaged over rows), the loss of always guessing those rows'
+    mean label, and 1 - loss / guess (the share of the label's variance explained). None for a module
+    without a global-state label (NVIF reconstructs observations)."""
+    if comm is None or comm.cfg.label_dim == 0 or replay.size == 0:
+        return None
+    batch = replay.newest(rows)
+    loss = float(comm.supervised_loss(batch))
+    label = batch["label"]
+    guess = float(((label - label.mean(dim=0)) ** 2).sum(dim=-1).mean())
+    return {
+        "rows": int(len(label)),
+        "loss": loss,
+        "mean_guess_loss": guess,
+        "explained": 1.0 - loss / guess if guess > 0 else None,
+    }
 
 
 @dataclass
@@ -947,6 +975,11 @@ def export_policy(
             "lr": cfg.consmac_lr,
             "replay_capacity": cfg.replay_capacity,
             "paper": PAPER_CONSMAC,
+            "label_fit": label_fit(
+                policy.comm,
+                trainer.replay,
+                cfg.ppo.n_envs * cfg.ppo.episodes_per_iteration * cfg.decision_steps * cfg.n_agents,
+            ),
         },
         "messages": None
         if policy.comm is None
@@ -1061,9 +1094,16 @@ def summary_lines(card: dict, policies_dir: Path) -> list[str]:
     if card.get("consmac_training"):
         c = card["consmac_training"]
         module = {"masia": "MASIA's module", "nvif": "NVIF's module"}.get(card["variant"], "ConsMAC")
+        fit = c.get("label_fit")
         lines.append(
             f"{module}: {c['rounds']} rounds, {c['steps']} steps of batch {c['batch']} "
             f"(paper: {c['paper']['steps']} steps every {c['paper']['every_episodes']} episodes)"
+            + (
+                f"; label fit on the newest {fit['rows']} rows: loss {fit['loss']:.1f} against "
+                f"{fit['mean_guess_loss']:.1f} for guessing the mean ({fit['explained']:.0%} explained)"
+                if fit and fit["explained"] is not None
+                else ""
+            )
         )
     if card.get("wo_ft"):
         lines.append(f"pre-trained weights (wo-FT) -> {policies_dir / (card['wo_ft'] + '.pt')}")
