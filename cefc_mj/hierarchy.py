@@ -39,7 +39,7 @@ import numpy as np
 from cefc_mj.env import BatchedCEFCEnv
 from cefc_mj.errors import ConfigError
 from cefc_mj.nn.policy_io import Policy, load_policy, resolve_policy_path
-from cefc_mj.nn.registry import lowlevel_name
+from cefc_mj.nn.registry import clm_name, lowlevel_name
 from cefc_mj.nn.selector import ANCHOR_VALUES, anchor_grid
 from cefc_mj.provenance import display_path, file_sha256
 from cefc_mj.sim.world import World
@@ -50,6 +50,13 @@ DECISION_INTERVAL = 10
 """Low-level decision steps per high-level step (paper Sec. V-A: anchors every 10 steps)."""
 PER_GROUP = "per-group"
 """`load_low_level` name of the per-group-size AT-M teachers (atm_c{c}_step3)."""
+CLM_PER_GROUP = "clm-per-group"
+"""`load_low_level` name of the per-group-size CL-M baselines (clm_c{c}: the paper's CI-HRL-w-CL-M)."""
+PER_GROUP_FILES = {
+    PER_GROUP: (lambda c: lowlevel_name(c, "step3"), "the AT-M teacher of each agent's group size"),
+    CLM_PER_GROUP: (clm_name, "the CL-M policy of each agent's group size"),
+}
+"""Per-group low levels: name -> (the policy file of group size c, what it is)."""
 NAVIGATION = "navigation"
 """`load_low_level` name of the navigation-only low level (Algorithm 2's pre-training)."""
 GROUP_SIZES = (3, 4, 5, 6, 7, 8)
@@ -146,19 +153,19 @@ class SharedPolicy:
 
 
 class PerGroupPolicies:
-    """The AT-M teacher of each agent's current group size: atm_c{c}_step3 for a group of c = 3..8
-    agents; agents in groups of 1 or 2 (no formation of their own) fly the c = 3 teacher."""
+    """The policy of each agent's current group size (PER_GROUP_FILES): atm_c{c}_step3 ("per-group")
+    or clm_c{c} ("clm-per-group") for a group of c = 3..8 agents; agents in groups of 1 or 2 (no
+    formation of their own) fly the c = 3 policy."""
 
-    name = PER_GROUP
-
-    def __init__(self, policies: dict[int, tuple[Policy, Path]]):
+    def __init__(self, policies: dict[int, tuple[Policy, Path]], name: str = PER_GROUP):
+        self.name = name
         missing = [c for c in GROUP_SIZES if c not in policies]
         if missing:
-            raise ConfigError(f"per-group low level: no policy for group size(s) {missing}")
+            raise ConfigError(f"{name} low level: no policy for group size(s) {missing}")
         self.policies = policies
         dims = {p.obs_dim for p, _ in policies.values()}
         if len(dims) != 1:
-            raise ConfigError(f"per-group low level: the policies read different observation sizes {sorted(dims)}")
+            raise ConfigError(f"{name} low level: the policies read different observation sizes {sorted(dims)}")
         self.obs_dim = dims.pop()
 
     def act(self, obs: np.ndarray, group_size: np.ndarray) -> np.ndarray:
@@ -172,7 +179,7 @@ class PerGroupPolicies:
     def describe(self) -> dict:
         return {
             "name": self.name,
-            "kind": "the AT-M teacher of each agent's group size (c < 3: c = 3)",
+            "kind": f"{PER_GROUP_FILES[self.name][1]} (c < 3: c = 3)",
             "files": {str(c): _file_record(path) for c, (_, path) in sorted(self.policies.items())},
         }
 
@@ -184,19 +191,19 @@ def _file_record(path: Path) -> dict:
 
 def load_low_level(spec: str, task: TaskConfig, policies_dir: Path | None = None) -> LowLevel:
     """The low level named by `spec`: "navigation" (NavigationOnly), "per-group" (atm_c{c}_step3 for
-    c = 3..8 from `policies_dir`, default the shipped policies), or a policy file path or name
-    (e.g. "atm_student"). Raises ConfigError / CheckpointError with one line."""
+    c = 3..8 from `policies_dir`, default the shipped policies), "clm-per-group" (clm_c{c}), or a
+    policy file path or name (e.g. "atm_student"). Raises ConfigError / CheckpointError with one line."""
     if not isinstance(spec, str) or not spec:
         raise ConfigError(f"low level {spec!r}: give 'navigation', 'per-group' or a policy name or file")
     expected = low_level_layout(task).size
     if spec == NAVIGATION:
         return NavigationOnly.for_task(task)
-    if spec == PER_GROUP:
+    if spec in PER_GROUP_FILES:
         policies = {}
         for c in GROUP_SIZES:
-            path = resolve_policy_path(lowlevel_name(c, "step3"), policies_dir)
+            path = resolve_policy_path(PER_GROUP_FILES[spec][0](c), policies_dir)
             policies[c] = (load_policy(path, obs_dim=expected), path)
-        return PerGroupPolicies(policies)
+        return PerGroupPolicies(policies, spec)
     path = resolve_policy_path(spec, policies_dir)
     policy = load_policy(path, obs_dim=expected)
     if policy.lidar_sees_agents != task.lidar_sees_agents:

@@ -58,6 +58,8 @@ def test_table5_rows_units_seeds_and_missing_methods(policies):
         "TarMAC+AT-M (cihrl_tarmac.pt)",
         "MASIA+AT-M (cihrl_masia.pt)",
         "NVIF+AT-M (cihrl_nvif.pt)",
+        "CI-HRL-w-CL-M-wo-FT (cihrl_consmac_a_clm_wo_ft.pt)",
+        "CI-HRL-w-CL-M (cihrl_consmac_a_clm.pt)",
         "CI-HRL-DT (cihrl_consmac_a_dt.pt)",
         "CI-HRL-wo-FT (cihrl_consmac_a_wo_ft.pt)",
         "CI-HRL (ConsMAC-O) (cihrl_consmac_o.pt)",

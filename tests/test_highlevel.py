@@ -7,6 +7,7 @@ runs are tiny (2 envs, 5 decisions per episode) so the file stays well under a m
 import csv
 import hashlib
 import json
+import shutil
 
 import numpy as np
 import pytest
@@ -15,7 +16,7 @@ import torch
 from cefc_mj import paths
 from cefc_mj.cli.train import main
 from cefc_mj.env import BatchedCEFCEnv
-from cefc_mj.errors import CheckpointError, ConfigError
+from cefc_mj.errors import CefcError, CheckpointError, ConfigError
 from cefc_mj.hierarchy import HierarchicalCEFCEnv, NavigationOnly, PerGroupPolicies, load_low_level
 from cefc_mj.task.config import TaskConfig
 from cefc_mj.task.observation import build_low_level_observation
@@ -141,6 +142,24 @@ def test_per_group_low_level_flies_the_teacher_of_each_group_size():
         rows = np.clip(size, 3, 8) == c
         teacher = per_group.policies[c][0]
         np.testing.assert_allclose(actions[rows], teacher.act(low[rows]), rtol=1e-6)
+
+
+def test_clm_per_group_low_level_flies_the_clm_policy_of_each_group_size(tmp_path):
+    # the shipped CL-M policies cover c = 6..8; stand-ins for c = 3..5 (copies of c = 6) test the wiring
+    for c in range(3, 9):
+        for ext in (".pt", ".json"):
+            shutil.copy(paths.POLICIES_DIR / f"clm_c{max(c, 6)}{ext}", tmp_path / f"clm_c{c}{ext}")
+    clm = load_low_level("clm-per-group", TASK, tmp_path)
+    assert clm.name == "clm-per-group" and "CL-M" in clm.describe()["kind"]
+    assert set(clm.describe()["files"]) == {"3", "4", "5", "6", "7", "8"}
+    obs = np.random.default_rng(0).normal(size=(1, 8, clm.obs_dim))
+    size = np.array([[3, 3, 3, 7, 7, 7, 7, 7]])
+    np.testing.assert_allclose(clm.act(obs, size)[0, 3:], clm.policies[7][0].act(obs[0, 3:]), rtol=1e-6)
+    (tmp_path / "clm_c4.pt").unlink()
+    with pytest.raises(CefcError, match="clm_c4"):
+        load_low_level("clm-per-group", TASK, tmp_path)
+    assert tiny_config(low_level="clm-per-group", seed=1).name == "cihrl_consmac_a_clm_seed1"
+    assert tiny_config(low_level="clm-per-group", pretrain_share=0.0).name == "cihrl_consmac_a_clm_dt"
 
 
 # ---------------------------------------------------------------------------- the trainer

@@ -39,9 +39,10 @@ def add_parser(sub) -> None:
     p.add_argument(
         "--low-level",
         default=None,
-        metavar="NAME|PATH|per-group",
-        help="fine-tuning low level: a policy name or file (default atm_student) or per-group "
-        "(atm_c<C>_step3 by group size)",
+        metavar="NAME|PATH|per-group|clm-per-group",
+        help="fine-tuning low level: a policy name or file (default atm_student), per-group "
+        "(atm_c<C>_step3 by group size) or clm-per-group (clm_c<C> by group size: CI-HRL-w-CL-M, "
+        "written as cihrl_<variant>_clm)",
     )
     p.add_argument(
         "--pretrain-share",

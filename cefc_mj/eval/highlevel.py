@@ -33,7 +33,7 @@ from cefc_mj import paths
 from cefc_mj.errors import CheckpointError, ConfigError
 from cefc_mj.eval.conditions import Conditions
 from cefc_mj.eval.stats import paired_difference
-from cefc_mj.hierarchy import DECISION_INTERVAL, HierarchicalCEFCEnv, LowLevel, load_low_level
+from cefc_mj.hierarchy import CLM_PER_GROUP, DECISION_INTERVAL, HierarchicalCEFCEnv, LowLevel, load_low_level
 from cefc_mj.nn.highlevel_policy import HighLevelPolicy, load_highlevel_policy
 from cefc_mj.nn.policy_io import resolve_policy_path
 from cefc_mj.nn.registry import HIERARCHY_LOWLEVEL
@@ -56,6 +56,8 @@ TABLE5_ROWS = (
     ("TarMAC+AT-M", "cihrl_tarmac", "", "TarMAC+AT-M"),
     ("MASIA+AT-M", "cihrl_masia", "", "MASIA+AT-M"),
     ("NVIF+AT-M", "cihrl_nvif", "", "NVIF+AT-M"),
+    ("CI-HRL-w-CL-M-wo-FT", "cihrl_consmac_a_clm", "_wo_ft", "CI-HRL-w-CL-M-wo-FT"),
+    ("CI-HRL-w-CL-M", "cihrl_consmac_a_clm", "", "CI-HRL-w-CL-M"),
     ("CI-HRL-DT", "cihrl_consmac_a_dt", "", "CI-HRL-DT"),
     ("CI-HRL-wo-FT", "cihrl_consmac_a", "_wo_ft", "CI-HRL-wo-FT"),
     ("CI-HRL", "cihrl_consmac_a", "", "CI-HRL"),
@@ -73,7 +75,11 @@ and `cefc-train highlevel-benchmarl` write). The paper's rows first, in its orde
 paper's Table V does not list: ConsMAC trained on the other label the paper defines (all agents'
 relative positions and velocities), BenchMARL's MAPPO as a cross-check of ours, and the ablations of
 the paper's Fig. 7 (which the paper shows as learning curves only). BenchMARL's MASAC stands in for
-HASAC (docs/baselines.md); the row says so. The paper's CI-HRL-w-CL-M rows have no counterpart yet."""
+HASAC (docs/baselines.md); the row says so. Every row is flown over the student, except those of
+ROW_LOW_LEVEL."""
+ROW_LOW_LEVEL = {"cihrl_consmac_a_clm": CLM_PER_GROUP}
+"""Policy stems flown over another low level than the student: the CI-HRL-w-CL-M rows over the CL-M
+policy of each agent's group size (what they were fine-tuned with, and the paper's pairing)."""
 TABLE6_ROWS = (
     ("PPO", "adversary_ppo", None),
     ("DDPG", "adversary_ddpg", None),
@@ -320,10 +326,11 @@ def _protocol(
     }
 
 
-def _low_level(task: TaskConfig) -> LowLevel:
-    """The shipped student (wherever the high-level policies are read from)."""
+def _low_level(task: TaskConfig, spec: str = LOW_LEVEL) -> LowLevel:
+    """The shipped student, or the shipped low level `spec` names (wherever the high-level policies
+    are read from)."""
     try:
-        return load_low_level(LOW_LEVEL, task)
+        return load_low_level(spec, task)
     except CheckpointError as e:
         raise CheckpointError(f"the low level of Tables V-VI: {e}") from None
 
@@ -417,17 +424,20 @@ def run_table5(
         if 0 not in files:
             result["protocol"]["missing"].append(f"{method} ({stem}{suffix}.pt)")
             continue
-        row = _evaluate_file(files[0], task, low_level, episodes, seed, where, adversary_policy, record)
+        low = _low_level(task, ROW_LOW_LEVEL.get(stem, LOW_LEVEL))
+        row = _evaluate_file(files[0], task, low, episodes, seed, where, adversary_policy, record)
         row["paper"] = dict(zip(COLUMNS, paper[paper_row])) if paper_row is not None else None
+        if stem in ROW_LOW_LEVEL:
+            row["low_level"] = low.describe() | {"name": low.name}
         per_seed = {
-            k: (row if k == 0 else _evaluate_file(f, task, low_level, episodes, seed, where, adversary_policy, record))
+            k: (row if k == 0 else _evaluate_file(f, task, low, episodes, seed, where, adversary_policy, record))
             for k, f in files.items()
         }
         row["training_seeds"] = _seed_block(per_seed, files)
         if against_rule:
             row["against_rule"] = _seed_block(
                 {
-                    k: _evaluate_file(f, rule_task, low_level, episodes, seed, where, None, rule_record)
+                    k: _evaluate_file(f, rule_task, low, episodes, seed, where, None, rule_record)
                     for k, f in files.items()
                 },
                 files,
@@ -822,6 +832,8 @@ def format_highlevel_table(result: dict) -> str:
         for key in ("differs", "low_level_differs", "adversary_differs"):
             if row.get(key):
                 lines.append(f"{method}: {row[key]}")
+        if row.get("low_level"):
+            lines.append(f"{method}: flown over {row['low_level']['name']} ({row['low_level']['kind']})")
     if proto.get("missing"):
         lines.append("missing policies: " + ", ".join(proto["missing"]))
     if result["schema"] == "cefc-eval/table5" and table4_line(result):

@@ -57,7 +57,14 @@ import torch
 from cefc_mj.errors import CheckpointError, ConfigError
 from cefc_mj.eval.highlevel import GAME_ADVERSARY, evaluate_highlevel, resolve_adversary
 from cefc_mj.fileio import write_atomic
-from cefc_mj.hierarchy import DECISION_INTERVAL, NAVIGATION, HierarchicalCEFCEnv, LowLevel, load_low_level
+from cefc_mj.hierarchy import (
+    CLM_PER_GROUP,
+    DECISION_INTERVAL,
+    NAVIGATION,
+    HierarchicalCEFCEnv,
+    LowLevel,
+    load_low_level,
+)
 from cefc_mj.nn.atm import Critic
 from cefc_mj.nn.consmac import ABLATIONS, ConsMACConfig, global_labels, seeded
 from cefc_mj.nn.highlevel_policy import (
@@ -174,8 +181,9 @@ class HighLevelConfig(BudgetPPODict):
     decision_interval: int = DECISION_INTERVAL
     """Low-level steps per high-level decision (paper: 10)."""
     low_level: str = HIERARCHY_LOWLEVEL
-    """The fine-tuning low level: a policy name or file (default the distilled student) or
-    'per-group' (the AT-M teacher atm_c{c}_step3 of each agent's group size)."""
+    """The fine-tuning low level: a policy name or file (default the distilled student),
+    'per-group' (the AT-M teacher atm_c{c}_step3 of each agent's group size) or 'clm-per-group' (the
+    CL-M policy clm_c{c} of each agent's group size: the paper's CI-HRL-w-CL-M)."""
     pretrain_share: float = 2 / 3
     """Share of the budget flown with the navigation-only low level before fine-tuning with
     `low_level` (paper: 1000 of 1500 episodes); 0 trains with `low_level` only (CI-HRL-DT)."""
@@ -217,12 +225,15 @@ class HighLevelConfig(BudgetPPODict):
         """Run folder and policy file stem: cihrl_<variant> (cihrl_consmac_a, cihrl_consmac_o, cihrl_mappo,
         cihrl_tarmac, cihrl_masia, cihrl_nvif), then _<ablation> for an ablation of ConsMAC
         (cihrl_consmac_a_wo_com, ..._wo_mem, ..._wo_de, ..._wt_rl, ..._consmac_g), _dt for direct training
-        (no pre-training, the paper's CI-HRL-DT) and _seed<k> for seeds other than 0, so the runs of a
-        comparison never overwrite each other."""
+        (no pre-training, the paper's CI-HRL-DT), _<low level> for a fine-tuning low level other than
+        the student (_clm for clm-per-group, the paper's CI-HRL-w-CL-M; _per_group; a file's stem) and
+        _seed<k> for seeds other than 0, so the runs of a comparison never overwrite each other."""
+        low = {CLM_PER_GROUP: "clm"}.get(self.low_level, Path(self.low_level).stem.replace("-", "_"))
         return (
             "cihrl_"
             + self.variant.replace("-", "_")
             + ("" if self.ablation == "none" else "_" + self.ablation.replace("-", "_"))
+            + ("" if self.low_level == HIERARCHY_LOWLEVEL else "_" + low)
             + ("_dt" if self.pretrain_share == 0 else "")
             + (f"_seed{self.seed}" if self.seed else "")
         )
@@ -296,8 +307,8 @@ class HighLevelConfig(BudgetPPODict):
             _fail(
                 "low_level",
                 self.low_level,
-                "must name the fine-tuning low level: a policy name or file, or "
-                "'per-group' (the navigation-only one is the pre-training's)",
+                "must name the fine-tuning low level: a policy name or file, 'per-group' or "
+                "'clm-per-group' (the navigation-only one is the pre-training's)",
             )
         if not isinstance(self.pretrain_share, float) or not 0 <= self.pretrain_share <= 1:
             _fail("pretrain_share", self.pretrain_share, "must be a number in [0, 1]")
