@@ -232,6 +232,13 @@ def test_the_paper_adversary_reads_no_goal_point():
     assert AdversaryConfig(budget=Budget(iterations=1)).observes_goal is False
 
 
+def test_run_names_say_the_imitated_rule_and_seed():
+    one = Budget(iterations=1)
+    assert AdversaryConfig(budget=one).name == "adversary_ppo"
+    member = AdversaryConfig(budget=one, imitation_rule="nearest_group_member", seed=2)
+    assert member.name == "adversary_ppo_nearest_group_member_seed2"
+
+
 def test_cli_trains_exports_a_card_and_resumes(tmp_path, capsys):
     out = tmp_path / "runs"
     argv = [

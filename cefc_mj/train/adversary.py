@@ -88,16 +88,12 @@ def _fail(name: str, value: object, why: str) -> None:
 
 
 DEFAULT_POPULATION = (
-    "cihrl_consmac_a",
-    "cihrl_consmac_a_seed1",
-    "cihrl_consmac_a_seed2",
-    "cihrl_consmac_a_wo_ft",
-    "cihrl_mappo",
-    "cihrl_mappo_seed1",
-    "cihrl_mappo_seed2",
-    "cihrl_tarmac",
-    "cihrl_consmac_a_dt",
-    "cihrl_consmac_o",
+    *(f"cihrl_consmac_a{s}" for s in ("", "_seed1", "_seed2", "_seed3", "_seed4")),
+    *(f"cihrl_consmac_a{s}_wo_ft" for s in ("", "_seed1", "_seed2", "_seed3", "_seed4")),
+    *(f"cihrl_mappo{s}" for s in ("", "_seed1", "_seed2", "_seed3", "_seed4")),
+    *(f"cihrl_tarmac{s}" for s in ("", "_seed1", "_seed2")),
+    *(f"cihrl_consmac_a_dt{s}" for s in ("", "_seed1", "_seed2")),
+    *(f"cihrl_consmac_o{s}" for s in ("", "_seed1", "_seed2")),
     *RULE_TEAMS,
 )
 """Every shipped method over its training seeds, and the rule-driven teams."""
@@ -174,8 +170,11 @@ class AdversaryConfig(BudgetPPODict):
 
     @property
     def name(self) -> str:
-        """Run folder and policy file stem: adversary_ppo, then _seed<k> for seeds other than 0."""
-        return "adversary_ppo" + (f"_seed{self.seed}" if self.seed else "")
+        """Run folder and policy file stem: adversary_ppo, then _<rule> when it imitates another rule
+        than nearest_group_strike (adversary_ppo_nearest_group_member, ...), then _seed<k> for seeds
+        other than 0, so that no candidate overwrites another."""
+        rule = "" if self.imitation_rule == "nearest_group_strike" else f"_{self.imitation_rule}"
+        return "adversary_ppo" + rule + (f"_seed{self.seed}" if self.seed else "")
 
     def task(self) -> TaskConfig:
         return adversary_task(self.obstacle_density)
