@@ -332,8 +332,13 @@ def _pressure(adversary) -> dict:
     )
 
 
-def test_shipped_ppo_adversary_chases_the_swarm_and_keeps_out_of_obstacles():
-    policy, _ = load_adversary_policy(paths.POLICIES_DIR / "adversary_ppo.pt")
+SHIPPED_ADVERSARIES = ("adversary_ppo", "adversary_ppo_nearest_group_member")
+"""The shipped PPO adversaries: Table V's, and the one the next generation of high levels trains against."""
+
+
+@pytest.mark.parametrize("name", SHIPPED_ADVERSARIES)
+def test_shipped_ppo_adversary_chases_the_swarm_and_keeps_out_of_obstacles(name):
+    policy, _ = load_adversary_policy(paths.POLICIES_DIR / f"{name}.pt")
     shipped = _pressure(policy.act)
     assert shipped["E"] >= E_FLOOR, f"E {shipped['E']:.1f} steps below the band {E_FLOOR}"
     assert shipped["adversary_collision_share"] <= IN_CEILING, shipped["adversary_collision_share"]
@@ -341,8 +346,9 @@ def test_shipped_ppo_adversary_chases_the_swarm_and_keeps_out_of_obstacles():
     assert untrained["E"] < E_FLOOR or untrained["adversary_collision_share"] > IN_CEILING
 
 
-def test_shipped_adversary_beats_a_random_walk_by_the_measured_margin():
-    policy, _ = load_adversary_policy(paths.POLICIES_DIR / "adversary_ppo.pt")
+@pytest.mark.parametrize("name", SHIPPED_ADVERSARIES)
+def test_shipped_adversary_beats_a_random_walk_by_the_measured_margin(name):
+    policy, _ = load_adversary_policy(paths.POLICIES_DIR / f"{name}.pt")
     rng = np.random.default_rng(SEED)
     walk = _pressure(lambda obs: rng.uniform(-2.0, 2.0, size=(obs.shape[0], 2)))
     assert _pressure(policy.act)["E"] >= walk["E"] + E_FLOOR
