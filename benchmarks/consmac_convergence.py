@@ -48,7 +48,7 @@ from cefc_mj.errors import CefcError, CheckpointError, ConfigError
 from cefc_mj.fileio import write_atomic
 from cefc_mj.nn.consmac import consmac_loss
 from cefc_mj.nn.highlevel_policy import HighLevelPolicy
-from cefc_mj.provenance import display_path, file_sha256, git_commit, library_versions
+from cefc_mj.provenance import display_path, display_run_path, file_sha256, git_commit, library_versions
 from cefc_mj.train.highlevel import (
     PAPER_CONSMAC,
     ConsMACReplay,
@@ -77,11 +77,7 @@ class _Parser(argparse.ArgumentParser):
         raise SystemExit(EXIT_USAGE)
 
 
-def shown(path: Path) -> str:
-    """A run folder as the report records it: relative to the checkout or the working folder, else as
-    `cefc-train --out runs/hl` names it (its last three components), never an absolute path."""
-    text = display_path(path)
-    return text if not text.startswith("/") else Path(*Path(path).resolve().parts[-3:]).as_posix()
+shown = display_run_path
 
 
 # ---------------------------------------------------------------------------- loading

@@ -53,6 +53,14 @@ def display_path(path: str | os.PathLike) -> str:
     return str(path)
 
 
+def display_run_path(path: str | os.PathLike) -> str:
+    """A run folder as shipped reports record it: `display_path`, or, outside the checkout and the
+    working folder, its last three components (as `cefc-train --out runs/hl` names it), never an
+    absolute path."""
+    text = display_path(path)
+    return text if not text.startswith("/") else Path(*Path(path).resolve().parts[-3:]).as_posix()
+
+
 def file_sha256(path: Path) -> str:
     """The SHA-256 of a file's bytes (hex); memoized on (path, size, mtime), so a replaced file is re-read."""
     st = os.stat(path)

@@ -33,7 +33,7 @@ import numpy as np
 from cefc_mj.errors import CefcError, ConfigError, OneLineParser
 from cefc_mj.eval.stats import seed_interval
 from cefc_mj.fileio import can_write_in, write_atomic
-from cefc_mj.provenance import display_path, git_commit
+from cefc_mj.provenance import display_run_path, git_commit
 
 EXIT_USAGE = 2
 METRICS = ("episode_return", "metric/E", "term/R_t")
@@ -263,8 +263,8 @@ def main(argv: list[str] | None = None) -> int:
         order = list(FIGURES.get(args.figure, {})) or list(curves)
         curves = {g: curves[g] for g in sorted(curves, key=lambda g: order.index(g) if g in order else len(order))}
         command = "python -m cefc_mj.eval.learning_curves " + " ".join(
-            [display_path(p) for p in args.runs]
-            + ["--out", display_path(out), "--figure", args.figure, "--smooth", str(args.smooth)]
+            [display_run_path(p) for p in args.runs]
+            + ["--out", display_run_path(out), "--figure", args.figure, "--smooth", str(args.smooth)]
         )
         title = {"fig7": "Fig. 7: ConsMAC-A and its ablations", "fig6": "Fig. 6: communication methods"}.get(
             args.figure, "Training curves"
@@ -277,7 +277,7 @@ def main(argv: list[str] | None = None) -> int:
     except CefcError as e:
         print(f"python -m cefc_mj.eval.learning_curves: error: {e}", file=sys.stderr)
         return EXIT_USAGE
-    print(f"{len(curves)} groups, {len(runs)} runs -> {display_path(out)}/curves.png, curves.csv, README.md")
+    print(f"{len(curves)} groups, {len(runs)} runs -> {display_run_path(out)}/curves.png, curves.csv, README.md")
     return 0
 
 
