@@ -305,8 +305,12 @@ def test_cli_plays_the_sitl_game_and_writes_its_report(tmp_path, monkeypatch, ca
     argv = ["--backend", "particle", "--protocol", "table5", "--sitl-m", "--policy", "cihrl_consmac_a"]
     assert main([*argv, "--episodes", "1", "--json", str(out)]) == 0
     text = capsys.readouterr().out
-    assert "SITL-M - lock-step" in text and "B/s per UAV" in text and "Table IV" in text
+    assert "SITL-M - lock-step" in text and "B/s per UAV" in text
+    assert (
+        "of which ConsMAC messages" in text and "message 64 floats per decision (paper's Table IV, ConsMAC: 64)" in text
+    )
     result = json.loads(out.read_text())
+    assert result["rows"]["cihrl_consmac_a (SITL-M)"]["variant"] == "consmac-a"
     assert set(result["rows"]) == {"cihrl_consmac_a (SITL-M)", "cihrl_consmac_a (lock-step)"}
 
 

@@ -93,6 +93,15 @@ TABLE6_TRAINED_LATER = {"adversary_ddpg": "cefc-train adversary-ddpg --install"}
 else the report notes how to train them."""
 TABLE7_SIZES = (8, 9, 10, 12, 15)
 """The swarm sizes N of Table VII."""
+TABLE4_METHOD = {
+    "mappo": "MAPPO",
+    "tarmac": "TarMAC",
+    "masia": "MASIA",
+    "nvif": "NVIF",
+    "consmac-a": "ConsMAC",
+    "consmac-o": "ConsMAC",
+}
+"""The paper's Table IV row of each high-level variant (what it sends per decision)."""
 GAME_ADVERSARY = "adversary_ppo"
 """The adversary of Table V: the shipped PPO adversary, the paper's default predator."""
 GAME_POLICY = "cihrl_consmac_a"
@@ -646,6 +655,7 @@ def run_table5_sitl(
     row = _stats(per_episode)
     row.update({"policy": path.name, "sha256": file_sha256(path), "paper": None, "condition": "SITL-M"})
     row["message_dim"] = games[0].message_dim
+    row["variant"] = load_highlevel_policy(path)[0].variant
     row["sitl"] = [g.sitl for g in games]
     row["sitl_pooled"] = pooled_game_timing(games)
     result["rows"][f"{path.stem} (SITL-M)"] = row
@@ -740,6 +750,7 @@ def format_sitl_game(result: dict) -> str:
         )
     sitl_row = next(r for r in result["rows"].values() if r.get("condition") == "SITL-M")
     pooled = sitl_row["sitl_pooled"]
+    method = TABLE4_METHOD.get(sitl_row.get("variant", "consmac-a"), "ConsMAC")  # reports before the field: CI-HRL
 
     def p(name):
         v = pooled[name]
@@ -748,9 +759,9 @@ def format_sitl_game(result: dict) -> str:
     lines += [
         f"latency p50 / p99: low level {p('low_latency_ms')}, high level {p('high_latency_ms')}; "
         f"round trip low {p('low_round_trip_ms')}, high {p('high_round_trip_ms')}",
-        f"wire: {pooled['bytes_per_s_per_uav']:.0f} B/s per UAV in all, of which ConsMAC messages "
+        f"wire: {pooled['bytes_per_s_per_uav']:.0f} B/s per UAV in all, of which {method} messages "
         f"{pooled['message_bytes_per_s_per_uav']:.0f} B/s (sent and received); message {sitl_row['message_dim']} "
-        f"floats per decision (paper's Table IV, ConsMAC: {_paper('table4_comm_dims')['ConsMAC']})",
+        f"floats per decision (paper's Table IV, {method}: {_paper('table4_comm_dims').get(method, '-')})",
     ]
     return "\n".join(lines)
 
