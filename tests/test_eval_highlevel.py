@@ -8,6 +8,7 @@ import json
 
 import numpy as np
 import pytest
+from scipy import stats
 
 from cefc_mj import paths
 from cefc_mj.cli.eval import main
@@ -83,11 +84,22 @@ def test_table5_rows_units_seeds_and_missing_methods(policies):
     assert result["rows"]["CI-HRL"]["training_seeds"]["seeds"] == [0]
     assert seeds["ci95"]["E"]["ci_low"] <= seeds["mean"]["E"] <= seeds["ci95"]["E"]["ci_high"]
     assert set(result["rows"]["MAPPO+AT-M"]["against_rule"]["E"]) <= set(range(401))  # per seed, vs the rule
+    strength, rule_e = (
+        result["rows"]["MAPPO+AT-M"]["adversary_strength"],
+        result["rows"]["MAPPO+AT-M"]["against_rule"]["E"],
+    )
+    assert strength["ratio"] == pytest.approx(np.mean(seeds["E"]) / np.mean(rule_e))
+    differences = np.subtract(seeds["E"], rule_e)
+    if np.all(differences == differences[0]):
+        assert strength["p_weaker"] is None
+    else:
+        assert strength["p_weaker"] == pytest.approx(stats.ttest_rel(seeds["E"], rule_e, alternative="less").pvalue)
     assert result["rows"]["MAPPO+AT-M"]["vs_reference"]["E"]["p"] is None  # one CI-HRL seed: no test
     assert result["rows"]["MAPPO+AT-M"]["vs_reference"]["E"]["verdict"] == "no significant difference"
     assert result["rows"]["CI-HRL"]["paper"]["E"] == 4.46
     text = format_highlevel_table(result)
     assert "Over training seeds" in text and "E vs rule (s)" in text and "reference" in text and "R_e/N" in text
+    assert "Adversary strength" in text and "  MAPPO+AT-M: " in text
     # R_e/N is the summed R_e over the game's 8 agents, both printed
     r_e = seeds["ci95"]["R_e"]["mean"]
     mappo_line = next(line for line in text.splitlines() if line.startswith("MAPPO+AT-M") and "[" in line)

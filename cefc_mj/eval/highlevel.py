@@ -366,6 +366,26 @@ def _seed_block(per_seed: dict[int, dict], files: dict[int, Path]) -> dict:
     }
 
 
+def _adversary_strength(e_adversary: list[float], e_rule: list[float]) -> dict:
+    """Whether the game's adversary is at least as strong as the nearest-group rule against one
+    method: the ratio of the means over training seeds of E (steps within 2 m) against each, and the
+    one-sided paired t-test over the seeds that it is weaker (`eval.stats.weaker_p`)."""
+    from cefc_mj.eval.stats import ALPHA, weaker_p
+
+    ratio = float(np.mean(e_adversary) / np.mean(e_rule)) if np.mean(e_rule) > 0 else None
+    p = weaker_p(e_adversary, e_rule)
+    weaker = p is not None and p < ALPHA
+    return {
+        "ratio": ratio,
+        "p_weaker": p,
+        "verdict": "weaker than the rule"
+        if weaker
+        else "at least as strong"
+        if ratio and ratio >= 1
+        else "no significant difference",
+    }
+
+
 def _compare_with_reference(rows: dict) -> None:
     """row["vs_reference"]: per metric, Welch's p over training seeds against CI-HRL and the verdict."""
     from cefc_mj.eval.stats import verdict, welch_p
@@ -451,6 +471,7 @@ def run_table5(
                 },
                 files,
             )
+            row["adversary_strength"] = _adversary_strength(row["training_seeds"]["E"], row["against_rule"]["E"])
         result["rows"][method] = row
     _compare_with_reference(result["rows"])
     return result
@@ -933,6 +954,19 @@ def seed_table_lines(result: dict) -> list[str]:
         "  ".join(cell.ljust(w) if i == 0 else cell.rjust(w) for i, (cell, w) in enumerate(zip(r, widths)))
         for r in table
     ]
+    strength = {m: r["adversary_strength"] for m, r in result["rows"].items() if r.get("adversary_strength")}
+    if strength:
+        lines += [
+            "",
+            "Adversary strength: E against the game's adversary over E against the nearest-group rule (means "
+            "over training seeds, the same policies and games); p: one-sided paired t-test over the seeds "
+            f"that the adversary is weaker than the rule (weaker where p < {ALPHA}).",
+            *(
+                f"  {m}: {'-' if a['ratio'] is None else format(a['ratio'], '.2f')}, p "
+                f"{'-' if a['p_weaker'] is None else format(a['p_weaker'], '.3f')}: {a['verdict']}"
+                for m, a in strength.items()
+            ),
+        ]
     return lines
 
 

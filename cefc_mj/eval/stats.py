@@ -59,3 +59,13 @@ def paired_difference(values, reference) -> dict[str, float | int | None]:
     se = float(d.std(ddof=1) / math.sqrt(n))
     p = float(stats.ttest_rel(values, reference).pvalue) if se > 0 else None
     return {"n": n, "mean": float(d.mean()), "se": se, "p": p}
+
+
+def weaker_p(values, reference) -> float | None:
+    """One-sided p of the paired t-test that `values` are lower than `reference` on average (pairs:
+    the same training seed's policy on the same games, e.g. E against an adversary and against a
+    rule); None with fewer than two pairs or where every difference is the same."""
+    d = np.asarray(values, dtype=np.float64) - np.asarray(reference, dtype=np.float64)
+    if d.size < 2 or np.all(d == d[0]):
+        return None
+    return float(stats.ttest_rel(values, reference, alternative="less").pvalue)
