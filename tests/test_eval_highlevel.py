@@ -15,6 +15,7 @@ from cefc_mj.cli.eval import main
 from cefc_mj.errors import ConfigError
 from cefc_mj.eval.highlevel import (
     DT,
+    GAME_ADVERSARY,
     Conditions,
     evaluate_highlevel_episodes,
     format_highlevel_table,
@@ -33,7 +34,7 @@ pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 @pytest.fixture
 def policies(tmp_path):
-    """A policies folder with MAPPO seeds 0 and 1, a CI-HRL policy and a PPO adversary (untrained weights)."""
+    """A policies folder with MAPPO seeds 0 and 1, a CI-HRL policy and both PPO adversaries (untrained weights)."""
     folder = tmp_path / "policies"
     folder.mkdir()
     task = game_task()
@@ -47,8 +48,17 @@ def policies(tmp_path):
             folder / f"{name}.pt",
             meta={"name": name, "decision_interval": 10},
         )
-    save_adversary_policy(AdversaryPolicy(AdversaryNetConfig(), seed=0), folder / "adversary_ppo.pt")
+    for seed, name in enumerate(("adversary_ppo", GAME_ADVERSARY)):
+        save_adversary_policy(AdversaryPolicy(AdversaryNetConfig(), seed=seed), folder / f"{name}.pt")
     return folder
+
+
+def test_table5_on_two_processes_is_the_table_on_one(policies):
+    """Each policy file's batch is seeded on its own: the pool changes where it flies, not a number."""
+    one = run_table5(episodes=2, seed=3, policies_dir=policies)
+    two = run_table5(episodes=2, seed=3, policies_dir=policies, workers=2)
+    assert json.dumps(two, default=float) == json.dumps(one, default=float)
+    assert list(two["rows"]["MAPPO+AT-M"]["against_rule"]["seeds"]) == [0, 1]
 
 
 def test_table5_rows_units_seeds_and_missing_methods(policies):
@@ -141,14 +151,16 @@ def test_the_evaluation_follows_the_policy_a_better_anchor_choice_scores_more():
 
 def test_table6_plays_one_policy_against_each_adversary(policies):
     result = run_table6(episodes=2, policies_dir=policies, policy="cihrl_mappo")
-    assert list(result["rows"]) == ["PPO", "R-Largest", "R-Nearest", "Nearest-group rule"]
+    assert list(result["rows"]) == ["PPO", "PPO (first generation)", "R-Largest", "R-Nearest", "Nearest-group rule"]
     assert [r["adversary"] for r in result["rows"].values()] == [
+        GAME_ADVERSARY,
         "adversary_ppo",
         "r_largest",
         "r_nearest",
         "nearest_group",
     ]
-    assert result["rows"]["PPO"]["adversary_record"]["policy"] == "adversary_ppo.pt"
+    assert result["rows"]["PPO"]["adversary_record"]["policy"] == f"{GAME_ADVERSARY}.pt"
+    assert result["rows"]["PPO (first generation)"]["paper"] is None
     assert "not in the paper" in result["rows"]["Nearest-group rule"]["differs"]
     assert result["rows"]["Nearest-group rule"]["paper"] is None
     assert result["rows"]["R-Nearest"]["paper"] == {"R_t": 187.87, "R_e": -79.54, "E": 5.8}
@@ -221,7 +233,7 @@ def test_cli_writes_the_report_folder(policies, tmp_path, monkeypatch, capsys):
     data = json.loads((out / "table5.json").read_text())
     assert data == json.loads((tmp_path / "t5.json").read_text())
     assert data["protocol"]["command"].startswith("cefc-eval --backend particle --protocol table5")
-    assert data["protocol"]["adversary"]["policy"] == "adversary_ppo.pt"  # the PPO adversary by default
+    assert data["protocol"]["adversary"]["policy"] == f"{GAME_ADVERSARY}.pt"  # the PPO adversary by default
     assert (out / "table5.png").read_bytes()[:4] == b"\x89PNG"
 
 
@@ -263,7 +275,12 @@ def test_cli_records_one_game_of_a_policy(policies, tmp_path, monkeypatch, capsy
         (["--protocol", "table5", "--backend", "particle", "--wind", "3"], "--wind: the particle backend has no wind"),
         (["--protocol", "table5", "--backend", "particle", "--estimator", "raw"], "--estimator: --protocol table5"),
         (["--protocol", "table6", "--backend", "particle", "--steps", "100"], "--steps: --protocol table6"),
-        (["--protocol", "table5", "--backend", "particle", "--workers", "2"], "--workers: table5"),
+        (["--protocol", "table6", "--backend", "particle", "--workers", "2"], "--workers 2: only table5"),
+        (
+            ["--protocol", "table5", "--backend", "particle", "--policy", "cihrl_mappo", "--workers", "2"],
+            "table5 with --policy flies one batch",
+        ),
+        (["--protocol", "table5", "--backend", "particle", "--workers", "0"], "--workers 0"),
         (["--protocol", "table5", "--backend", "particle", "--policy", "no_such"], "--policy no_such: no high-level"),
         (["--protocol", "table6", "--backend", "particle", "--episodes", "0"], "--episodes 0"),
         (["--protocol", "table5", "--backend", "particle", "--rrd", "x.rrd"], "--rrd: recording works with"),

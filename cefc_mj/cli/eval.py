@@ -42,6 +42,7 @@ from cefc_mj.eval.requests import (
     recording_refused,
 )
 from cefc_mj.executors import ExecutorConfig
+from cefc_mj.nn.registry import GAME_ADVERSARY
 from cefc_mj.sim.wind import MAX_WIND_SPEED
 
 __all__ = ["build_parser", "default_report_dir", "is_shipped_reports", "main", "single_table", "to_request"]
@@ -154,7 +155,7 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         metavar="RULE|NAME|PATH",
         help="table5, table7: the game's adversary, a rule (nearest_group, r_nearest, r_largest, none) "
-        "or a trained adversary's policy name or file (default adversary_ppo, the PPO adversary); "
+        f"or a trained adversary's policy name or file (default {GAME_ADVERSARY}, the game's PPO adversary); "
         "table6 plays each adversary in turn",
     )
     p.add_argument(
@@ -247,7 +248,8 @@ def build_parser() -> argparse.ArgumentParser:
         type=int,
         default=None,
         metavar="W",
-        help=f"processes flying episodes, 1..{MAX_WORKERS} (single without recording, table8; default 1)",
+        help=f"processes flying episodes, 1..{MAX_WORKERS} (single without recording, table8, table5 over every "
+        "method; default 1)",
     )
     p.add_argument(
         "--executor",
@@ -322,8 +324,6 @@ def refuse_flags(args: argparse.Namespace) -> None:
                 f"{given[0]}: --protocol {proto} plays the paper's game as it is (8 UAVs, 400 steps, "
                 "the fused estimate); docs/high_level.md"
             )
-        if args.workers not in (None, 1):
-            raise ConfigError(f"--workers: {proto} flies all its episodes as one batch in one process")
     for flag, value in (("--link-delay", args.link_delay), ("--jitter", args.jitter)):
         if value is not None and not args.sitl_m:
             raise ConfigError(f"{flag}: applies to SITL-M only; add --sitl-m")
@@ -411,7 +411,13 @@ def to_request(args: argparse.Namespace) -> SingleRequest | Table8Request | Tabl
             report_dir=args.report_dir,
             json=args.json,
             sitl=sitl,
-            **_given(episodes=args.episodes, seed=args.seed, policy=args.policy, adversary=args.adversary),
+            **_given(
+                episodes=args.episodes,
+                seed=args.seed,
+                policy=args.policy,
+                adversary=args.adversary,
+                workers=args.workers,
+            ),
         )
     grid = _given(
         formations=args.formation, episodes=args.episodes, steps=args.steps, seed=args.seed, policy=args.policy

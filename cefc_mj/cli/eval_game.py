@@ -66,7 +66,9 @@ def run(request: GameTablesRequest, prov: dict, command: str) -> int:
     if request.sitl is not None:
         return _run_sitl_game(request, common, command)
     if proto == "table5":
-        result = run_table5(policy=request.policy, adversary=request.played_adversary, **common)
+        result = run_table5(
+            policy=request.policy, adversary=request.played_adversary, workers=request.workers, **common
+        )
     elif proto == "table6":
         result = run_table6(policy=request.played_policy, **common)
     else:

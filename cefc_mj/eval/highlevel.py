@@ -36,7 +36,7 @@ from cefc_mj.eval.stats import paired_difference
 from cefc_mj.hierarchy import CLM_PER_GROUP, DECISION_INTERVAL, HierarchicalCEFCEnv, LowLevel, load_low_level
 from cefc_mj.nn.highlevel_policy import HighLevelPolicy, load_highlevel_policy
 from cefc_mj.nn.policy_io import resolve_policy_path
-from cefc_mj.nn.registry import HIERARCHY_LOWLEVEL
+from cefc_mj.nn.registry import GAME_ADVERSARY, HIERARCHY_LOWLEVEL
 from cefc_mj.provenance import display_path, file_sha256
 from cefc_mj.task.config import ADVERSARIES, ADVERSARY_RULES, LEARNED_ADVERSARY, TaskConfig
 from cefc_mj.task.messages import MessageChannel
@@ -81,7 +81,8 @@ ROW_LOW_LEVEL = {"cihrl_consmac_a_clm": CLM_PER_GROUP}
 """Policy stems flown over another low level than the student: the CI-HRL-w-CL-M rows over the CL-M
 policy of each agent's group size (what they were fine-tuned with, and the paper's pairing)."""
 TABLE6_ROWS = (
-    ("PPO", "adversary_ppo", None),
+    ("PPO", GAME_ADVERSARY, None),
+    ("PPO (first generation)", "adversary_ppo", "not in the paper: the previous game adversary (nearest_group_strike)"),
     ("DDPG", "adversary_ddpg", None),
     ("R-Largest", "r_largest", None),
     ("R-Nearest", "r_nearest", None),
@@ -102,8 +103,6 @@ TABLE4_METHOD = {
     "consmac-o": "ConsMAC",
 }
 """The paper's Table IV row of each high-level variant (what it sends per decision)."""
-GAME_ADVERSARY = "adversary_ppo"
-"""The adversary of Table V: the shipped PPO adversary, the paper's default predator."""
 GAME_POLICY = "cihrl_consmac_a"
 """The high-level policy Tables VI and VII play: CI-HRL (ConsMAC-A)."""
 PAPER_CONDITIONS = Conditions("particle")
@@ -406,6 +405,28 @@ def _compare_with_reference(rows: dict) -> None:
         }
 
 
+@dataclass(frozen=True)
+class _FileJob:
+    """One policy file's batch of games against one adversary: a picklable job of `run_table5`."""
+
+    path: Path
+    adversary: str
+    """A rule or a trained adversary's name or file (`resolve_adversary`)."""
+    low_level: str
+    episodes: int
+    seed: int
+    where: Conditions
+    policies_dir: Path
+
+
+def _fly_file(job: _FileJob) -> dict:
+    """`_evaluate_file` of one job, its game and low level built here (in a worker process, too)."""
+    kind, adversary_policy, record = resolve_adversary(job.adversary, job.policies_dir)
+    task = game_task(kind, deviation=job.where.deviation)
+    low_level = _low_level(task, job.low_level)
+    return _evaluate_file(job.path, task, low_level, job.episodes, job.seed, job.where, adversary_policy, record)
+
+
 def run_table5(
     episodes: int = EPISODES,
     seed: int = 0,
@@ -415,6 +436,7 @@ def run_table5(
     where: Conditions | None = None,
     adversary: str = GAME_ADVERSARY,
     against_rule: bool = True,
+    workers: int = 1,
 ) -> dict:
     """Table V: every method whose policy file exists (the others are listed in protocol["missing"]),
     or only `policy` (a file or a name in policies_dir, one row under its file name). Each row is
@@ -424,7 +446,10 @@ def run_table5(
     (default the paper's: particles, calm, exact sensing). adversary: a rule or a trained adversary
     (name in policies_dir, or file; default the PPO adversary). against_rule: also fly every seed's
     policy against the nearest-group rule (row["against_rule"]), the yardstick of the adversary's
-    strength."""
+    strength. workers: processes flying the policy files' batches (each batch is seeded on its own,
+    so the figures do not depend on it)."""
+    from cefc_mj.executors import ExecutorConfig, map_unordered
+
     policies_dir = Path(policies_dir) if policies_dir is not None else paths.POLICIES_DIR
     where = where or PAPER_CONDITIONS
     kind, adversary_policy, record = resolve_adversary(adversary, policies_dir)
@@ -446,31 +471,33 @@ def run_table5(
             "paper": None,
         }
         return result
-    rule_kind, _, rule_record = resolve_adversary("nearest_group")
-    rule_task = game_task(rule_kind, deviation=where.deviation)
+    rows = []  # (method, stem, paper_row, {seed: file})
     for method, stem, suffix, paper_row in TABLE5_ROWS:
         files = _seed_files(stem, suffix, policies_dir)
         if 0 not in files:
             result["protocol"]["missing"].append(f"{method} ({stem}{suffix}.pt)")
-            continue
-        low = _low_level(task, ROW_LOW_LEVEL.get(stem, LOW_LEVEL))
-        row = _evaluate_file(files[0], task, low, episodes, seed, where, adversary_policy, record)
+        else:
+            rows.append((method, stem, paper_row, files))
+    opponents = (adversary, "nearest_group") if against_rule else (adversary,)
+    jobs = {
+        (method, opponent, k): _FileJob(
+            f, opponent, ROW_LOW_LEVEL.get(stem, LOW_LEVEL), episodes, seed, where, policies_dir
+        )
+        for method, stem, _, files in rows
+        for opponent in opponents
+        for k, f in files.items()
+    }
+    flown = {job: row for job, row in map_unordered(_fly_file, list(jobs.values()), ExecutorConfig(workers=workers))}
+    for method, stem, paper_row, files in rows:
+        per_seed = {k: flown[jobs[method, adversary, k]] for k in files}
+        row = per_seed[0]
         row["paper"] = dict(zip(COLUMNS, paper[paper_row])) if paper_row is not None else None
         if stem in ROW_LOW_LEVEL:
+            low = _low_level(task, ROW_LOW_LEVEL[stem])
             row["low_level"] = low.describe() | {"name": low.name}
-        per_seed = {
-            k: (row if k == 0 else _evaluate_file(f, task, low, episodes, seed, where, adversary_policy, record))
-            for k, f in files.items()
-        }
         row["training_seeds"] = _seed_block(per_seed, files)
         if against_rule:
-            row["against_rule"] = _seed_block(
-                {
-                    k: _evaluate_file(f, rule_task, low, episodes, seed, where, None, rule_record)
-                    for k, f in files.items()
-                },
-                files,
-            )
+            row["against_rule"] = _seed_block({k: flown[jobs[method, "nearest_group", k]] for k in files}, files)
             row["adversary_strength"] = _adversary_strength(row["training_seeds"]["E"], row["against_rule"]["E"])
         result["rows"][method] = row
     _compare_with_reference(result["rows"])

@@ -461,6 +461,8 @@ class GameTablesRequest:
     sitl: SitlM | None = None
     """--sitl-m (table5 with --policy): each game played with every UAV's hierarchy in its own process,
     one game per seed, beside the same seeds' lock-step games (docs/sitl_m.md, "The game over SITL-M")."""
+    workers: int = 1
+    """--workers (table5 over every method): processes flying the policy files' batches, 1..MAX_WORKERS."""
 
     def __post_init__(self) -> None:
         if self.protocol not in GAME_TABLES:
@@ -477,6 +479,12 @@ class GameTablesRequest:
         _check_count("--episodes", self.episodes, MAX_EPISODES)
         _check_seed(self.seed)
         _check_last_seed(self.seed, self.episodes)
+        _check_count("--workers", self.workers, MAX_WORKERS)
+        if self.workers > 1 and (self.protocol != "table5" or self.policy is not None):
+            raise ConfigError(
+                f"--workers {self.workers}: only table5 over every method flies on several processes "
+                f"({self.protocol}{' with --policy' if self.policy is not None else ''} flies one batch at a time)"
+            )
         if self.protocol != "table5" or self.policy is None:
             for flag, path in (("--rrd", self.rrd), ("--png", self.png)):
                 if path is not None:

@@ -15,7 +15,7 @@ import re
 from dataclasses import dataclass
 
 from cefc_mj.errors import ConfigError
-from cefc_mj.nn.registry import HIERARCHY_LOWLEVEL
+from cefc_mj.nn.registry import GAME_ADVERSARY, HIERARCHY_LOWLEVEL
 from cefc_mj.train.config import MAX_DENSITY, MAX_ENVS, MAX_LR, MAX_SEED, MAX_THREADS
 
 ALGORITHMS = ("masac", "mappo")
@@ -23,8 +23,6 @@ ALGORITHMS = ("masac", "mappo")
 (the cross-check of `cefc-train highlevel --variant mappo`)."""
 DECISION_INTERVAL = 10
 """Low-level steps per high-level decision (`cefc_mj.hierarchy.DECISION_INTERVAL`, the paper's 10)."""
-GAME_ADVERSARY = "adversary_ppo"
-"""The adversary of our high-level training and of Table V (`cefc_mj.eval.highlevel.GAME_ADVERSARY`)."""
 BENCHMARL_EXTRA = "cefc-train highlevel-benchmarl: needs the benchmarl extra (pip install -e '.[benchmarl]')"
 """The one line the subcommand prints (exit 2) when BenchMARL is not installed."""
 MAX_EPISODES = 10_000_000
