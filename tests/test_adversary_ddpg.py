@@ -10,7 +10,7 @@ import torch
 
 from cefc_mj.cli.train import build_parser, main
 from cefc_mj.errors import ConfigError
-from cefc_mj.eval.highlevel import format_highlevel_table, game_task, run_table6
+from cefc_mj.eval.highlevel import GAME_ADVERSARY, format_highlevel_table, game_task, run_table6
 from cefc_mj.nn.adversary_policy import (
     AdversaryNetConfig,
     AdversaryPolicy,
@@ -245,7 +245,8 @@ def test_table6_flies_the_ddpg_adversary_once_trained_and_else_says_how(tmp_path
         policies / "cihrl_mappo.pt",
         meta={"name": "cihrl_mappo", "decision_interval": 10},
     )
-    save_adversary_policy(AdversaryPolicy(AdversaryNetConfig(), seed=0), policies / "adversary_ppo.pt")
+    for seed, name in enumerate(("adversary_ppo", GAME_ADVERSARY)):
+        save_adversary_policy(AdversaryPolicy(AdversaryNetConfig(), seed=seed), policies / f"{name}.pt")
     without = run_table6(episodes=1, policies_dir=policies, policy="cihrl_mappo")
     assert "DDPG" not in without["rows"]
     note = [line for line in format_highlevel_table(without).splitlines() if "adversary_ddpg" in line]
@@ -254,6 +255,7 @@ def test_table6_flies_the_ddpg_adversary_once_trained_and_else_says_how(tmp_path
         AdversaryPolicy(AdversaryNetConfig(observes_goal=False), seed=1), policies / "adversary_ddpg.pt"
     )
     result = run_table6(episodes=1, policies_dir=policies, policy="cihrl_mappo")
-    assert list(result["rows"])[:2] == ["PPO", "DDPG"] and not result["protocol"]["missing"]
+    assert list(result["rows"])[:3] == ["PPO", "PPO (first generation)", "DDPG"]
+    assert not result["protocol"]["missing"]
     assert result["rows"]["DDPG"]["adversary_record"]["policy"] == "adversary_ddpg.pt"
     assert result["rows"]["DDPG"]["paper"] == {"R_t": 161.97, "R_e": -82.43, "E": 6.42}
