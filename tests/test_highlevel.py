@@ -18,6 +18,7 @@ from cefc_mj.cli.train import main
 from cefc_mj.env import BatchedCEFCEnv
 from cefc_mj.errors import CefcError, CheckpointError, ConfigError
 from cefc_mj.hierarchy import HierarchicalCEFCEnv, NavigationOnly, PerGroupPolicies, load_low_level
+from cefc_mj.nn.registry import GAME_ADVERSARY
 from cefc_mj.task.config import TaskConfig
 from cefc_mj.task.observation import build_low_level_observation
 from cefc_mj.train.config import Budget, PPOConfig
@@ -383,7 +384,7 @@ def test_cli_install_copies_the_policy_and_card_into_the_shipped_folder(tmp_path
     monkeypatch.chdir(tmp_path)
     fake_shipped = tmp_path / "shipped"
     fake_shipped.mkdir()
-    for name in ("atm_student.pt", "adversary_ppo.pt"):  # the game's low level and adversary
+    for name in ("atm_student.pt", f"{GAME_ADVERSARY}.pt"):  # the game's low level and adversary
         (fake_shipped / name).write_bytes((paths.POLICIES_DIR / name).read_bytes())
     monkeypatch.setattr(paths, "POLICIES_DIR", fake_shipped)
     main_ok(TINY + ["--budget", "1", "--variant", "mappo", "--eval-episodes", "0", "--install"])
