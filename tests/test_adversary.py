@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from cefc_mj import paths
-from cefc_mj.cli.train import main
+from cefc_mj.cli.train import build_parser, main
 from cefc_mj.env import BatchedCEFCEnv
 from cefc_mj.errors import CheckpointError, ConfigError
 from cefc_mj.eval.highlevel import game_task
@@ -29,6 +29,8 @@ from cefc_mj.task.adversary import (
 )
 from cefc_mj.task.config import RULE_TEAMS
 from cefc_mj.train.adversary import (
+    DEFAULT_POPULATION,
+    EVERY_ROW_POPULATION,
     AdversaryConfig,
     AdversaryTrainer,
     _adversary_ppo,
@@ -189,8 +191,8 @@ def _tiny(iterations, **kw):
 
 
 def _trainer(cfg):
-    population, _, low_level, interval = load_population(cfg)
-    return AdversaryTrainer(cfg, population, low_level, interval)
+    population, _, low_level, interval, own = load_population(cfg)
+    return AdversaryTrainer(cfg, population, low_level, interval, own)
 
 
 def test_a_checkpointed_trainer_continues_exactly_as_an_uninterrupted_one():
@@ -206,6 +208,34 @@ def test_a_checkpointed_trainer_continues_exactly_as_an_uninterrupted_one():
     for a, b in zip(straight.actor.parameters(), resumed.actor.parameters()):
         torch.testing.assert_close(a, b, rtol=0, atol=0)
     assert rows[0]["episodes"] == 4 and np.isfinite(rows[1]["approx_kl"])
+
+
+def test_a_team_flies_over_the_low_level_its_file_records():
+    """The CL-M rows were fine-tuned over clm-per-group: the population flies them there, the others
+    over the student, in the same game one draw after the other; the card says which."""
+    cfg = _tiny(1, teams=("cihrl_consmac_a_clm", "cihrl_consmac_a", "rule-split"))
+    population, records, low_level, _, own = load_population(cfg)
+    assert low_level.name == "atm_student" and {n: ll.name for n, ll in own.items()} == {
+        "cihrl_consmac_a_clm": "clm-per-group"
+    }
+    assert records["cihrl_consmac_a_clm"]["low_level"] == "clm-per-group"
+    assert "low_level" not in records["cihrl_consmac_a"]
+    trainer = _trainer(cfg)
+    game = trainer.games[0]
+    for name, expected in (("cihrl_consmac_a_clm", "clm-per-group"), ("cihrl_consmac_a", "atm_student")):
+        trainer.team_for(name, game)
+        assert game.low_level.name == expected
+    trainer.team_for("rule-split", game)
+    assert game.low_level is trainer.low_level
+    assert np.isfinite(trainer.iterate()["episode_return"])
+
+
+def test_every_row_population_names_shipped_files_once():
+    assert len(set(EVERY_ROW_POPULATION)) == len(EVERY_ROW_POPULATION) > len(DEFAULT_POPULATION)
+    for name in EVERY_ROW_POPULATION:
+        assert name in RULE_TEAMS or (paths.POLICIES_DIR / f"{name}.pt").is_file(), name
+    args = build_parser().parse_args(["adversary", "--teams", "every-row"])
+    assert args.teams == EVERY_ROW_POPULATION
 
 
 def test_teams_are_drawn_from_the_whole_population_per_game_and_iteration():
@@ -320,7 +350,7 @@ SEED = 100
 
 def _pressure(adversary) -> dict:
     cfg = AdversaryConfig(budget=Budget(iterations=1), teams=("cihrl_consmac_a",))
-    population, _, low_level, interval = load_population(cfg)
+    population, _, low_level, interval, _ = load_population(cfg)
     return evaluate_adversary(
         adversary,
         population["cihrl_consmac_a"],

@@ -52,8 +52,8 @@ def _tiny(iterations: int = 2, **kw) -> DDPGAdversaryConfig:
 
 
 def _trainer(cfg: DDPGAdversaryConfig) -> DDPGAdversaryTrainer:
-    population, _, low_level, interval = load_population(cfg)
-    return DDPGAdversaryTrainer(cfg, population, low_level, interval)
+    population, _, low_level, interval, own = load_population(cfg)
+    return DDPGAdversaryTrainer(cfg, population, low_level, interval, own)
 
 
 @pytest.mark.parametrize(

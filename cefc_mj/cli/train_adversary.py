@@ -14,7 +14,12 @@ COMMANDS = ("adversary", "adversary-ddpg")
 
 
 def _names(text: str) -> tuple[str, ...]:
-    """A comma-separated list of names (argparse type)."""
+    """A comma-separated list of names (argparse type); for --teams, `every-row` is every shipped Table V
+    row over its training seeds and the rule teams (`EVERY_ROW_POPULATION`)."""
+    if text.strip() == "every-row":
+        from cefc_mj.train.adversary import EVERY_ROW_POPULATION
+
+        return EVERY_ROW_POPULATION
     names = tuple(part.strip() for part in text.split(","))
     if not all(names):
         raise argparse.ArgumentTypeError(f"{text!r}: a comma-separated list of names, none empty")
@@ -36,7 +41,8 @@ def _population_game_args(p: argparse.ArgumentParser) -> None:
         metavar="NAME,...",
         help="the population: trained high levels (names or files) and rule teams ("
         + ", ".join(RULE_TEAMS)
-        + "); default every shipped method over its training seeds and "
+        + "); default the first Table V rows over their training seeds and every rule team; "
+        "every-row: every shipped Table V row over its training seeds, each over its own low level, and "
         "every rule team",
     )
     p.add_argument(

@@ -44,7 +44,7 @@ import torch
 from cefc_mj.errors import CheckpointError, ConfigError
 from cefc_mj.eval.highlevel import game_task, highlevel_policy_path, play_highlevel
 from cefc_mj.fileio import write_atomic
-from cefc_mj.hierarchy import DECISION_INTERVAL, HierarchicalCEFCEnv, LowLevel, load_low_level
+from cefc_mj.hierarchy import DECISION_INTERVAL, PER_GROUP_FILES, HierarchicalCEFCEnv, LowLevel, load_low_level
 from cefc_mj.nn.adversary_policy import (
     ADVERSARY_ACTIONS,
     AdversaryNetConfig,
@@ -87,16 +87,34 @@ def _fail(name: str, value: object, why: str) -> None:
     raise ConfigError(f"{name}={value!r}: {why}")
 
 
+_FIVE, _THREE = ("", "_seed1", "_seed2", "_seed3", "_seed4"), ("", "_seed1", "_seed2")
 DEFAULT_POPULATION = (
-    *(f"cihrl_consmac_a{s}" for s in ("", "_seed1", "_seed2", "_seed3", "_seed4")),
-    *(f"cihrl_consmac_a{s}_wo_ft" for s in ("", "_seed1", "_seed2", "_seed3", "_seed4")),
-    *(f"cihrl_mappo{s}" for s in ("", "_seed1", "_seed2", "_seed3", "_seed4")),
-    *(f"cihrl_tarmac{s}" for s in ("", "_seed1", "_seed2")),
-    *(f"cihrl_consmac_a_dt{s}" for s in ("", "_seed1", "_seed2")),
-    *(f"cihrl_consmac_o{s}" for s in ("", "_seed1", "_seed2")),
+    *(f"cihrl_consmac_a{s}" for s in _FIVE),
+    *(f"cihrl_consmac_a{s}_wo_ft" for s in _FIVE),
+    *(f"cihrl_mappo{s}" for s in _FIVE),
+    *(f"{stem}{s}" for stem in ("cihrl_tarmac", "cihrl_consmac_a_dt", "cihrl_consmac_o") for s in _THREE),
     *RULE_TEAMS,
 )
-"""Every shipped method over its training seeds, and the rule-driven teams."""
+"""The population the shipped `adversary_ppo_nearest_group_member` was trained against: the methods of
+Table V's first rows over their training seeds (each over the shipped student), and the rule-driven teams."""
+EVERY_ROW_POPULATION = (
+    *DEFAULT_POPULATION,
+    *(
+        f"{stem}{s}"
+        for stem in (
+            "cihrl_masia",
+            "cihrl_nvif",
+            "cihrl_consmac_a_clm",
+            "benchmarl_mappo",
+            "benchmarl_masac",
+            *(f"cihrl_consmac_a_{a}" for a in ("wo_com", "wo_mem", "wo_de", "wt_rl", "consmac_g")),
+        )
+        for s in _THREE
+    ),
+    *(f"cihrl_consmac_a_clm{s}_wo_ft" for s in _THREE),
+)
+"""Every shipped Table V row over its training seeds, and the rule teams (`--teams every-row`): each
+learned team flies over the low level its file records (the CL-M rows over `clm-per-group`)."""
 
 
 @dataclass(frozen=True)
@@ -331,6 +349,8 @@ class PopulationGames:
         return [names[i] for i in rng.integers(len(names), size=len(self.games))]
 
     def team_for(self, name: str, game: HierarchicalCEFCEnv):
+        """The team `name` set to play `game`: its high level (or rule), over its own low level."""
+        game.low_level = self.team_low_levels.get(name, self.low_level)
         return RuleTeam(name, game) if self.population[name] is None else self.population[name]
 
     def build_games(self, samplers: list, low_level: LowLevel, n_envs: int, decision_interval: int) -> None:
@@ -363,11 +383,13 @@ class AdversaryTrainer(PopulationGames):
         population: dict[str, HighLevelPolicy | None],
         low_level: LowLevel,
         decision_interval: int = DECISION_INTERVAL,
+        team_low_levels: dict[str, LowLevel] | None = None,
     ):
-        """population: team name -> its high level, None for a rule team (RULE_TEAMS)."""
+        """population: team name -> its high level, None for a rule team (RULE_TEAMS); low_level: the
+        teams' low level, except those of team_low_levels (`load_population`)."""
         self.cfg = cfg
         self.task = cfg.task()
-        self.population, self.low_level = population, low_level
+        self.population, self.low_level, self.team_low_levels = population, low_level, team_low_levels or {}
         net = AdversaryNetConfig(
             hidden=cfg.hidden,
             accel_max=self.task.accel_max,
@@ -597,10 +619,13 @@ def read_state(path: Path) -> dict:
 
 def load_population(
     cfg: AdversaryConfig, policies_dir: Path | None = None
-) -> tuple[dict[str, HighLevelPolicy | None], dict[str, dict], LowLevel, int]:
+) -> tuple[dict[str, HighLevelPolicy | None], dict[str, dict], LowLevel, int, dict[str, LowLevel]]:
     """(team name -> high level or None for a rule team, team name -> its record for the card, the low
-    level, the teams' decision interval); CheckpointError naming the flag when a file is missing."""
-    population, records, intervals = {}, {}, set()
+    level, the teams' decision interval, team name -> its own low level for the learned teams whose
+    file records another one than cfg.low_level, e.g. the CL-M rows' `clm-per-group`: a team flies over
+    the low level it was fine-tuned with, as Table V flies it); CheckpointError naming the flag when a
+    file is missing."""
+    population, records, intervals, wanted = {}, {}, set(), {}
     for name in cfg.teams:
         if name in RULE_TEAMS:
             population[name], records[name] = None, {"kind": "rule", "rule": name}
@@ -612,13 +637,23 @@ def load_population(
             raise CheckpointError(f"--teams: {e}") from None
         records[name] = {"kind": "learned", "path": display_path(path), "sha256": file_sha256(path)}
         intervals.add(int(meta.get("decision_interval", DECISION_INTERVAL)))
+        wanted[name] = (meta.get("low_level") or {}).get("name")
     if len(intervals) > 1:
         raise ConfigError(f"--teams: the teams decide at different intervals ({sorted(intervals)} steps)")
     try:
         low_level = load_low_level(cfg.low_level, cfg.task(), policies_dir)
     except CheckpointError as e:
         raise CheckpointError(f"--low-level: {e}") from None
-    return population, records, low_level, intervals.pop() if intervals else DECISION_INTERVAL
+    own: dict[str, LowLevel] = {}
+    for spec in {spec for spec in wanted.values() if spec in PER_GROUP_FILES and spec != low_level.name}:
+        try:
+            own[spec] = load_low_level(spec, cfg.task(), policies_dir)
+        except CheckpointError as e:
+            raise CheckpointError(f"--teams: the low level of a team: {e}") from None
+    team_low_levels = {name: own[spec] for name, spec in wanted.items() if spec in own}
+    for name in team_low_levels:
+        records[name]["low_level"] = wanted[name]
+    return population, records, low_level, intervals.pop() if intervals else DECISION_INTERVAL, team_low_levels
 
 
 def train_adversary(
@@ -634,13 +669,13 @@ def train_adversary(
     out, policies_dir = Path(out), Path(policies_dir)
     run_dir = out / cfg.name
     state_path = run_dir / STATE_FILE
-    population, team_records, low_level, interval = load_population(cfg)
+    population, team_records, low_level, interval, team_low_levels = load_population(cfg)
     team_record = {"population": team_records, "low_level": display_paths(low_level.describe())}
     saved = None
     if run_state.run_state_path(run_dir, resume) is not None:
         saved = read_state(state_path)
         run_state.check_same_run(saved["config"], cfg, state_path, free=("budget", "checkpoint_every", "eval_episodes"))
-    trainer = AdversaryTrainer(cfg, population, low_level, interval)
+    trainer = AdversaryTrainer(cfg, population, low_level, interval, team_low_levels)
     imitation = None
     if saved is not None:
         trainer.load_state_dict(saved["trainer"])
@@ -702,7 +737,13 @@ def train_adversary(
     }
     if cfg.eval_episodes:
         card["evaluation"] = evaluate_against_population(
-            trainer.actor.act, population, low_level, trainer.task, cfg.eval_episodes, interval
+            trainer.actor.act,
+            population,
+            low_level,
+            trainer.task,
+            cfg.eval_episodes,
+            interval,
+            team_low_levels=team_low_levels,
         )
     write_model_card(policy_path, card)
     return card
@@ -716,18 +757,18 @@ def evaluate_against_population(
     episodes: int,
     decision_interval: int = DECISION_INTERVAL,
     seed: int = GAME_VALIDATION_SEED,
+    team_low_levels: dict[str, LowLevel] | None = None,
 ) -> dict:
     """Each team against the adversary (its mean action) and against the nearest-group rule, flown under
-    the same obstacle rule (task.adversary_avoids_obstacles), on `episodes` validation games; with the
-    ratio of E (PPO / rule) per team."""
+    the same obstacle rule (task.adversary_avoids_obstacles), on `episodes` validation games, each team
+    over its own low level where team_low_levels has one; with the ratio of E (PPO / rule) per team."""
     per_team = {}
     for name, policy in population.items():
         team = name if policy is None else policy
-        ours = evaluate_adversary(
-            adversary, team, low_level, task, episodes, seed=seed, decision_interval=decision_interval
-        )
+        own = (team_low_levels or {}).get(name, low_level)
+        ours = evaluate_adversary(adversary, team, own, task, episodes, seed=seed, decision_interval=decision_interval)
         rule = evaluate_adversary(
-            "nearest_group", team, low_level, task, episodes, seed=seed, decision_interval=decision_interval
+            "nearest_group", team, own, task, episodes, seed=seed, decision_interval=decision_interval
         )
         per_team[name] = {
             "ours": ours,

@@ -315,11 +315,13 @@ class DDPGAdversaryTrainer(PopulationGames):
         population: dict[str, HighLevelPolicy | None],
         low_level: LowLevel,
         decision_interval: int = DECISION_INTERVAL,
+        team_low_levels: dict[str, LowLevel] | None = None,
     ):
-        """population: team name -> its high level, None for a rule team (RULE_TEAMS)."""
+        """population: team name -> its high level, None for a rule team (RULE_TEAMS); low_level: the
+        teams' low level, except those of team_low_levels (`load_population`)."""
         self.cfg = cfg
         self.task = cfg.task()
-        self.population, self.low_level = population, low_level
+        self.population, self.low_level, self.team_low_levels = population, low_level, team_low_levels or {}
         net = AdversaryNetConfig(
             hidden=cfg.hidden,
             accel_max=self.task.accel_max,
@@ -473,7 +475,7 @@ def train_ddpg_adversary(
     out, policies_dir = Path(out), Path(policies_dir)
     run_dir = out / cfg.name
     state_path = run_dir / STATE_FILE
-    population, team_records, low_level, interval = load_population(cfg)
+    population, team_records, low_level, interval, team_low_levels = load_population(cfg)
     team_record = {"population": team_records, "low_level": display_paths(low_level.describe())}
     saved = None
     if run_state.run_state_path(run_dir, resume) is not None:
@@ -481,7 +483,7 @@ def train_ddpg_adversary(
         run_state.check_same_run(
             saved["config"], cfg, state_path, free=("budget", "checkpoint_every", "eval_episodes", "threads")
         )
-    trainer = DDPGAdversaryTrainer(cfg, population, low_level, interval)
+    trainer = DDPGAdversaryTrainer(cfg, population, low_level, interval, team_low_levels)
     if saved is not None:
         trainer.load_state_dict(saved["trainer"])
     write_atomic(
@@ -532,7 +534,13 @@ def train_ddpg_adversary(
     }
     if cfg.eval_episodes:
         card["evaluation"] = evaluate_against_population(
-            trainer.actor.act, population, low_level, trainer.task, cfg.eval_episodes, interval
+            trainer.actor.act,
+            population,
+            low_level,
+            trainer.task,
+            cfg.eval_episodes,
+            interval,
+            team_low_levels=team_low_levels,
         )
     write_model_card(policy_path, card)
     return card
