@@ -353,6 +353,19 @@ class PopulationGames:
         game.low_level = self.team_low_levels.get(name, self.low_level)
         return RuleTeam(name, game) if self.population[name] is None else self.population[name]
 
+    def evaluate_population(self, adversary, episodes: int) -> dict:
+        """`evaluate_against_population` of `adversary` over this trainer's population, each team over
+        its own low level, at the games' decision interval (the model card's evaluation)."""
+        return evaluate_against_population(
+            adversary,
+            self.population,
+            self.low_level,
+            self.task,
+            episodes,
+            self.games[0].decision_interval,
+            team_low_levels=self.team_low_levels,
+        )
+
     def build_games(self, samplers: list, low_level: LowLevel, n_envs: int, decision_interval: int) -> None:
         """One game of n_envs / len(samplers) envs per sampler, the sampler flying its adversary and
         reading its env: sets self.samplers and self.games."""
@@ -622,9 +635,10 @@ def load_population(
 ) -> tuple[dict[str, HighLevelPolicy | None], dict[str, dict], LowLevel, int, dict[str, LowLevel]]:
     """(team name -> high level or None for a rule team, team name -> its record for the card, the low
     level, the teams' decision interval, team name -> its own low level for the learned teams whose
-    file records another one than cfg.low_level, e.g. the CL-M rows' `clm-per-group`: a team flies over
-    the low level it was fine-tuned with, as Table V flies it); CheckpointError naming the flag when a
-    file is missing."""
+    file records a per-group low level (`PER_GROUP_FILES`) other than cfg.low_level, e.g. the CL-M rows'
+    `clm-per-group`: a team flies over the low level it was fine-tuned with, as Table V flies it; any
+    other recorded low level is flown as cfg.low_level); CheckpointError naming the flag when a file
+    is missing."""
     population, records, intervals, wanted = {}, {}, set(), {}
     for name in cfg.teams:
         if name in RULE_TEAMS:
@@ -736,15 +750,7 @@ def train_adversary(
         "last_iteration": {k: v for k, v in last_row.items() if isinstance(v, (int, float))},
     }
     if cfg.eval_episodes:
-        card["evaluation"] = evaluate_against_population(
-            trainer.actor.act,
-            population,
-            low_level,
-            trainer.task,
-            cfg.eval_episodes,
-            interval,
-            team_low_levels=team_low_levels,
-        )
+        card["evaluation"] = trainer.evaluate_population(trainer.actor.act, cfg.eval_episodes)
     write_model_card(policy_path, card)
     return card
 

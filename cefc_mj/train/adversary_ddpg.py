@@ -60,7 +60,6 @@ from cefc_mj.train.adversary import (
     _fail,
     _Sampler,
     adversary_task,
-    evaluate_against_population,
     load_population,
     summary_lines as _summary_lines,
     validate_population_game,
@@ -533,15 +532,7 @@ def train_ddpg_adversary(
         "last_iteration": {k: v for k, v in last_row.items() if isinstance(v, (int, float)) and math.isfinite(v)},
     }
     if cfg.eval_episodes:
-        card["evaluation"] = evaluate_against_population(
-            trainer.actor.act,
-            population,
-            low_level,
-            trainer.task,
-            cfg.eval_episodes,
-            interval,
-            team_low_levels=team_low_levels,
-        )
+        card["evaluation"] = trainer.evaluate_population(trainer.actor.act, cfg.eval_episodes)
     write_model_card(policy_path, card)
     return card
 
