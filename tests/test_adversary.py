@@ -236,6 +236,8 @@ def test_every_row_population_names_shipped_files_once():
         assert name in RULE_TEAMS or (paths.POLICIES_DIR / f"{name}.pt").is_file(), name
     args = build_parser().parse_args(["adversary", "--teams", "every-row"])
     assert args.teams == EVERY_ROW_POPULATION
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["adversary", "--teams", "every-row,cihrl_mappo"])
 
 
 def test_teams_are_drawn_from_the_whole_population_per_game_and_iteration():

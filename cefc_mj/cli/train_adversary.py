@@ -23,6 +23,8 @@ def _names(text: str) -> tuple[str, ...]:
     names = tuple(part.strip() for part in text.split(","))
     if not all(names):
         raise argparse.ArgumentTypeError(f"{text!r}: a comma-separated list of names, none empty")
+    if "every-row" in names:
+        raise argparse.ArgumentTypeError(f"{text!r}: every-row names the whole population; give it alone")
     return names
 
 
