@@ -261,14 +261,25 @@ class BatchedCEFCEnv:
             )
         self._obs[mask] = obs[mask]
 
+    def rule_adversary_goal(self, rule: str) -> np.ndarray:
+        """The point [B, 2] a rule adversary (task/adversary.py) chases at this step."""
+        w = self.world
+        return adversary_goal(
+            rule,
+            w.adversary_pos,
+            w.agent_pos,
+            self.group_size,
+            self.group_centre,
+            self.labels,
+            w.agent_vel,
+            self.config.adversary_speed_max,
+        )
+
     def rule_adversary_velocity(self, rule: str) -> np.ndarray:
         """The velocity [B, 2] a rule adversary (task/adversary.py) wants at this step."""
         cfg = self.config
-        goal = adversary_goal(
-            rule, self.world.adversary_pos, self.world.agent_pos, self.group_size, self.group_centre, self.labels
-        )
         return pursuit_velocity(
-            goal,
+            self.rule_adversary_goal(rule),
             self.world.adversary_pos,
             cfg.adversary_speed_max,
             obstacles=self.obstacles if cfg.adversary_avoids_obstacles else None,

@@ -31,6 +31,7 @@ from cefc_mj.task.config import RULE_TEAMS
 from cefc_mj.train.adversary import (
     DEFAULT_POPULATION,
     EVERY_ROW_POPULATION,
+    IMITATION_RULES,
     AdversaryConfig,
     AdversaryTrainer,
     _adversary_ppo,
@@ -238,6 +239,13 @@ def test_every_row_population_names_shipped_files_once():
     assert args.teams == EVERY_ROW_POPULATION
     with pytest.raises(SystemExit):
         build_parser().parse_args(["adversary", "--teams", "every-row,cihrl_mappo"])
+
+
+def test_imitation_rule_help_names_every_rule():
+    sub = next(a for a in build_parser()._subparsers._group_actions[0].choices.items() if a[0] == "adversary")[1]
+    text = " ".join(sub.format_help().split())
+    for rule in IMITATION_RULES:
+        assert rule in text, rule
 
 
 def test_teams_are_drawn_from_the_whole_population_per_game_and_iteration():

@@ -5,7 +5,11 @@ import pytest
 
 from cefc_mj.errors import ConfigError
 from cefc_mj.task import rewards as R
-from cefc_mj.task.adversary import adversary_goal
+from cefc_mj.task.adversary import (
+    INTERCEPT_HORIZON,
+    STRIKE_LEAD,
+    adversary_goal,
+)
 from cefc_mj.task.config import RewardConfig, TaskConfig
 from cefc_mj.task.deviation import sample_deviation
 from cefc_mj.task.formation import connected_groups, directed_hausdorff, formation_template, group_formation_error
@@ -135,6 +139,29 @@ def test_adversary_rules():
     np.testing.assert_allclose(adversary_goal("nearest_group_member", close, pos, size, centre, labels)[0], [1, 0])
     with pytest.raises(ValueError, match="group labels"):
         adversary_goal("nearest_group_member", adv, pos, size, centre)
+    # the intercept rule aims ahead: at the group's centre plus its mean velocity times the time the
+    # adversary needs to get there (at most INTERCEPT_HORIZON), and at a member within STRIKE_DISTANCE
+    # plus STRIKE_LEAD of its velocity; like the member rule it is not lured by the lone agent
+    vel = np.zeros_like(pos)
+    vel[0, :3] = [0.0, 1.0]  # the nearest group flies north at 1 m/s, the others stand
+    vel[0, 7] = [1.0, 0.0]  # the lone UAV flies east
+    for at in (adv, np.array([[-3.0, -3.0]])):  # 1 m from the lone UAV; 4.2 m from every UAV
+        reach = np.linalg.norm(pos[0, :3].mean(0) - at[0]) / 0.75
+        assert reach > INTERCEPT_HORIZON  # the lead is capped
+        np.testing.assert_allclose(
+            adversary_goal("nearest_group_intercept", at, pos, size, centre, labels, vel, 0.75)[0],
+            pos[0, :3].mean(0) + [0.0, INTERCEPT_HORIZON],
+        )
+    near = np.array([[0.3, 0.2]])  # agent 0 is the nearest member, within reach
+    np.testing.assert_allclose(
+        adversary_goal("nearest_group_intercept", near, pos, size, centre, labels, vel, 0.75)[0],
+        pos[0, 0] + [0.0, STRIKE_LEAD],
+    )
+    np.testing.assert_allclose(  # standing UAVs: the member rule's goal
+        adversary_goal("nearest_group_intercept", close, pos, size, centre, labels, 0 * vel, 0.75)[0], [1, 0]
+    )
+    with pytest.raises(ValueError, match="velocities"):
+        adversary_goal("nearest_group_intercept", adv, pos, size, centre, labels)
     # no group of 3: the nearest-group rule falls back to the nearest agent
     lone = pos[:, [0, 7]]
     _, size, centre = group_formation_error(lone, connected_groups(lone, 3.0))

@@ -121,7 +121,7 @@ def _adversary_parser(sub) -> None:
         type=int,
         default=None,
         metavar="N",
-        help="before PPO, imitate the nearest-group rule on N episodes per round of the population's "
+        help="before PPO, imitate --imitation-rule on N episodes per round of the population's "
         "games (default 200; 0: PPO from random weights)",
     )
     p.add_argument(
@@ -150,7 +150,9 @@ def _adversary_parser(sub) -> None:
         default=None,
         metavar="RULE",
         help="the rule imitated before PPO: nearest_group_strike (default: the nearest group of >= 3, "
-        "the nearest UAV within 3 m), nearest_group, r_nearest or r_largest",
+        "the nearest UAV within 3 m), nearest_group_intercept (the game adversary's: aims ahead of the "
+        "nearest group, and of its member within 3 m), nearest_group_member, nearest_group, r_nearest or "
+        "r_largest",
     )
     p.add_argument(
         "--critic-warmup",

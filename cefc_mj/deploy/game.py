@@ -37,7 +37,6 @@ from cefc_mj.eval.highlevel import GameSpec, game_figures, highlevel_policy_path
 from cefc_mj.hierarchy import DECISION_INTERVAL
 from cefc_mj.nn.registry import HIERARCHY_LOWLEVEL
 from cefc_mj.nn.selector import ANCHOR_VALUES, anchor_grid
-from cefc_mj.task.adversary import adversary_goal
 from cefc_mj.task.config import LEARNED_ADVERSARY
 from cefc_mj.task.messages import MessageChannel
 
@@ -250,11 +249,7 @@ class GameTrace:
         rows["group_size"].append(np.take_along_axis(env.group_size, env.labels, axis=1)[0].copy())
         if self.has_adversary:
             rows["adversary_pos"].append(w.adversary_pos[0].copy())
-            rows["adversary_goal"].append(
-                adversary_goal(
-                    self.goal_rule, w.adversary_pos, w.agent_pos, env.group_size, env.group_centre, env.labels
-                )[0].copy()
-            )
+            rows["adversary_goal"].append(env.rule_adversary_goal(self.goal_rule)[0].copy())
 
     def step(self, reward: float, terms: dict) -> None:
         """Keep one low-level step's reward and weighted parts, then the state after it."""

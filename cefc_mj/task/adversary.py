@@ -9,6 +9,12 @@
 - "nearest_group_member": "nearest_group", but the nearest member of that group once one is within
   STRIKE_DISTANCE (not in the paper): unlike "nearest_group_strike" a lone UAV cannot lure it away
   from the group it chases (docs/high_level.md).
+- "nearest_group_intercept": "nearest_group_member", but aiming ahead (not in the paper): at the
+  group's centre plus the group's mean velocity times the time it needs to get there (at most
+  INTERCEPT_HORIZON), and at a member within STRIKE_DISTANCE plus STRIKE_LEAD of its velocity. The
+  UAVs fly faster than the adversary, so a pure pursuit falls behind what it chases; like the member
+  rule it ignores a lone UAV, which teams learn to use as a lure (the game adversary's teacher,
+  chosen on validation games: docs/high_level.md).
 
 The adversary flies at top speed toward that point (`pursuit_acceleration`). With
 `TaskConfig.adversary_avoids_obstacles` it steers around the obstacle cylinders on the way
@@ -26,6 +32,10 @@ import numpy as np
 
 STRIKE_DISTANCE = 3.0
 """Within this distance (m) of a UAV, "nearest_group_strike" chases that UAV (the UAVs' observation range)."""
+INTERCEPT_HORIZON = 2.0
+"""The longest time (s) "nearest_group_intercept" looks ahead of the group it flies to."""
+STRIKE_LEAD = 1.5
+"""How far ahead (s of its velocity) "nearest_group_intercept" aims at a member within STRIKE_DISTANCE."""
 
 
 def adversary_goal(
@@ -35,10 +45,13 @@ def adversary_goal(
     group_size: np.ndarray,
     group_centre: np.ndarray,
     labels: np.ndarray | None = None,
+    agent_vel: np.ndarray | None = None,
+    speed_max: float | None = None,
 ) -> np.ndarray:
     """The point [B, 2] the adversary chases. group_size [B, G] and group_centre [B, G, 2] describe
     the agents' groups (as returned by `group_formation_error`), indexed by the agents' group labels
-    [B, N] (`connected_groups`), which only "nearest_group_member" needs."""
+    [B, N] (`connected_groups`), which only "nearest_group_member" and "nearest_group_intercept"
+    need; the latter also needs the agents' velocities [B, N, 2] and the adversary's top speed (m/s)."""
     b = agent_pos.shape[0]
     offset = agent_pos - adversary_pos[:, None, :]
     square = (offset * offset).sum(-1)
@@ -60,6 +73,23 @@ def adversary_goal(
         member = agent_pos[np.arange(b), np.where(near_member, square, np.inf).argmin(axis=-1)]
         group = adversary_goal("nearest_group", adversary_pos, agent_pos, group_size, group_centre)
         return np.where(near_member.any(-1)[:, None], member, group)
+    if rule == "nearest_group_intercept":
+        if labels is None or agent_vel is None or speed_max is None:
+            raise ValueError("the nearest_group_intercept rule needs the group labels, velocities and top speed")
+        eligible = size >= 3
+        chased = np.where(eligible, centre_dist, np.inf).argmin(axis=-1)
+        # the chased group's members, or the nearest agent alone when no group has 3
+        nearest = np.arange(agent_pos.shape[1])[None] == square.argmin(axis=-1)[:, None]
+        member = np.where(eligible.any(-1)[:, None], labels == chased[:, None], nearest)
+        count = member.sum(-1, keepdims=True)
+        centre_now = (agent_pos * member[..., None]).sum(1) / count
+        velocity = (agent_vel * member[..., None]).sum(1) / count
+        reach = np.linalg.norm(centre_now - adversary_pos, axis=-1, keepdims=True) / speed_max
+        goal = centre_now + velocity * np.minimum(reach, INTERCEPT_HORIZON)
+        near_member = member & (square < STRIKE_DISTANCE**2)
+        struck = np.where(near_member, square, np.inf).argmin(axis=-1)
+        strike = agent_pos[np.arange(b), struck] + STRIKE_LEAD * agent_vel[np.arange(b), struck]
+        return np.where(near_member.any(-1)[:, None], strike, goal)
     if rule == "r_largest":
         # Largest group first, ties broken by distance (a distance below 1e6 m never outweighs size).
         score = np.where(size > 0, size * 1e6 - centre_dist, -np.inf)

@@ -17,7 +17,14 @@ from cefc_mj.task.estimator import POSITION_ESTIMATORS, PositionEstimator
 
 Mode = Literal["formation", "cefc"]
 AdversaryRule = Literal[
-    "nearest_group", "r_nearest", "r_largest", "nearest_group_strike", "nearest_group_member", "none", "learned"
+    "nearest_group",
+    "r_nearest",
+    "r_largest",
+    "nearest_group_strike",
+    "nearest_group_member",
+    "nearest_group_intercept",
+    "none",
+    "learned",
 ]
 ObstacleLayout = Literal["clear-start", "paper"]
 
@@ -37,7 +44,15 @@ neighbour reaches sqrt(0.25^2 + 0.05^2) = 0.255 m from its centre; 0.6 m is also
 the separation guard holds (task/guard.py)."""
 RULE_TEAMS = ("rule-urgent", "rule-split", "rule-evade")
 """The rule-driven UAV teams of the PPO adversary's training population (cefc_mj/rule_teams.py)."""
-ADVERSARY_RULES = ("nearest_group", "r_nearest", "r_largest", "nearest_group_strike", "nearest_group_member", "none")
+ADVERSARY_RULES = (
+    "nearest_group",
+    "r_nearest",
+    "r_largest",
+    "nearest_group_strike",
+    "nearest_group_member",
+    "nearest_group_intercept",
+    "none",
+)
 LEARNED_ADVERSARY = "learned"
 """TaskConfig.adversary of a trained adversary: the env asks its `adversary_policy` for the acceleration."""
 ADVERSARIES = ADVERSARY_RULES + (LEARNED_ADVERSARY,)

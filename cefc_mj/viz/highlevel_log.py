@@ -44,7 +44,6 @@ from cefc_mj.fileio import atomic_write
 from cefc_mj.hierarchy import DECISION_INTERVAL, HierarchicalCEFCEnv, LowLevel
 from cefc_mj.nn.highlevel_policy import HighLevelPolicy
 from cefc_mj.sim.particle import ParticleWorld
-from cefc_mj.task.adversary import adversary_goal
 from cefc_mj.task.config import LEARNED_ADVERSARY, TaskConfig
 from cefc_mj.viz.rerun_log import _segments_arrow, close_recording, group_colors, open_recording
 
@@ -259,11 +258,7 @@ def play_highlevel_episode(
         rows["group_size"].append(game.agent_group_size()[0].copy())
         if has_adversary:  # the goal env.step computes first thing in the next step, from this state
             rows["adversary_pos"].append(w.adversary_pos[0].copy())
-            rows["adversary_goal"].append(
-                adversary_goal(goal_rule, w.adversary_pos, w.agent_pos, env.group_size, env.group_centre, env.labels)[
-                    0
-                ].copy()
-            )
+            rows["adversary_goal"].append(env.rule_adversary_goal(goal_rule)[0].copy())
 
     def on_step(reward, terms) -> None:
         step_rewards.append(float(reward[0]))
