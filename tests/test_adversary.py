@@ -372,8 +372,9 @@ def _pressure(adversary) -> dict:
     )
 
 
-SHIPPED_ADVERSARIES = ("adversary_ppo", "adversary_ppo_nearest_group_member")
-"""The shipped PPO adversaries: Table V's, and the one the next generation of high levels trains against."""
+SHIPPED_ADVERSARIES = ("adversary_ppo", "adversary_ppo_nearest_group_member", "adversary_ppo_nearest_group_intercept")
+"""The shipped PPO adversaries: the first generation's, Table V's, and the one the next generation of
+high levels trains against."""
 
 
 @pytest.mark.parametrize("name", SHIPPED_ADVERSARIES)
