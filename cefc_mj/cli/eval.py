@@ -44,6 +44,7 @@ from cefc_mj.eval.requests import (
 from cefc_mj.executors import ExecutorConfig
 from cefc_mj.nn.registry import GAME_ADVERSARY
 from cefc_mj.sim.wind import MAX_WIND_SPEED
+from cefc_mj.task.config import ADVERSARY_RULES
 
 __all__ = ["build_parser", "default_report_dir", "is_shipped_reports", "main", "single_table", "to_request"]
 
@@ -154,7 +155,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--adversary",
         default=None,
         metavar="RULE|NAME|PATH",
-        help="table5, table7: the game's adversary, a rule (nearest_group, r_nearest, r_largest, none) "
+        help=f"table5, table7: the game's adversary, a rule ({', '.join(ADVERSARY_RULES)}) "
         f"or a trained adversary's policy name or file (default {GAME_ADVERSARY}, the game's PPO adversary); "
         "table6 plays each adversary in turn",
     )

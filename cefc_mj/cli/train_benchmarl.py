@@ -14,6 +14,7 @@ from pathlib import Path
 from cefc_mj import paths
 from cefc_mj.cli.train_common import EXIT_USAGE, check_destinations, field_default, install
 from cefc_mj.nn.registry import GAME_ADVERSARY
+from cefc_mj.task.config import ADVERSARY_RULES
 from cefc_mj.train.benchmarl_config import (
     ALGORITHMS,
     BENCHMARL_EXTRA,
@@ -115,7 +116,7 @@ def add_parser(sub) -> None:
         "--adversary",
         default=None,
         metavar="RULE|NAME|PATH",
-        help="the game's adversary: a rule (nearest_group, r_nearest, r_largest, none) or a trained "
+        help=f"the game's adversary: a rule ({', '.join(ADVERSARY_RULES)}) or a trained "
         f"adversary's policy name or file (default {GAME_ADVERSARY}, the game's PPO adversary)",
     )
     p.add_argument(

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from cefc_mj.cli.train_common import add_common_args, check_destinations, install
 from cefc_mj.nn.registry import GAME_ADVERSARY
+from cefc_mj.task.config import ADVERSARY_RULES
 from cefc_mj.train.config import Budget
 
 COMMANDS = ("highlevel",)
@@ -65,7 +66,7 @@ def add_parser(sub) -> None:
         "--adversary",
         default=None,
         metavar="RULE|NAME|PATH",
-        help="the game's adversary: a rule (nearest_group, r_nearest, r_largest, none) or a trained "
+        help=f"the game's adversary: a rule ({', '.join(ADVERSARY_RULES)}) or a trained "
         f"adversary's policy name or file (default {GAME_ADVERSARY}, the game's PPO adversary)",
     )
     p.add_argument(
