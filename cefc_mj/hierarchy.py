@@ -57,6 +57,16 @@ PER_GROUP_FILES = {
     CLM_PER_GROUP: (clm_name, "the CL-M policy of each agent's group size"),
 }
 """Per-group low levels: name -> (the policy file of group size c, what it is)."""
+
+
+def recorded_low_level(meta: dict, default: str | None) -> str | None:
+    """The low level a high level flies over: the per-group low level its file's meta records
+    (`PER_GROUP_FILES`, e.g. the CI-HRL-w-CL-M rows' `clm-per-group`, what they were fine-tuned with),
+    else `default` (any other recorded low level is flown as the caller's)."""
+    name = (meta.get("low_level") or {}).get("name")
+    return name if name in PER_GROUP_FILES else default
+
+
 NAVIGATION = "navigation"
 """`load_low_level` name of the navigation-only low level (Algorithm 2's pre-training)."""
 GROUP_SIZES = (3, 4, 5, 6, 7, 8)

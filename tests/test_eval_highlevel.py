@@ -25,9 +25,9 @@ from cefc_mj.eval.highlevel import (
     run_table6,
     run_table7,
 )
-from cefc_mj.hierarchy import load_low_level
+from cefc_mj.hierarchy import CLM_PER_GROUP, load_low_level, recorded_low_level
 from cefc_mj.nn.adversary_policy import AdversaryNetConfig, AdversaryPolicy, save_adversary_policy
-from cefc_mj.nn.highlevel_policy import HighLevelPolicy, save_highlevel_policy
+from cefc_mj.nn.highlevel_policy import HighLevelPolicy, load_highlevel_policy, save_highlevel_policy
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -343,3 +343,13 @@ def test_agent_decider_is_decide_bit_for_bit_for_one_agent(policies):
             assert (decider(obs[:, :1], short)[1] == policy.decide(obs[:, :1], short)[1]).all()
     with pytest.raises(ConfigError, match=r"\[1, 1, D\]"):
         decider(obs, None)
+
+
+def test_a_high_level_flies_over_the_per_group_low_level_its_file_records():
+    """Table V and the adversary's population read a file's low level from its meta: the CL-M rows
+    over the CL-M policy of each group size, every other file over the caller's (the student)."""
+    for stem, expected in (("cihrl_consmac_a_clm", CLM_PER_GROUP), ("cihrl_consmac_a", "student")):
+        meta = load_highlevel_policy(paths.POLICIES_DIR / f"{stem}.pt")[1]
+        assert recorded_low_level(meta, "student") == expected
+    assert recorded_low_level({"low_level": {"name": "some_file"}}, None) is None
+    assert recorded_low_level({}, "student") == "student"

@@ -33,7 +33,13 @@ from cefc_mj import paths
 from cefc_mj.errors import CheckpointError, ConfigError
 from cefc_mj.eval.conditions import Conditions
 from cefc_mj.eval.stats import paired_difference
-from cefc_mj.hierarchy import CLM_PER_GROUP, DECISION_INTERVAL, HierarchicalCEFCEnv, LowLevel, load_low_level
+from cefc_mj.hierarchy import (
+    DECISION_INTERVAL,
+    HierarchicalCEFCEnv,
+    LowLevel,
+    load_low_level,
+    recorded_low_level,
+)
 from cefc_mj.nn.highlevel_policy import HighLevelPolicy, load_highlevel_policy
 from cefc_mj.nn.policy_io import resolve_policy_path
 from cefc_mj.nn.registry import GAME_ADVERSARY, HIERARCHY_LOWLEVEL
@@ -75,11 +81,9 @@ and `cefc-train highlevel-benchmarl` write). The paper's rows first, in its orde
 paper's Table V does not list: ConsMAC trained on the other label the paper defines (all agents'
 relative positions and velocities), BenchMARL's MAPPO as a cross-check of ours, and the ablations of
 the paper's Fig. 7 (which the paper shows as learning curves only). BenchMARL's MASAC stands in for
-HASAC (docs/baselines.md); the row says so. Every row is flown over the student, except those of
-ROW_LOW_LEVEL."""
-ROW_LOW_LEVEL = {"cihrl_consmac_a_clm": CLM_PER_GROUP}
-"""Policy stems flown over another low level than the student: the CI-HRL-w-CL-M rows over the CL-M
-policy of each agent's group size (what they were fine-tuned with, and the paper's pairing)."""
+HASAC (docs/baselines.md); the row says so. Every file is flown over the student, except those whose
+meta records a per-group low level (`hierarchy.recorded_low_level`): the CI-HRL-w-CL-M rows fly over
+the CL-M policy of each agent's group size (what they were fine-tuned with, and the paper's pairing)."""
 TABLE6_ROWS = (
     ("PPO", GAME_ADVERSARY, None),
     ("PPO (first generation)", "adversary_ppo", "not in the paper: the previous game adversary (nearest_group_strike)"),
@@ -479,10 +483,11 @@ def run_table5(
         else:
             rows.append((method, stem, paper_row, files))
     opponents = (adversary, "nearest_group") if against_rule else (adversary,)
+    file_low_level = {
+        f: recorded_low_level(load_highlevel_policy(f)[1], LOW_LEVEL) for *_, files in rows for f in files.values()
+    }
     jobs = {
-        (method, opponent, k): _FileJob(
-            f, opponent, ROW_LOW_LEVEL.get(stem, LOW_LEVEL), episodes, seed, where, policies_dir
-        )
+        (method, opponent, k): _FileJob(f, opponent, file_low_level[f], episodes, seed, where, policies_dir)
         for method, stem, _, files in rows
         for opponent in opponents
         for k, f in files.items()
@@ -492,8 +497,8 @@ def run_table5(
         per_seed = {k: flown[jobs[method, adversary, k]] for k in files}
         row = per_seed[0]
         row["paper"] = dict(zip(COLUMNS, paper[paper_row])) if paper_row is not None else None
-        if stem in ROW_LOW_LEVEL:
-            low = _low_level(task, ROW_LOW_LEVEL[stem])
+        if file_low_level[files[0]] != LOW_LEVEL:
+            low = _low_level(task, file_low_level[files[0]])
             row["low_level"] = low.describe() | {"name": low.name}
         row["training_seeds"] = _seed_block(per_seed, files)
         if against_rule:

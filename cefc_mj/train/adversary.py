@@ -44,7 +44,7 @@ import torch
 from cefc_mj.errors import CheckpointError, ConfigError
 from cefc_mj.eval.highlevel import game_task, highlevel_policy_path, play_highlevel
 from cefc_mj.fileio import write_atomic
-from cefc_mj.hierarchy import DECISION_INTERVAL, PER_GROUP_FILES, HierarchicalCEFCEnv, LowLevel, load_low_level
+from cefc_mj.hierarchy import DECISION_INTERVAL, HierarchicalCEFCEnv, LowLevel, load_low_level, recorded_low_level
 from cefc_mj.nn.adversary_policy import (
     ADVERSARY_ACTIONS,
     AdversaryNetConfig,
@@ -651,7 +651,7 @@ def load_population(
             raise CheckpointError(f"--teams: {e}") from None
         records[name] = {"kind": "learned", "path": display_path(path), "sha256": file_sha256(path)}
         intervals.add(int(meta.get("decision_interval", DECISION_INTERVAL)))
-        wanted[name] = (meta.get("low_level") or {}).get("name")
+        wanted[name] = recorded_low_level(meta, None)  # None: cfg.low_level
     if len(intervals) > 1:
         raise ConfigError(f"--teams: the teams decide at different intervals ({sorted(intervals)} steps)")
     try:
@@ -659,7 +659,7 @@ def load_population(
     except CheckpointError as e:
         raise CheckpointError(f"--low-level: {e}") from None
     own: dict[str, LowLevel] = {}
-    for spec in {spec for spec in wanted.values() if spec in PER_GROUP_FILES and spec != low_level.name}:
+    for spec in {spec for spec in wanted.values() if spec is not None and spec != low_level.name}:
         try:
             own[spec] = load_low_level(spec, cfg.task(), policies_dir)
         except CheckpointError as e:
