@@ -10,7 +10,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Literal, get_args
 
 from cefc_mj.errors import ConfigError
 from cefc_mj.task.estimator import POSITION_ESTIMATORS, PositionEstimator
@@ -44,18 +44,11 @@ neighbour reaches sqrt(0.25^2 + 0.05^2) = 0.255 m from its centre; 0.6 m is also
 the separation guard holds (task/guard.py)."""
 RULE_TEAMS = ("rule-urgent", "rule-split", "rule-evade")
 """The rule-driven UAV teams of the PPO adversary's training population (cefc_mj/rule_teams.py)."""
-ADVERSARY_RULES = (
-    "nearest_group",
-    "r_nearest",
-    "r_largest",
-    "nearest_group_strike",
-    "nearest_group_member",
-    "nearest_group_intercept",
-    "none",
-)
 LEARNED_ADVERSARY = "learned"
 """TaskConfig.adversary of a trained adversary: the env asks its `adversary_policy` for the acceleration."""
-ADVERSARIES = ADVERSARY_RULES + (LEARNED_ADVERSARY,)
+ADVERSARIES = get_args(AdversaryRule)
+"""Every TaskConfig.adversary: the rules (task/adversary.py), "none" and LEARNED_ADVERSARY."""
+ADVERSARY_RULES = tuple(a for a in ADVERSARIES if a != LEARNED_ADVERSARY)
 OBSTACLE_LAYOUTS = ("clear-start", "paper")
 
 
