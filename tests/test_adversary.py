@@ -242,8 +242,7 @@ def test_every_row_population_names_shipped_files_once():
 
 
 def test_imitation_rule_help_names_every_rule():
-    sub = next(a for a in build_parser()._subparsers._group_actions[0].choices.items() if a[0] == "adversary")[1]
-    text = " ".join(sub.format_help().split())
+    text = " ".join(build_parser()._subparsers._group_actions[0].choices["adversary"].format_help().split())
     for rule in IMITATION_RULES:
         assert rule in text, rule
 

@@ -64,11 +64,11 @@ def adversary_goal(
     size, centre = group_size, group_centre
     centre_offset = centre - adversary_pos[:, None, :]
     centre_dist = np.sqrt((centre_offset * centre_offset).sum(-1))
+    eligible = size >= 3
+    chased = np.where(eligible, centre_dist, np.inf).argmin(axis=-1)  # the nearest group of >= 3
     if rule == "nearest_group_member":
         if labels is None:
             raise ValueError("the nearest_group_member rule needs the agents' group labels")
-        eligible = size >= 3
-        chased = np.where(eligible, centre_dist, np.inf).argmin(axis=-1)
         near_member = (labels == chased[:, None]) & eligible.any(-1)[:, None] & (square < STRIKE_DISTANCE**2)
         member = agent_pos[np.arange(b), np.where(near_member, square, np.inf).argmin(axis=-1)]
         group = adversary_goal("nearest_group", adversary_pos, agent_pos, group_size, group_centre)
@@ -76,8 +76,6 @@ def adversary_goal(
     if rule == "nearest_group_intercept":
         if labels is None or agent_vel is None or speed_max is None:
             raise ValueError("the nearest_group_intercept rule needs the group labels, velocities and top speed")
-        eligible = size >= 3
-        chased = np.where(eligible, centre_dist, np.inf).argmin(axis=-1)
         # the chased group's members, or the nearest agent alone when no group has 3
         nearest = np.arange(agent_pos.shape[1])[None] == square.argmin(axis=-1)[:, None]
         member = np.where(eligible.any(-1)[:, None], labels == chased[:, None], nearest)
@@ -95,9 +93,7 @@ def adversary_goal(
         score = np.where(size > 0, size * 1e6 - centre_dist, -np.inf)
         return centre[np.arange(b), score.argmax(axis=-1)]
     if rule == "nearest_group":
-        eligible = size >= 3
-        best = np.where(eligible, centre_dist, np.inf).argmin(axis=-1)
-        return np.where(eligible.any(-1)[:, None], centre[np.arange(b), best], nearest_agent)
+        return np.where(eligible.any(-1)[:, None], centre[np.arange(b), chased], nearest_agent)
     raise ValueError(f"unknown adversary rule {rule!r}")
 
 
