@@ -38,6 +38,7 @@ from cefc_mj.sim.particle import ParticleWorld
 from cefc_mj.sim.world import World
 from cefc_mj.task import rewards as R
 from cefc_mj.task.adversary import (
+    InterceptRule,
     adversary_goal,
     adversary_observation,
     pursuit_velocity,
@@ -261,8 +262,9 @@ class BatchedCEFCEnv:
             )
         self._obs[mask] = obs[mask]
 
-    def rule_adversary_goal(self, rule: str) -> np.ndarray:
-        """The point [B, 2] a rule adversary (task/adversary.py) chases at this step."""
+    def rule_adversary_goal(self, rule: str | InterceptRule) -> np.ndarray:
+        """The point [B, 2] a rule adversary (task/adversary.py: a rule's name or an InterceptRule)
+        chases at this step."""
         w = self.world
         return adversary_goal(
             rule,
@@ -275,7 +277,7 @@ class BatchedCEFCEnv:
             self.config.adversary_speed_max,
         )
 
-    def rule_adversary_velocity(self, rule: str) -> np.ndarray:
+    def rule_adversary_velocity(self, rule: str | InterceptRule) -> np.ndarray:
         """The velocity [B, 2] a rule adversary (task/adversary.py) wants at this step."""
         cfg = self.config
         return pursuit_velocity(
@@ -286,7 +288,7 @@ class BatchedCEFCEnv:
             keep_out=cfg.obstacle_radius + cfg.uav_radius,
         )
 
-    def rule_adversary_acceleration(self, rule: str) -> np.ndarray:
+    def rule_adversary_acceleration(self, rule: str | InterceptRule) -> np.ndarray:
         """The acceleration [B, 2] a rule adversary (task/adversary.py) commands at this step."""
         cfg = self.config
         return velocity_tracking_acceleration(

@@ -8,6 +8,7 @@ from cefc_mj.task import rewards as R
 from cefc_mj.task.adversary import (
     INTERCEPT_HORIZON,
     STRIKE_LEAD,
+    InterceptRule,
     adversary_goal,
 )
 from cefc_mj.task.config import RewardConfig, TaskConfig
@@ -162,6 +163,31 @@ def test_adversary_rules():
     )
     with pytest.raises(ValueError, match="velocities"):
         adversary_goal("nearest_group_intercept", adv, pos, size, centre, labels)
+    # the variants of the intercept family (InterceptRule; its defaults are the named rule)
+    moving = (labels, vel, 0.75)
+    for at in (adv, near, close):
+        np.testing.assert_array_equal(
+            adversary_goal(InterceptRule(), at, pos, size, centre, *moving),
+            adversary_goal("nearest_group_intercept", at, pos, size, centre, *moving),
+        )
+    ahead = InterceptRule(horizon=1.0, strike_lead=0.0)
+    np.testing.assert_allclose(adversary_goal(ahead, near, pos, size, centre, *moving)[0], pos[0, 0])
+    no_strike = InterceptRule(strike_distance=None)  # the group's centre + its velocity x the time to get there
+    reach = np.linalg.norm(pos[0, :3].mean(0) - near[0]) / 0.75
+    np.testing.assert_allclose(
+        adversary_goal(no_strike, near, pos, size, centre, *moving)[0], pos[0, :3].mean(0) + [0.0, reach]
+    )
+    # striking at any UAV: the lone one 1 m away lures it (aimed 1.5 s ahead of it); striking at any
+    # UAV of a group of >= 3 does not, and the member rule's goal is kept
+    any_uav, grouped = InterceptRule(strike_at="any"), InterceptRule(strike_at="grouped")
+    np.testing.assert_allclose(adversary_goal(any_uav, adv, pos, size, centre, *moving)[0], [5 + STRIKE_LEAD, -6])
+    np.testing.assert_array_equal(
+        adversary_goal(grouped, adv, pos, size, centre, *moving),
+        adversary_goal("nearest_group_intercept", adv, pos, size, centre, *moving),
+    )
+    for bad in ({"horizon": -1.0}, {"strike_distance": 0.0}, {"strike_lead": float("nan")}, {"strike_at": "lone"}):
+        with pytest.raises(ValueError, match=next(iter(bad))):
+            InterceptRule(**bad)
     # no group of 3: the nearest-group rule falls back to the nearest agent
     lone = pos[:, [0, 7]]
     _, size, centre = group_formation_error(lone, connected_groups(lone, 3.0))

@@ -14,7 +14,8 @@
   INTERCEPT_HORIZON), and at a member within STRIKE_DISTANCE plus STRIKE_LEAD of its velocity. The
   UAVs fly faster than the adversary, so a pure pursuit falls behind what it chases; like the member
   rule it ignores a lone UAV, which teams learn to use as a lure (the game adversary's teacher,
-  chosen on validation games: docs/high_level.md).
+  chosen on validation games: docs/high_level.md). `InterceptRule` holds its settings; other
+  settings of the same family are the variants it was chosen among.
 
 The adversary flies at top speed toward that point (`pursuit_acceleration`). With
 `TaskConfig.adversary_avoids_obstacles` it steers around the obstacle cylinders on the way
@@ -28,6 +29,10 @@ agents and the nearest `ADVERSARY_OBSTACLE_SLOTS` obstacles, each slot with a pr
 
 from __future__ import annotations
 
+import math
+from dataclasses import dataclass
+from typing import Literal, get_args
+
 import numpy as np
 
 STRIKE_DISTANCE = 3.0
@@ -37,9 +42,38 @@ INTERCEPT_HORIZON = 2.0
 STRIKE_LEAD = 1.5
 """How far ahead (s of its velocity) "nearest_group_intercept" aims at a member within STRIKE_DISTANCE."""
 
+StrikeTarget = Literal["member", "grouped", "any"]
+STRIKE_TARGETS = get_args(StrikeTarget)
+
+
+@dataclass(frozen=True)
+class InterceptRule:
+    """A chase rule of the "nearest_group_intercept" family; the defaults are that rule. Rules with
+    other settings are flown by `benchmarks/adversary_rules.py`, which compares them on validation games."""
+
+    horizon: float = INTERCEPT_HORIZON
+    """The longest time (s) it looks ahead of the group it flies to (0: the group's centre as it is)."""
+    strike_distance: float | None = STRIKE_DISTANCE
+    """Within this distance (m) of a UAV it may strike, i.e. chase that UAV (None: never)."""
+    strike_lead: float = STRIKE_LEAD
+    """How far ahead (s of its velocity) it aims at the UAV it strikes at (0: where it is)."""
+    strike_at: StrikeTarget = "member"
+    """Which UAVs it strikes at: members of the group it chases, any UAV of a group of >= 3, any UAV.
+    A UAV outside the chased group can lure the two latter away from it."""
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.horizon) and self.horizon >= 0):
+            raise ValueError(f"horizon={self.horizon!r}: must be a finite number >= 0 (s)")
+        if self.strike_distance is not None and not (math.isfinite(self.strike_distance) and self.strike_distance > 0):
+            raise ValueError(f"strike_distance={self.strike_distance!r}: must be a finite number > 0 (m), or None")
+        if not (math.isfinite(self.strike_lead) and self.strike_lead >= 0):
+            raise ValueError(f"strike_lead={self.strike_lead!r}: must be a finite number >= 0 (s)")
+        if self.strike_at not in STRIKE_TARGETS:
+            raise ValueError(f"strike_at={self.strike_at!r}: must be member, grouped or any")
+
 
 def adversary_goal(
-    rule: str,
+    rule: str | InterceptRule,
     adversary_pos: np.ndarray,
     agent_pos: np.ndarray,
     group_size: np.ndarray,
@@ -48,10 +82,11 @@ def adversary_goal(
     agent_vel: np.ndarray | None = None,
     speed_max: float | None = None,
 ) -> np.ndarray:
-    """The point [B, 2] the adversary chases. group_size [B, G] and group_centre [B, G, 2] describe
-    the agents' groups (as returned by `group_formation_error`), indexed by the agents' group labels
-    [B, N] (`connected_groups`), which only "nearest_group_member" and "nearest_group_intercept"
-    need; the latter also needs the agents' velocities [B, N, 2] and the adversary's top speed (m/s)."""
+    """The point [B, 2] the adversary chases under `rule` (a rule's name, or an `InterceptRule`).
+    group_size [B, G] and group_centre [B, G, 2] describe the agents' groups (as returned by
+    `group_formation_error`), indexed by the agents' group labels [B, N] (`connected_groups`), which
+    only "nearest_group_member" and the intercept rules need; the latter also need the agents'
+    velocities [B, N, 2] and the adversary's top speed (m/s)."""
     b = agent_pos.shape[0]
     offset = agent_pos - adversary_pos[:, None, :]
     square = (offset * offset).sum(-1)
@@ -74,6 +109,8 @@ def adversary_goal(
         group = adversary_goal("nearest_group", adversary_pos, agent_pos, group_size, group_centre)
         return np.where(near_member.any(-1)[:, None], member, group)
     if rule == "nearest_group_intercept":
+        rule = InterceptRule()
+    if isinstance(rule, InterceptRule):
         if labels is None or agent_vel is None or speed_max is None:
             raise ValueError("the nearest_group_intercept rule needs the group labels, velocities and top speed")
         # the chased group's members, or the nearest agent alone when no group has 3
@@ -83,11 +120,19 @@ def adversary_goal(
         centre_now = (agent_pos * member[..., None]).sum(1) / count
         velocity = (agent_vel * member[..., None]).sum(1) / count
         reach = np.linalg.norm(centre_now - adversary_pos, axis=-1, keepdims=True) / speed_max
-        goal = centre_now + velocity * np.minimum(reach, INTERCEPT_HORIZON)
-        near_member = member & (square < STRIKE_DISTANCE**2)
-        struck = np.where(near_member, square, np.inf).argmin(axis=-1)
-        strike = agent_pos[np.arange(b), struck] + STRIKE_LEAD * agent_vel[np.arange(b), struck]
-        return np.where(near_member.any(-1)[:, None], strike, goal)
+        goal = centre_now + velocity * np.minimum(reach, rule.horizon)
+        if rule.strike_distance is None:
+            return goal
+        if rule.strike_at == "member":
+            target = member
+        elif rule.strike_at == "grouped":
+            target = np.take_along_axis(size, labels, axis=1) >= 3
+        else:
+            target = np.ones_like(member)
+        near_target = target & (square < rule.strike_distance**2)
+        struck = np.where(near_target, square, np.inf).argmin(axis=-1)
+        strike = agent_pos[np.arange(b), struck] + rule.strike_lead * agent_vel[np.arange(b), struck]
+        return np.where(near_target.any(-1)[:, None], strike, goal)
     if rule == "r_largest":
         # Largest group first, ties broken by distance (a distance below 1e6 m never outweighs size).
         score = np.where(size > 0, size * 1e6 - centre_dist, -np.inf)

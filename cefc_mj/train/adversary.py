@@ -59,7 +59,7 @@ from cefc_mj.nn.registry import HIERARCHY_LOWLEVEL
 from cefc_mj.provenance import file_sha256
 from cefc_mj.rule_teams import RULE_TEAMS, RuleTeam
 from cefc_mj.seeds import GAME_VALIDATION_SEED
-from cefc_mj.task.adversary import ADVERSARY_OBS_DIM, adversary_goal, adversary_reward
+from cefc_mj.task.adversary import ADVERSARY_OBS_DIM, InterceptRule, adversary_goal, adversary_reward
 from cefc_mj.task.config import ADVERSARY_RULES, LEARNED_ADVERSARY, TaskConfig
 from cefc_mj.train import run_state
 from cefc_mj.train.config import MAX_DENSITY, MAX_SEED, Budget, BudgetPPODict, PPOConfig, config_from_flags
@@ -597,8 +597,8 @@ def evaluate_adversary(
     """The UAV team's per-episode means (R_H and its parts, E, F, C: `play_highlevel`) against an
     adversary, and the share of steps it spent inside an obstacle ("adversary_collision_share").
     adversary: a callable of observations (e.g. `AdversaryPolicy.act`) for a task with
-    adversary='learned', or a rule's name (flown exactly as the env flies `task.adversary`). team: a
-    trained high level or a rule team's name (RULE_TEAMS)."""
+    adversary='learned', or a rule (its name or an `InterceptRule`, flown exactly as the env flies
+    `task.adversary`). team: a trained high level or a rule team's name (RULE_TEAMS)."""
     inside: list[np.ndarray] = []
     keep_out = task.obstacle_radius + task.uav_radius
 
@@ -607,7 +607,9 @@ def evaluate_adversary(
         if env.obstacles.shape[1]:
             gap = np.linalg.norm(env.obstacles - env.world.adversary_pos[:, None, :], axis=-1)
             inside.append((gap < keep_out).any(axis=-1))
-        return env.rule_adversary_acceleration(adversary) if isinstance(adversary, str) else adversary(obs)
+        if isinstance(adversary, (str, InterceptRule)):
+            return env.rule_adversary_acceleration(adversary)
+        return adversary(obs)
 
     task = dataclasses.replace(task, adversary=LEARNED_ADVERSARY)
     game = HierarchicalCEFCEnv(

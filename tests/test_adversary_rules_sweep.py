@@ -1,0 +1,94 @@
+"""benchmarks/adversary_rules.py (docs/high_level.md, "The next adversary"): a real run as a subprocess on
+a learned team and a rule team (its figures are evaluate_adversary's for the same rule and games, the
+kept rule's spec flies exactly the named rule), rule specs parsed into InterceptRule, and one-line
+errors with exit code 2 before any game is flown (`main` in-process; the real run as a subprocess)."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from cefc_mj.task.adversary import InterceptRule
+from cefc_mj.train.adversary import AdversaryConfig, evaluate_adversary, load_population
+from cefc_mj.train.config import Budget
+
+ROOT = Path(__file__).resolve().parent.parent
+SCRIPT = ROOT / "benchmarks" / "adversary_rules.py"
+LEARNED = "cihrl_mappo"
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+
+def _script():
+    spec = importlib.util.spec_from_file_location("adversary_rules", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _run(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, str(SCRIPT), *args], capture_output=True, text=True, timeout=300, cwd=ROOT, check=False
+    )
+
+
+def test_rule_specs():
+    parse = _script().parse_rule
+    assert parse("nearest_group_member") == "nearest_group_member"
+    assert parse("intercept") == InterceptRule()
+    assert parse("intercept:strike_at=any,strike_distance=2.5") == InterceptRule(strike_at="any", strike_distance=2.5)
+    assert parse("intercept:strike_distance=none,horizon=1") == InterceptRule(strike_distance=None, horizon=1.0)
+    assert _script().row_of("cihrl_consmac_a_clm_seed2_wo_ft") == "CI-HRL-w-CL-M-wo-FT"
+    assert _script().row_of("cihrl_consmac_a_seed3") == "CI-HRL"
+    assert _script().row_of("rule-split") is None
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--rules", "chase_everything"], "--rules 'chase_everything': not a rule"),
+        (["--rules", "intercept:lead=1"], "'lead=1' is not FIELD=VALUE"),
+        (["--rules", "intercept:horizon=-1"], "horizon=-1.0: must be a finite number >= 0"),
+        (["--rules", "intercept:strike_at=lone"], "strike_at='lone'"),
+        (["--rules", "intercept", "--teams", "no_such_policy"], "--teams:"),
+        (["--rules", "intercept", "--seed", "10000"], "--seed=10000: not a validation game seed"),
+        (["--rules", "intercept", "--episodes", "0"], "--episodes and --workers"),
+        (["--rules", "intercept", "--out", "/proc/adversary_rules/x.json"], "cannot write there"),
+    ],
+)
+def test_bad_input_is_one_line_with_exit_code_2(args, message, capsys):
+    try:
+        code = _script().main(args)
+    except SystemExit as e:  # argparse's errors
+        code = e.code
+    err = capsys.readouterr().err
+    assert code == 2, err
+    assert message in err
+    assert len(err.strip().splitlines()) == 1 and "Traceback" not in err
+
+
+def test_a_run_writes_the_per_team_and_per_row_figures(tmp_path):
+    out = tmp_path / "sweep" / "rules.json"
+    result = _run(
+        "--rules", "intercept", "nearest_group_intercept", "intercept:strike_at=any",
+        "--teams", f"{LEARNED},rule-split", "--episodes", "3", "--workers", "2", "--out", str(out),
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    report = json.loads(out.read_text())
+    assert set(report["per_team"]) == {LEARNED, "rule-split"}
+    assert report["protocol"]["seed_block"] == "validation" and report["protocol"]["episodes"] == 3
+    # the figures are evaluate_adversary's on the same games, each team over its own low level
+    cfg = AdversaryConfig(budget=Budget(iterations=1), teams=(LEARNED,))
+    population, _, low_level, interval, _ = load_population(cfg)
+    direct = evaluate_adversary("nearest_group_intercept", population[LEARNED], low_level, cfg.task(), 3, 200, interval)
+    figures = report["per_team"][LEARNED]
+    assert figures["intercept"]["E"] == figures["nearest_group_intercept"]["E"] == direct["E"]
+    row = report["per_row"]["intercept:strike_at=any"]
+    assert row["MAPPO+AT-M"] == pytest.approx(figures["intercept:strike_at=any"]["E"] / figures["nearest_group"]["E"])
+    assert set(row) == {"MAPPO+AT-M", "rule team rule-split"}
+    assert "| `intercept` | " in result.stdout and "(MAPPO+AT-M)" in result.stdout
