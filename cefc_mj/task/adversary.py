@@ -49,7 +49,7 @@ STRIKE_TARGETS = get_args(StrikeTarget)
 @dataclass(frozen=True)
 class InterceptRule:
     """A chase rule of the "nearest_group_intercept" family; the defaults are that rule. Rules with
-    other settings are flown by `benchmarks/adversary_rules.py`, which compares them on validation games."""
+    other settings are flown by `benchmarks/adversary_strength.py`, which compares them on validation games."""
 
     horizon: float = INTERCEPT_HORIZON
     """The longest time (s) it looks ahead of the group it flies to (0: the group's centre as it is)."""

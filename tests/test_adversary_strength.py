@@ -1,6 +1,7 @@
-"""benchmarks/adversary_rules.py (docs/high_level.md, "The next adversary"): a real run as a subprocess on
-a learned team and a rule team (its figures are evaluate_adversary's for the same rule and games, the
-kept rule's spec flies exactly the named rule), rule specs parsed into InterceptRule, and one-line
+"""benchmarks/adversary_strength.py (docs/high_level.md, "The next adversary"): a real run as a subprocess on
+a learned team and a rule team (its figures are evaluate_adversary's for the same adversary and games,
+the kept rule's spec flies exactly the named rule, a trained adversary by its file), rule specs parsed
+into InterceptRule, and one-line
 errors with exit code 2 before any game is flown (`main` in-process; the real run as a subprocess)."""
 
 from __future__ import annotations
@@ -13,19 +14,21 @@ from pathlib import Path
 
 import pytest
 
+from cefc_mj.eval.highlevel import resolve_adversary
 from cefc_mj.task.adversary import InterceptRule
 from cefc_mj.train.adversary import AdversaryConfig, evaluate_adversary, load_population
 from cefc_mj.train.config import Budget
 
 ROOT = Path(__file__).resolve().parent.parent
-SCRIPT = ROOT / "benchmarks" / "adversary_rules.py"
+SCRIPT = ROOT / "benchmarks" / "adversary_strength.py"
 LEARNED = "cihrl_mappo"
+TRAINED = "adversary_ppo_nearest_group_intercept"
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def _script():
-    spec = importlib.util.spec_from_file_location("adversary_rules", SCRIPT)
+    spec = importlib.util.spec_from_file_location("adversary_strength", SCRIPT)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
@@ -38,7 +41,7 @@ def _run(*args: str) -> subprocess.CompletedProcess:
 
 
 def test_rule_specs():
-    parse = _script().parse_rule
+    parse = _script().parse_adversary
     assert parse("nearest_group_member") == "nearest_group_member"
     assert parse("intercept") == InterceptRule()
     assert parse("intercept:strike_at=any,strike_distance=2.5") == InterceptRule(strike_at="any", strike_distance=2.5)
@@ -51,14 +54,14 @@ def test_rule_specs():
 @pytest.mark.parametrize(
     "args, message",
     [
-        (["--rules", "chase_everything"], "--rules 'chase_everything': not a rule"),
-        (["--rules", "intercept:lead=1"], "'lead=1' is not FIELD=VALUE"),
-        (["--rules", "intercept:horizon=-1"], "horizon=-1.0: must be a finite number >= 0"),
-        (["--rules", "intercept:strike_at=lone"], "strike_at='lone'"),
-        (["--rules", "intercept", "--teams", "no_such_policy"], "--teams:"),
-        (["--rules", "intercept", "--seed", "10000"], "--seed=10000: not a validation game seed"),
-        (["--rules", "intercept", "--episodes", "0"], "--episodes and --workers"),
-        (["--rules", "intercept", "--out", "/proc/adversary_rules/x.json"], "cannot write there"),
+        (["--adversaries", "chase_everything"], "--adversaries: adversary chase_everything:"),
+        (["--adversaries", "intercept:lead=1"], "'lead=1' is not FIELD=VALUE with"),
+        (["--adversaries", "intercept:horizon=-1"], "horizon=-1.0: must be a finite number >= 0"),
+        (["--adversaries", "intercept:strike_at=lone"], "strike_at='lone'"),
+        (["--adversaries", "intercept", "--teams", "no_such_policy"], "--teams:"),
+        (["--adversaries", "intercept", "--seed", "10000"], "--seed=10000: not a validation game seed"),
+        (["--adversaries", "intercept", "--episodes", "0"], "--episodes and --workers"),
+        (["--adversaries", "intercept", "--out", "/proc/adversary_strength/x.json"], "cannot write there"),
     ],
 )
 def test_bad_input_is_one_line_with_exit_code_2(args, message, capsys):
@@ -75,7 +78,7 @@ def test_bad_input_is_one_line_with_exit_code_2(args, message, capsys):
 def test_a_run_writes_the_per_team_and_per_row_figures(tmp_path):
     out = tmp_path / "sweep" / "rules.json"
     result = _run(
-        "--rules", "intercept", "nearest_group_intercept", "intercept:strike_at=any",
+        "--adversaries", "intercept", "nearest_group_intercept", "intercept:strike_at=any", TRAINED,
         "--teams", f"{LEARNED},rule-split", "--episodes", "3", "--workers", "2", "--out", str(out),
     )  # fmt: skip
     assert result.returncode == 0, result.stderr
@@ -88,6 +91,11 @@ def test_a_run_writes_the_per_team_and_per_row_figures(tmp_path):
     direct = evaluate_adversary("nearest_group_intercept", population[LEARNED], low_level, cfg.task(), 3, 200, interval)
     figures = report["per_team"][LEARNED]
     assert figures["intercept"]["E"] == figures["nearest_group_intercept"]["E"] == direct["E"]
+    trained = evaluate_adversary(
+        resolve_adversary(TRAINED)[1], population[LEARNED], low_level, cfg.task(), 3, 200, interval
+    )
+    assert figures[TRAINED]["E"] == trained["E"]
+    assert report["adversaries"][TRAINED]["policy"] == f"{TRAINED}.pt"
     row = report["per_row"]["intercept:strike_at=any"]
     assert row["MAPPO+AT-M"] == pytest.approx(figures["intercept:strike_at=any"]["E"] / figures["nearest_group"]["E"])
     assert set(row) == {"MAPPO+AT-M", "rule team rule-split"}

@@ -1,20 +1,22 @@
-"""How hard does each chase rule press every Table V row? (how the game adversary's teacher was chosen)
+"""How hard does each adversary press every Table V row, compared with the nearest-group rule?
 
-Each rule of `--rules` and the nearest-group rule are flown against every team of `--teams` (default
-every shipped Table V row over its training seeds, each over the low level its file records, and the
-rule teams), on the same `--episodes` validation games (batch seed `--seed`), under the game's obstacle
-rule (a rule adversary steers round the obstacles). Per Table V row: the team E summed over the row's
-training seeds against the rule, over the same sum against the nearest-group rule. A rule is as
-strong as the nearest-group rule for a row when that ratio is >= 1; the rule of the game adversary's
-teacher was chosen by the largest minimum over the rows.
+Each adversary of `--adversaries` and the nearest-group rule are flown against every team of `--teams`
+(default every shipped Table V row over its training seeds, each over the low level its file records,
+and the rule teams), on the same `--episodes` validation games (batch seed `--seed`), under the game's
+obstacle rule (a rule adversary steers round the obstacles; a trained one is penalised inside them).
+Per Table V row: the team E summed over the row's training seeds against the adversary, over the same
+sum against the nearest-group rule. An adversary is as strong as the rule for a row when that ratio is
+>= 1. The game adversary's teacher was chosen among rules by the largest minimum over the rows.
 
-A rule is a name (`nearest_group_member`, ...: `cefc_mj.task.config.ADVERSARY_RULES`) or
+An adversary is a rule's name (`nearest_group_member`, ...: `cefc_mj.task.config.ADVERSARY_RULES`),
 `intercept[:FIELD=VALUE,...]`, a `cefc_mj.task.adversary.InterceptRule` (`intercept` alone is
-`nearest_group_intercept`): horizon (s ahead of the chased group, at most), strike_distance (m, or
-none), strike_lead (s ahead of the struck UAV), strike_at (member, grouped or any).
+`nearest_group_intercept`; fields: horizon (s ahead of the chased group, at most), strike_distance (m,
+or none), strike_lead (s ahead of the struck UAV), strike_at (member, grouped or any)), or a trained
+adversary's policy name (shipped folder) or file, flown by its mean action.
 
-    python benchmarks/adversary_rules.py --rules nearest_group_member intercept intercept:strike_at=any
-    python benchmarks/adversary_rules.py --rules intercept:horizon=1 --teams benchmarl_masac,r_nearest --episodes 5
+    python benchmarks/adversary_strength.py --adversaries nearest_group_member intercept intercept:strike_at=any
+    python benchmarks/adversary_strength.py --adversaries adversary_ppo_nearest_group_intercept \\
+        --teams benchmarl_masac,benchmarl_masac_seed1,rule-split --episodes 10
 
 The figures depend on the policy files flown: the table in docs/high_level.md ("The next adversary")
 was flown against the files the shipped `adversary_ppo_nearest_group_intercept` was trained against
@@ -34,8 +36,8 @@ from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 from cefc_mj import paths
-from cefc_mj.errors import CefcError, ConfigError
-from cefc_mj.eval.highlevel import TABLE5_ROWS
+from cefc_mj.errors import CefcError, CheckpointError, ConfigError
+from cefc_mj.eval.highlevel import TABLE5_ROWS, resolve_adversary
 from cefc_mj.fileio import make_writable_folder, write_atomic
 from cefc_mj.provenance import display_path, git_commit, library_versions
 from cefc_mj.seeds import GAME_VALIDATION_SEED, VALIDATION
@@ -44,11 +46,11 @@ from cefc_mj.task.config import ADVERSARY_RULES
 from cefc_mj.train.adversary import EVERY_ROW_POPULATION, AdversaryConfig, evaluate_adversary, load_population
 from cefc_mj.train.config import Budget
 
-PROG = "adversary_rules"
+PROG = "adversary_strength"
 EXIT_USAGE = 2
 BASELINE = "nearest_group"
 NAMED_RULES = tuple(rule for rule in ADVERSARY_RULES if rule != "none")
-DEFAULT_OUT = paths.PROJECT_ROOT / "runs" / "adversary_rules" / "adversary_rules.json"
+DEFAULT_OUT = paths.PROJECT_ROOT / "runs" / "adversary_strength" / "adversary_rules.json"
 
 
 class _Parser(argparse.ArgumentParser):
@@ -59,19 +61,25 @@ class _Parser(argparse.ArgumentParser):
         raise SystemExit(EXIT_USAGE)
 
 
-def parse_rule(spec: str) -> str | InterceptRule:
-    """A rule's name, or `intercept[:FIELD=VALUE,...]` as an InterceptRule; ConfigError naming the problem."""
+def parse_adversary(spec: str):
+    """A rule's name, `intercept[:FIELD=VALUE,...]` as an InterceptRule, or a trained adversary's
+    `act` (`resolve_adversary`); CefcError naming the problem."""
     if spec in NAMED_RULES:
         return spec
     name, _, settings = spec.partition(":")
     if name != "intercept":
-        raise ConfigError(f"--rules {spec!r}: not a rule ({', '.join(NAMED_RULES)} or intercept:...)")
+        try:
+            return resolve_adversary(spec)[1]
+        except CheckpointError as e:
+            raise CheckpointError(f"--adversaries: {e}") from None
     fields = {f.name: f for f in dataclasses.fields(InterceptRule)}
     values: dict[str, object] = {}
     for part in filter(None, settings.split(",")):
         key, eq, text = part.partition("=")
         if key not in fields or not eq:
-            raise ConfigError(f"--rules {spec!r}: {part!r} is not FIELD=VALUE with FIELD one of {', '.join(fields)}")
+            raise ConfigError(
+                f"--adversaries {spec!r}: {part!r} is not FIELD=VALUE with FIELD one of {', '.join(fields)}"
+            )
         if key == "strike_at":
             values[key] = text
         elif key == "strike_distance" and text == "none":
@@ -80,23 +88,32 @@ def parse_rule(spec: str) -> str | InterceptRule:
             try:
                 values[key] = float(text)
             except ValueError:
-                raise ConfigError(f"--rules {spec!r}: {key}={text!r} is not a number") from None
+                raise ConfigError(f"--adversaries {spec!r}: {key}={text!r} is not a number") from None
     try:
         return InterceptRule(**values)
     except ValueError as e:
-        raise ConfigError(f"--rules {spec!r}: {e}") from None
+        raise ConfigError(f"--adversaries {spec!r}: {e}") from None
 
 
 def _team_figures(job: tuple[str, tuple[str, ...], int, int, Path | None]) -> tuple[str, dict[str, dict]]:
-    """One team against the baseline and every rule (a worker process): spec -> evaluate_adversary's figures."""
+    """One team against the baseline and every adversary (a worker process): spec -> evaluate_adversary's figures."""
     name, specs, episodes, seed, policies_dir = job
     cfg = AdversaryConfig(budget=Budget(iterations=1), teams=(name,))
     population, _, low_level, interval, own = load_population(cfg, policies_dir)
     team = name if population[name] is None else population[name]
     return name, {
-        spec: evaluate_adversary(parse_rule(spec), team, own.get(name, low_level), cfg.task(), episodes, seed, interval)
+        spec: evaluate_adversary(
+            parse_adversary(spec), team, own.get(name, low_level), cfg.task(), episodes, seed, interval
+        )
         for spec in (BASELINE, *specs)
     }
+
+
+def _describe(spec: str) -> object:
+    """What the report records of an adversary: the rule's settings or the trained file's name and checksum."""
+    if spec in NAMED_RULES or spec.partition(":")[0] == "intercept":
+        return str(parse_adversary(spec))
+    return resolve_adversary(spec)[2]
 
 
 def row_of(team: str) -> str | None:
@@ -119,7 +136,7 @@ def per_row_ratios(per_team: dict[str, dict[str, dict]], spec: str) -> dict[str,
 
 
 def table(per_team: dict[str, dict[str, dict]], specs: tuple[str, ...]) -> list[str]:
-    lines = ["| rule | min over the Table V rows (row) | mean over them | rule teams |", "|---|---|---|---|"]
+    lines = ["| adversary | min over the Table V rows (row) | mean over them | rule teams |", "|---|---|---|---|"]
     for spec in specs:
         ratios = per_row_ratios(per_team, spec)
         rows = {row: r for row, r in ratios.items() if not row.startswith("rule team")}
@@ -135,7 +152,12 @@ def table(per_team: dict[str, dict[str, dict]], specs: tuple[str, ...]) -> list[
 
 def main(argv: list[str] | None = None) -> int:
     parser = _Parser(prog=PROG, description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--rules", nargs="+", required=True, help="the rules to compare with the nearest-group rule")
+    parser.add_argument(
+        "--adversaries",
+        nargs="+",
+        required=True,
+        help="rules, intercept:FIELD=VALUE,... settings or trained adversaries to compare with the nearest-group rule",
+    )
     parser.add_argument(
         "--teams",
         default="every-row",
@@ -146,7 +168,12 @@ def main(argv: list[str] | None = None) -> int:
         "--seed", type=int, default=GAME_VALIDATION_SEED, help=f"the games' batch seed (default {GAME_VALIDATION_SEED})"
     )
     parser.add_argument("--workers", type=int, default=2, help="processes, one team each at a time (default 2)")
-    parser.add_argument("--policies-dir", type=Path, default=None, help="folder of the teams' files (default: shipped)")
+    parser.add_argument(
+        "--policies-dir",
+        type=Path,
+        default=None,
+        help="folder of the teams' files and their low levels' (default: shipped)",
+    )
     parser.add_argument(
         "--out", type=Path, default=DEFAULT_OUT, help=f"JSON report (default {display_path(DEFAULT_OUT)})"
     )
@@ -158,10 +185,10 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--seed={args.seed}: not a validation game seed [{VALIDATION.start}, {VALIDATION.stop})")
     teams = tuple(t.strip() for t in args.teams.split(","))
     teams = EVERY_ROW_POPULATION if teams == ("every-row",) else teams
-    specs = tuple(dict.fromkeys(args.rules))
+    specs = tuple(dict.fromkeys(args.adversaries))
     try:
         for spec in specs:  # every input checked before the long part
-            parse_rule(spec)
+            parse_adversary(spec)
         if not all(teams):
             raise ConfigError(f"--teams {args.teams!r}: a comma-separated list of names, none empty")
         load_population(AdversaryConfig(budget=Budget(iterations=1), teams=teams), args.policies_dir)
@@ -175,21 +202,22 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"[{done}/{len(teams)}] {name}: E {e} steps ({time.perf_counter() - start:.0f} s)", flush=True)
         lines = table(per_team, specs)
         report = {
-            "question": "E against each rule over E against the nearest-group rule, per Table V row",
+            "question": "E against each adversary over E against the nearest-group rule, per Table V row",
             "protocol": {
                 "episodes": args.episodes,
                 "seed": args.seed,
                 "seed_block": "validation",
                 "baseline": BASELINE,
-                "obstacles": "every rule steers round them (the game's rule)",
+                "obstacles": "a rule steers round them, a trained adversary is penalised inside them (the game's)",
+                "trained_adversary": "its mean action",
                 "row_ratio": "team E summed over the row's training seeds, over the same sum against the baseline",
             },
-            "rules": {spec: str(parse_rule(spec)) for spec in specs},
+            "adversaries": {spec: _describe(spec) for spec in specs},
             "per_team": per_team,
             "per_row": {spec: per_row_ratios(per_team, spec) for spec in specs},
             "table": lines,
             "wall_s": round(time.perf_counter() - start, 1),
-            "command": shlex.join(["python", "benchmarks/adversary_rules.py", *argv]),
+            "command": shlex.join(["python", "benchmarks/adversary_strength.py", *argv]),
             "provenance": {"commit": git_commit(), "library_versions": library_versions()},
         }
         write_atomic(args.out, json.dumps(report, indent=2) + "\n")
