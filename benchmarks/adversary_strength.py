@@ -49,6 +49,7 @@ from cefc_mj.train.config import Budget
 PROG = "adversary_strength"
 EXIT_USAGE = 2
 BASELINE = "nearest_group"
+SMOKE_TEAMS, SMOKE_EPISODES = ("cihrl_mappo", "rule-split"), 2
 NAMED_RULES = tuple(rule for rule in ADVERSARY_RULES if rule != "none")
 DEFAULT_OUT = paths.PROJECT_ROOT / "runs" / "adversary_strength" / "adversary_rules.json"
 
@@ -175,6 +176,11 @@ def main(argv: list[str] | None = None) -> int:
         help="folder of the teams' files and their low levels' (default: shipped)",
     )
     parser.add_argument(
+        "--smoke",
+        action="store_true",
+        help=f"{SMOKE_EPISODES} games against {', '.join(SMOKE_TEAMS)}: the same code path",
+    )
+    parser.add_argument(
         "--out", type=Path, default=DEFAULT_OUT, help=f"JSON report (default {display_path(DEFAULT_OUT)})"
     )
     argv = list(sys.argv[1:] if argv is None else argv)
@@ -185,6 +191,8 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--seed={args.seed}: not a validation game seed [{VALIDATION.start}, {VALIDATION.stop})")
     teams = tuple(t.strip() for t in args.teams.split(","))
     teams = EVERY_ROW_POPULATION if teams == ("every-row",) else teams
+    if args.smoke:
+        teams, args.episodes = SMOKE_TEAMS, SMOKE_EPISODES
     specs = tuple(dict.fromkeys(args.adversaries))
     try:
         for spec in specs:  # every input checked before the long part

@@ -79,20 +79,20 @@ def test_a_run_writes_the_per_team_and_per_row_figures(tmp_path):
     out = tmp_path / "sweep" / "rules.json"
     result = _run(
         "--adversaries", "intercept", "nearest_group_intercept", "intercept:strike_at=any", TRAINED,
-        "--teams", f"{LEARNED},rule-split", "--episodes", "3", "--workers", "2", "--out", str(out),
+        "--smoke", "--workers", "2", "--out", str(out),
     )  # fmt: skip
     assert result.returncode == 0, result.stderr
     report = json.loads(out.read_text())
     assert set(report["per_team"]) == {LEARNED, "rule-split"}
-    assert report["protocol"]["seed_block"] == "validation" and report["protocol"]["episodes"] == 3
+    assert report["protocol"]["seed_block"] == "validation" and report["protocol"]["episodes"] == 2
     # the figures are evaluate_adversary's on the same games, each team over its own low level
     cfg = AdversaryConfig(budget=Budget(iterations=1), teams=(LEARNED,))
     population, _, low_level, interval, _ = load_population(cfg)
-    direct = evaluate_adversary("nearest_group_intercept", population[LEARNED], low_level, cfg.task(), 3, 200, interval)
+    direct = evaluate_adversary("nearest_group_intercept", population[LEARNED], low_level, cfg.task(), 2, 200, interval)
     figures = report["per_team"][LEARNED]
     assert figures["intercept"]["E"] == figures["nearest_group_intercept"]["E"] == direct["E"]
     trained = evaluate_adversary(
-        resolve_adversary(TRAINED)[1], population[LEARNED], low_level, cfg.task(), 3, 200, interval
+        resolve_adversary(TRAINED)[1], population[LEARNED], low_level, cfg.task(), 2, 200, interval
     )
     assert figures[TRAINED]["E"] == trained["E"]
     assert report["adversaries"][TRAINED]["policy"] == f"{TRAINED}.pt"
