@@ -28,6 +28,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import multiprocessing
 import re
 import shlex
 import sys
@@ -203,7 +204,8 @@ def main(argv: list[str] | None = None) -> int:
         make_writable_folder(args.out.parent)
         start, per_team = time.perf_counter(), {}
         jobs = [(name, specs, args.episodes, args.seed, args.policies_dir) for name in teams]
-        with ProcessPoolExecutor(args.workers) as pool:
+        # spawn: a forked child of a parent that has loaded torch and numba can hang
+        with ProcessPoolExecutor(args.workers, mp_context=multiprocessing.get_context("spawn")) as pool:
             for done, (name, figures) in enumerate(pool.map(_team_figures, jobs), 1):
                 per_team[name] = figures
                 e = " ".join(f"{figures[s]['E']:.1f}" for s in (BASELINE, *specs))
