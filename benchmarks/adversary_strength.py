@@ -52,7 +52,7 @@ EXIT_USAGE = 2
 BASELINE = "nearest_group"
 SMOKE_TEAMS, SMOKE_EPISODES = ("cihrl_mappo", "rule-split"), 2
 NAMED_RULES = tuple(rule for rule in ADVERSARY_RULES if rule != "none")
-DEFAULT_OUT = paths.PROJECT_ROOT / "runs" / "adversary_strength" / "adversary_rules.json"
+DEFAULT_OUT = paths.PROJECT_ROOT / "runs" / "adversary_strength" / "adversary_strength.json"
 
 
 class _Parser(argparse.ArgumentParser):
@@ -63,17 +63,20 @@ class _Parser(argparse.ArgumentParser):
         raise SystemExit(EXIT_USAGE)
 
 
-def parse_adversary(spec: str):
-    """A rule's name, `intercept[:FIELD=VALUE,...]` as an InterceptRule, or a trained adversary's
-    `act` (`resolve_adversary`); CefcError naming the problem."""
+def parse_adversary(spec: str) -> tuple[object, object]:
+    """(what `evaluate_adversary` flies, what the report records) of an adversary: a rule's name (both
+    the name), `intercept[:FIELD=VALUE,...]` (an InterceptRule and its repr), or a trained adversary's
+    policy name or file (its `act` and `resolve_adversary`'s record: file name and checksum); CefcError
+    naming the problem."""
     if spec in NAMED_RULES:
-        return spec
+        return spec, spec
     name, _, settings = spec.partition(":")
     if name != "intercept":
         try:
-            return resolve_adversary(spec)[1]
+            _, act, record = resolve_adversary(spec)
         except CheckpointError as e:
             raise CheckpointError(f"--adversaries: {e}") from None
+        return act, record
     fields = {f.name: f for f in dataclasses.fields(InterceptRule)}
     values: dict[str, object] = {}
     for part in filter(None, settings.split(",")):
@@ -92,9 +95,10 @@ def parse_adversary(spec: str):
             except ValueError:
                 raise ConfigError(f"--adversaries {spec!r}: {key}={text!r} is not a number") from None
     try:
-        return InterceptRule(**values)
+        rule = InterceptRule(**values)
     except ValueError as e:
         raise ConfigError(f"--adversaries {spec!r}: {e}") from None
+    return rule, str(rule)
 
 
 def _team_figures(job: tuple[str, tuple[str, ...], int, int, Path | None]) -> tuple[str, dict[str, dict]]:
@@ -105,17 +109,10 @@ def _team_figures(job: tuple[str, tuple[str, ...], int, int, Path | None]) -> tu
     team = name if population[name] is None else population[name]
     return name, {
         spec: evaluate_adversary(
-            parse_adversary(spec), team, own.get(name, low_level), cfg.task(), episodes, seed, interval
+            parse_adversary(spec)[0], team, own.get(name, low_level), cfg.task(), episodes, seed, interval
         )
         for spec in (BASELINE, *specs)
     }
-
-
-def _describe(spec: str) -> object:
-    """What the report records of an adversary: the rule's settings or the trained file's name and checksum."""
-    if spec in NAMED_RULES or spec.partition(":")[0] == "intercept":
-        return str(parse_adversary(spec))
-    return resolve_adversary(spec)[2]
 
 
 def row_of(team: str) -> str | None:
@@ -196,8 +193,7 @@ def main(argv: list[str] | None = None) -> int:
         teams, args.episodes = SMOKE_TEAMS, SMOKE_EPISODES
     specs = tuple(dict.fromkeys(args.adversaries))
     try:
-        for spec in specs:  # every input checked before the long part
-            parse_adversary(spec)
+        records = {spec: parse_adversary(spec)[1] for spec in specs}  # every input checked before the long part
         if not all(teams):
             raise ConfigError(f"--teams {args.teams!r}: a comma-separated list of names, none empty")
         load_population(AdversaryConfig(budget=Budget(iterations=1), teams=teams), args.policies_dir)
@@ -222,7 +218,7 @@ def main(argv: list[str] | None = None) -> int:
                 "trained_adversary": "its mean action",
                 "row_ratio": "team E summed over the row's training seeds, over the same sum against the baseline",
             },
-            "adversaries": {spec: _describe(spec) for spec in specs},
+            "adversaries": records,
             "per_team": per_team,
             "per_row": {spec: per_row_ratios(per_team, spec) for spec in specs},
             "table": lines,

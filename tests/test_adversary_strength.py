@@ -6,13 +6,13 @@ errors with exit code 2 before any game is flown (`main` in-process; the real ru
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
+from benchmark_scripts import load_benchmark
 
 from cefc_mj.eval.highlevel import resolve_adversary
 from cefc_mj.task.adversary import InterceptRule
@@ -28,10 +28,7 @@ pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def _script():
-    spec = importlib.util.spec_from_file_location("adversary_strength", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("adversary_strength")
 
 
 def _run(*args: str) -> subprocess.CompletedProcess:
@@ -41,8 +38,11 @@ def _run(*args: str) -> subprocess.CompletedProcess:
 
 
 def test_rule_specs():
-    parse = _script().parse_adversary
-    assert parse("nearest_group_member") == "nearest_group_member"
+    def parse(spec):
+        return _script().parse_adversary(spec)[0]
+
+    assert _script().parse_adversary("nearest_group_member") == ("nearest_group_member", "nearest_group_member")
+    assert _script().parse_adversary("intercept")[1] == str(InterceptRule())
     assert parse("intercept") == InterceptRule()
     assert parse("intercept:strike_at=any,strike_distance=2.5") == InterceptRule(strike_at="any", strike_distance=2.5)
     assert parse("intercept:strike_distance=none,horizon=1") == InterceptRule(strike_distance=None, horizon=1.0)

@@ -6,7 +6,6 @@ one-line errors with exit code 2 for bad input."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import os
 import subprocess
@@ -15,6 +14,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from benchmark_scripts import load_benchmark
 
 from cefc_mj.hierarchy import load_low_level
 from cefc_mj.nn.consmac import consmac_loss
@@ -32,10 +32,7 @@ pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def _script():
-    spec = importlib.util.spec_from_file_location("consmac_convergence", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("consmac_convergence")
 
 
 def tiny_run(folder: Path, iterations: int = ITERATIONS) -> Path:
