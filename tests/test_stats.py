@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from cefc_mj.eval.highlevel import sitl_fidelity
-from cefc_mj.eval.stats import paired_difference, seed_interval, verdict, welch_p
+from cefc_mj.eval.highlevel import SEED_METRICS, _compare_with_reference, _fdr_lines, sitl_fidelity
+from cefc_mj.eval.stats import fdr_adjusted, paired_difference, seed_interval, verdict, welch_p
 
 
 def test_interval_is_students_t_and_needs_two_seeds():
@@ -48,3 +48,30 @@ def test_sitl_fidelity_targets():
     worse = {"R_t": np.array([90.0, 180.0]), "E": np.array([110.0, 126.0])}
     fid = sitl_fidelity(worse, ref, {"E": paired_difference(worse["E"], ref["E"])})
     assert not fid["R_t_met"] and not fid["E_met"]  # E limit 110 + 2, mean 118
+
+
+def test_fdr_adjusted_is_benjamini_hochberg_over_the_tested_comparisons():
+    # sorted 0.01, 0.03, 0.04, 0.2 -> m/rank x p = 0.04, 0.06, 0.0533, 0.2 -> running minimum from the top
+    q = fdr_adjusted([0.01, None, 0.04, 0.03, 0.2])
+    assert q[1] is None
+    assert q[0] == pytest.approx(0.04) and q[2] == pytest.approx(0.16 / 3) and q[3] == pytest.approx(0.16 / 3)
+    assert q[4] == pytest.approx(0.2)
+    assert fdr_adjusted([None]) == [None]
+
+
+def test_a_table_names_only_the_differences_that_survive_the_adjustment():
+    """Of two rows that differ from CI-HRL at p < 0.05, only the clear one holds over 4 comparisons."""
+    reference = [10.0, 11.0, 12.0, 10.5, 11.5]
+    clear = [5.0, 6.0, 5.5, 6.5, 5.2]  # p ~ 1e-5
+    borderline = [9.3, 10.4, 9.9, 10.6, 9.4]  # p 0.042, adjusted 0.084
+    noise = [10.2, 11.4, 11.6, 10.0, 11.1]
+    rows = {
+        name: {"training_seeds": {m: values for m in SEED_METRICS}}
+        for name, values in {"CI-HRL": reference, "A": clear, "B": borderline, "C": noise, "D": noise}.items()
+    }
+    _compare_with_reference(rows)
+    assert welch_p(borderline, reference) < 0.05 and rows["B"]["vs_reference"]["E"]["verdict"] == "better"
+    assert rows["B"]["vs_reference"]["E"]["p_fdr"] > 0.05 > rows["A"]["vs_reference"]["E"]["p_fdr"]
+    held = {line.split(":")[0].strip(): line for line in _fdr_lines(rows) if line.startswith("  ")}
+    assert set(held) == {"R_H", "R_t", "E"}
+    assert "A (better" in held["E"] and "B (" not in held["E"] and "A (worse" in held["R_H"]

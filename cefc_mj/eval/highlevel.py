@@ -390,8 +390,9 @@ def _adversary_strength(e_adversary: list[float], e_rule: list[float]) -> dict:
 
 
 def _compare_with_reference(rows: dict) -> None:
-    """row["vs_reference"]: per metric, Welch's p over training seeds against CI-HRL and the verdict."""
-    from cefc_mj.eval.stats import verdict, welch_p
+    """row["vs_reference"]: per metric, Welch's p over training seeds against CI-HRL, the verdict, and
+    p adjusted over every row compared on that metric (`p_fdr`, Benjamini-Hochberg)."""
+    from cefc_mj.eval.stats import fdr_adjusted, verdict, welch_p
 
     reference = rows.get(REFERENCE_METHOD, {}).get("training_seeds")
     if reference is None:
@@ -407,6 +408,10 @@ def _compare_with_reference(rows: dict) -> None:
                 for m in SEED_METRICS
             },
         }
+    compared = [row["vs_reference"] for row in rows.values() if "vs_reference" in row]
+    for m in SEED_METRICS:
+        for vs, q in zip(compared, fdr_adjusted([vs[m]["p"] for vs in compared])):
+            vs[m]["p_fdr"] = q
 
 
 @dataclass(frozen=True)
@@ -986,6 +991,7 @@ def seed_table_lines(result: dict) -> list[str]:
         "  ".join(cell.ljust(w) if i == 0 else cell.rjust(w) for i, (cell, w) in enumerate(zip(r, widths)))
         for r in table
     ]
+    lines += _fdr_lines(result["rows"])
     strength = {m: r["adversary_strength"] for m, r in result["rows"].items() if r.get("adversary_strength")}
     if strength:
         lines += [
@@ -1000,6 +1006,30 @@ def seed_table_lines(result: dict) -> list[str]:
             ),
         ]
     return lines
+
+
+def _fdr_lines(rows: dict) -> list[str]:
+    """Which differences from CI-HRL hold once p is adjusted over every row compared (per metric)."""
+    from cefc_mj.eval.stats import ALPHA
+
+    compared = {method: row["vs_reference"] for method, row in rows.items() if "vs_reference" in row}
+    if not compared:
+        return []
+
+    def held(m: str) -> str:
+        found = [
+            f"{method} ({vs[m]['verdict']}, adjusted p {vs[m]['p_fdr']:.3f})"
+            for method, vs in compared.items()
+            if vs[m].get("p_fdr") is not None and vs[m]["p_fdr"] < ALPHA
+        ]
+        return "; ".join(found) or "none"
+
+    return [
+        "",
+        f"Adjusted for the {len(compared)} comparisons per metric (Benjamini-Hochberg over the rows, "
+        f"scipy.stats.false_discovery_control), the differences from CI-HRL with adjusted p < {ALPHA}:",
+        *(f"  {m}: {held(m)}" for m in ("R_H", "R_t", "E")),
+    ]
 
 
 def table4_line(result: dict) -> str | None:

@@ -2,7 +2,10 @@
 interval, and the p-value of a Welch t-test against a reference method, both from scipy.stats.
 
 A method "beats" another on a metric only where p < ALPHA on the test games; otherwise the report
-says "no significant difference", whatever the sign of the difference."""
+says "no significant difference", whatever the sign of the difference. A table compares many methods
+with one reference, so `fdr_adjusted` also gives each metric's p-values adjusted over the table's
+comparisons (Benjamini-Hochberg, scipy.stats.false_discovery_control): the differences that hold
+once about one chance "difference" in twenty comparisons is allowed for."""
 
 from __future__ import annotations
 
@@ -37,6 +40,17 @@ def welch_p(values, reference) -> float | None:
     if a.size < 2 or b.size < 2 or (a.std() == 0 and b.std() == 0):
         return None
     return float(stats.ttest_ind(a, b, equal_var=False).pvalue)
+
+
+def fdr_adjusted(p_values) -> list[float | None]:
+    """Benjamini-Hochberg adjusted p-values of a family of comparisons (None entries, comparisons that
+    could not be tested, stay None and do not count in the family)."""
+    tested = [i for i, p in enumerate(p_values) if p is not None]
+    adjusted: list[float | None] = [None] * len(p_values)
+    if tested:
+        for i, q in zip(tested, stats.false_discovery_control([p_values[i] for i in tested], method="bh")):
+            adjusted[i] = float(q)
+    return adjusted
 
 
 def verdict(values, reference, higher_is_better: bool) -> str:
