@@ -78,3 +78,5 @@ def test_command_writes_the_figure_and_refuses_bad_input(runs, tmp_path):
         done = subprocess.run(cmd[:3] + bad, capture_output=True, text=True, timeout=120)
         assert done.returncode == 2 and says in done.stderr and len(done.stderr.strip().splitlines()) == 1, done.stderr
     assert not (tmp_path / "x").exists()
+    shown = subprocess.run(cmd[:3] + ["--help"], capture_output=True, text=True, timeout=120).stdout
+    assert "95 % band" in shown and "%%" not in shown  # the description is printed as written

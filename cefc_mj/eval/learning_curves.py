@@ -226,7 +226,7 @@ def summary(curves: dict[str, dict], labels: dict[str, str], smooth: int, comman
 def build_parser() -> argparse.ArgumentParser:
     p = OneLineParser(
         prog="python -m cefc_mj.eval.learning_curves",
-        description="Draw training curves (mean and 95 %% band over seeds) from `cefc-train highlevel` runs: "
+        description="Draw training curves (mean and 95 % band over seeds) from `cefc-train highlevel` runs: "
         "the paper's Fig. 7 (ConsMAC's ablations) or Fig. 6 (communication methods).",
     )
     p.add_argument("runs", nargs="+", type=Path, help="run folders, or folders holding run folders")
