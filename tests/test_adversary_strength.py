@@ -38,17 +38,19 @@ def _run(*args: str) -> subprocess.CompletedProcess:
 
 
 def test_rule_specs():
-    def parse(spec):
-        return _script().parse_adversary(spec)[0]
+    script = _script()  # executed once: every call below reads the same module
 
-    assert _script().parse_adversary("nearest_group_member") == ("nearest_group_member", "nearest_group_member")
-    assert _script().parse_adversary("intercept")[1] == str(InterceptRule())
+    def parse(spec):
+        return script.parse_adversary(spec)[0]
+
+    assert script.parse_adversary("nearest_group_member") == ("nearest_group_member", "nearest_group_member")
+    assert script.parse_adversary("intercept")[1] == str(InterceptRule())
     assert parse("intercept") == InterceptRule()
     assert parse("intercept:strike_at=any,strike_distance=2.5") == InterceptRule(strike_at="any", strike_distance=2.5)
     assert parse("intercept:strike_distance=none,horizon=1") == InterceptRule(strike_distance=None, horizon=1.0)
-    assert _script().row_of("cihrl_consmac_a_clm_seed2_wo_ft") == "CI-HRL-w-CL-M-wo-FT"
-    assert _script().row_of("cihrl_consmac_a_seed3") == "CI-HRL"
-    assert _script().row_of("rule-split") is None
+    assert script.row_of("cihrl_consmac_a_clm_seed2_wo_ft") == "CI-HRL-w-CL-M-wo-FT"
+    assert script.row_of("cihrl_consmac_a_seed3") == "CI-HRL"
+    assert script.row_of("rule-split") is None
 
 
 @pytest.mark.parametrize(
