@@ -40,7 +40,7 @@ def runs(tmp_path):
 
 
 def test_groups_mean_band_and_truncation(runs):
-    curves = lc.group_curves([lc.read_run(f) for f in lc.find_runs([runs])], smooth=3)
+    curves = lc.group_curves([lc.read_run(f) for f, _ in lc.find_runs([runs])], smooth=3)
     assert list(curves) == ["cihrl_consmac_a", "cihrl_consmac_a_wo_com"]
     a = curves["cihrl_consmac_a"]
     assert a["seeds"] == [0, 1, 2] and a["episodes"].size == 10  # the shortest seed's length
@@ -80,3 +80,29 @@ def test_command_writes_the_figure_and_refuses_bad_input(runs, tmp_path):
     assert not (tmp_path / "x").exists()
     shown = subprocess.run(cmd[:3] + ["--help"], capture_output=True, text=True, timeout=120).stdout
     assert "95 % band" in shown and "%%" not in shown  # the description is printed as written
+
+
+def _benchmarl_run(folder):
+    """A run of `cefc-train highlevel-benchmarl` (its progress.csv has other columns)."""
+    folder.mkdir(parents=True)
+    (folder / "progress.csv").write_text("iteration,frames,episodes,episode_return\n1,800,20,-77809.5\n")
+    return folder
+
+
+def test_other_trainers_runs_beside_them_are_skipped_and_named_ones_refused(runs, tmp_path):
+    """The training commands put BenchMARL's runs in the same folder: drawing that folder skips them
+    (and says so); naming one is refused in one line."""
+    bench = _benchmarl_run(runs / "benchmarl_masac")
+    out = tmp_path / "all"
+    cmd = [sys.executable, "-m", "cefc_mj.eval.learning_curves"]
+    done = subprocess.run([*cmd, str(runs), "--out", str(out)], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert "skipped: benchmarl_masac" in done.stdout
+    assert "Skipped (not `cefc-train highlevel` logs): benchmarl_masac." in (out / "README.md").read_text()
+    assert {r["group"] for r in csv.DictReader((out / "curves.csv").open())} == {
+        "cihrl_consmac_a",
+        "cihrl_consmac_a_wo_com",
+    }
+    done = subprocess.run([*cmd, str(bench), "--out", str(tmp_path / "x")], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2 and "not a high-level training log" in done.stderr, done.stderr
+    assert len(done.stderr.strip().splitlines()) == 1 and not (tmp_path / "x").exists()

@@ -74,21 +74,31 @@ class Run:
     """progress.csv's numeric columns (iteration, episodes_total, phase, METRICS ...)."""
 
 
-def find_runs(paths: list[Path]) -> list[Path]:
-    """Run folders (with progress.csv) among `paths` and their direct subfolders; ConfigError naming
-    a path that is neither."""
+def find_runs(paths: list[Path]) -> list[tuple[Path, bool]]:
+    """Run folders (with progress.csv) among `paths` and their direct subfolders, each with whether it
+    was named itself (True) or found inside a named folder; ConfigError naming a path that is neither."""
     found = []
     for path in paths:
         if (path / "progress.csv").is_file():
-            found.append(path)
+            found.append((path, True))
             continue
         if not path.is_dir():
             raise ConfigError(f"{path}: not a folder")
         inner = sorted(p for p in path.iterdir() if (p / "progress.csv").is_file())
         if not inner:
             raise ConfigError(f"{path}: no training run (a folder with progress.csv) in it or under it")
-        found += inner
+        found += [(p, False) for p in inner]
     return found
+
+
+def run_group(folder: Path) -> tuple[str, int]:
+    """A run folder's group (its name without `_seed<k>`) and seed."""
+    match = SEED_SUFFIX.search(folder.name)
+    return (folder.name[: match.start()], int(match.group(1))) if match else (folder.name, 0)
+
+
+class NotAHighLevelLog(ConfigError):
+    """A progress.csv without the columns of `cefc-train highlevel` (e.g. a BenchMARL run's)."""
 
 
 def read_run(folder: Path) -> Run:
@@ -99,16 +109,14 @@ def read_run(folder: Path) -> Run:
         raise ConfigError(f"{folder / 'progress.csv'}: unreadable ({e})") from None
     needed = ("iteration", "episodes_total", *METRICS)
     if not rows or any(k not in rows[0] for k in needed):
-        raise ConfigError(
+        raise NotAHighLevelLog(
             f"{folder / 'progress.csv'}: not a high-level training log (needs columns {', '.join(needed)})"
         )
     columns = {}
     for key in (*needed, "phase"):
         if key in rows[0]:
             columns[key] = np.array([float(r[key]) if r[key] not in ("", None) else math.nan for r in rows])
-    match = SEED_SUFFIX.search(folder.name)
-    group = folder.name[: match.start()] if match else folder.name
-    return Run(folder, group, int(match.group(1)) if match else 0, columns)
+    return Run(folder, *run_group(folder), columns)
 
 
 def _smooth(x: np.ndarray, k: int) -> np.ndarray:
@@ -193,8 +201,11 @@ def plot(curves: dict[str, dict], labels: dict[str, str], path: Path, title: str
     write_atomic(path, buf.getvalue())
 
 
-def summary(curves: dict[str, dict], labels: dict[str, str], smooth: int, command: str) -> str:
-    """Markdown: what was drawn, from which runs, and each group's final value per metric."""
+def summary(
+    curves: dict[str, dict], labels: dict[str, str], smooth: int, command: str, skipped: tuple[str, ...] = ()
+) -> str:
+    """Markdown: what was drawn, from which runs (and which runs found were not high-level logs), and
+    each group's final value per metric."""
     lines = [
         "# Training curves over seeds",
         "",
@@ -220,6 +231,8 @@ def summary(curves: dict[str, dict], labels: dict[str, str], smooth: int, comman
             + " | ".join(cells)
             + " |"
         )
+    if skipped:
+        lines += ["", f"Skipped (not `cefc-train highlevel` logs): {', '.join(skipped)}."]
     return "\n".join(lines) + "\n"
 
 
@@ -253,11 +266,22 @@ def main(argv: list[str] | None = None) -> int:
             raise ConfigError(f"--out {out}: exists and is not a folder")
         if not parent.is_dir() or not can_write_in(parent):
             raise ConfigError(f"--out {out}: cannot write in {parent}")
-        runs = [read_run(f) for f in find_runs(args.runs)]
+        folders = find_runs(args.runs)
         if args.figure != "all":
-            runs = [r for r in runs if r.group in FIGURES[args.figure]]
-            if not runs:
+            folders = [(f, named) for f, named in folders if run_group(f)[0] in FIGURES[args.figure]]
+            if not folders:
                 raise ConfigError(f"--figure {args.figure}: none of its runs ({', '.join(FIGURES[args.figure])}) found")
+        runs, skipped = [], []
+        for folder, named in folders:
+            try:
+                runs.append(read_run(folder))
+            except NotAHighLevelLog:
+                if named:
+                    raise
+                skipped.append(folder.name)  # another trainer's run beside them (BenchMARL's logs differ)
+        if not runs:
+            named = ", ".join(map(str, args.runs))
+            raise ConfigError(f"{named}: no high-level training run (skipped {', '.join(skipped)})")
         out.mkdir(exist_ok=True)
         curves = group_curves(runs, args.smooth)
         order = list(FIGURES.get(args.figure, {})) or list(curves)
@@ -271,13 +295,14 @@ def main(argv: list[str] | None = None) -> int:
         )
         write_csv(curves, out / "curves.csv")
         plot(curves, LABELS, out / "curves.png", title)
-        write_atomic(out / "README.md", summary(curves, LABELS, args.smooth, command))
+        write_atomic(out / "README.md", summary(curves, LABELS, args.smooth, command, tuple(skipped)))
         meta = {g: {"seeds": c["seeds"], "runs": c["runs"]} for g, c in curves.items()}
         write_atomic(out / "runs.json", json.dumps(meta, indent=1) + "\n")
     except CefcError as e:
         print(f"python -m cefc_mj.eval.learning_curves: error: {e}", file=sys.stderr)
         return EXIT_USAGE
-    print(f"{len(curves)} groups, {len(runs)} runs -> {display_run_path(out)}/curves.png, curves.csv, README.md")
+    note = f" ({len(skipped)} other runs skipped: {', '.join(skipped)})" if skipped else ""
+    print(f"{len(curves)} groups, {len(runs)} runs{note} -> {display_run_path(out)}/curves.png, curves.csv, README.md")
     return 0
 
 
