@@ -280,8 +280,8 @@ def main(argv: list[str] | None = None) -> int:
                     raise
                 skipped.append(folder.name)  # another trainer's run beside them (BenchMARL's logs differ)
         if not runs:
-            named = ", ".join(map(str, args.runs))
-            raise ConfigError(f"{named}: no high-level training run (skipped {', '.join(skipped)})")
+            given = ", ".join(map(str, args.runs))
+            raise ConfigError(f"{given}: no high-level training run (skipped {', '.join(skipped)})")
         out.mkdir(exist_ok=True)
         curves = group_curves(runs, args.smooth)
         order = list(FIGURES.get(args.figure, {})) or list(curves)
