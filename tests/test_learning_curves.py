@@ -106,3 +106,8 @@ def test_other_trainers_runs_beside_them_are_skipped_and_named_ones_refused(runs
     done = subprocess.run([*cmd, str(bench), "--out", str(tmp_path / "x")], capture_output=True, text=True, timeout=120)
     assert done.returncode == 2 and "not a high-level training log" in done.stderr, done.stderr
     assert len(done.stderr.strip().splitlines()) == 1 and not (tmp_path / "x").exists()
+    # a folder holding only other trainers' runs draws nothing: one line, exit 2
+    only = _benchmarl_run(tmp_path / "only" / "benchmarl_mappo").parent
+    done = subprocess.run([*cmd, str(only), "--out", str(tmp_path / "x")], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2 and "no high-level training run (skipped benchmarl_mappo)" in done.stderr, done.stderr
+    assert len(done.stderr.strip().splitlines()) == 1 and not (tmp_path / "x").exists()
