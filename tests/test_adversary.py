@@ -372,8 +372,7 @@ def _pressure(adversary) -> dict:
 
 
 SHIPPED_ADVERSARIES = ("adversary_ppo", "adversary_ppo_nearest_group_member", "adversary_ppo_nearest_group_intercept")
-"""The shipped PPO adversaries: the first generation's, Table V's, and the one the next generation of
-high levels trains against."""
+"""The shipped PPO adversaries: the first and previous generations', and the game's (Table V's)."""
 
 
 @pytest.mark.parametrize("name", SHIPPED_ADVERSARIES)

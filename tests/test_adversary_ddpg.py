@@ -245,7 +245,7 @@ def test_table6_flies_the_ddpg_adversary_once_trained_and_else_says_how(tmp_path
         policies / "cihrl_mappo.pt",
         meta={"name": "cihrl_mappo", "decision_interval": 10},
     )
-    for seed, name in enumerate(("adversary_ppo", GAME_ADVERSARY)):
+    for seed, name in enumerate(("adversary_ppo", "adversary_ppo_nearest_group_member", GAME_ADVERSARY)):
         save_adversary_policy(AdversaryPolicy(AdversaryNetConfig(), seed=seed), policies / f"{name}.pt")
     without = run_table6(episodes=1, policies_dir=policies, policy="cihrl_mappo")
     assert "DDPG" not in without["rows"]
@@ -255,7 +255,7 @@ def test_table6_flies_the_ddpg_adversary_once_trained_and_else_says_how(tmp_path
         AdversaryPolicy(AdversaryNetConfig(observes_goal=False), seed=1), policies / "adversary_ddpg.pt"
     )
     result = run_table6(episodes=1, policies_dir=policies, policy="cihrl_mappo")
-    assert list(result["rows"])[:3] == ["PPO", "PPO (first generation)", "DDPG"]
+    assert list(result["rows"])[:4] == ["PPO", "PPO (previous generation)", "PPO (first generation)", "DDPG"]
     assert not result["protocol"]["missing"]
     assert result["rows"]["DDPG"]["adversary_record"]["policy"] == "adversary_ddpg.pt"
     assert result["rows"]["DDPG"]["paper"] == {"R_t": 161.97, "R_e": -82.43, "E": 6.42}

@@ -48,7 +48,7 @@ def policies(tmp_path):
             folder / f"{name}.pt",
             meta={"name": name, "decision_interval": 10},
         )
-    for seed, name in enumerate(("adversary_ppo", GAME_ADVERSARY)):
+    for seed, name in enumerate(("adversary_ppo", "adversary_ppo_nearest_group_member", GAME_ADVERSARY)):
         save_adversary_policy(AdversaryPolicy(AdversaryNetConfig(), seed=seed), folder / f"{name}.pt")
     return folder
 
@@ -151,9 +151,17 @@ def test_the_evaluation_follows_the_policy_a_better_anchor_choice_scores_more():
 
 def test_table6_plays_one_policy_against_each_adversary(policies):
     result = run_table6(episodes=2, policies_dir=policies, policy="cihrl_mappo")
-    assert list(result["rows"]) == ["PPO", "PPO (first generation)", "R-Largest", "R-Nearest", "Nearest-group rule"]
+    assert list(result["rows"]) == [
+        "PPO",
+        "PPO (previous generation)",
+        "PPO (first generation)",
+        "R-Largest",
+        "R-Nearest",
+        "Nearest-group rule",
+    ]
     assert [r["adversary"] for r in result["rows"].values()] == [
         GAME_ADVERSARY,
+        "adversary_ppo_nearest_group_member",
         "adversary_ppo",
         "r_largest",
         "r_nearest",

@@ -86,7 +86,12 @@ meta records a per-group low level (`hierarchy.recorded_low_level`): the CI-HRL-
 the CL-M policy of each agent's group size (what they were fine-tuned with, and the paper's pairing)."""
 TABLE6_ROWS = (
     ("PPO", GAME_ADVERSARY, None),
-    ("PPO (first generation)", "adversary_ppo", "not in the paper: the previous game adversary (nearest_group_strike)"),
+    (
+        "PPO (previous generation)",
+        "adversary_ppo_nearest_group_member",
+        "not in the paper: the previous game adversary (nearest_group_member)",
+    ),
+    ("PPO (first generation)", "adversary_ppo", "not in the paper: the first game adversary (nearest_group_strike)"),
     ("DDPG", "adversary_ddpg", None),
     ("R-Largest", "r_largest", None),
     ("R-Nearest", "r_nearest", None),

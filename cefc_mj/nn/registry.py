@@ -33,10 +33,10 @@ DEFAULT_LOWLEVEL = "nav"
 AT-M-Nav of each c, the Step 3 policy fine-tuned with a larger navigation weight (docs/decisions.md)."""
 HIERARCHY_LOWLEVEL = STUDENT
 """The low level under every high level (training and the game tables)."""
-GAME_ADVERSARY = "adversary_ppo_nearest_group_member"
+GAME_ADVERSARY = "adversary_ppo_nearest_group_intercept"
 """The adversary of the high level's game (training, Tables V and VII): the PPO adversary that imitates
-the nearest-group-member rule; `adversary_ppo`, which imitates nearest_group_strike, was the previous
-generation's (docs/high_level.md)."""
+the nearest-group-intercept rule; `adversary_ppo_nearest_group_member` and `adversary_ppo` (imitating
+nearest_group_member and nearest_group_strike) were the previous generations' (docs/high_level.md)."""
 DISTILL_TEACHER = "step3"
 """The teachers `cefc-train distill` imitates by default (the paper's: AT-M Step 3)."""
 

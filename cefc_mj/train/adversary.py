@@ -95,8 +95,9 @@ DEFAULT_POPULATION = (
     *(f"{stem}{s}" for stem in ("cihrl_tarmac", "cihrl_consmac_a_dt", "cihrl_consmac_o") for s in _THREE),
     *RULE_TEAMS,
 )
-"""The population the shipped `adversary_ppo_nearest_group_member` was trained against: the methods of
-Table V's first rows over their training seeds (each over the shipped student), and the rule-driven teams."""
+"""The population `adversary_ppo_nearest_group_member` (the previous generation's adversary) was
+trained against: the methods of Table V's first rows over their training seeds (each over the shipped
+student), and the rule-driven teams."""
 EVERY_ROW_POPULATION = (
     *DEFAULT_POPULATION,
     *(
