@@ -4,7 +4,11 @@
 (item, result) as each finishes. Table VIII grids (`cefc_mj.eval.table8.run_grid`) and multi-seed
 training sweeps (`cefc_mj.train.sweep`) use it, so both run the same way on either executor:
 
-    local   a process pool of `workers` processes on this machine (1: one after another, in this process)
+    local   a process pool of `workers` processes on this machine (1: one after another, in this process),
+            started with "spawn": fresh interpreters, never a fork of a process whose threads (torch's,
+            numba's, ZeroMQ's, tqdm's monitor) may hold a lock the child would then wait on forever;
+            a pool whose workers use no CPU for `STALL_TIMEOUT_S` while jobs are pending ends the
+            map with `WorkersStalled` (one line), not a hang
     ray     one Ray task per item: on the cluster whose head is at `address`, or, without an address,
             on a Ray instance started here (bound to 127.0.0.1, `workers` CPUs, no dashboard, no usage
             statistics) and shut down when the map ends, also on Ctrl-C or an error
@@ -17,16 +21,19 @@ from __future__ import annotations
 
 import importlib.util
 import logging
+import multiprocessing
 import os
 import re
 import socket
+import sys
+import time
 from collections.abc import Callable, Iterator, Sequence
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any
 
-from cefc_mj.errors import ConfigError
+from cefc_mj.errors import CefcError, ConfigError
 
 EXECUTORS = ("local", "ray")
 """The executor kinds."""
@@ -40,6 +47,22 @@ FORWARDED_ENV = ("MKL_CBWR",)
 
 CONNECT_TIMEOUT_S = 10.0
 """How long to wait for the head's port to accept a connection before giving up on --address."""
+
+POOL_START_METHOD = "spawn"
+"""How the local pool starts its workers. A fork after the parent has started threads (a torch
+module run, a numba kernel, a ZeroMQ context, a progress bar's monitor) can copy a lock held by a
+thread that does not exist in the child, which then waits on it forever; a spawned worker is a
+fresh interpreter (it loads the compiled kernels from the disk cache, about a second)."""
+STALL_TIMEOUT_S = 300.0
+"""A local pool whose worker processes together use no CPU time for this long while jobs are pending
+is stalled (a deadlock, a stopped process): the map ends with `WorkersStalled`."""
+STALL_POLL_S = 5.0
+"""How often the local pool's progress is checked."""
+
+
+class WorkersStalled(CefcError, RuntimeError):
+    """The local pool's workers made no progress (no CPU time) for `STALL_TIMEOUT_S` with jobs pending."""
+
 
 _ADDRESS = re.compile(r"^(?P<host>[A-Za-z0-9_.-]+):(?P<port>[0-9]{1,5})$")
 
@@ -166,6 +189,7 @@ def map_unordered(
     executor: ExecutorConfig | None = None,
     mp_context=None,
     ray_options: dict | None = None,
+    stall_timeout_s: float | None = STALL_TIMEOUT_S,
 ) -> Iterator[tuple[Any, Any]]:
     """Yield (item, fn(item)) for every item, in completion order.
 
@@ -174,8 +198,9 @@ def map_unordered(
     wrapper removed), after the jobs not yet finished are cancelled. Closing the generator early (a
     break, an error or Ctrl-C in the caller) cancels the rest too: the local pool waits for the jobs
     already running; Ray stops its running tasks, and a Ray instance started here is shut down.
-    `mp_context`: the multiprocessing context of the local pool (default: the platform's).
+    `mp_context`: the multiprocessing context of the local pool (default: POOL_START_METHOD).
     `ray_options`: `ray.remote` options of each task (default one CPU each).
+    `stall_timeout_s`: the local pool's stall limit (default STALL_TIMEOUT_S; None: no limit).
     """
     executor = executor or ExecutorConfig()
     items = list(items)
@@ -185,13 +210,112 @@ def map_unordered(
         for item in items:
             yield item, fn(item)
     else:
-        pool = ProcessPoolExecutor(max_workers=min(executor.workers, len(items)), mp_context=mp_context)
+        context = mp_context or multiprocessing.get_context(POOL_START_METHOD)
+        tracker_was_running = _resource_tracker_running()
+        pool = ProcessPoolExecutor(max_workers=min(executor.workers, len(items)), mp_context=context)
         try:
             futures = {pool.submit(fn, item): item for item in items}
-            for future in as_completed(futures):
-                yield futures[future], future.result()
+            pending = set(futures)
+            watch = _ProgressWatch(pool, stall_timeout_s)
+            while pending:
+                done, pending = wait(pending, timeout=STALL_POLL_S, return_when=FIRST_COMPLETED)
+                for future in done:
+                    yield futures[future], future.result()
+                if done:
+                    watch.progressed()
+                else:
+                    watch.check(len(pending))
+        except WorkersStalled:
+            _kill_workers(pool)
+            raise
         finally:
             pool.shutdown(wait=True, cancel_futures=True)
+            if not tracker_was_running:
+                _stop_resource_tracker()
+
+
+def _resource_tracker_running() -> bool:
+    from multiprocessing import resource_tracker
+
+    return getattr(resource_tracker._resource_tracker, "_fd", None) is not None
+
+
+def _stop_resource_tracker() -> None:
+    """Stop the resource-tracker process a spawned pool starts (it watches the pool's semaphores, which
+    are gone once the pool is shut down), so that the map leaves no process of its own behind; the
+    next pool starts a new one."""
+    from multiprocessing import resource_tracker
+
+    try:
+        resource_tracker._resource_tracker._stop()  # (private, in CPython since 3.8)
+    except (AttributeError, OSError, ChildProcessError):
+        pass
+
+
+class _ProgressWatch:
+    """Whether a local pool's workers still use CPU time (Linux /proc; elsewhere psutil if installed,
+    otherwise no watch): a deadlocked or stopped worker uses none."""
+
+    def __init__(self, pool: ProcessPoolExecutor, timeout_s: float | None):
+        self.pool, self.timeout_s = pool, timeout_s
+        self.cpu_s = self._cpu_seconds()
+        self.since = time.monotonic()
+
+    def _cpu_seconds(self) -> float | None:
+        processes = getattr(self.pool, "_processes", None) or {}  # (no public accessor)
+        total = 0.0
+        for pid in list(processes):
+            seconds = _process_cpu_seconds(pid)
+            if seconds is None:
+                return None
+            total += seconds
+        return total
+
+    def progressed(self) -> None:
+        self.cpu_s, self.since = self._cpu_seconds(), time.monotonic()
+
+    def check(self, pending: int) -> None:
+        if self.timeout_s is None:
+            return
+        cpu_s = self._cpu_seconds()
+        if cpu_s is None or self.cpu_s is None or cpu_s - self.cpu_s > 0.05:
+            self.cpu_s, self.since = cpu_s, time.monotonic()
+            return
+        idle = time.monotonic() - self.since
+        if idle >= self.timeout_s:
+            raise WorkersStalled(
+                f"the {len(getattr(self.pool, '_processes', None) or {})} worker processes used no CPU for "
+                f"{idle:.0f} s with {pending} job(s) pending: stalled (deadlocked or stopped); rerun with --workers 1"
+            )
+
+
+def _process_cpu_seconds(pid: int) -> float | None:
+    """User + system CPU seconds of process `pid` and its reaped children; None when unknown."""
+    if sys.platform.startswith("linux"):
+        try:
+            stat = open(f"/proc/{pid}/stat").read()
+            fields = stat[stat.rindex(")") + 2 :].split()
+            return sum(int(f) for f in fields[11:15]) / os.sysconf("SC_CLK_TCK")  # utime stime cutime cstime
+        except (OSError, ValueError, IndexError):
+            return None
+    try:
+        import psutil
+    except ImportError:
+        return None
+    try:
+        times = psutil.Process(pid).cpu_times()
+    except psutil.Error:
+        return None
+    return times.user + times.system + times.children_user + times.children_system
+
+
+def _kill_workers(pool: ProcessPoolExecutor) -> None:
+    """SIGKILL a stalled pool's workers, so that shutting it down does not wait on them."""
+    for process in list((getattr(pool, "_processes", None) or {}).values()):
+        try:
+            process.kill()
+        except (OSError, AttributeError):
+            pass
 
 
 def _map_ray(fn, items: list, executor: ExecutorConfig, ray_options: dict) -> Iterator[tuple[Any, Any]]:

@@ -6,7 +6,9 @@ of a batch of episodes (Tables III and V-VII: one seed per batch of 50). The blo
 - TRAINING: every training episode; `train.mappo.iteration_seed` maps (run seed, iteration) into it.
 - VALIDATION: every choice (budgets, learning rates, which checkpoint, any selection among
   candidates) is made on these games.
-- TEST: the shipped comparison reports are flown once on these, after every choice is made.
+- TEST: the shipped comparison reports are flown once on these, after every choice is made. Every
+  flight of a test seed is recorded in the test ledger (`cefc_mj.eval.ledger`), and the test
+  batches reports use are declared below (TEST_BATCHES).
 - PROTOCOL: the paper's protocols as this project first flew them and the regression tests (Table VIII
   seeds 0..5, the batch seed 0 of Tables III and V-VII). Earlier choices looked at them, so they are
   kept for reproduction and regression, not for deciding.
@@ -50,7 +52,16 @@ BLOCKS = (PROTOCOL, VALIDATION, TEST, TRAINING)
 GAME_VALIDATION_SEED = 200
 """The batch seed of the game tables' validation games (50 episodes; VALIDATION)."""
 GAME_TEST_SEED = TEST.start
-"""The batch seed of the game tables' test games (50 episodes; TEST), the reports' default."""
+"""The batch seed of the game tables' test games (50 episodes; TEST) of the shipped Tables V-VII.
+Flown in several generations, and two adversary replacements were decided from its numbers
+(eval/test_ledger.jsonl): it no longer decides anything, see GAME_PREREGISTERED_TEST_SEED."""
+GAME_PREREGISTERED_TEST_SEED = 30_000
+"""The batch seed of the pre-registered Table V (docs/preregistration.md): never flown before that
+flight. A batch seed seeds one generator (`numpy.random.default_rng(seed)`) that draws every game of
+the batch at reset (`env.BatchedCEFCEnv.reset`), so two batch seeds give unrelated games, not shifted
+copies (tests/test_test_ledger.py compares the layouts of this batch with 10000's and 200's). 30000
+rather than 10001 keeps clear of the one-game-per-seed protocols too, which fly seed, seed + 1, ...
+(the SITL-M game study flew 20000..20099)."""
 TABLE8_TEST_SEEDS = TEST.seeds(20)
 """The Table VIII test block: episode seeds 10000..10019 of every c and condition."""
 
@@ -58,3 +69,69 @@ TABLE8_TEST_SEEDS = TEST.seeds(20)
 def block_of(seed: int) -> str:
     """The name of the block holding `seed` ("outside" for a seed no block holds)."""
     return next((block.name for block in BLOCKS if seed in block), "outside")
+
+
+GAME_FAMILY, FORMATION_FAMILY = "game", "formation"
+PROTOCOL_FAMILY = {
+    "table5": GAME_FAMILY,
+    "table6": GAME_FAMILY,
+    "table7": GAME_FAMILY,
+    "table5-sitl-m": GAME_FAMILY,
+    "table8": FORMATION_FAMILY,
+    "single": FORMATION_FAMILY,
+}
+"""Which games a protocol's seeds draw: the high level's game (Tables V-VII, the SITL-M game) or the
+low level's formation episodes (Table VIII, cefc-eval single). The same seed in one family is treated
+as the same games (a batch seed and a one-game seed share their first draws), in two families as
+unrelated games."""
+BATCH_SEEDED = frozenset({"table5", "table6", "table7"})
+"""Protocols whose --seed seeds one batch of games; the others fly one game per seed, seed + k."""
+
+
+@dataclass(frozen=True)
+class TestBatch:
+    """A batch of test-block games that shipped or planned reports are flown on."""
+
+    name: str
+    """What the batch is for."""
+    family: str
+    """The games its seeds draw (PROTOCOL_FAMILY's values)."""
+    first: int
+    """Its first seed."""
+    count: int
+    """Seeds first..first + count - 1 (a game-table batch: its one batch seed)."""
+    status: str
+    """Where it stands: flown, tainted (a flight informed a change), or reserved."""
+
+    __test__ = False  # not a pytest test class, whatever its name
+
+    @property
+    def seeds(self) -> range:
+        return range(self.first, self.first + self.count)
+
+
+TEST_BATCHES = (
+    TestBatch(
+        "Tables V-VII (shipped)",
+        GAME_FAMILY,
+        GAME_TEST_SEED,
+        1,
+        "flown in four generations; two flights informed adversary replacements (eval/test_ledger.jsonl)",
+    ),
+    TestBatch(
+        "Table V (pre-registered)",
+        GAME_FAMILY,
+        GAME_PREREGISTERED_TEST_SEED,
+        1,
+        "reserved: never flown; flown once by the pre-registered comparison (docs/preregistration.md)",
+    ),
+    TestBatch(
+        "SITL-M game fidelity",
+        GAME_FAMILY,
+        20_000,
+        100,
+        "flown in three generations; 20-game studies on its first 20 seeds decided the study's size",
+    ),
+    TestBatch("Table VIII", FORMATION_FAMILY, TABLE8_TEST_SEEDS[0], len(TABLE8_TEST_SEEDS), "flown once"),
+)
+"""Every test batch a shipped or planned report uses, in one place."""

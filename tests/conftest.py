@@ -17,6 +17,16 @@ if signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
     signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
+@pytest.fixture(autouse=True, scope="session")
+def _test_ledger_outside_the_repository(tmp_path_factory):
+    """A run that flies a test-block seed appends to the test ledger (cefc_mj/eval/ledger.py): in the
+    tests that is a temporary file, never the repository's eval/test_ledger.jsonl (subprocesses inherit
+    it)."""
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv("CEFC_TEST_LEDGER", str(tmp_path_factory.mktemp("ledger") / "test_ledger.jsonl"))
+        yield
+
+
 @pytest.fixture
 def one_torch_thread():
     """Small networks: one torch thread is faster than two fighting over a loaded machine, and does

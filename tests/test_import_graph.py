@@ -26,7 +26,7 @@ LAYERS = (
     ("evaluation", ("eval",)),
     ("applications", ("train", "viz")),
     ("deployment", ("deploy",)),
-    ("front ends", ("__init__", "pettingzoo_env", "cli")),
+    ("front ends", ("__init__", "pettingzoo_env", "suite", "cli")),
 )
 """A module may import from its own layer and the layers below, never from one above."""
 

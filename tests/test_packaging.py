@@ -133,6 +133,11 @@ def test_wheel_carries_code_and_runtime_data_only(built):
     assert "cefc_mj-0.1.0.dist-info/licenses/LICENSE" in names
     scripts = zipfile.ZipFile(built.wheel).read("cefc_mj-0.1.0.dist-info/entry_points.txt").decode()
     assert "cefc-eval = cefc_mj.cli.eval:main" in scripts and "cefc-train = cefc_mj.cli.train:main" in scripts
+    assert "cefc-view = cefc_mj.cli.view:main" in scripts
+    # dm-control is the `dm-control` extra (and in `test`), not a dependency of the core
+    requires = [line for line in meta.splitlines() if line.startswith("Requires-Dist: dm-control")]
+    assert requires and all("extra ==" in line for line in requires), requires
+    assert {'extra == "dm-control"', 'extra == "test"'} <= {line.split("; ")[-1] for line in requires}, requires
 
 
 def test_wheel_from_sdist_matches_wheel_from_tree(built):

@@ -167,3 +167,20 @@ def test_read_only_install_and_home_fall_back_to_the_temp_folder(tmp_path, can_m
     assert cached and cached[0].relative_to(temp).parts[0].startswith("cefc-mj-numba-")
     warm = _read_only_package(ONE_KERNEL, env, [home])
     assert COMPILE_NOTICE not in warm.stderr, warm.stderr
+
+
+def test_processes_compiling_into_one_cold_cache_at_once(tmp_path):
+    """SITL-M's agents, a pool's workers, two users' runs: several processes may compile the same kernel
+    into one empty cache at the same moment. numba writes each cache file to a temporary name and
+    renames it into place, so every process gets the right result and a later process loads it."""
+    env = _env(NUMBA_CACHE_DIR=str(tmp_path / "numba"))
+    racing = [
+        subprocess.Popen([sys.executable, "-c", ONE_KERNEL], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+        for _ in range(4)
+    ]
+    outputs = [p.communicate(timeout=300) for p in racing]
+    assert [p.returncode for p in racing] == [0] * 4, [err[-2000:] for _, err in outputs]
+    assert {out.decode().strip() for out, _ in outputs} == {"[[0, 0, 2]]"}
+    assert _cached(tmp_path / "numba", "kernels.groups_kernel")
+    later = _run(ONE_KERNEL, env)
+    assert COMPILE_NOTICE not in later.stderr and later.stdout.strip() == "[[0, 0, 2]]", later.stderr

@@ -20,7 +20,7 @@ import sys
 from pathlib import Path
 
 from cefc_mj.cli import eval_game, eval_single, eval_table3, eval_table8
-from cefc_mj.cli.eval_common import EXIT_INTERRUPTED, EXIT_USAGE, PROG
+from cefc_mj.cli.eval_common import EXIT_INTERRUPTED, EXIT_NOT_A_RESULT, EXIT_USAGE, PROG
 from cefc_mj.cli.eval_single import single_table
 from cefc_mj.cli.eval_table8 import is_shipped_reports
 from cefc_mj.errors import CefcError, ConfigError
@@ -278,6 +278,14 @@ def build_parser() -> argparse.ArgumentParser:
         "default)",
     )
     p.add_argument(
+        "--policies-dir",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="table5 over every method: read the rows' policy files (<stem>.pt, <stem>_seed<k>.pt) from DIR "
+        "instead of the shipped policies/ (docs/preregistration.md)",
+    )
+    p.add_argument(
         "--fresh",
         action="store_true",
         help="table8 only: fly every episode anew; an existing cell file is moved aside, not reused",
@@ -365,6 +373,8 @@ def refuse_flags(args: argparse.Namespace) -> None:
             f"--report-dir: only --protocol table8, table5, table6 and table7 write a report folder "
             f"({proto} writes --json only)"
         )
+    if args.policies_dir is not None and proto not in GAME_TABLES:
+        raise ConfigError(f"--policies-dir: only --protocol table5 reads its rows from another folder ({proto})")
     if args.fresh and proto != "table8":
         raise ConfigError("--fresh: only --protocol table8 keeps a cell cache")
     if proto != "table8":
@@ -418,6 +428,7 @@ def to_request(args: argparse.Namespace) -> SingleRequest | Table8Request | Tabl
                 policy=args.policy,
                 adversary=args.adversary,
                 workers=args.workers,
+                policies_dir=args.policies_dir,
             ),
         )
     grid = _given(
@@ -486,7 +497,8 @@ def main(argv: list[str] | None = None) -> int:
         return runner.run(request, provenance, command)
     except CefcError as e:
         print(f"{PROG}: error: {e}", file=sys.stderr)
-        return EXIT_USAGE
+        # agents that could not start, diverged physics, a stalled pool: no result; a bad value: usage
+        return EXIT_NOT_A_RESULT if isinstance(e, RuntimeError) else EXIT_USAGE
     except KeyboardInterrupt:
         print(f"\n{PROG}: interrupted; finished episodes were kept", file=sys.stderr)
         return EXIT_INTERRUPTED

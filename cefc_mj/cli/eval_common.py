@@ -14,6 +14,25 @@ PROG = "cefc-eval"
 EXIT_USAGE = 2
 EXIT_OUTPUT = 1
 EXIT_INTERRUPTED = 130
+EXIT_NOT_A_RESULT = 3
+"""An episode lost agents, failed safe or diverged without being asked to: the table is written, its
+faulted cells marked, and the run is not a result."""
+
+
+def report_faults(lines: list[str], requested: str | None = None) -> int:
+    """Print one line per fault cause on stderr and a verdict; returns EXIT_NOT_A_RESULT when there
+    are any, 0 otherwise. `requested`: what the user asked for that faults may come from (e.g. the
+    --drop flag), named in the verdict."""
+    for line in lines:
+        print(f"{PROG}: fault: {line}", file=sys.stderr)
+    if not lines:
+        return 0
+    print(
+        f"{PROG}: error: {len(lines)} fault(s) above: the marked cells are not a measurement of the policy"
+        + (f" (faults requested with {requested} are expected and not counted)" if requested else ""),
+        file=sys.stderr,
+    )
+    return EXIT_NOT_A_RESULT
 
 
 def write_outputs(writes: list[tuple[Path, object]]) -> list[Path]:

@@ -7,7 +7,14 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from cefc_mj.cli.eval_common import PROG, deploy_runners, sitl_config, wind_direction_text, write_outputs
+from cefc_mj.cli.eval_common import (
+    PROG,
+    deploy_runners,
+    report_faults,
+    sitl_config,
+    wind_direction_text,
+    write_outputs,
+)
 from cefc_mj.errors import ConfigError
 from cefc_mj.eval.highlevel import (
     GAME_AGENTS,
@@ -25,6 +32,7 @@ from cefc_mj.eval.highlevel import (
     run_table6,
     run_table7,
 )
+from cefc_mj.eval.ledger import record_if_test
 from cefc_mj.eval.requests import GameTablesRequest
 from cefc_mj.eval.runner import provenance
 from cefc_mj.hierarchy import DECISION_INTERVAL, load_low_level
@@ -43,7 +51,7 @@ def check(request: GameTablesRequest) -> dict:
                 "similarity to draw; drop --png"
             )
     if request.protocol in ("table5", "table7"):  # a missing or broken adversary file fails before any episode
-        resolve_adversary(request.played_adversary)
+        resolve_adversary(request.played_adversary, request.policies_dir)
     return provenance("atm", [])  # the tables record each row's file and sha256 themselves
 
 
@@ -67,7 +75,11 @@ def run(request: GameTablesRequest, prov: dict, command: str) -> int:
         return _run_sitl_game(request, common, command)
     if proto == "table5":
         result = run_table5(
-            policy=request.policy, adversary=request.played_adversary, workers=request.workers, **common
+            policy=request.policy,
+            adversary=request.played_adversary,
+            workers=request.workers,
+            policies_dir=request.policies_dir,
+            **common,
         )
     elif proto == "table6":
         result = run_table6(policy=request.played_policy, **common)
@@ -76,6 +88,8 @@ def run(request: GameTablesRequest, prov: dict, command: str) -> int:
     result["protocol"]["command"] = command
     text = format_highlevel_table(result)
     print(text)
+    report = None if request.report_dir is None else request.report_dir / f"{proto}.json"
+    record_if_test(proto, request.seed, request.episodes, command, prov, (report, request.json))
     data = json.dumps(result, indent=2) + "\n"
     writes: list[tuple[Path, object]] = []
     if request.report_dir is not None:
@@ -116,6 +130,10 @@ def _run_sitl_game(request: GameTablesRequest, common: dict, command: str) -> in
     result["protocol"]["command"] = command
     text = format_sitl_game(result)
     print(text)
+    report = None if request.report_dir is None else request.report_dir / "table5_sitl_m.json"
+    record_if_test(
+        "table5-sitl-m", request.seed, request.episodes, command, common["provenance"], (report, request.json)
+    )
     data = json.dumps(result, indent=2, default=float) + "\n"
     writes: list[tuple[Path, object]] = []
     if request.report_dir is not None:
@@ -132,7 +150,8 @@ def _run_sitl_game(request: GameTablesRequest, common: dict, command: str) -> in
     if recorded:
         for path in _record_sitl_game(request, recorded[0], result["protocol"]["low_level"]):
             print(f"wrote {path}")
-    return 0
+    rows = result["rows"].items()
+    return report_faults([f"{label}, {line}" for label, row in rows for line in row.get("faults", [])])
 
 
 def _record_sitl_game(request: GameTablesRequest, game, low_level: dict) -> list[Path]:

@@ -15,16 +15,20 @@ from cefc_mj.cli.eval_common import (
     EXIT_INTERRUPTED,
     PROG,
     deploy_runners,
+    report_faults,
     rotor_text,
     sitl_config,
     wind_direction_text,
     write_outputs,
 )
+from cefc_mj.eval.ledger import record_if_test
 from cefc_mj.eval.requests import SingleRequest
 from cefc_mj.eval.runner import (
     TABLE8_STEPS as PAPER_STEPS,
     EpisodeSpec,
+    cell_flag,
     condition_name,
+    fault_lines,
     format_mean_std,
     provenance,
     retention,
@@ -115,13 +119,6 @@ def run(request: SingleRequest, prov: dict, command: str) -> int:
                     [specs[i] for i in indices], workers=request.workers, record=record, **how
                 ):
                     i = indices[j]
-                    spec = specs[i]
-                    if result.diverged:
-                        tqdm.write(
-                            f"c={spec.formation} seed={spec.seed} {spec.condition}: simulation diverged at "
-                            f"step {result.steps} ({result.diverged}); episode stopped",
-                            file=sys.stderr,
-                        )
                     if result.record is not None:
                         recorded += _emit_record(result.record, request, many=len(formations) * episodes > 1)
                     finished[i] = result.to_dict()
@@ -169,10 +166,12 @@ def run(request: SingleRequest, prov: dict, command: str) -> int:
     print(single_table(summary))
     for line in _sitl_and_dropout_lines(table, condition):
         print(line)
+    record_if_test("single", request.seed, episodes, command, prov, (request.json,))
     write_outputs([(request.json, json.dumps(summary, indent=2) + "\n")] if request.json is not None else [])
     for path in recorded:
         print(f"wrote {path}" + (f"  (open with: rerun {path})" if path.suffix == ".rrd" else ""))
-    return EXIT_INTERRUPTED if interrupted else 0
+    faulted = report_faults(fault_lines(table), "--drop" if request.drop is not None else None)
+    return EXIT_INTERRUPTED if interrupted else faulted
 
 
 # ---------------------------------------------------------------------------- the table
@@ -234,11 +233,10 @@ def single_table(summary: dict) -> str:
         calm = cells.get("SITL-S")
         if components and cond in cells:
             cell = cells[cond]
-            diverged = f" ({cell['diverged']} diverged)" if cell["diverged"] else ""
-            add(c, "ours", cond + diverged, cell, cell["retention"], cell["retention_note"])
+            add(c, "ours", cond + cell_flag(cell), cell, cell["retention"], cell["retention_note"])
         if calm:
             ret, note = cells["SITL-S"]["retention"], cells["SITL-S"]["retention_note"]
-            add(c, "ours", "SITL-S" + (" (calm reference)" if components else ""), calm, ret, note)
+            add(c, "ours", "SITL-S" + (" (calm reference)" if components else "") + cell_flag(calm), calm, ret, note)
         names = ["SITL-S"] + components
         found = False
         for name in names:

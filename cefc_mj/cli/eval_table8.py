@@ -11,10 +11,19 @@ from pathlib import Path
 from tqdm import tqdm
 
 from cefc_mj import paths
-from cefc_mj.cli.eval_common import EXIT_INTERRUPTED, PROG, deploy_runners, rotor_text, sitl_config, write_outputs
+from cefc_mj.cli.eval_common import (
+    EXIT_INTERRUPTED,
+    PROG,
+    deploy_runners,
+    report_faults,
+    rotor_text,
+    sitl_config,
+    write_outputs,
+)
 from cefc_mj.eval import table8
+from cefc_mj.eval.ledger import record_if_test
 from cefc_mj.eval.requests import Table8Request
-from cefc_mj.eval.runner import provenance
+from cefc_mj.eval.runner import fault_lines, provenance
 
 
 def is_shipped_reports(path: Path) -> bool:
@@ -127,6 +136,7 @@ def run(request: Table8Request, prov: dict, command: str) -> int:
     markdown = table8.report_markdown(table, meta)
     data = table8.report_json(table, meta)
     print(markdown)
+    record_if_test("table8", request.seed, request.episodes, command, prov, (out / "table8.json", request.json))
     writes = [
         (out / "table8.md", markdown),
         (out / "table8.csv", table8.report_csv(table)),
@@ -138,4 +148,4 @@ def run(request: Table8Request, prov: dict, command: str) -> int:
     if request.json is not None:
         writes.append((request.json, data))
     write_outputs(writes)
-    return 0
+    return report_faults(fault_lines(table))

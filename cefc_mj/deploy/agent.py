@@ -65,6 +65,47 @@ def observation_from_packet(cfg, packet: dict) -> np.ndarray:
     return local_observation_kernel(own, anchor, lidar, rows, cfg.neighbour_slots, float(cfg.observation_distance))
 
 
+def low_level_act(policy, cfg):
+    """The agent's decision function, obs [1, 1, D] -> setpoint [1, 1, 2]: the lock-step runner's bits
+    for this row (the compiled forward; the guard, when the game asks for it, reads the row alone)."""
+    from cefc_mj.task.guard import guarded
+
+    return guarded(policy.actor.inference_weights().actions, cfg)
+
+
+def warm_up_low_level(act, cfg, uav: int = 0) -> None:
+    """Run `act` on a probe packet WARMUP_CALLS times: the first calls compile (cold numba cache) or
+    load the kernels, so that the agent says ready only when a decision takes its usual time. The
+    simulator runs this too before it starts any agent, so that the agents find the cache warm."""
+    probe = {
+        "pos": [0.0, 0.0],
+        "vel": [0.0, 0.0],
+        "anchor": [1.0, 1.0],
+        "lidar": [cfg.lidar_range] * cfg.n_lidar_rays,
+        "neighbours": [[(uav + 1) % cfg.n_agents, 1.0, 0.0, 0.0, 0.0]],
+    }
+    for _ in range(WARMUP_CALLS):
+        act(observation_from_packet(cfg, probe)[None, None])
+
+
+def warm_up_hierarchy(hierarchy, cfg, uav: int = 0) -> None:
+    """`warm_up_low_level` for a UAV's whole hierarchy (`cefc_mj.hierarchy.AgentHierarchy`): decisions
+    and low-level steps on a probe (numba kernels, the TorchScript trace), then its memory and
+    anchor cleared, so that the warm-up leaves nothing behind."""
+    from cefc_mj.hierarchy import agent_cefc_observation
+
+    own, lidar = [0.0, 0.0, 0.0, 0.0], [cfg.lidar_range] * cfg.n_lidar_rays
+    neighbours = [[(uav + 1) % cfg.n_agents, 1.0, 0.0, 0.0, 0.0]]
+    targets = [[1.0, 1.0, 0.5]] * cfg.n_targets
+    probe = {"pos": own[:2], "vel": own[2:], "anchor": [1.0, 1.0], "lidar": lidar, "neighbours": neighbours}
+    for _ in range(WARMUP_CALLS):
+        obs = agent_cefc_observation(cfg, own, neighbours, targets, [2.0, 2.0, 0.0, 0.0], lidar)
+        hierarchy.decide(obs, [(uav + 1) % cfg.n_agents], [1.0], np.zeros((1, hierarchy.message_dim)))
+        hierarchy.act(observation_from_packet(cfg, probe))
+    hierarchy.own[:] = 0.0
+    hierarchy.anchor_index, hierarchy.anchor = None, np.zeros(2)
+
+
 def _die_with_parent(parent_pid: int, sig: int = signal.SIGTERM) -> None:
     """Linux: ask the kernel for `sig` when the parent exits (prctl PR_SET_PDEATHSIG); a no-op
     elsewhere or when the given pid is not our direct parent (the pid watch still covers it)."""
@@ -178,20 +219,8 @@ class Agent:
             return self._fail(str(e).splitlines()[0] if str(e) else type(e).__name__)
         if self.heartbeat_override is None:
             self.heartbeat_timeout_s = message["heartbeat_timeout_s"]
-        cfg = self.cfg
-        probe = {
-            "pos": [0.0, 0.0],
-            "vel": [0.0, 0.0],
-            "anchor": [1.0, 1.0],
-            "lidar": [cfg.lidar_range] * cfg.n_lidar_rays,
-            "neighbours": [[(self.uav + 1) % cfg.n_agents, 1.0, 0.0, 0.0, 0.0]],
-        }
-        from cefc_mj.task.guard import guarded
-
-        # the lock-step runner's bits for this row (the guard, when the game asks for it, reads the row alone)
-        self.act = guarded(self.policy.actor.inference_weights().actions, cfg)
-        for _ in range(WARMUP_CALLS):  # the first calls (numba kernels, torch modules) are slow
-            self.act(observation_from_packet(cfg, probe)[None, None])
+        self.act = low_level_act(self.policy, self.cfg)
+        warm_up_low_level(self.act, self.cfg, self.uav)
         self.send({"type": "ready", "uav": self.uav})
         self.log(f"flying {self.policy.name} in formation c = {message['formation']}")
         return None
@@ -314,7 +343,7 @@ class GameAgent(Agent):
     def _welcome(self, message: dict) -> int | None:
         from cefc_mj.errors import CefcError
         from cefc_mj.eval.highlevel import highlevel_policy_path
-        from cefc_mj.hierarchy import AgentHierarchy, agent_cefc_observation, load_low_level
+        from cefc_mj.hierarchy import AgentHierarchy, load_low_level
         from cefc_mj.nn.highlevel_policy import load_highlevel_policy
         from cefc_mj.task.config import TaskConfig
 
@@ -337,16 +366,7 @@ class GameAgent(Agent):
         if self.heartbeat_override is None:
             self.heartbeat_timeout_s = message["heartbeat_timeout_s"]
         self.cfg, self.hierarchy, self.interval = cfg, hierarchy, interval
-        own, lidar = [0.0, 0.0, 0.0, 0.0], [cfg.lidar_range] * cfg.n_lidar_rays
-        neighbours = [[(self.uav + 1) % cfg.n_agents, 1.0, 0.0, 0.0, 0.0]]
-        targets = [[1.0, 1.0, 0.5]] * cfg.n_targets
-        probe = {"pos": own[:2], "vel": own[2:], "anchor": [1.0, 1.0], "lidar": lidar, "neighbours": neighbours}
-        for _ in range(WARMUP_CALLS):  # the first calls (numba kernels, the TorchScript trace) are slow
-            obs = agent_cefc_observation(cfg, own, neighbours, targets, [2.0, 2.0, 0.0, 0.0], lidar)
-            hierarchy.decide(obs, [(self.uav + 1) % cfg.n_agents], [1.0], np.zeros((1, hierarchy.message_dim)))
-            hierarchy.act(observation_from_packet(cfg, probe))
-        hierarchy.own[:] = 0.0  # the warm-up leaves no memory behind
-        hierarchy.anchor_index, hierarchy.anchor = None, np.zeros(2)
+        warm_up_hierarchy(hierarchy, cfg, self.uav)
         self.send({"type": "ready", "uav": self.uav})
         self.log(f"playing {policy.variant} ({self.policy_choice}) over {game['low_level']}, N = {cfg.n_agents}")
         return None

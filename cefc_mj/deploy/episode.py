@@ -180,7 +180,35 @@ def _check(spec: EpisodeSpec, sitl: SitlConfig) -> tuple[float, tuple[int, int] 
             raise ConfigError(f"remote_agents: {uav!r} is not a UAV index 0..{spec.formation - 1}")
     check_faults(sitl, spec.formation, spec.steps, "episode")
     policy = load_policy_for(spec.policy, spec.formation)  # an unknown policy fails here, not in N processes
-    return tick, drop, policy.task_for(config)
+    return tick, drop, policy.task_for(config), policy
+
+
+def warm_up_kernels(spec: EpisodeSpec, config: TaskConfig, tick: float, policy) -> None:
+    """Compile (a cold numba cache) or load every kernel the episode runs, here, before any agent starts.
+
+    The simulator's first steps would otherwise compile for tens of seconds while the agents, already
+    flying, hear nothing and leave at their heartbeat timeout; and c agents compiling the same kernels
+    at once would share the CPUs c ways. A throwaway world of the same game flies two steps (and its
+    metrics), and the agents' decision code runs on a probe, so the agents load from a warm cache."""
+    from cefc_mj.deploy.agent import low_level_act, warm_up_low_level
+
+    world = make_ticked_world(
+        spec.backend,
+        config,
+        tick,
+        wind=spec.wind,
+        seed=spec.seed,
+        airframe=spec.mujoco_airframe,
+        wind_direction=spec.wind_direction,
+        rotor_actuation=spec.rotor_actuation,
+    )
+    env = DropoutCEFCEnv(config, n_envs=1, seed=spec.seed, world=world)
+    world.controller = lambda j: np.zeros((1, spec.formation, 2))
+    env.reset()
+    for _ in range(2):
+        env.step(np.zeros((1, spec.formation, 2)))
+    env.episode_metrics()
+    warm_up_low_level(low_level_act(policy, config), config)
 
 
 def run_sitl_episode(spec: EpisodeSpec, sitl: SitlConfig = SitlConfig(), record: bool = False) -> SitlEpisodeResult:
@@ -192,7 +220,8 @@ def run_sitl_episode(spec: EpisodeSpec, sitl: SitlConfig = SitlConfig(), record:
     config and AgentError when the agents cannot start; every agent process is gone when it returns
     or raises (Ctrl-C included).
     """
-    tick, drop, config = _check(spec, sitl)
+    tick, drop, config, policy = _check(spec, sitl)
+    warm_up_kernels(spec, config, tick, policy)
     world = make_ticked_world(
         spec.backend,
         config,

@@ -29,7 +29,7 @@ import numpy as np
 
 from cefc_mj.deploy import wire
 from cefc_mj.deploy.episode import SitlConfig, check_faults, control_tick, note_exits_and_faults, server_options
-from cefc_mj.deploy.results import _percentiles
+from cefc_mj.deploy.results import _percentiles, unrequested_faults
 from cefc_mj.deploy.sim_server import AgentFleet, SitlServer, block_sigint, restore_sigint
 from cefc_mj.deploy.tick_world import make_ticked_world
 from cefc_mj.errors import ConfigError, SimulationDiverged
@@ -337,6 +337,12 @@ class SitlGameResult:
             condition="SITL-M",
         )
 
+    def faults(self) -> list[str]:
+        """Why this game is not a measurement, one line per cause (empty: it is one): diverged physics,
+        agents lost or failed safe without being asked to (`unrequested_faults`)."""
+        lines = [f"simulation diverged at step {self.steps}: {self.diverged}"] if self.diverged else []
+        return lines + unrequested_faults(self.sitl.get("events", []))
+
     def to_dict(self) -> dict:
         return {
             "policy": self.spec.policy,
@@ -347,6 +353,7 @@ class SitlGameResult:
             "figures": self.figures,
             "sitl": self.sitl,
             "diverged": self.diverged,
+            "faults": self.faults(),
         }
 
 
@@ -374,10 +381,15 @@ def run_sitl_game(spec: GameSpec, sitl: SitlConfig = SitlConfig()) -> SitlGameRe
         raise ConfigError(f"steps={spec.steps}: must be a multiple of the policy's decision interval {interval}")
     where = spec.where
     tick = control_tick(sitl, where.backend, task.dt)
-    world = make_ticked_world(
-        where.backend, task, tick, wind=where.wind, seed=spec.seed, wind_direction=where.wind_direction
-    )
-    env = BatchedCEFCEnv(task, n_envs=1, seed=spec.seed, world=world, adversary_policy=adversary_policy)
+
+    def game_env():
+        world = make_ticked_world(
+            where.backend, task, tick, wind=where.wind, seed=spec.seed, wind_direction=where.wind_direction
+        )
+        return world, BatchedCEFCEnv(task, n_envs=1, seed=spec.seed, world=world, adversary_policy=adversary_policy)
+
+    _warm_up_kernels(game_env, policy, task, spec.n_agents)
+    world, env = game_env()
     welcome = {
         "formation": spec.n_agents,
         "task": task.to_dict(),
@@ -428,6 +440,21 @@ def run_sitl_game(spec: GameSpec, sitl: SitlConfig = SitlConfig()) -> SitlGameRe
             server.close()
         finally:
             restore_sigint(previous)
+
+
+def _warm_up_kernels(game_env, policy, task, n_agents: int) -> None:
+    """Compile (a cold numba cache) or load every kernel of the game here, before any agent starts
+    (`cefc_mj.deploy.episode.warm_up_kernels` says why): a throwaway game flies two steps, and one UAV's
+    hierarchy decides and steps on a probe, so that the agents load from a warm cache."""
+    from cefc_mj.deploy.agent import warm_up_hierarchy
+    from cefc_mj.hierarchy import AgentHierarchy, load_low_level
+
+    world, env = game_env()
+    world.controller = lambda j: np.zeros((1, n_agents, 2))
+    env.reset()
+    for _ in range(2):
+        env.step(np.zeros((1, n_agents, 2)))
+    warm_up_hierarchy(AgentHierarchy(policy, load_low_level(HIERARCHY_LOWLEVEL, task), task), task)
 
 
 def _play(spec, sitl, task, env, world, server: GameServer, fleet, startup_s, policy, interval):

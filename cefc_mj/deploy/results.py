@@ -9,6 +9,44 @@ import numpy as np
 
 from cefc_mj.eval.runner import HISTOGRAM_EDGES_MS, EpisodeResult
 
+FAULT_EVENTS = {
+    "agent_exited": "agent process exited",
+    "offboard_loss_hold": "failsafe hold",
+    "agent_error": "agent reported an error",
+}
+"""The events that make an episode not a measurement of the policy (what each says, for the one line)."""
+REQUESTED_EVENTS = ("fault_kill", "fault_stop", "removed")
+"""The events of a fault that was asked for (an injected fault, a dropout): its UAV's later faults are expected."""
+
+
+def unrequested_faults(events: list[dict]) -> list[str]:
+    """One line per cause of the FAULT_EVENTS that hit UAVs whose fault was not asked for: which UAVs,
+    from which step, why ("UAVs 0-5: agent process exited at step 1 (t 0.10 s): process gone")."""
+    requested = {e["uav"] for e in events if e["event"] in REQUESTED_EVENTS}
+    causes: dict[tuple[str, str], list[dict]] = {}
+    for e in events:
+        if e["event"] in FAULT_EVENTS and e["uav"] not in requested:
+            causes.setdefault((e["event"], e["detail"]), []).append(e)
+    lines = []
+    for (kind, detail), hits in causes.items():
+        uavs = sorted({e["uav"] for e in hits if e["uav"] is not None})
+        first = min(hits, key=lambda e: e["step"])
+        who = f"UAV {uavs[0]}" if len(uavs) == 1 else f"UAVs {_ranges(uavs)}"
+        lines.append(f"{who}: {FAULT_EVENTS[kind]} at step {first['step']} (t {first['t']:.2f} s): {detail}")
+    return lines
+
+
+def _ranges(values: list[int]) -> str:
+    """ "0-3, 5" for [0, 1, 2, 3, 5]."""
+    parts, start = [], None
+    for i, v in enumerate(values):
+        if start is None:
+            start = v
+        if i + 1 == len(values) or values[i + 1] != v + 1:
+            parts.append(str(start) if start == v else f"{start}-{v}")
+            start = None
+    return ", ".join(parts)
+
 
 def _histogram(values: np.ndarray) -> list[int]:
     counts, _ = np.histogram(np.clip(values, 0.0, HISTOGRAM_EDGES_MS[-1]), bins=HISTOGRAM_EDGES_MS)
@@ -122,6 +160,11 @@ class SitlEpisodeResult(EpisodeResult):
     mode: str = "SITL-M"
     """"SITL-M" (agents as processes) or "lock-step" (one process; dropout runs)."""
 
+    def faults(self) -> list[str]:
+        """`EpisodeResult.faults` plus every agent that exited, reported an error or failed safe
+        without being asked to (`unrequested_faults`)."""
+        return super().faults() + (unrequested_faults(self.sitl.events) if self.sitl is not None else [])
+
     def to_dict(self) -> dict:
         skip = ("record", "spec", "sitl", "dropout")
         out = {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name not in skip}
@@ -135,4 +178,5 @@ class SitlEpisodeResult(EpisodeResult):
             out["sitl"] = self.sitl.summary()
         if self.dropout is not None:
             out["dropout"] = self.dropout.to_dict()
+        out["faults"] = self.faults()
         return out

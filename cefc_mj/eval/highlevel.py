@@ -394,29 +394,163 @@ def _adversary_strength(e_adversary: list[float], e_rule: list[float]) -> dict:
     }
 
 
-def _compare_with_reference(rows: dict) -> None:
-    """row["vs_reference"]: per metric, Welch's p over training seeds against CI-HRL, the verdict, and
-    p adjusted over every row compared on that metric (`p_fdr`, Benjamini-Hochberg)."""
-    from cefc_mj.eval.stats import fdr_adjusted, verdict, welch_p
+MARGINS = {"E": 15.0, "R_H": 3500.0}
+"""Equivalence margins of the comparisons against CI-HRL, in the per-seed figures' units (per-episode
+sums): E +-15 steps (+-1.5 s), R_H +-3500 (+-350 on the paper's x dt scale); docs/preregistration.md
+argues both. Metrics without a margin get no equivalence test."""
+MARGIN_TEXT = {"E": "±1.5 s", "R_H": "±350 (x dt)"}
+ADVERSARY_MARGIN = 0.10
+"""Relative non-inferiority margin of the game's adversary against the nearest-group rule: H0 its E
+is below 0.9 x the rule's (docs/preregistration.md)."""
+PRIMARY = ("MAPPO+AT-M", ("E", "R_H"))
+"""The pre-registered primary comparison: CI-HRL against this row on these metrics, Holm-adjusted
+over the two metrics (docs/preregistration.md)."""
+AGGREGATE_METRICS = ("E", "R_H")
+"""The metrics of the rliable-style aggregates (IQM, probability of improvement) of CI-HRL and PRIMARY's row."""
+
+
+def _compare_with_reference(rows: dict) -> dict:
+    """row["vs_reference"]: per metric, Welch's p over training seeds against CI-HRL with the old
+    verdict (unadjusted p < 0.05), p adjusted over every row compared on that metric (`p_fdr`,
+    Benjamini-Hochberg); the difference of means with its Welch CI, the TOST p against the metric's
+    margin (MARGINS) and its adjustment over the rows (`tost_p_fdr`), the minimum detectable
+    difference at 80 % power for the row's and CI-HRL's seed counts and the SD pooled over every
+    row's seeds (`mdd`), and the verdict from the adjusted p's (`decision`: better, worse,
+    equivalent within the margin, or undecided). Returns the summary (pooled SDs, margins, levels);
+    {} without a CI-HRL row over training seeds."""
+    from cefc_mj.eval.stats import (
+        ALPHA,
+        POWER,
+        comparison_verdict,
+        fdr_adjusted,
+        minimum_detectable_difference,
+        pooled_sd,
+        tost_p,
+        verdict,
+        welch_difference,
+        welch_p,
+    )
 
     reference = rows.get(REFERENCE_METHOD, {}).get("training_seeds")
     if reference is None:
-        return
+        return {}
+    pooled = {}
+    for m in SEED_METRICS:
+        try:
+            sd, df = pooled_sd([row["training_seeds"][m] for row in rows.values() if "training_seeds" in row])
+            pooled[m] = {"sd": sd, "df": df}
+        except ValueError:
+            pooled[m] = None
+
+    def mdd(n: int, m: str) -> float | None:
+        n_ref = len(reference[m])
+        if n < 2 or n_ref < 2 or pooled[m] is None or not pooled[m]["sd"] > 0:
+            return None
+        return minimum_detectable_difference(n, n_ref, pooled[m]["sd"])
+
     for method, row in rows.items():
         if method == REFERENCE_METHOD or "training_seeds" not in row:
             continue
         ours = row["training_seeds"]
-        row["vs_reference"] = {
-            "method": REFERENCE_METHOD,
-            **{
-                m: {"p": welch_p(ours[m], reference[m]), "verdict": verdict(ours[m], reference[m], HIGHER_IS_BETTER[m])}
-                for m in SEED_METRICS
-            },
-        }
+        vs = {"method": REFERENCE_METHOD}
+        for m in SEED_METRICS:
+            diff = welch_difference(ours[m], reference[m])
+            vs[m] = {
+                "p": welch_p(ours[m], reference[m]),
+                "verdict": verdict(ours[m], reference[m], HIGHER_IS_BETTER[m]),
+                "difference": None if diff is None else dataclasses.asdict(diff),
+                "margin": MARGINS.get(m),
+                "tost_p": tost_p(ours[m], reference[m], MARGINS[m]) if m in MARGINS else None,
+                "mdd": mdd(len(ours[m]), m),
+            }
+        row["vs_reference"] = vs
     compared = [row["vs_reference"] for row in rows.values() if "vs_reference" in row]
     for m in SEED_METRICS:
-        for vs, q in zip(compared, fdr_adjusted([vs[m]["p"] for vs in compared])):
-            vs[m]["p_fdr"] = q
+        for vs, q, t in zip(
+            compared, fdr_adjusted([vs[m]["p"] for vs in compared]), fdr_adjusted([vs[m]["tost_p"] for vs in compared])
+        ):
+            diff = vs[m]["difference"]
+            vs[m]["p_fdr"], vs[m]["tost_p_fdr"] = q, t
+            vs[m]["decision"] = comparison_verdict(
+                None if diff is None else diff["difference"], q, t, HIGHER_IS_BETTER[m], MARGIN_TEXT.get(m, "")
+            )
+    return {
+        "reference": REFERENCE_METHOD,
+        "alpha": ALPHA,
+        "power": POWER,
+        "rows_compared": len(compared),
+        "adjustment": "Benjamini-Hochberg over the rows compared, per metric; Welch and TOST p's separately",
+        "margins": dict(MARGINS),
+        "pooled_sd": pooled,
+        "mdd_method": "noncentral t of Student's two-sample test, df n1 + n2 - 2, pooled SD over every row's seeds",
+    }
+
+
+def _primary(rows: dict) -> dict | None:
+    """The pre-registered primary comparison (PRIMARY): CI-HRL against its row on its metrics, the Welch
+    and TOST p's Holm-adjusted over those metrics, and the verdict from them; None without the row."""
+    from cefc_mj.eval.stats import comparison_verdict, holm_adjusted
+
+    method, metrics = PRIMARY
+    vs = rows.get(method, {}).get("vs_reference")
+    if not vs:
+        return None
+    out = {"method": method, "reference": REFERENCE_METHOD, "adjustment": f"Holm over {', '.join(metrics)}"}
+    p = holm_adjusted([vs[m]["p"] for m in metrics])
+    q = holm_adjusted([vs[m]["tost_p"] for m in metrics])
+    for m, p_m, q_m in zip(metrics, p, q):
+        diff = vs[m]["difference"]
+        out[m] = {
+            "difference": diff,
+            "p_holm": p_m,
+            "tost_p_holm": q_m,
+            "decision": comparison_verdict(
+                None if diff is None else diff["difference"], p_m, q_m, HIGHER_IS_BETTER[m], MARGIN_TEXT.get(m, "")
+            ),
+        }
+    return out
+
+
+def _aggregates(rows: dict) -> dict | None:
+    """rliable's aggregates over training seeds for CI-HRL and PRIMARY's row: per metric each one's
+    IQM with its stratified-bootstrap 95 % interval, and the probability that a CI-HRL seed does better
+    than one of the other row (lower E is better); None without both rows over two seeds or more."""
+    from cefc_mj.eval.stats import BOOTSTRAP_REPS, improvement_interval, iqm_interval
+
+    other = PRIMARY[0]
+    seeds = {m: rows.get(m, {}).get("training_seeds") for m in (REFERENCE_METHOD, other)}
+    if any(s is None or len(s["seeds"]) < 2 for s in seeds.values()):
+        return None
+    out = {"methods": [REFERENCE_METHOD, other], "reps": BOOTSTRAP_REPS, "scores": "per training seed (one task)"}
+    for m in AGGREGATE_METRICS:
+        sign = 1.0 if HIGHER_IS_BETTER[m] else -1.0
+        out[m] = {
+            "iqm": {name: dataclasses.asdict(iqm_interval(s[m])) for name, s in seeds.items()},
+            "probability_of_improvement": dataclasses.asdict(
+                improvement_interval(sign * np.asarray(seeds[REFERENCE_METHOD][m]), sign * np.asarray(seeds[other][m]))
+            ),
+        }
+    return out
+
+
+def add_comparisons(result: dict) -> dict:
+    """The statistics of a Table V result over training seeds, from its rows' per-seed figures (so a
+    report flown before them can be re-analysed without flying): `_compare_with_reference` per row,
+    each row's adversary non-inferiority against the rule (ADVERSARY_MARGIN), and result["comparison"]
+    with the pooled SDs, the primary comparison and the aggregates. Returns `result`, changed in place."""
+    from cefc_mj.eval.stats import noninferiority
+
+    rows = result["rows"]
+    for row in rows.values():
+        if "training_seeds" in row and "against_rule" in row:
+            test = noninferiority(row["training_seeds"]["E"], row["against_rule"]["E"], ADVERSARY_MARGIN)
+            row["adversary_noninferiority"] = dataclasses.asdict(test)
+    summary = _compare_with_reference(rows)
+    if summary:
+        summary["primary"] = _primary(rows)
+        summary["aggregates"] = _aggregates(rows)
+        result["comparison"] = summary
+    return result
 
 
 @dataclass(frozen=True)
@@ -454,9 +588,10 @@ def run_table5(
 ) -> dict:
     """Table V: every method whose policy file exists (the others are listed in protocol["missing"]),
     or only `policy` (a file or a name in policies_dir, one row under its file name). Each row is
-    the seed-0 policy over `episodes` episodes; where files of other training seeds exist,
-    row["training_seeds"] has each seed's means and their mean, sample std and 95 % CI, and
-    row["vs_reference"] Welch's p against CI-HRL per metric. where: backend, wind and deviation
+    its lowest training seed's policy (seed 0 where shipped) over `episodes` episodes; where files of
+    other training seeds exist, row["training_seeds"] has each seed's means and their mean, sample
+    std and 95 % CI, and row["vs_reference"] the comparison with CI-HRL per metric, result["comparison"]
+    its summary (`add_comparisons`). where: backend, wind and deviation
     (default the paper's: particles, calm, exact sensing). adversary: a rule or a trained adversary
     (name in policies_dir, or file; default the PPO adversary). against_rule: also fly every seed's
     policy against the nearest-group rule (row["against_rule"]), the yardstick of the adversary's
@@ -488,7 +623,7 @@ def run_table5(
     rows = []  # (method, stem, paper_row, {seed: file})
     for method, stem, suffix, paper_row in TABLE5_ROWS:
         files = _seed_files(stem, suffix, policies_dir)
-        if 0 not in files:
+        if not files:
             result["protocol"]["missing"].append(f"{method} ({stem}{suffix}.pt)")
         else:
             rows.append((method, stem, paper_row, files))
@@ -505,17 +640,18 @@ def run_table5(
     flown = {job: row for job, row in map_unordered(_fly_file, list(jobs.values()), ExecutorConfig(workers=workers))}
     for method, stem, paper_row, files in rows:
         per_seed = {k: flown[jobs[method, adversary, k]] for k in files}
-        row = per_seed[0]
+        first = next(iter(files))  # seed 0 where shipped; a run of seeds 100.. has no seed 0
+        row = per_seed[first]
         row["paper"] = dict(zip(COLUMNS, paper[paper_row])) if paper_row is not None else None
-        if file_low_level[files[0]] != LOW_LEVEL:
-            low = _low_level(task, file_low_level[files[0]])
+        if file_low_level[files[first]] != LOW_LEVEL:
+            low = _low_level(task, file_low_level[files[first]])
             row["low_level"] = low.describe() | {"name": low.name}
         row["training_seeds"] = _seed_block(per_seed, files)
         if against_rule:
             row["against_rule"] = _seed_block({k: flown[jobs[method, "nearest_group", k]] for k in files}, files)
             row["adversary_strength"] = _adversary_strength(row["training_seeds"]["E"], row["against_rule"]["E"])
         result["rows"][method] = row
-    _compare_with_reference(result["rows"])
+    add_comparisons(result)
     return result
 
 
@@ -695,7 +831,8 @@ def run_table5_sitl(
 ) -> dict:
     """Table V's row of one policy played as the SITL-M game: each UAV's whole hierarchy in its own
     process, one game per seed (seed, seed + 1, ...). runner(GameSpec, sitl) -> result with
-    `figures` (GAME_METRICS) and `sitl` (a summary dict) is `cefc_mj.deploy.game.run_sitl_game`, passed
+    `figures` (GAME_METRICS), `sitl` (a summary dict) and `faults()` (the SITL-M row's "faults", "valid"
+    False when any) is `cefc_mj.deploy.game.run_sitl_game`, passed
     in by cefc-eval (evaluation never imports the agent-process layer). lockstep: also play each
     seed's game in one process (`play_game`) and report the paired difference SITL-M - lock-step
     (mean and its standard error)."""
@@ -721,6 +858,8 @@ def run_table5_sitl(
     row["variant"] = load_highlevel_policy(path)[0].variant
     row["sitl"] = [g.sitl for g in games]
     row["sitl_pooled"] = pooled_game_timing(games)
+    row["faults"] = [f"seed {g.spec.seed}: {line}" for g in games for line in g.faults()]
+    row["valid"] = not row["faults"]
     result["rows"][f"{path.stem} (SITL-M)"] = row
     if lockstep:
         reference = [play_game(spec) for spec in specs]
@@ -787,7 +926,8 @@ def format_sitl_game(result: dict) -> str:
     names = ("R_H", "R_t", "R_n", "R_e", "E", "F", "C")
     table = [["row", *names]]
     for label, row in result["rows"].items():
-        table.append([label, *(format_mean_std(row[m], row[f"{m}_std"], ".1f") for m in names)])
+        flag = "" if row.get("valid", True) else " (NOT A MEASUREMENT: faults below)"
+        table.append([label + flag, *(format_mean_std(row[m], row[f"{m}_std"], ".1f") for m in names)])
     if "paired_difference" in result:
         diff = result["paired_difference"]
         table.append(
@@ -927,7 +1067,9 @@ def _ci_text(ci: dict, scale: float = 1.0, fmt: str = ".1f") -> str:
 def seed_table_lines(result: dict) -> list[str]:
     """Over training seeds: mean [95 % CI] of each metric against the game's adversary and E against
     the nearest-group rule, and Welch's p against CI-HRL with the verdict (p < 0.05, else "no
-    significant difference")."""
+    significant difference"); the differences that survive the adjustment; where the result has them
+    (`add_comparisons`), the comparison that can say "alike" (`equivalence_lines`), the adversary's
+    non-inferiority beside its strength, and the aggregates (`aggregate_lines`)."""
     from cefc_mj.eval.stats import ALPHA
 
     lines = [
@@ -997,20 +1139,185 @@ def seed_table_lines(result: dict) -> list[str]:
         for r in table
     ]
     lines += _fdr_lines(result["rows"])
+    lines += equivalence_lines(result)
     strength = {m: r["adversary_strength"] for m, r in result["rows"].items() if r.get("adversary_strength")}
     if strength:
+        rows = result["rows"]
+        noninferior = any("adversary_noninferiority" in rows[m] for m in strength)
         lines += [
             "",
             "Adversary strength: E against the game's adversary over E against the nearest-group rule (means "
             "over training seeds, the same policies and games); p: one-sided paired t-test over the seeds "
-            f"that the adversary is weaker than the rule (weaker where p < {ALPHA}).",
+            f"that the adversary is weaker than the rule (weaker where p < {ALPHA})."
+            + (
+                f" Non-inferiority: one-sided paired t-test over the seeds of H0 E(adversary) <= "
+                f"{1 - ADVERSARY_MARGIN:g} x E(rule) (the adversary more than {100 * ADVERSARY_MARGIN:g} % weaker), "
+                f"rejected where p < {ALPHA}."
+                if noninferior
+                else ""
+            ),
             *(
                 f"  {m}: {'-' if a['ratio'] is None else format(a['ratio'], '.2f')}, p "
                 f"{'-' if a['p_weaker'] is None else format(a['p_weaker'], '.3f')}: {a['verdict']}"
+                + _noninferiority_text(rows[m].get("adversary_noninferiority"))
                 for m, a in strength.items()
             ),
         ]
+    lines += aggregate_lines(result)
     return lines
+
+
+def _p_text(p: float | None, adjusted: float | None = None) -> str:
+    if p is None:
+        return "-"
+    return f"{p:.3f}" + ("" if adjusted is None else f" ({adjusted:.3f})")
+
+
+def _noninferiority_text(test: dict | None) -> str:
+    if not test:
+        return ""
+    return f"; non-inferiority p {_p_text(test['p'])}: {test['verdict']}"
+
+
+def _scale(m: str) -> tuple[float, str, str]:
+    """(factor from the per-seed figure to the printed one, unit, format) of a compared metric."""
+    return (DT, " s", ".2f") if m == "E" else (DT, "", ".0f") if m in ("R_H", "R_t", "R_n", "R_e") else (1.0, "", ".1f")
+
+
+def equivalence_lines(result: dict) -> list[str]:
+    """The comparison with CI-HRL that can say "alike": per row and metric of MARGINS the difference of
+    means [95 % Welch CI], Welch's p and the TOST p with their adjustments over the rows, the verdict;
+    then the minimum detectable differences and the primary comparison. [] for a result without them."""
+    from cefc_mj.eval.stats import ALPHA, POWER
+
+    comparison = result.get("comparison")
+    if not comparison:
+        return []
+    metrics = [m for m in MARGINS if m in SEED_METRICS]
+    units = ", ".join(f"{m} {'in s' if m == 'E' else 'per episode x 0.1 s'}, margin {MARGIN_TEXT[m]}" for m in metrics)
+    lines = [
+        "",
+        f"Against {REFERENCE_METHOD}: the row's mean over training seeds minus {REFERENCE_METHOD}'s [95 % Welch CI]; "
+        "p: Welch's two-sided t-test; TOST p: two one-sided Welch tests of equivalence within the margin; in "
+        f"brackets each adjusted over the {comparison['rows_compared']} rows (Benjamini-Hochberg); verdict from "
+        f"the adjusted p's at {ALPHA}: better / worse where p is below it, else equivalent where the TOST p is, "
+        f"else undecided (underpowered). {units}.",
+    ]
+    header = ["method", "seeds"]
+    for m in metrics:
+        header += [f"{m} difference [95 % CI]", f"p {m}", f"TOST p {m}", f"verdict {m}"]
+    table = [header]
+    for method, row in result["rows"].items():
+        vs = row.get("vs_reference")
+        if not vs:
+            continue
+        cells = [method, str(len(row["training_seeds"]["seeds"]))]
+        for m in metrics:
+            factor, unit, fmt = _scale(m)
+            d = vs[m].get("difference")
+            cells += [
+                "-"
+                if d is None
+                else f"{format(d['difference'] * factor, '+' + fmt)}{unit} [{format(d['ci_low'] * factor, fmt)}, "
+                f"{format(d['ci_high'] * factor, fmt)}]",
+                _p_text(vs[m]["p"], vs[m].get("p_fdr")),
+                _p_text(vs[m].get("tost_p"), vs[m].get("tost_p_fdr")),
+                vs[m].get("decision", "-"),
+            ]
+        table.append(cells)
+    widths = [max(len(r[i]) for r in table) for i in range(len(header))]
+    lines += [
+        "  ".join(cell.ljust(w) if i == 0 else cell.rjust(w) for i, (cell, w) in enumerate(zip(r, widths))).rstrip()
+        for r in table
+    ]
+    pooled = comparison["pooled_sd"]
+    sds = ", ".join(
+        f"{m} {format(pooled[m]['sd'] * _scale(m)[0], _scale(m)[2])}{_scale(m)[1]}" for m in metrics if pooled.get(m)
+    )
+    pairs: dict[tuple[int, int], dict[str, float]] = {}
+    for row in result["rows"].values():
+        vs = row.get("vs_reference")
+        if vs:
+            key = (
+                len(row["training_seeds"]["seeds"]),
+                len(result["rows"][REFERENCE_METHOD]["training_seeds"]["seeds"]),
+            )
+            pairs.setdefault(key, {m: vs[m]["mdd"] for m in metrics})
+    mdds = "; ".join(
+        f"{n} vs {n_ref} seeds: "
+        + ", ".join(
+            f"{m} {format(v * _scale(m)[0], _scale(m)[2])}{_scale(m)[1]}" for m, v in values.items() if v is not None
+        )
+        for (n, n_ref), values in sorted(pairs.items())
+    )
+    if mdds and sds:
+        df = next(pooled[m]["df"] for m in metrics if pooled.get(m))
+        lines.append(
+            f"Minimum detectable difference ({100 * POWER:.0f} % power, two-sided alpha {ALPHA}, unadjusted; "
+            f"noncentral t of Student's two-sample test with the SD pooled over every row's seeds, {sds}, df {df}): "
+            f"{mdds}. "
+            "A true difference smaller than these is more likely to read undecided than different."
+        )
+    lines += _primary_lines(result)
+    return lines
+
+
+def _primary_lines(result: dict) -> list[str]:
+    from cefc_mj.eval.stats import ALPHA
+    from cefc_mj.seeds import GAME_PREREGISTERED_TEST_SEED
+
+    primary = (result.get("comparison") or {}).get("primary")
+    if not primary:
+        return []
+    status = (
+        "confirmatory: the pre-registered batch"
+        if result["protocol"]["seed"] == GAME_PREREGISTERED_TEST_SEED
+        else f"exploratory here: batch seed {result['protocol']['seed']}, not the pre-registered one"
+    )
+    parts = []
+    for m in PRIMARY[1]:
+        factor, unit, fmt = _scale(m)
+        c = primary[m]
+        d = c["difference"]
+        diff = "-" if d is None else f"{format(d['difference'] * factor, '+' + fmt)}{unit}"
+        parts.append(f"{m} {diff}, p {_p_text(c['p_holm'])}, TOST p {_p_text(c['tost_p_holm'])}: {c['decision']}")
+    return [
+        "",
+        f"Primary comparison (docs/preregistration.md; {status}): {primary['method']} against "
+        f"{primary['reference']} ({primary['method']} minus {primary['reference']}, "
+        f"the verdict {primary['method']}'s), "
+        f"p's Holm-adjusted over {', '.join(PRIMARY[1])}, verdicts at {ALPHA}: " + "; ".join(parts) + ".",
+    ]
+
+
+def aggregate_lines(result: dict) -> list[str]:
+    """rliable's aggregates of the result (`_aggregates`), one line; [] without them."""
+    agg = (result.get("comparison") or {}).get("aggregates")
+    if not agg:
+        return []
+    a, b = agg["methods"]
+    parts = []
+    for m in AGGREGATE_METRICS:
+        factor, unit, fmt = _scale(m)
+
+        def iv(x, factor=factor, unit=unit, fmt=fmt):
+            return (
+                f"{format(x['estimate'] * factor, fmt)}{unit} [{format(x['ci_low'] * factor, fmt)}, "
+                f"{format(x['ci_high'] * factor, fmt)}]"
+            )
+
+        poi = agg[m]["probability_of_improvement"]
+        parts.append(
+            f"{m}: IQM {a} {iv(agg[m]['iqm'][a])}, {b} {iv(agg[m]['iqm'][b])}; "
+            f"P({a} better than {b}) {poi['estimate']:.2f} [{poi['ci_low']:.2f}, {poi['ci_high']:.2f}]"
+        )
+    return [
+        "",
+        f"Aggregates over training seeds (rliable's: interquartile mean, probability of improvement, 95 % "
+        f"stratified-bootstrap percentile intervals, {agg['reps']} resamples; lower E is better): "
+        + "; ".join(parts)
+        + ".",
+    ]
 
 
 def _fdr_lines(rows: dict) -> list[str]:

@@ -463,6 +463,10 @@ class GameTablesRequest:
     one game per seed, beside the same seeds' lock-step games (docs/sitl_m.md, "The game over SITL-M")."""
     workers: int = 1
     """--workers (table5 over every method): processes flying the policy files' batches, 1..MAX_WORKERS."""
+    policies_dir: Path | None = None
+    """--policies-dir (table5 over every method): the folder of the rows' policy files (<stem>.pt and
+    <stem>_seed<k>.pt); None: the shipped policies/. A trained adversary given by name is looked up
+    there too (give the shipped one's file path otherwise)."""
 
     def __post_init__(self) -> None:
         if self.protocol not in GAME_TABLES:
@@ -489,7 +493,15 @@ class GameTablesRequest:
             for flag, path in (("--rrd", self.rrd), ("--png", self.png)):
                 if path is not None:
                     raise recording_refused(flag)
-        for name in ("rrd", "png", "report_dir", "json"):
+        if self.policies_dir is not None:
+            if self.protocol != "table5" or self.policy is not None:
+                raise ConfigError(
+                    "--policies-dir: only table5 over every method reads its rows from another folder "
+                    "(give --policy a file path instead)"
+                )
+            if not Path(self.policies_dir).is_dir():
+                raise ConfigError(f"--policies-dir {self.policies_dir}: no such folder")
+        for name in ("rrd", "png", "report_dir", "json", "policies_dir"):
             object.__setattr__(self, name, _path(getattr(self, name)))
         _check_outputs(
             ("--json", self.json, False),

@@ -147,9 +147,15 @@ class EpisodeResult:
     """The episode's mean wind direction (degrees, ENU), as given or drawn from the seed; None in calm air."""
     record: EpisodeRecord | None = field(default=None, repr=False)
 
+    def faults(self) -> list[str]:
+        """Why this episode is not a measurement of the policy, one line per cause (empty: it is one).
+        Here: diverged physics; SITL-M adds agents lost or failed safe without being asked to."""
+        return [f"simulation diverged at step {self.steps}: {self.diverged}"] if self.diverged else []
+
     def to_dict(self) -> dict:
         out = {k: v for k, v in asdict(self).items() if k not in ("record", "spec")}
         out.update(asdict(self.spec), condition=self.spec.condition)
+        out["faults"] = self.faults()
         return out
 
 
@@ -366,8 +372,10 @@ def summarize(episodes: list[dict]) -> dict:
     """Mean and sample std over episodes (`EpisodeResult.to_dict()` rows) of F, N, C and F+N.
 
     Returns {"F", "F_std", "N", "N_std", "C", "C_std", "FN", "FN_std", "episodes", "diverged",
-    "steps"}: the means under the metric's own name, `*_std` None with fewer than 2 episodes, every
-    value None with none (never NaN, so JSON stays valid); "steps" is the longest episode's length.
+    "steps", "faults", "valid"}: the means under the metric's own name, `*_std` None with fewer than 2
+    episodes, every value None with none (never NaN, so JSON stays valid); "steps" is the longest
+    episode's length; "faults" the episodes' faults (`episode_faults`), and "valid" False when there
+    are any: the cell is then not a measurement of the policy.
     """
     out: dict = {}
     for metric in METRICS:
@@ -376,7 +384,44 @@ def summarize(episodes: list[dict]) -> dict:
     out["episodes"] = len(episodes)
     out["diverged"] = sum(1 for e in episodes if e.get("diverged"))
     out["steps"] = max((int(e["steps"]) for e in episodes), default=None)
+    out["faults"] = episode_faults(episodes)
+    out["valid"] = not out["faults"]
     return out
+
+
+def episode_faults(episodes: list[dict]) -> list[str]:
+    """The faults of result rows (`EpisodeResult.to_dict()`), each line prefixed with its seed; a row
+    from before the field says only whether it diverged."""
+    lines = []
+    for e in episodes:
+        faults = e.get("faults")
+        if faults is None:
+            faults = [f"simulation diverged at step {e.get('steps')}: {e['diverged']}"] if e.get("diverged") else []
+        lines += [f"seed {e.get('seed')}: {line}" for line in faults]
+    return lines
+
+
+def cell_flag(cell: dict) -> str:
+    """What a table prints after a cell's condition: " (NOT A MEASUREMENT: 1 of 2 episodes faulted)"
+    when an episode lost agents, failed safe or diverged, "" otherwise (a cell from before the fault
+    record: " (1 diverged)" when one diverged)."""
+    if "valid" not in cell:
+        return f" ({cell['diverged']} diverged)" if cell.get("diverged") else ""
+    if cell["valid"]:
+        return ""
+    faulted = len({line.split(":", 1)[0] for line in cell["faults"]})
+    return f" (NOT A MEASUREMENT: {faulted} of {cell['episodes']} episodes faulted)"
+
+
+def fault_lines(table: dict) -> list[str]:
+    """One line per cause of every faulted cell of a {c: {condition: cell}} table:
+    "c = 6 SITL-M, seed 0: UAVs 0-5: agent process exited at step 1 (t 0.10 s): process gone"."""
+    return [
+        f"c = {c} {cond}, {line}"
+        for c, cells in table.items()
+        for cond, cell in cells.items()
+        for line in cell.get("faults", [])
+    ]
 
 
 def retention(cell: dict | None, calm: dict | None) -> tuple[float | None, str | None]:

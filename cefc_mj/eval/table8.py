@@ -33,6 +33,8 @@ from cefc_mj.eval.runner import (
     EpisodeResult,
     EpisodeSpec,
     airframe_files,
+    cell_flag,
+    fault_lines,
     format_mean_std,
     load_policy_for,
     retention,
@@ -140,7 +142,8 @@ def plan_cells(specs: list[EpisodeSpec], policy_sha256: dict[int, str], code_ver
 
 
 def load_cells(path: Path) -> dict[str, dict]:
-    """Finished episodes from the cell file by key (a torn last line from a kill is ignored)."""
+    """Finished episodes from the cell file by key (a torn last line from a kill is ignored, and so is
+    an episode with faults: it is not a result to reuse)."""
     done: dict[str, dict] = {}
     if not path.is_file():
         return done
@@ -149,8 +152,8 @@ def load_cells(path: Path) -> dict[str, dict]:
             row = json.loads(line)
         except json.JSONDecodeError:
             continue
-        if isinstance(row, dict) and "key" in row:
-            done[row["key"]] = row
+        if isinstance(row, dict) and "key" in row and not row.get("faults"):
+            done[row["key"]] = row  # (a faulted episode stays in the file for the record but is flown again)
     return done
 
 
@@ -240,6 +243,9 @@ class _PooledResult(EpisodeResult):
     before/after report included)."""
 
     row: dict = field(default_factory=dict, repr=False)
+
+    def faults(self) -> list[str]:
+        return list(self.row.get("faults", super().faults()))
 
     def to_dict(self) -> dict:
         return dict(self.row)
@@ -436,9 +442,8 @@ def report_markdown(table: dict, meta: dict) -> str:
             ret = _pct(cell["retention"])
             if cell["retention"] is None:
                 notes.add(f"retention -: {cell['retention_note']}")
-            diverged = f" ({cell['diverged']} diverged)" if cell["diverged"] else ""
             lines.append(
-                f"| {c} | {cond}{diverged} | {format_mean_std(cell['F'], cell['F_std'])} | "
+                f"| {c} | {cond}{cell_flag(cell)} | {format_mean_std(cell['F'], cell['F_std'])} | "
                 f"{format_mean_std(cell['N'], cell['N_std'])} | {format_mean_std(cell['C'], cell['C_std'], '.2f')} | "
                 f"{ret} | "
                 + (f"{p['F']:.1f} | {p['N']:.1f} | {p['C']:.2f} | {_pct(p['retention'])} |" if p else "- | - | - | - |")
@@ -447,6 +452,10 @@ def report_markdown(table: dict, meta: dict) -> str:
                 notes.add(f"paper -: the paper has no Table VIII row for c = {c}")
     if notes:
         lines += [""] + [f"- {n}" for n in sorted(notes)]
+    faults = fault_lines(table)
+    if faults:
+        lines += ["", "**Not a measurement**: these episodes lost agents, failed safe or diverged:", ""]
+        lines += [f"- {line}" for line in faults]
     lines += sitl_timing_lines(table)
     prov = meta["provenance"]
     lines += [

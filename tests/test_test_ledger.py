@@ -1,0 +1,275 @@
+"""The test ledger (cefc_mj/eval/ledger.py, eval/test_ledger.jsonl): its records, the rule that a report
+flown on games an earlier flight informed a change with is tainted, the shipped reports held to that
+rule, and cefc-eval recording its own flights of test seeds.
+
+The rule on the shipped reports fails for any tainted report not in KNOWN_TAINTED, and for any entry of
+KNOWN_TAINTED that is no longer tainted or no longer shipped: the list must shrink when the
+pre-registered Table V (docs/preregistration.md) replaces the shipped one.
+"""
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from cefc_mj import paths, seeds
+from cefc_mj.errors import ConfigError
+from cefc_mj.eval import ledger
+from cefc_mj.eval.ledger import Flight, read_ledger, record_flight, tainting_flights
+
+REPORTS = paths.EVAL_DIR / "reports"
+SHIPPED_LEDGER = paths.EVAL_DIR / ledger.LEDGER_NAME
+BATCH_10000 = "batch seed 10000, whose flights of generations 2 and 3 decided two adversary replacements"
+KNOWN_TAINTED = {
+    "table5.json": f"Table V of generation 4 on {BATCH_10000}",
+    "table6.json": f"Table VI on {BATCH_10000}",
+    "table7.json": f"Table VII on {BATCH_10000}",
+    "table5_mujoco/table5.json": f"CI-HRL seed 0 on quadrotors on {BATCH_10000}",
+    "table5_sitl_m/table5_sitl_m.json": "seeds 20000..20099, whose first 20 games decided the study's size",
+}
+"""Shipped reports (under eval/reports/) known to be flown on games that informed a change, each with
+why. Remove an entry when its report is re-flown on a clean batch; never add one to silence the test."""
+
+
+# ---------------------------------------------------------------------------- records
+def _flight(protocol="table5", seed=10000, episodes=50, informed=False, name="x") -> Flight:
+    return Flight(
+        id=name,
+        protocol=protocol,
+        seed=seed,
+        episodes=episodes,
+        command="cefc-eval ...",
+        commit=None,
+        code_version=None,
+        date="2026-12-01",
+        informed_change=informed,
+        change="a change" if informed else None,
+    )
+
+
+def test_records_round_trip_marks_and_queries(tmp_path):
+    path = tmp_path / "ledger.jsonl"
+    prov = {"git_commit": "abc123", "code_version": "d" * 16}
+    first = record_flight(
+        "table5", 10000, 50, "cefc-eval --protocol table5 --seed 10000", prov, ["r/table5.json"], path=path
+    )
+    sitl = record_flight("table5-sitl-m", 20000, 100, "cefc-eval --sitl-m ...", None, path=path)
+    assert first.commit == "abc123" and first.outputs == ("r/table5.json",) and not first.informed_change
+    assert [f.id for f in read_ledger(path).flights] == [first.id, sitl.id]
+    marked = ledger.mark_informed_change(first.id, "the adversary replaced", path=path)
+    assert marked.informed_change and marked.change == "the adversary replaced"
+    assert ledger.flights("table5", 10000, path=path) == [marked]
+    assert ledger.flights(seed=20099, path=path) == [sitl] and ledger.flights(seed=20100, path=path) == []
+    lines = path.read_text().splitlines()
+    assert [json.loads(line)["kind"] for line in lines] == ["flight", "flight", "mark"]  # appended, never rewritten
+    with pytest.raises(ConfigError, match="no flight 'nope'"):
+        ledger.mark_informed_change("nope", "x", path=path)
+
+
+def test_only_test_seeds_are_recorded_and_a_torn_line_is_closed(tmp_path):
+    path = tmp_path / "ledger.jsonl"
+    with pytest.raises(ConfigError, match="flies no seed of the test block"):
+        record_flight("table5", 200, 50, "cmd", path=path)
+    assert ledger.touches_test_block("table8", 9995, 10) and not ledger.touches_test_block("table8", 9990, 10)
+    assert not ledger.touches_test_block("table5", 9999, 50)  # a batch seed is one seed, not 50
+    path.write_text('{"kind": "flight", "id": "torn"')  # a crash in the middle of a line
+    with pytest.raises(ConfigError, match=r"ledger.jsonl:1: not JSON"):
+        read_ledger(path)
+    path.write_text("")
+    record_flight("table8", 10000, 20, "cmd", path=path)
+    with open(path, "a") as fh:
+        fh.write('{"kind": "fli')
+    flight = record_flight("table7", 10000, 50, "cmd", path=path)
+    lines = path.read_text().splitlines()
+    assert json.loads(lines[-1])["id"] == flight.id and lines[-2] == '{"kind": "fli'
+
+
+def test_where_it_writes(tmp_path, monkeypatch, capsys):
+    monkeypatch.delenv(ledger.ENV_VAR, raising=False)
+    if paths.CHECKOUT_ROOT is not None:
+        assert ledger.ledger_path() == (paths.CHECKOUT_ROOT / "eval" / "test_ledger.jsonl", "checkout")
+    monkeypatch.setattr(paths, "CHECKOUT_ROOT", None)  # an installed wheel: no repository to write into
+    assert record_flight("table5", 10000, 50, "cmd") is None
+    assert capsys.readouterr().err == (
+        "test ledger: this flight of test seeds is not recorded (no checkout (an installed package); "
+        "set CEFC_TEST_LEDGER=PATH to record)\n"
+    )
+    monkeypatch.setenv(ledger.ENV_VAR, "/proc/no/ledger.jsonl")  # unwritable: one line, the flight goes on
+    assert record_flight("table5", 10000, 50, "cmd") is None
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("test ledger: this flight of test seeds is not recorded (/proc")
+    monkeypatch.setenv(ledger.ENV_VAR, str(tmp_path / "mine.jsonl"))
+    assert record_flight("table5", 10000, 50, "cmd") is not None and (tmp_path / "mine.jsonl").is_file()
+
+
+def test_the_module_lists_and_marks(tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv(ledger.ENV_VAR, str(tmp_path / "l.jsonl"))
+    flight = record_flight("table6", 10000, 50, "cmd")
+    assert ledger.main(["mark", flight.id, "Table VI's rows changed"]) == 0
+    assert ledger.main([]) == 0
+    out = capsys.readouterr().out
+    assert "1 flights" in out and f"{flight.id}  table6 seeds 10000 (game)" in out and "informed: Table VI's" in out
+    assert ledger.main(["mark", "nope", "x"]) == 2 and "no flight 'nope'" in capsys.readouterr().err
+
+
+# ---------------------------------------------------------------------------- the rule
+def test_the_rule_on_synthetic_ledgers():
+    """Tainted: an earlier flight on some of the same games that informed a change; not tainted: a later
+    one, one on other games (another seed or the other family), or one that informed nothing."""
+    informed = _flight(informed=True, name="informed")
+    report = _flight(name="report")
+    assert tainting_flights(report, [informed, report]) == [informed]
+    assert tainting_flights(report, [report, informed]) == []  # a change after the report's flight
+    assert tainting_flights(report, [_flight(name="plain"), report]) == []
+    other_seed = _flight(seed=30000, informed=True, name="other seed")
+    other_family = _flight(protocol="table8", seed=10000, episodes=20, informed=True, name="table8")
+    assert tainting_flights(report, [other_seed, other_family, report]) == []
+    # Table VI on the batch that a Table V flight informed a change with: the same games
+    assert tainting_flights(_flight("table6", name="t6"), [informed, _flight("table6", name="t6")]) == [informed]
+    # one game per seed: any seed in common counts, and a batch seed shares its first draws with it
+    sitl = _flight("table5-sitl-m", 20000, 100, name="sitl")
+    early = _flight("table5-sitl-m", 20010, 5, informed=True, name="early")
+    assert tainting_flights(sitl, [early, sitl]) == [early]
+    assert tainting_flights(sitl, [_flight("table5", 20099, informed=True, name="batch"), sitl])
+    assert tainting_flights(sitl, [_flight("table5", 20100, informed=True, name="batch"), sitl]) == []
+    with pytest.raises(ConfigError, match="not in the ledger"):
+        tainting_flights(report, [informed])
+
+
+def _shipped_test_flights() -> dict[str, dict]:
+    """{path under eval/reports: what flew it (protocol, seed, episodes, command, commit)} of every
+    shipped game-table or Table VIII report that flew a test-block seed."""
+    found = {}
+    for path in sorted(REPORTS.rglob("*.json")):
+        data = json.loads(path.read_text())
+        if not isinstance(data, dict) or not isinstance(data.get("schema"), str):
+            continue
+        proto = data["protocol"] if isinstance(data["protocol"], dict) else data  # table8/single: top level
+        protocol = "table5-sitl-m" if proto.get("sitl_m") else data["schema"].removeprefix("cefc-eval/")
+        if protocol not in seeds.PROTOCOL_FAMILY:
+            continue
+        if isinstance(data.get("seeds"), list):  # single: the seeds flown
+            seed, episodes = min(data["seeds"]), len(data["seeds"])
+        else:
+            seed, episodes = proto["seed"], proto["episodes"]
+        if ledger.touches_test_block(protocol, seed, episodes):
+            found[str(path.relative_to(REPORTS))] = {
+                "protocol": protocol,
+                "seed": seed,
+                "episodes": episodes,
+                "command": proto["command"],
+                "commit": data.get("provenance", {}).get("git_commit"),
+            }
+    return found
+
+
+def test_every_shipped_test_report_is_in_the_ledger_and_untainted_unless_known():
+    flights = read_ledger(SHIPPED_LEDGER).flights
+    reports = _shipped_test_flights()
+    assert {"table5.json", "table8_test/wind8.json", "table8_test/dev08.json"} <= set(reports)
+    tainted = {}
+    for name, flew in reports.items():
+        matches = [f for f in flights if all(getattr(f, k) == v for k, v in flew.items())]
+        assert len(matches) == 1, f"{name}: {len(matches)} ledger flights match {flew}"
+        assert f"eval/reports/{name}" in matches[0].outputs, name
+        earlier = tainting_flights(matches[0], flights)
+        if earlier:
+            tainted[name] = [f.id for f in earlier]
+    new = sorted(set(tainted) - set(KNOWN_TAINTED))
+    assert not new, f"reports flown on games that informed a change: {new} ({tainted})"
+    clean = sorted(set(KNOWN_TAINTED) - set(tainted))
+    assert not clean, f"no longer tainted or no longer shipped: remove {clean} from KNOWN_TAINTED"
+
+
+def test_the_shipped_ledger_backfills_the_known_history():
+    flights = read_ledger(SHIPPED_LEDGER).flights
+    batch = [f for f in flights if f.family == seeds.GAME_FAMILY and seeds.GAME_TEST_SEED in f.seeds]
+    assert [f.protocol for f in batch if f.informed_change] == ["table5"] * 5  # generations 2 (x4) and 3
+    assert all("adversary" in f.change for f in batch if f.informed_change)
+    table8 = [f for f in flights if f.family == seeds.FORMATION_FAMILY]
+    assert all(set(seeds.TABLE8_TEST_SEEDS) == f.seeds and not f.informed_change for f in table8) and table8
+    dates = [f.date for f in flights]
+    assert dates == sorted(dates)  # recorded in the order flown
+
+
+# ---------------------------------------------------------------------------- the next batch
+def test_the_preregistered_batch_is_a_never_informing_test_batch_of_other_games():
+    seed = seeds.GAME_PREREGISTERED_TEST_SEED
+    assert seed in seeds.TEST and seed != seeds.GAME_TEST_SEED
+    declared = {b.first: b for b in seeds.TEST_BATCHES}
+    assert declared[seed].family == seeds.GAME_FAMILY and declared[seed].count == 1
+    for a in seeds.TEST_BATCHES:  # declared batches of one family never share a seed
+        for b in seeds.TEST_BATCHES:
+            if a is not b and a.family == b.family:
+                assert not set(a.seeds) & set(b.seeds)
+    touching = [f for f in read_ledger(SHIPPED_LEDGER).flights if f.family == seeds.GAME_FAMILY and seed in f.seeds]
+    assert all(f.protocol in seeds.BATCH_SEEDED and not f.informed_change for f in touching)
+    # a batch seed seeds one generator for the whole batch: other batch seeds draw other games
+    from cefc_mj.eval.highlevel import EPISODES, game_task
+    from cefc_mj.task.scenario import sample_scenario
+
+    task = game_task()
+    layouts = {
+        s: sample_scenario(task, np.random.default_rng(s), EPISODES)
+        for s in (seed, seeds.GAME_TEST_SEED, seeds.GAME_VALIDATION_SEED)
+    }
+    ours = {tuple(np.round(p, 9).ravel()) for p in layouts[seed].agent_pos}
+    for other in (seeds.GAME_TEST_SEED, seeds.GAME_VALIDATION_SEED):
+        assert not ours & {tuple(np.round(p, 9).ravel()) for p in layouts[other].agent_pos}
+        assert not np.isclose(layouts[seed].anchor[:, None], layouts[other].anchor[None]).all(-1).any()
+
+
+# ---------------------------------------------------------------------------- cefc-eval records itself
+@pytest.fixture
+def seed_only_policies(tmp_path):
+    """A folder with MAPPO and CI-HRL at training seeds 100 and 101 only (untrained weights) and the
+    game's adversary, as a pre-registered run's folder would be."""
+    from cefc_mj.eval.highlevel import GAME_ADVERSARY, game_task
+    from cefc_mj.nn.adversary_policy import AdversaryNetConfig, AdversaryPolicy, save_adversary_policy
+    from cefc_mj.nn.highlevel_policy import HighLevelPolicy, save_highlevel_policy
+
+    folder = tmp_path / "prereg"
+    folder.mkdir()
+    for stem, variant in (("cihrl_mappo", "mappo"), ("cihrl_consmac_a", "consmac-a")):
+        for k in (100, 101):
+            name = f"{stem}_seed{k}"
+            policy = HighLevelPolicy.build(variant, game_task(), seed=k)
+            save_highlevel_policy(policy, folder / f"{name}.pt", meta={"name": name, "decision_interval": 10})
+    save_adversary_policy(AdversaryPolicy(AdversaryNetConfig(), seed=0), folder / f"{GAME_ADVERSARY}.pt")
+    return folder
+
+
+@pytest.mark.usefixtures("one_torch_thread")
+def test_cefc_eval_records_its_test_flights_and_reads_another_folder(seed_only_policies, tmp_path, capsys):
+    from cefc_mj.cli.eval import main
+
+    path = Path(os.environ[ledger.ENV_VAR])
+    before = len(read_ledger(path).flights)
+    out = tmp_path / "reports"
+    argv = [
+        "--backend",
+        "particle",
+        "--protocol",
+        "table5",
+        "--episodes",
+        "1",
+        "--policies-dir",
+        str(seed_only_policies),
+    ]
+    assert main([*argv, "--seed", "10000", "--report-dir", str(out)]) == 0
+    printed = capsys.readouterr().out
+    flights = read_ledger(path).flights
+    assert len(flights) == before + 1 and f"test ledger: flight {flights[-1].id} recorded" in printed
+    flight = flights[-1]
+    assert (flight.protocol, flight.seed, flight.episodes, flight.source) == ("table5", 10000, 1, "cefc-eval")
+    assert flight.command.endswith("--report-dir " + str(out)) and flight.outputs == (str(out / "table5.json"),)
+    assert flight.commit == json.loads((out / "table5.json").read_text())["provenance"].get("git_commit")
+    report = json.loads((out / "table5.json").read_text())
+    assert list(report["rows"]) == ["MAPPO+AT-M", "CI-HRL"]  # no seed-0 file: each row from seed 100
+    assert report["rows"]["CI-HRL"]["training_seeds"]["seeds"] == [100, 101]
+    assert report["rows"]["MAPPO+AT-M"]["policy"] == "cihrl_mappo_seed100.pt"
+    assert report["comparison"]["primary"]["method"] == "MAPPO+AT-M"
+    assert main([*argv, "--seed", "7"]) == 0  # the protocol block: nothing recorded
+    assert len(read_ledger(path).flights) == before + 1 and "test ledger" not in capsys.readouterr().out
