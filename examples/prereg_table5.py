@@ -1,0 +1,90 @@
+"""Train the runs of the pre-registered Table V (docs/preregistration.md), resumably, one after another.
+
+    python examples/prereg_table5.py --list              # every planned run and whether it is done
+    python examples/prereg_table5.py --max-runs 4        # the next 4 runs not yet done (primary pair first)
+
+A run is done when its policy file is in policies/prereg/; a run whose folder is in runs/prereg/ but
+has no policy yet (an interrupted session) is continued with --resume. The plan below is the
+pre-registration's table of rows and seeds; nothing here chooses or drops a run by its results.
+"""
+
+from __future__ import annotations
+
+import argparse
+import shlex
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+OUT = "runs/prereg"
+POLICIES = "policies/prereg"
+COMMON = ["--adversary", "adversary_ppo_nearest_group_intercept", "--threads", "1", "--out", OUT]
+PRIMARY_SEEDS = range(100, 120)
+OTHER_SEEDS = range(100, 105)
+
+
+def _stem(base: str, seed: int) -> str:
+    return f"{base}_seed{seed}"
+
+
+def planned_runs() -> list[tuple[str, list[str]]]:
+    """(policy stem, cefc-train arguments) of every run, the primary pair's seeds first, interleaved."""
+    runs = []
+    for k in PRIMARY_SEEDS:
+        runs.append((_stem("cihrl_consmac_a", k), ["highlevel", "--variant", "consmac-a"]))
+        runs.append((_stem("cihrl_mappo", k), ["highlevel", "--variant", "mappo"]))
+    for k in OTHER_SEEDS:
+        runs.append((_stem("cihrl_consmac_a_dt", k), ["highlevel", "--variant", "consmac-a", "--pretrain-share", "0"]))
+        for variant in ("tarmac", "consmac-o", "masia", "nvif"):
+            runs.append((_stem(f"cihrl_{variant.replace('-', '_')}", k), ["highlevel", "--variant", variant]))
+        for ablation in ("wo-com", "wo-mem", "wo-de", "wt-rl", "consmac-g"):
+            stem = _stem(f"cihrl_consmac_a_{ablation.replace('-', '_')}", k)
+            runs.append((stem, ["highlevel", "--variant", "consmac-a", "--ablation", ablation]))
+        clm = ["highlevel", "--variant", "consmac-a", "--low-level", "clm-per-group"]
+        runs.append((_stem("cihrl_consmac_a_clm", k), clm))
+        for algorithm in ("mappo", "masac"):
+            benchmarl = ["highlevel-benchmarl", "--algorithm", algorithm, "--budget", "1500ep"]
+            runs.append((_stem(f"benchmarl_{algorithm}", k), benchmarl))
+    return [(stem, [*args, "--seed", stem.rsplit("_seed", 1)[1]]) for stem, args in runs]
+
+
+def command(stem: str, args: list[str]) -> list[str]:
+    """The cefc-train command of a run, with --resume when an interrupted run of it is under runs/prereg."""
+    budget = [] if "--budget" in args else ["--budget", "75it"]
+    resume = ["--resume"] if (ROOT / OUT / stem).is_dir() else []
+    return ["cefc-train", *args, *COMMON, *budget, "--policies-dir", POLICIES, *resume]
+
+
+def done(stem: str) -> bool:
+    return (ROOT / POLICIES / f"{stem}.pt").is_file()
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--list", action="store_true", help="print every planned run and its state, then exit")
+    p.add_argument("--max-runs", type=int, default=1, metavar="K", help="train at most K runs (default 1)")
+    args = p.parse_args(argv)
+    runs = planned_runs()
+    if args.list:
+        for stem, run_args in runs:
+            print(f"{'done   ' if done(stem) else 'todo   '}{shlex.join(command(stem, run_args))}")
+        print(f"{sum(done(stem) for stem, _ in runs)} of {len(runs)} runs done")
+        return 0
+    if args.max_runs < 1:
+        p.error(f"--max-runs {args.max_runs}: must be >= 1")
+    todo = [(stem, run_args) for stem, run_args in runs if not done(stem)][: args.max_runs]
+    for stem, run_args in todo:
+        cmd = command(stem, run_args)
+        print(f"prereg: {shlex.join(cmd)}", flush=True)
+        start = time.monotonic()
+        code = subprocess.run([*cmd, "--no-progress"], cwd=ROOT).returncode
+        print(f"prereg: {stem} exited {code} after {time.monotonic() - start:.0f} s", flush=True)
+        if code != 0:
+            return code
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
