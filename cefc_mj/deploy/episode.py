@@ -183,15 +183,9 @@ def _check(spec: EpisodeSpec, sitl: SitlConfig) -> tuple[float, tuple[int, int] 
     return tick, drop, policy.task_for(config), policy
 
 
-def warm_up_kernels(spec: EpisodeSpec, config: TaskConfig, tick: float, policy) -> None:
-    """Compile (a cold numba cache) or load every kernel the episode runs, here, before any agent starts.
-
-    The simulator's first steps would otherwise compile for tens of seconds while the agents, already
-    flying, hear nothing and leave at their heartbeat timeout; and c agents compiling the same kernels
-    at once would share the CPUs c ways. A throwaway world of the same game flies two steps (and its
-    metrics), and the agents' decision code runs on a probe, so the agents load from a warm cache."""
-    from cefc_mj.deploy.agent import low_level_act, warm_up_low_level
-
+def ticked_episode_env(spec: EpisodeSpec, config: TaskConfig, tick: float):
+    """(world, env) of one SITL-M episode: the spec's world stepped at the control tick `tick`, and the
+    task core over it."""
     world = make_ticked_world(
         spec.backend,
         config,
@@ -202,7 +196,19 @@ def warm_up_kernels(spec: EpisodeSpec, config: TaskConfig, tick: float, policy) 
         wind_direction=spec.wind_direction,
         rotor_actuation=spec.rotor_actuation,
     )
-    env = DropoutCEFCEnv(config, n_envs=1, seed=spec.seed, world=world)
+    return world, DropoutCEFCEnv(config, n_envs=1, seed=spec.seed, world=world)
+
+
+def warm_up_kernels(spec: EpisodeSpec, config: TaskConfig, tick: float, policy) -> None:
+    """Compile (a cold numba cache) or load every kernel the episode runs, here, before any agent starts.
+
+    The simulator's first steps would otherwise compile for tens of seconds while the agents, already
+    flying, hear nothing and leave at their heartbeat timeout; and c agents compiling the same kernels
+    at once would share the CPUs c ways. A throwaway world of the same game flies two steps (and its
+    metrics), and the agents' decision code runs on a probe, so the agents load from a warm cache."""
+    from cefc_mj.deploy.agent import low_level_act, warm_up_low_level
+
+    world, env = ticked_episode_env(spec, config, tick)
     world.controller = lambda j: np.zeros((1, spec.formation, 2))
     env.reset()
     for _ in range(2):
@@ -222,17 +228,7 @@ def run_sitl_episode(spec: EpisodeSpec, sitl: SitlConfig = SitlConfig(), record:
     """
     tick, drop, config, policy = _check(spec, sitl)
     warm_up_kernels(spec, config, tick, policy)
-    world = make_ticked_world(
-        spec.backend,
-        config,
-        tick,
-        wind=spec.wind,
-        seed=spec.seed,
-        airframe=spec.mujoco_airframe,
-        wind_direction=spec.wind_direction,
-        rotor_actuation=spec.rotor_actuation,
-    )
-    env = DropoutCEFCEnv(config, n_envs=1, seed=spec.seed, world=world)
+    world, env = ticked_episode_env(spec, config, tick)
     welcome = {"formation": spec.formation, "task": config.to_dict(), "heartbeat_timeout_s": sitl.heartbeat_timeout_s}
     server = SitlServer(sitl.bind, spec.formation, welcome, world.tick_s, seed=spec.seed, **server_options(sitl))
     fleet = None
@@ -404,17 +400,7 @@ def run_latency_model_episode(
         raise ConfigError(f"latency_ticks={latency_ticks!r}: must be an integer >= 0")
     policy = policy if policy is not None else load_policy_for(spec.policy, spec.formation)
     config = policy.task_for(config)
-    world = make_ticked_world(
-        spec.backend,
-        config,
-        tick,
-        wind=spec.wind,
-        seed=spec.seed,
-        airframe=spec.mujoco_airframe,
-        wind_direction=spec.wind_direction,
-        rotor_actuation=spec.rotor_actuation,
-    )
-    env = DropoutCEFCEnv(config, n_envs=1, seed=spec.seed, world=world)
+    world, env = ticked_episode_env(spec, config, tick)
     n_ticks = world.n_ticks
     commands: dict[int, np.ndarray] = {}  # decision step -> its setpoints [1, N, 2]
     held = [np.zeros((1, spec.formation, 2))]
