@@ -4,14 +4,17 @@
     python examples/prereg_table5.py --max-runs 4        # the next 4 runs not yet done (primary pair first)
 
 A run is done when its policy file is in policies/prereg/; a run whose folder is in runs/prereg/ but
-has no policy yet (an interrupted session) is continued with --resume. The plan below is the
-pre-registration's table of rows and seeds; nothing here chooses or drops a run by its results.
+has no policy yet (an interrupted session) is continued with --resume. A finished run's config.json
+and progress.csv are kept in eval/training_logs/prereg/<run>/ (runs/ is not part of the repository).
+The plan below is the pre-registration's table of rows and seeds; nothing here chooses or drops a run
+by its results.
 """
 
 from __future__ import annotations
 
 import argparse
 import shlex
+import shutil
 import subprocess
 import sys
 import time
@@ -20,6 +23,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 OUT = "runs/prereg"
 POLICIES = "policies/prereg"
+LOGS = "eval/training_logs/prereg"
 COMMON = ["--adversary", "adversary_ppo_nearest_group_intercept", "--threads", "1", "--out", OUT]
 PRIMARY_SEEDS = range(100, 120)
 OTHER_SEEDS = range(100, 105)
@@ -61,6 +65,15 @@ def done(stem: str) -> bool:
     return (ROOT / POLICIES / f"{stem}.pt").is_file()
 
 
+def keep_log(stem: str) -> None:
+    """Copy a finished run's config.json and progress.csv into LOGS/<stem>/."""
+    for name in ("config.json", "progress.csv"):
+        source = ROOT / OUT / stem / name
+        if source.is_file():
+            (ROOT / LOGS / stem).mkdir(parents=True, exist_ok=True)
+            shutil.copy2(source, ROOT / LOGS / stem / name)
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--list", action="store_true", help="print every planned run and its state, then exit")
@@ -83,6 +96,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"prereg: {stem} exited {code} after {time.monotonic() - start:.0f} s", flush=True)
         if code != 0:
             return code
+        keep_log(stem)
     return 0
 
 
