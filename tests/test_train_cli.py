@@ -265,6 +265,20 @@ def test_interrupted_before_the_first_checkpoint_resumes_exactly(tmp_path, monke
     assert all(torch.equal(a, b) for a, b in zip(whole.state_dict().values(), resumed.state_dict().values()))
 
 
+def test_interrupted_before_any_checkpoint_says_to_start_again(tmp_path, monkeypatch, capsys):
+    """Ctrl-C before a run has written its first state (the adversary's imitation phase, say): the
+    hint is to run the command again, not a --resume that would find nothing."""
+    from cefc_mj.train import run_state
+
+    def interrupted(*_):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(run_state, "run_state_path", interrupted)
+    assert main(LOW + TINY + ["--out", "early"]) == 130
+    err = capsys.readouterr().err
+    assert "no checkpoint was written yet: run the same command again (without --resume)" in err, err
+
+
 def test_install_copies_into_the_shipped_folder(tmp_path, monkeypatch, capsys):
     """--install is the opt-in way into policies/; here policies/ is a stand-in folder."""
     fake_shipped = tmp_path / "shipped"

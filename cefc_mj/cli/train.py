@@ -23,6 +23,8 @@ from __future__ import annotations
 import argparse
 import shlex
 import sys
+import time
+from pathlib import Path
 
 from cefc_mj.cli import train_adversary, train_benchmarl, train_highlevel, train_lowlevel
 from cefc_mj.cli.train_common import EXIT_USAGE, PROG, check_destinations
@@ -89,6 +91,7 @@ def run(args, command: str | None = None) -> list[dict]:
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     args = build_parser().parse_args(argv)
+    started = time.time()
     try:
         run(args, command=shlex.join([PROG, *argv]))
     except CefcError as e:
@@ -99,12 +102,22 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{PROG}: error: {' '.join(str(e).split())}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
-        print(
-            f"{PROG}: interrupted; the same command with --resume continues from the last checkpoint",
-            file=sys.stderr,
-        )
+        print(f"{PROG}: interrupted; {_resume_hint(args, started)}", file=sys.stderr)
         return 130
     return 0
+
+
+def _resume_hint(args, started: float) -> str:
+    """What continues an interrupted run: --resume where a checkpoint exists (written by this command,
+    or the one it resumed), else the same command again (a run interrupted before its first checkpoint,
+    e.g. in the adversary's imitation phase, has nothing to resume)."""
+    from cefc_mj.train.run_state import STATE_FILE
+
+    out = getattr(args, "out", None)
+    states = sorted(Path(out).glob(f"**/{STATE_FILE}")) if out is not None and Path(out).is_dir() else []
+    if getattr(args, "resume", False) or any(p.stat().st_mtime >= started for p in states):
+        return "the same command with --resume continues from the last checkpoint"
+    return "no checkpoint was written yet: run the same command again (without --resume) to start over"
 
 
 if __name__ == "__main__":
