@@ -230,6 +230,9 @@ def main(argv: list[str] | None = None) -> int:
     except CefcError as e:
         print(f"{PROG}: error: {' '.join(str(e).split())}", file=sys.stderr)
         return EXIT_USAGE
+    except KeyboardInterrupt:
+        print(f"\n{PROG}: interrupted; no report written", file=sys.stderr)
+        return 130
     print("\n".join(lines))
     print(f"wrote {display_path(args.out)}")
     return 0

@@ -20,38 +20,13 @@ import sys
 import time
 from pathlib import Path
 
+from cefc_mj.eval.prereg import planned_runs
+
 ROOT = Path(__file__).resolve().parent.parent
 OUT = "runs/prereg"
 POLICIES = "policies/prereg"
 LOGS = "eval/training_logs/prereg"
 COMMON = ["--adversary", "adversary_ppo_nearest_group_intercept", "--threads", "1", "--out", OUT]
-PRIMARY_SEEDS = range(100, 120)
-OTHER_SEEDS = range(100, 105)
-
-
-def _stem(base: str, seed: int) -> str:
-    return f"{base}_seed{seed}"
-
-
-def planned_runs() -> list[tuple[str, list[str]]]:
-    """(policy stem, cefc-train arguments) of every run, the primary pair's seeds first, interleaved."""
-    runs = []
-    for k in PRIMARY_SEEDS:
-        runs.append((_stem("cihrl_consmac_a", k), ["highlevel", "--variant", "consmac-a"]))
-        runs.append((_stem("cihrl_mappo", k), ["highlevel", "--variant", "mappo"]))
-    for k in OTHER_SEEDS:
-        runs.append((_stem("cihrl_consmac_a_dt", k), ["highlevel", "--variant", "consmac-a", "--pretrain-share", "0"]))
-        for variant in ("tarmac", "consmac-o", "masia", "nvif"):
-            runs.append((_stem(f"cihrl_{variant.replace('-', '_')}", k), ["highlevel", "--variant", variant]))
-        for ablation in ("wo-com", "wo-mem", "wo-de", "wt-rl", "consmac-g"):
-            stem = _stem(f"cihrl_consmac_a_{ablation.replace('-', '_')}", k)
-            runs.append((stem, ["highlevel", "--variant", "consmac-a", "--ablation", ablation]))
-        clm = ["highlevel", "--variant", "consmac-a", "--low-level", "clm-per-group"]
-        runs.append((_stem("cihrl_consmac_a_clm", k), clm))
-        for algorithm in ("mappo", "masac"):
-            benchmarl = ["highlevel-benchmarl", "--algorithm", algorithm, "--budget", "1500ep"]
-            runs.append((_stem(f"benchmarl_{algorithm}", k), benchmarl))
-    return [(stem, [*args, "--seed", stem.rsplit("_seed", 1)[1]]) for stem, args in runs]
 
 
 def command(stem: str, args: list[str]) -> list[str]:

@@ -273,3 +273,36 @@ def test_cefc_eval_records_its_test_flights_and_reads_another_folder(seed_only_p
     assert report["comparison"]["primary"]["method"] == "MAPPO+AT-M"
     assert main([*argv, "--seed", "7"]) == 0  # the protocol block: nothing recorded
     assert len(read_ledger(path).flights) == before + 1 and "test ledger" not in capsys.readouterr().out
+
+
+def _eval_refusal(argv, capsys) -> str:
+    from cefc_mj.cli.eval import main
+
+    with pytest.raises(SystemExit) as exit_info:
+        main(argv)
+    err = capsys.readouterr().err.strip()
+    assert exit_info.value.code == 2 and len(err.splitlines()) == 1, err
+    return err
+
+
+def test_the_preregistered_batch_flies_only_as_planned(tmp_path, monkeypatch, capsys):
+    """Every way to fly the pre-registered batch other than the planned flight is refused before
+    anything flies (nothing here flies it: each call ends in the flag checks)."""
+    seed = str(seeds.GAME_PREREGISTERED_TEST_SEED)
+    table5 = ["--backend", "particle", "--protocol", "table5", "--seed", seed]
+    assert "add --preregistered-flight" in _eval_refusal(table5, capsys)
+    assert "add --preregistered-flight" in _eval_refusal([*table5[:3], "table6", *table5[4:]], capsys)
+    flight = [*table5, "--preregistered-flight"]
+    assert "(no --policy)" in _eval_refusal([*flight, "--policy", "cihrl_consmac_a"], capsys)
+    assert "give --policies-dir" in _eval_refusal(flight, capsys)
+    assert "(no --policy)" in _eval_refusal([*table5[:5], "40000", "--preregistered-flight"], capsys)
+    partial = tmp_path / "prereg"
+    partial.mkdir()
+    (partial / "cihrl_consmac_a_seed100.pt").write_bytes(b"")
+    err = _eval_refusal([*flight, "--policies-dir", str(partial)], capsys)
+    assert "104 of 105 planned runs are not in" in err and "cihrl_mappo_seed100.pt" in err, err
+    # a batch the ledger shows flown is never flown again, whatever the folder holds
+    ledger_file = tmp_path / "ledger.jsonl"
+    monkeypatch.setenv("CEFC_TEST_LEDGER", str(ledger_file))
+    ledger.record_flight("table5", seeds.GAME_PREREGISTERED_TEST_SEED, 50, "cefc-eval ...", None, [])
+    assert "was already flown" in _eval_refusal([*flight, "--policies-dir", str(partial)], capsys)

@@ -43,6 +43,7 @@ from cefc_mj.eval.requests import (
 )
 from cefc_mj.executors import ExecutorConfig
 from cefc_mj.nn.registry import GAME_ADVERSARY
+from cefc_mj.seeds import GAME_FAMILY, GAME_PREREGISTERED_TEST_SEED
 from cefc_mj.sim.wind import MAX_WIND_SPEED
 from cefc_mj.task.config import ADVERSARY_RULES
 
@@ -290,7 +291,50 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="table8 only: fly every episode anew; an existing cell file is moved aside, not reused",
     )
+    p.add_argument(
+        "--preregistered-flight",
+        action="store_true",
+        help=f"table5: fly the pre-registered comparison's test batch (--seed {GAME_PREREGISTERED_TEST_SEED}), "
+        "which is flown once, after every planned run is in (docs/preregistration.md); refused without it",
+    )
     return p
+
+
+def check_preregistered_batch(args: argparse.Namespace) -> None:
+    """ConfigError unless a flight of the pre-registered test batch is the one the pre-registration
+    plans: asked for by name (--preregistered-flight), table5 over every row of --policies-dir (no
+    --policy), the first flight of that batch (the test ledger holds none), every planned run's file in
+    the folder. All checked before anything flies."""
+    proto, seed = args.protocol, args.seed
+    if proto in GAME_TABLES and seed == GAME_PREREGISTERED_TEST_SEED and not args.preregistered_flight:
+        raise ConfigError(
+            f"--seed {seed}: the pre-registered Table V's test batch, flown once after every planned run is in "
+            "(docs/preregistration.md); add --preregistered-flight to fly it"
+        )
+    if not args.preregistered_flight:
+        return
+    if proto != "table5" or seed != GAME_PREREGISTERED_TEST_SEED or args.policy is not None:
+        raise ConfigError(
+            f"--preregistered-flight: flies --protocol table5 --seed {GAME_PREREGISTERED_TEST_SEED} over every row "
+            "of --policies-dir (no --policy)"
+        )
+    if args.policies_dir is None:
+        raise ConfigError("--preregistered-flight: give --policies-dir, the folder of the planned runs' files")
+    from cefc_mj.eval import ledger
+    from cefc_mj.eval.prereg import missing_runs, planned_runs
+
+    earlier = [f for f in ledger.flights(seed=seed) if f.family == GAME_FAMILY]
+    if earlier:
+        raise ConfigError(
+            f"--preregistered-flight: batch {seed} was already flown ({ledger.describe(earlier[0])}); "
+            "a test batch is flown once"
+        )
+    missing = missing_runs(args.policies_dir)
+    if missing:
+        raise ConfigError(
+            f"--preregistered-flight: {len(missing)} of {len(planned_runs())} planned runs are not in "
+            f"{args.policies_dir} (first: {missing[0]}.pt); the batch is flown once, after every run is in"
+        )
 
 
 def usage_error(message: str):
@@ -377,6 +421,7 @@ def refuse_flags(args: argparse.Namespace) -> None:
         raise ConfigError(f"--policies-dir: only --protocol table5 reads its rows from another folder ({proto})")
     if args.fresh and proto != "table8":
         raise ConfigError("--fresh: only --protocol table8 keeps a cell cache")
+    check_preregistered_batch(args)
     if proto != "table8":
         if args.executor not in (None, "local"):
             raise ConfigError(
