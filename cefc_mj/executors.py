@@ -212,7 +212,9 @@ def map_unordered(
     else:
         context = mp_context or multiprocessing.get_context(POOL_START_METHOD)
         tracker_was_running = _resource_tracker_running()
-        pool = ProcessPoolExecutor(max_workers=min(executor.workers, len(items)), mp_context=context)
+        pool = ProcessPoolExecutor(
+            max_workers=min(executor.workers, len(items)), mp_context=context, initializer=_one_thread_per_worker
+        )
         try:
             futures = {pool.submit(fn, item): item for item in items}
             pending = set(futures)
@@ -232,6 +234,22 @@ def map_unordered(
             pool.shutdown(wait=True, cancel_futures=True)
             if not tracker_was_running:
                 _stop_resource_tracker()
+
+
+WORKER_THREAD_VARIABLES = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMBA_NUM_THREADS")
+"""Set to 1 in each local pool worker (unless the user set them): W workers that each start a thread
+per core (torch's OpenMP pool) oversubscribe the cores and spin against each other. Measured with
+Table V's 98 jobs on 2 cores: 122 s with 2 workers against 38 s with 1, and 27 s with 2 workers of
+one thread each."""
+
+
+def _one_thread_per_worker() -> None:
+    """The local pool's initializer, in each worker before its first job. A spawned worker has often
+    imported torch already (it re-imports the command's main module), so torch is told directly."""
+    for name in WORKER_THREAD_VARIABLES:
+        os.environ.setdefault(name, "1")
+    if "torch" in sys.modules and os.environ["OMP_NUM_THREADS"] == "1":
+        sys.modules["torch"].set_num_threads(1)
 
 
 def _resource_tracker_running() -> bool:

@@ -66,7 +66,7 @@ def main(argv: list[str] | None = None) -> int:
                 "seed": seed,
                 "steps": args.steps,
                 "SITL-S": None if ref is None else {"F": ref.F, "N": ref.N, "C": ref.C, "wall_s": ref.wall_s},
-                "SITL-M": {"F": res.F, "N": res.N, "C": res.C, "wall_s": res.wall_s},
+                "SITL-M": {"F": res.F, "N": res.N, "C": res.C, "wall_s": res.wall_s, "faults": res.faults()},
                 "sitl": s,
                 "latency_model": None if model is None else {"F": model.F, "N": model.N, "C": model.C},
             }
@@ -94,8 +94,15 @@ def main(argv: list[str] | None = None) -> int:
     print(f"per-agent RTT p50: median {np.median(rtt_all):.2f} ms, worst {rtt_all.max():.2f} ms")
     if args.json:
         args.json.write_text(json.dumps({"command": " ".join(sys.argv), "rows": rows}, indent=1))
-    return 0
+    faults = [f"c = {r['formation']} seed {r['seed']}: {line}" for r in rows for line in r["SITL-M"]["faults"]]
+    for line in faults:  # a SITL-M episode that lost agents is not a measurement (docs/evaluation.md)
+        print(f"python -m cefc_mj.deploy.bench: fault: {line}", file=sys.stderr)
+    return 3 if faults else 0
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    try:
+        raise SystemExit(main())
+    except KeyboardInterrupt:
+        print("\npython -m cefc_mj.deploy.bench: interrupted", file=sys.stderr)
+        raise SystemExit(130) from None

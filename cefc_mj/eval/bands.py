@@ -31,6 +31,7 @@ import datetime as _dt
 import functools
 import json
 import math
+import sys
 from contextlib import closing
 from pathlib import Path
 
@@ -354,4 +355,8 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    try:
+        main()
+    except KeyboardInterrupt:  # measure's finished cells are in its cell files; it resumes from them
+        print("\npython -m cefc_mj.eval.bands: interrupted", file=sys.stderr)
+        raise SystemExit(130) from None
