@@ -208,13 +208,18 @@ def warm_up_kernels(spec: EpisodeSpec, config: TaskConfig, tick: float, policy) 
     metrics), and the agents' decision code runs on a probe, so the agents load from a warm cache."""
     from cefc_mj.deploy.agent import low_level_act, warm_up_low_level
 
-    world, env = ticked_episode_env(spec, config, tick)
-    world.controller = lambda j: np.zeros((1, spec.formation, 2))
-    env.reset()
-    for _ in range(2):
-        env.step(np.zeros((1, spec.formation, 2)))
-    env.episode_metrics()
+    fly_throwaway(*ticked_episode_env(spec, config, tick), spec.formation)
     warm_up_low_level(low_level_act(policy, config), config)
+
+
+def fly_throwaway(world, env, n_agents: int, steps: int = 2) -> None:
+    """Fly a throwaway ticked world and its env `steps` decision steps with zero setpoints, and take its
+    metrics: every kernel of the episode's loop runs once (the warm-ups before the agents start)."""
+    world.controller = lambda j: np.zeros((1, n_agents, 2))
+    env.reset()
+    for _ in range(steps):
+        env.step(np.zeros((1, n_agents, 2)))
+    env.episode_metrics()
 
 
 def run_sitl_episode(spec: EpisodeSpec, sitl: SitlConfig = SitlConfig(), record: bool = False) -> SitlEpisodeResult:

@@ -28,12 +28,20 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from cefc_mj.deploy import wire
-from cefc_mj.deploy.episode import SitlConfig, check_faults, control_tick, note_exits_and_faults, server_options
+from cefc_mj.deploy.episode import (
+    SitlConfig,
+    check_faults,
+    control_tick,
+    fly_throwaway,
+    note_exits_and_faults,
+    server_options,
+)
 from cefc_mj.deploy.results import _percentiles, unrequested_faults
 from cefc_mj.deploy.sim_server import AgentFleet, SitlServer, block_sigint, restore_sigint
 from cefc_mj.deploy.tick_world import make_ticked_world
 from cefc_mj.errors import ConfigError, SimulationDiverged
 from cefc_mj.eval.highlevel import GameSpec, game_figures, highlevel_policy_path
+from cefc_mj.eval.runner import diverged_faults
 from cefc_mj.hierarchy import DECISION_INTERVAL
 from cefc_mj.nn.registry import HIERARCHY_LOWLEVEL
 from cefc_mj.nn.selector import ANCHOR_VALUES, anchor_grid
@@ -340,8 +348,7 @@ class SitlGameResult:
     def faults(self) -> list[str]:
         """Why this game is not a measurement, one line per cause (empty: it is one): diverged physics,
         agents lost or failed safe without being asked to (`unrequested_faults`)."""
-        lines = [f"simulation diverged at step {self.steps}: {self.diverged}"] if self.diverged else []
-        return lines + unrequested_faults(self.sitl.get("events", []))
+        return diverged_faults(self.steps, self.diverged) + unrequested_faults(self.sitl.get("events", []))
 
     def to_dict(self) -> dict:
         return {
@@ -449,11 +456,7 @@ def _warm_up_kernels(game_env, policy, task, n_agents: int) -> None:
     from cefc_mj.deploy.agent import warm_up_hierarchy
     from cefc_mj.hierarchy import AgentHierarchy, load_low_level
 
-    world, env = game_env()
-    world.controller = lambda j: np.zeros((1, n_agents, 2))
-    env.reset()
-    for _ in range(2):
-        env.step(np.zeros((1, n_agents, 2)))
+    fly_throwaway(*game_env(), n_agents)
     warm_up_hierarchy(AgentHierarchy(policy, load_low_level(HIERARCHY_LOWLEVEL, task), task), task)
 
 

@@ -150,13 +150,18 @@ class EpisodeResult:
     def faults(self) -> list[str]:
         """Why this episode is not a measurement of the policy, one line per cause (empty: it is one).
         Here: diverged physics; SITL-M adds agents lost or failed safe without being asked to."""
-        return [f"simulation diverged at step {self.steps}: {self.diverged}"] if self.diverged else []
+        return diverged_faults(self.steps, self.diverged)
 
     def to_dict(self) -> dict:
         out = {k: v for k, v in asdict(self).items() if k not in ("record", "spec")}
         out.update(asdict(self.spec), condition=self.spec.condition)
         out["faults"] = self.faults()
         return out
+
+
+def diverged_faults(steps: int | None, diverged: str | None) -> list[str]:
+    """The fault line of an episode whose physics diverged (`EpisodeResult.diverged`), or none."""
+    return [f"simulation diverged at step {steps}: {diverged}"] if diverged else []
 
 
 HISTOGRAM_EDGES_MS = np.concatenate([[0.0], np.logspace(-2, 4, 61)])
@@ -372,10 +377,10 @@ def summarize(episodes: list[dict]) -> dict:
     """Mean and sample std over episodes (`EpisodeResult.to_dict()` rows) of F, N, C and F+N.
 
     Returns {"F", "F_std", "N", "N_std", "C", "C_std", "FN", "FN_std", "episodes", "diverged",
-    "steps", "faults", "valid"}: the means under the metric's own name, `*_std` None with fewer than 2
+    "steps", "faults", "faulted", "valid"}: the means under the metric's own name, `*_std` None with fewer than 2
     episodes, every value None with none (never NaN, so JSON stays valid); "steps" is the longest
-    episode's length; "faults" the episodes' faults (`episode_faults`), and "valid" False when there
-    are any: the cell is then not a measurement of the policy.
+    episode's length; "faults" the episodes' faults (`episode_faults`), "faulted" how many episodes
+    have any, and "valid" False when there are any: the cell is then not a measurement of the policy.
     """
     out: dict = {}
     for metric in METRICS:
@@ -385,6 +390,7 @@ def summarize(episodes: list[dict]) -> dict:
     out["diverged"] = sum(1 for e in episodes if e.get("diverged"))
     out["steps"] = max((int(e["steps"]) for e in episodes), default=None)
     out["faults"] = episode_faults(episodes)
+    out["faulted"] = sum(1 for e in episodes if episode_faults([e]))
     out["valid"] = not out["faults"]
     return out
 
@@ -396,7 +402,7 @@ def episode_faults(episodes: list[dict]) -> list[str]:
     for e in episodes:
         faults = e.get("faults")
         if faults is None:
-            faults = [f"simulation diverged at step {e.get('steps')}: {e['diverged']}"] if e.get("diverged") else []
+            faults = diverged_faults(e.get("steps"), e.get("diverged"))
         lines += [f"seed {e.get('seed')}: {line}" for line in faults]
     return lines
 
@@ -409,8 +415,7 @@ def cell_flag(cell: dict) -> str:
         return f" ({cell['diverged']} diverged)" if cell.get("diverged") else ""
     if cell["valid"]:
         return ""
-    faulted = len({line.split(":", 1)[0] for line in cell["faults"]})
-    return f" (NOT A MEASUREMENT: {faulted} of {cell['episodes']} episodes faulted)"
+    return f" (NOT A MEASUREMENT: {cell['faulted']} of {cell['episodes']} episodes faulted)"
 
 
 def fault_lines(table: dict) -> list[str]:
