@@ -89,9 +89,10 @@ def physical_limits(config: TaskConfig, world) -> dict[str, float]:
 def _strongest_wind(wind_config) -> float:
     """Largest wind speed (m/s) the wind field draws: mean + 5 sigma, clipped as the field clips it,
     plus a gust's mean + 5 sigma when one is configured."""
-    if wind_config is None or (wind_config.mean_speed == 0 and wind_config.gust_duration == 0):
+    if wind_config is None or wind_config.calm:
         return 0.0
-    wind = min(wind_config.max_speed, wind_config.mean_speed + 5.0 * wind_config.sigma)
+    top = wind_config.mean_speed if wind_config.mean_speed_max is None else wind_config.mean_speed_max
+    wind = min(wind_config.max_speed, top + 5.0 * wind_config.sigma_at(top))
     if wind_config.gust_duration > 0:
         wind += wind_config.gust_mean_speed + 5.0 * wind_config.gust_sigma
     return wind

@@ -69,6 +69,11 @@ SPENT_PREREGISTERED_TEST_SEEDS = (30_000, 40_000)
 """The pre-registration's earlier test batches, each flown once by accident (see GAME_PREREGISTERED_TEST_SEED)."""
 TABLE8_TEST_SEEDS = TEST.seeds(20)
 """The Table VIII test block: episode seeds 10000..10019 of every c and condition."""
+TABLE8_MUJOCO_TEST_SEEDS = TEST.seeds(20, offset=50_000)
+"""The test batch of AT-M-MuJoCo's Table VIII (episode seeds 60000..60019 of every c and condition):
+never flown before the fine-tuned policy was chosen; then flown once per grid, before (AT-M-Nav) and
+after (AT-M-MuJoCo) with the acceleration interface and no guard, and the new policy on the default
+path (docs/training_in_mujoco.md)."""
 
 
 def block_of(seed: int) -> str:
@@ -148,5 +153,12 @@ TEST_BATCHES = (
         "flown in three generations; 20-game studies on its first 20 seeds decided the study's size",
     ),
     TestBatch("Table VIII", FORMATION_FAMILY, TABLE8_TEST_SEEDS[0], len(TABLE8_TEST_SEEDS), "flown once"),
+    TestBatch(
+        "Table VIII of AT-M-MuJoCo",
+        FORMATION_FAMILY,
+        TABLE8_MUJOCO_TEST_SEEDS[0],
+        len(TABLE8_MUJOCO_TEST_SEEDS),
+        "reserved: flown once per grid after the fine-tuned policy is chosen (docs/training_in_mujoco.md)",
+    ),
 )
 """Every test batch a shipped or planned report uses, in one place."""

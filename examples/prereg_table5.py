@@ -3,6 +3,9 @@
     python examples/prereg_table5.py --list              # every planned run and whether it is done
     python examples/prereg_table5.py --max-runs 4        # the next 4 runs not yet done (primary pair first)
 
+Two drivers can run side by side (one per core): each claims a run with a lock file in runs/prereg/
+and skips runs the other one holds.
+
 A run is done when its policy file is in policies/prereg/; a run whose folder is in runs/prereg/ but
 has no policy yet (an interrupted session) is continued with --resume. A finished run's config.json
 and progress.csv are kept in eval/training_logs/prereg/<run>/ (runs/ is not part of the repository).
@@ -13,6 +16,7 @@ by its results.
 from __future__ import annotations
 
 import argparse
+import fcntl
 import shlex
 import shutil
 import subprocess
@@ -49,6 +53,21 @@ def keep_log(stem: str) -> None:
             shutil.copy2(source, ROOT / LOGS / stem / name)
 
 
+def claim_run(stem: str):
+    """An open, exclusively locked claim file for the run, or None when another driver holds it."""
+    (ROOT / OUT).mkdir(parents=True, exist_ok=True)
+    handle = open(ROOT / OUT / f"{stem}.lock", "w")  # noqa: SIM115 - held for the run's duration
+    try:
+        fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        handle.close()
+        return None
+    if done(stem):  # finished by the other driver between our check and the lock
+        handle.close()
+        return None
+    return handle
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--list", action="store_true", help="print every planned run and its state, then exit")
@@ -62,8 +81,16 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if args.max_runs < 1:
         p.error(f"--max-runs {args.max_runs}: must be >= 1")
-    todo = [(stem, run_args) for stem, run_args in runs if not done(stem)][: args.max_runs]
-    for stem, run_args in todo:
+    trained = 0
+    for stem, run_args in runs:
+        if trained == args.max_runs:
+            break
+        if done(stem):
+            continue
+        claim = claim_run(stem)
+        if claim is None:  # another driver is training it
+            continue
+        trained += 1
         cmd = command(stem, run_args)
         print(f"prereg: {shlex.join(cmd)}", flush=True)
         start = time.monotonic()
@@ -72,6 +99,7 @@ def main(argv: list[str] | None = None) -> int:
         if code != 0:
             return code
         keep_log(stem)
+        claim.close()
     return 0
 
 

@@ -34,6 +34,10 @@ CASES = {
             rf"{AUTO_ACTUATORS_MAX_DRONES + 1} drones .*external / actuators x[\d.]+ .*auto -> external",
         ],
     ),
+    "mujoco-training": (
+        ["bench_mujoco_training.py", "--smoke"],
+        [r"mujoco / particle: [\d.]+ +W=2 / W=1: x[\d.]+ on 2 cores"],
+    ),
     "particle": (["bench_particle.py", "--smoke"], [r"(?m)^ +4 +[\d,]+ +[\d,]+ +[\d.]+x$"]),
     "consmac": (["bench_consmac.py", "--smoke"], [r"new / old: [\d.]+"]),
     "highlevel": (["bench_highlevel.py", "--smoke"], [r"full decision +[\d.]+ us = [\d.]+ x the low level alone"]),

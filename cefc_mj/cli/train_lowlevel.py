@@ -24,6 +24,7 @@ from cefc_mj.train.config import (
     Budget,
     DistillConfig,
     LowLevelConfig,
+    MujocoTraining,
 )
 
 COMMANDS = ("lowlevel", "distill", "lowlevel-all", "clm")
@@ -51,6 +52,13 @@ FLAG_OF_FIELD = {
     "formations": "--formations",
     "response_time/velocity_noise": "--response-time/--velocity-noise",
     "curriculum": "--curriculum",
+    "mujoco": "--backend mujoco",
+    "mujoco.offboard": "--offboard",
+    "mujoco.wind_max": "--wind-max",
+    "mujoco.gust_speed": "--gust-speed",
+    "mujoco.gust_duration": "--gust-duration",
+    "mujoco.rollout_workers": "--rollout-workers",
+    "mujoco.critic_warmup": "--critic-warmup",
 }
 """Config fields (LowLevelConfig, DistillConfig, PPOConfig) set from a flag: their validation errors
 name the flag the user typed."""
@@ -210,6 +218,59 @@ def _lowlevel_parser(sub) -> None:
     )
     p.add_argument(
         "--density", type=float, default=None, help="training obstacle density per m^2 (default: the step's)"
+    )
+    m = MujocoTraining()
+    p.add_argument(
+        "--backend",
+        choices=("particle", "mujoco"),
+        default="particle",
+        help="where the stage learns: particle (the paper's MPE-like world; default) or mujoco (AT-M-MuJoCo: "
+        "a Step 3 fine-tune on MuJoCo quadrotors in wind, from --init-from, by default the shipped "
+        "atm_c<C>_nav, written as atm_c<C>_mujoco; docs/training.md)",
+    )
+    p.add_argument(
+        "--offboard",
+        choices=("acceleration", "velocity"),
+        default=None,
+        help=f"--backend mujoco: the offboard interface flown while training (default {m.offboard}, the paper's)",
+    )
+    p.add_argument(
+        "--wind-max",
+        type=float,
+        default=None,
+        metavar="MPS",
+        help="--backend mujoco: each episode's mean wind drawn from [0, MPS] m/s, direction uniform "
+        f"(default {m.wind_max:g})",
+    )
+    p.add_argument(
+        "--gust-speed",
+        type=float,
+        default=None,
+        metavar="MPS",
+        help="--backend mujoco: mean speed of each episode's gust, at a random time "
+        f"(default {m.gust_speed:g}; 0: none)",
+    )
+    p.add_argument(
+        "--gust-duration",
+        type=float,
+        default=None,
+        metavar="S",
+        help=f"--backend mujoco: seconds each gust lasts (default {m.gust_duration:g})",
+    )
+    p.add_argument(
+        "--critic-warmup",
+        type=int,
+        default=None,
+        metavar="K",
+        help=f"--backend mujoco: the first K iterations train only the fresh critic (default {m.critic_warmup})",
+    )
+    p.add_argument(
+        "--rollout-workers",
+        type=int,
+        default=None,
+        metavar="W",
+        help="--backend mujoco: processes collecting each iteration's episodes, each stepping --envs / W "
+        "MuJoCo worlds with one thread (default 1: in the training process)",
     )
     p.add_argument(
         "--seeds",
@@ -391,8 +452,34 @@ def _train_sweep(args, cfg: LowLevelConfig, sweep, policies_dir: Path, command: 
     return train_seeds(runs, executor, on_done=lambda card: _print_lowlevel_card(card, policies_dir))
 
 
+_MUJOCO_FLAGS = {
+    "offboard": "--offboard",
+    "wind_max": "--wind-max",
+    "gust_speed": "--gust-speed",
+    "gust_duration": "--gust-duration",
+    "rollout_workers": "--rollout-workers",
+    "critic_warmup": "--critic-warmup",
+}
+"""MujocoTraining's fields and the lowlevel flags that set them (only with --backend mujoco)."""
+
+
+def _mujoco_training(args) -> MujocoTraining | None:
+    """--backend mujoco and its flags as a MujocoTraining (None for the particle world); its flags
+    without --backend mujoco are an error, not silently ignored. Sets the default --init-from."""
+    given = {field: getattr(args, field) for field in _MUJOCO_FLAGS if getattr(args, field) is not None}
+    if args.backend != "mujoco":
+        if given:
+            flag = _MUJOCO_FLAGS[next(iter(given))]
+            raise ConfigError(f"{flag}: a setting of training in MuJoCo; add --backend mujoco")
+        return None
+    if args.init_from is None:
+        args.init_from = f"atm_c{args.formation}_nav"
+    return MujocoTraining(**given)
+
+
 def _run_lowlevel(args, budget: Budget, command: str | None) -> tuple[list[dict], Path]:
     sweep = _seed_sweep(args)  # --seeds/--executor/--address checked; None: a single run
+    mujoco = _mujoco_training(args)
     cfg = LowLevelConfig(
         formation=args.formation,
         step=args.step,
@@ -409,6 +496,7 @@ def _run_lowlevel(args, budget: Budget, command: str | None) -> tuple[list[dict]
         budget=budget,
         seed=args.seed,
         obstacle_density=args.density,
+        mujoco=mujoco,
         ppo=ppo_from(args),
     )
     policies_dir = check_destinations(args)

@@ -2,6 +2,7 @@
 
     atm_c<c>_step1 / _step2 / _step3 / _safe / _nav     AT-M of group size c (paper Sec. IV-B) and this
                                                         project's navigation fine-tune, c = 3..8
+    atm_c<c>_mujoco                                     AT-M-Nav fine-tuned in the MuJoCo world, where trained
     clm_c<c>                                            the CL-M baseline (Table III), where trained
     atm_student                                         one student for every c (the hierarchy's low level)
 
@@ -13,12 +14,12 @@ from __future__ import annotations
 
 from cefc_mj.errors import ConfigError
 
-LOWLEVEL_KINDS = ("step1", "step2", "step3", "safe", "nav", "robust", "quad")
+LOWLEVEL_KINDS = ("step1", "step2", "step3", "safe", "nav", "robust", "quad", "mujoco")
 """The suffixes of atm_c<c>_<kind>; robust and quad are trained on request only (none shipped)."""
 STUDENT = "atm_student"
 """The distilled student: one policy for every group size."""
 
-ALIASES = {"atm": "step3", "safe": "safe", "nav": "nav", "clm": "clm", "student": "student"}
+ALIASES = {"atm": "step3", "safe": "safe", "nav": "nav", "mujoco": "mujoco", "clm": "clm", "student": "student"}
 """What users type (`--policy`) -> the kind of policy flown for each c."""
 WITHDRAWN = {
     "robust": "AT-M-Robust is withdrawn: the shipped one was a fine-tune of the first Step 3 generation on the "

@@ -589,7 +589,7 @@ class MujocoWorld:
             self._collided[e] = False
             self.wind.reset(e)
             mujoco.mj_forward(model, data)
-            if self.wind_config.mean_speed > 0 and self.config.wind_settle_s > 0:
+            if self.wind.mean_speed[e] > 0 and self.config.wind_settle_s > 0:
                 self._settle(e)
 
     def _settle(self, e: int) -> None:
@@ -839,6 +839,12 @@ class MujocoWorld:
         upright = 1.0 - 2.0 * (q[..., 1] ** 2 + q[..., 2] ** 2)
         return np.degrees(np.arccos(np.clip(upright, -1.0, 1.0)))
 
+    def reseed(self, seed) -> None:
+        """Seed the world's own draws (wind) afresh, e.g. per training iteration, so that a resumed
+        run replays them; `seed` is anything numpy's default_rng takes."""
+        self.rng = np.random.default_rng(seed)
+        self.wind.rng = self.rng
+
     # ------------------------------------------------------------------ internals
     def _diverged(self, env: int, drone: int) -> None:
         qpos, qvel = self._views[env][0][drone], self._views[env][1][drone]
@@ -875,7 +881,7 @@ def _inside_any(origins: np.ndarray, centres: np.ndarray, radius: float) -> np.n
 def make_mujoco_world(
     task: TaskConfig,
     n_envs: int = 1,
-    wind: float = 0.0,
+    wind: float | WindConfig = 0.0,
     seed: int | None = None,
     config: MujocoWorldConfig | None = None,
     airframe: str | Path | None = None,
@@ -883,7 +889,8 @@ def make_mujoco_world(
 ) -> MujocoWorld:
     """The MuJoCo world for a task: its counts, radii, speed limits and LiDAR, plus a wind of mean
     speed `wind` (m/s, Gazebo wind-plugin semantics; 0 for calm air) blowing towards
-    `wind_direction` (degrees, ENU: 0 = +x, 90 = +y; None = drawn uniformly per episode from the seed).
+    `wind_direction` (degrees, ENU: 0 = +x, 90 = +y; None = drawn uniformly per episode from the seed),
+    or a whole WindConfig (then without wind_direction).
     `airframe` (a shipped name or an MJCF path) replaces config.airframe; its gains are found as for
     MujocoWorldConfig.params = None.
     The footprint disc is the task's uav_radius whatever the airframe (docs/mujoco_world.md)."""
@@ -894,6 +901,13 @@ def make_mujoco_world(
             )
     if wind_direction is not None and not wind:
         raise ConfigError(f"wind_direction={wind_direction!r}: there is no wind to point (wind = 0)")
+    if isinstance(wind, WindConfig):
+        if wind_direction is not None:
+            raise ConfigError("wind_direction: give the direction inside the WindConfig")
+        wind_config = None if wind.calm else wind
+    else:
+        direction = wind_config_direction(wind_direction)
+        wind_config = WindConfig(mean_speed=float(wind), direction=direction) if wind else None
     config = config or MujocoWorldConfig()
     if airframe is not None:
         config = dataclasses.replace(config, airframe=str(airframe))
@@ -910,7 +924,7 @@ def make_mujoco_world(
         speed_max=task.speed_max,
         adversary_speed_max=task.adversary_speed_max,
         accel_max=task.accel_max,
-        wind=WindConfig(mean_speed=float(wind), direction=wind_config_direction(wind_direction)) if wind else None,
+        wind=wind_config,
         with_adversary=task.mode == "cefc" and task.adversary != "none",
         seed=0 if seed is None else seed,
     )

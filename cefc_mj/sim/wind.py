@@ -5,8 +5,11 @@ Every `update_period` (0.5 s) each env's wind speed is redrawn as |Normal(mean, 
 horizontal plane, ENU, the direction the air moves *towards*). The mean direction is `direction`,
 or, when None, drawn uniformly once per episode (at reset) and then held. An optional gust adds
 |Normal(gust_mean_speed, gust_speed_sigma)| along `gust_direction` while the update time lies in
-[gust_start, gust_start + gust_duration). The wind is only a velocity field: it acts on the drones
-through rotor drag on the relative airspeed (cefc_mj.control.cascade), never on their state.
+[gust_start, gust_start + gust_duration). For training over many winds, `mean_speed_max` and
+`gust_start_max` make the mean speed and the gust's start a per-episode uniform draw as well
+(the evaluators leave both None: one fixed wind per condition, as the plugin has). The wind is only
+a velocity field: it acts on the drones through rotor drag on the relative airspeed
+(cefc_mj.control.cascade), never on their state.
 
 >>> import numpy as np
 >>> wind = WindField(WindConfig(mean_speed=5.0, direction=0.0), n_envs=2, rng=np.random.default_rng(0))
@@ -64,6 +67,12 @@ class WindConfig:
     """Standard deviation of the gust speed; None = 0.2 x gust_mean_speed."""
     gust_direction: float | None = None
     """Gust direction (rad); None = the episode's mean wind direction."""
+    mean_speed_max: float | None = None
+    """None: every episode has mean_speed. Set: each episode draws its mean speed uniformly from
+    [mean_speed, mean_speed_max] at reset (training over a range of winds; the plugin has no such option)."""
+    gust_start_max: float | None = None
+    """None: the gust starts at gust_start. Set: each episode draws its gust's start uniformly from
+    [gust_start, gust_start_max] at reset."""
 
     def __post_init__(self) -> None:
         for name in ("mean_speed", "max_speed", "direction_sigma", "gust_start", "gust_duration", "gust_mean_speed"):
@@ -80,11 +89,25 @@ class WindConfig:
                 raise ConfigError(f"wind.{name} must be >= 0, got {value!r}")
         if not (math.isfinite(self.update_period) and self.update_period > 0):
             raise ConfigError(f"wind.update_period must be > 0, got {self.update_period!r}")
+        for name, low in (("mean_speed_max", "mean_speed"), ("gust_start_max", "gust_start")):
+            value = getattr(self, name)
+            if value is not None and not (math.isfinite(value) and value >= getattr(self, low)):
+                raise ConfigError(f"wind.{name} must be a finite number >= wind.{low}, got {value!r}")
+
+    @property
+    def calm(self) -> bool:
+        """No episode of this config has any wind."""
+        no_gust = self.gust_duration == 0 or self.gust_mean_speed == 0
+        return self.mean_speed == 0 and not self.mean_speed_max and no_gust
 
     @property
     def sigma(self) -> float:
-        """The speed standard deviation in use."""
-        return 0.2 * self.mean_speed if self.speed_sigma is None else self.speed_sigma
+        """The speed standard deviation in use (of an episode at mean_speed)."""
+        return self.sigma_at(self.mean_speed)
+
+    def sigma_at(self, mean_speed: float) -> float:
+        """The speed standard deviation of an episode whose mean speed is `mean_speed`."""
+        return 0.2 * mean_speed if self.speed_sigma is None else self.speed_sigma
 
     @property
     def gust_sigma(self) -> float:
@@ -104,24 +127,34 @@ class WindField:
         self.rng = rng
         self.vector = np.zeros((n_envs, 3))
         self.mean_direction = np.zeros(n_envs)
+        self.mean_speed = np.full(n_envs, config.mean_speed)
+        """Each env's mean wind speed this episode (m/s; drawn at reset when config.mean_speed_max is set)."""
+        self.gust_start = np.full(n_envs, config.gust_start)
+        """Each env's gust start this episode (s; drawn at reset when config.gust_start_max is set)."""
 
     def reset(self, env: int) -> None:
-        """New episode for env: draw its mean direction (if random) and its first wind vector."""
+        """New episode for env: draw its mean direction (if random), its mean speed and gust start (if
+        ranged) and its first wind vector."""
         cfg = self.config
         self.mean_direction[env] = self.rng.uniform(0.0, 2.0 * math.pi) if cfg.direction is None else cfg.direction
+        if cfg.mean_speed_max is not None:
+            self.mean_speed[env] = self.rng.uniform(cfg.mean_speed, cfg.mean_speed_max)
+        if cfg.gust_start_max is not None:
+            self.gust_start[env] = self.rng.uniform(cfg.gust_start, cfg.gust_start_max)
         self.update(env, 0.0)
 
     def update(self, env: int, time: float) -> None:
         """Redraw env's wind for episode time `time` (s)."""
         cfg = self.config
-        speed = min(abs(self.rng.normal(cfg.mean_speed, cfg.sigma)), cfg.max_speed)
+        mean_speed, gust_start = self.mean_speed[env], self.gust_start[env]
+        speed = min(abs(self.rng.normal(mean_speed, cfg.sigma_at(mean_speed))), cfg.max_speed)
         angle = (
             self.rng.normal(self.mean_direction[env], cfg.direction_sigma)
             if cfg.direction_sigma > 0
             else self.mean_direction[env]
         )
         wx, wy = speed * math.cos(angle), speed * math.sin(angle)
-        if cfg.gust_duration > 0 and cfg.gust_start <= time < cfg.gust_start + cfg.gust_duration:
+        if cfg.gust_duration > 0 and gust_start <= time < gust_start + cfg.gust_duration:
             gust = abs(self.rng.normal(cfg.gust_mean_speed, cfg.gust_sigma))
             g_angle = self.mean_direction[env] if cfg.gust_direction is None else cfg.gust_direction
             wx += gust * math.cos(g_angle)

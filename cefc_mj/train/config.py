@@ -238,7 +238,58 @@ class BudgetPPODict:
         d = dict(d)
         d["budget"] = Budget(**d["budget"])
         d["ppo"] = PPOConfig(**d["ppo"])
+        if d.get("mujoco") is not None:
+            d["mujoco"] = MujocoTraining(**d["mujoco"])
         return cls(**d)
+
+
+OFFBOARD_MODES = ("acceleration", "velocity")
+"""What the MuJoCo world's offboard interface makes of a setpoint (MujocoWorldConfig.offboard)."""
+MAX_TRAINING_WIND = 15.0
+"""Largest mean wind (m/s) a MuJoCo fine-tune draws from."""
+MAX_ROLLOUT_WORKERS = 64
+"""Most rollout processes of one MuJoCo fine-tune."""
+
+
+@dataclass(frozen=True)
+class MujocoTraining:
+    """Where a low-level fine-tune learns when it learns on quadrotors: the MuJoCo world with the
+    PX4-like cascade, instead of the particle world. Each episode draws its own wind (mean speed,
+    direction, a gust) and, with the stage's deviation_sampling "uniform", its own sensing deviation."""
+
+    offboard: str = "acceleration"
+    """The offboard interface the policy flies through: "acceleration" (the paper's: setpoints passed
+    open loop, no velocity integral) or "velocity" (the evaluators' default)."""
+    wind_max: float = 8.0
+    """Each episode's mean wind speed is drawn uniformly from [0, wind_max] m/s, its direction
+    uniformly; speeds are redrawn every 0.5 s around that mean (Gazebo wind-plugin semantics)."""
+    gust_speed: float = 3.0
+    """Mean speed (m/s) of a gust of `gust_duration` s along the episode's wind direction, starting at
+    a uniformly drawn time of the episode; 0 = no gusts."""
+    gust_duration: float = 2.0
+    """Seconds each episode's gust lasts."""
+    critic_warmup: int = 10
+    """The first this many iterations train only the critic: the policy file holds only the actor, so
+    the critic starts fresh, and its first advantages would otherwise push a trained actor around."""
+    rollout_workers: int = 1
+    """Processes collecting each iteration's episodes, each stepping n_envs / rollout_workers MuJoCo
+    worlds (1: in the training process). Part of the run's identity: a run resumes with the same."""
+
+    def validate(self, n_envs: int) -> None:
+        if self.offboard not in OFFBOARD_MODES:
+            _fail("mujoco.offboard", self.offboard, f"must be one of {', '.join(OFFBOARD_MODES)}")
+        for name, most in (("wind_max", MAX_TRAINING_WIND), ("gust_speed", MAX_TRAINING_WIND), ("gust_duration", 60.0)):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 <= value <= most:
+                _fail(f"mujoco.{name}", value, f"must be in [0, {most:g}]")
+        _check_int("mujoco.rollout_workers", self.rollout_workers, 1, MAX_ROLLOUT_WORKERS)
+        _check_int("mujoco.critic_warmup", self.critic_warmup, 0, MAX_ITERATIONS)
+        if n_envs % self.rollout_workers:
+            _fail(
+                "mujoco.rollout_workers",
+                self.rollout_workers,
+                f"must divide the {n_envs} envs of an iteration (each process steps the same number)",
+            )
 
 
 @dataclass(frozen=True)
@@ -310,6 +361,9 @@ class LowLevelConfig(BudgetPPODict):
     """MAPPO hyperparameters."""
     checkpoint_every: int = 10
     """Write the resumable state every this many iterations (and always at the end)."""
+    mujoco: MujocoTraining | None = None
+    """None: train in the particle world (the paper's). Set: this is AT-M-MuJoCo, a Step 3 fine-tune
+    (of AT-M-Nav by default) in the MuJoCo quadrotor world under wind, named atm_c{c}_mujoco."""
     curriculum: tuple[float, ...] | None = None
     """CL-M: obstacle densities (per m^2, non-decreasing, 2 to 20 of them) trained in turn, each for
     an equal share of the budget: phase k of K runs while the budget's progress (iterations done /
@@ -351,7 +405,9 @@ class LowLevelConfig(BudgetPPODict):
         if self.curriculum is not None:
             return clm_name(self.formation) + self.name_suffix
         kind = (
-            "safe"
+            "mujoco"
+            if self.mujoco is not None
+            else "safe"
             if self.safe
             else "robust"
             if self.robust
@@ -388,6 +444,11 @@ class LowLevelConfig(BudgetPPODict):
         return self.step == 3 and self.deviation == 0 and (self.response_time > 0 or self.velocity_noise > 0)
 
     @property
+    def in_mujoco(self) -> bool:
+        """AT-M-MuJoCo: a Step 3 fine-tune on quadrotors (the `mujoco` field)."""
+        return self.mujoco is not None
+
+    @property
     def nav(self) -> bool:
         """AT-M-Nav: a Step 3 fine-tune with another navigation weight, exact sensing, particle dynamics.
         (A navigation weight on a Robust or Quad fine-tune keeps that stage's name; its card records it.)"""
@@ -396,13 +457,21 @@ class LowLevelConfig(BudgetPPODict):
     @property
     def fine_tune(self) -> bool:
         """Starts from the Step 3 result (Safe, Robust, Quad, Nav) rather than from Steps 1 and 2."""
-        return self.safe or self.robust or self.quad or self.nav
+        return self.safe or self.robust or self.quad or self.nav or self.in_mujoco
 
     def paper_differences(self) -> list[str]:
         """What this stage's training changes from the paper's recipe (Algorithm 1, Table IX), one line
         each: this project's training perturbations and reward changes. Empty for the paper's own stages
         (Steps 1-3, Safe, CL-M)."""
         out = []
+        if self.mujoco is not None:
+            m = self.mujoco
+            out.append(
+                f"trained on MuJoCo quadrotors through the {m.offboard} interface, each episode's mean wind "
+                f"drawn from [0, {m.wind_max:g}] m/s"
+                + (f" with a {m.gust_speed:g} m/s gust of {m.gust_duration:g} s" if m.gust_speed else "")
+                + " (paper: particle world only)"
+            )
         if self.deviation:
             out.append(f"sensing deviation up to {self.deviation:g} m ({self.deviation_sampling})")
         if self.response_time:
@@ -430,6 +499,8 @@ class LowLevelConfig(BudgetPPODict):
         """The method name as the paper's Table III writes it (Robust, Quad and Nav are this project's)."""
         if self.curriculum is not None:
             return "CL-M"
+        if self.mujoco is not None:
+            return "AT-M-MuJoCo"
         if self.safe:
             return "AT-M-Safe"
         if self.robust:
@@ -509,11 +580,26 @@ class LowLevelConfig(BudgetPPODict):
             _fail("obstacle_density", self.obstacle_density, f"must be in [0, {MAX_DENSITY}] per m^2")
         if self.curriculum is not None:
             self._validate_curriculum()
+        if self.mujoco is not None:
+            self._validate_mujoco()
         for name in ("hidden", "critic_hidden", "checkpoint_every"):
             v = getattr(self, name)
             if not isinstance(v, int) or v < 1:
                 _fail(name, v, "must be an integer >= 1")
         self.ppo.validate()
+
+    def _validate_mujoco(self) -> None:
+        if not isinstance(self.mujoco, MujocoTraining):
+            _fail("mujoco", self.mujoco, "must be a MujocoTraining or None")
+        self.mujoco.validate(self.ppo.n_envs)
+        if self.step != 3 or self.safe or self.curriculum is not None:
+            _fail("mujoco", "set", "training in MuJoCo fine-tunes a Step 3 policy: use it with step 3, without --safe")
+        if self.response_time or self.velocity_noise:
+            _fail(
+                "response_time/velocity_noise",
+                (self.response_time, self.velocity_noise),
+                "particle-world stand-ins for a quadrotor; the MuJoCo world has its own lag and tracking error",
+            )
 
     def _validate_curriculum(self) -> None:
         densities = self.curriculum

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import functools
 import json
 from pathlib import Path
 
@@ -41,11 +42,13 @@ from cefc_mj.nn.atm import ATMActor, ATMConfig, Critic, merge_step3
 from cefc_mj.nn.policy_io import atomic_torch_save, load_actor, resolve_policy_path, save_policy
 from cefc_mj.nn.registry import lowlevel_name
 from cefc_mj.provenance import file_sha256
+from cefc_mj.sim.mujoco_world import MujocoWorldConfig, make_mujoco_world
+from cefc_mj.sim.wind import WindConfig
 from cefc_mj.task.config import FORMATION_EPISODE_STEPS, RewardConfig, TaskConfig
 from cefc_mj.train import run_state
-from cefc_mj.train.config import LowLevelConfig
+from cefc_mj.train.config import LowLevelConfig, MujocoTraining
 from cefc_mj.train.logger import RunLogger
-from cefc_mj.train.mappo import MAPPO
+from cefc_mj.train.mappo import MAPPO, particle_env
 from cefc_mj.train.model_card import display_path, table3_figures, write_model_card
 from cefc_mj.train.ppo import ValueNorm
 from cefc_mj.train.run_state import STATE_FILE
@@ -80,6 +83,29 @@ def task_config_for(cfg: LowLevelConfig, density: float | None = None) -> TaskCo
         straggler_fraction=float(cfg.straggler_fraction),
         **_anchor_periods(cfg.anchor_periods),
     )
+
+
+def training_wind(training: MujocoTraining, episode_seconds: float) -> WindConfig:
+    """The wind of a MuJoCo fine-tune: each episode's mean speed uniform in [0, wind_max], its
+    direction uniform, and a gust at a uniformly drawn time that ends before the episode does."""
+    gust = training.gust_speed > 0 and training.gust_duration > 0
+    return WindConfig(
+        mean_speed=0.0,
+        mean_speed_max=float(training.wind_max),
+        gust_mean_speed=float(training.gust_speed) if gust else 0.0,
+        gust_duration=float(training.gust_duration) if gust else 0.0,
+        gust_start=0.0,
+        gust_start_max=max(0.0, episode_seconds - training.gust_duration) if gust else None,
+    )
+
+
+def mujoco_training_env(task: TaskConfig, n_envs: int, seed: int, training: MujocoTraining) -> BatchedCEFCEnv:
+    """`n_envs` episodes of the stage's game on MuJoCo quadrotors, through `training`'s offboard
+    interface and wind (a rollout worker builds its share with this too)."""
+    world_cfg = MujocoWorldConfig(offboard=training.offboard)
+    wind = training_wind(training, task.steps * world_cfg.decision_dt)
+    world = make_mujoco_world(task, n_envs=n_envs, wind=wind, seed=seed, config=world_cfg)
+    return BatchedCEFCEnv(task, n_envs=n_envs, seed=seed, world=world)
 
 
 def _anchor_periods(periods: int) -> dict:
@@ -269,83 +295,95 @@ def train_lowlevel(
         value_norm, origin = ValueNorm(), saved["origin"]
     else:
         actor, critic, value_norm, origin = initial_networks(cfg, task, out, init)
-    trainer = MAPPO(task, cfg.ppo, actor, critic, seed=cfg.seed, value_norm=value_norm)
-    if saved is not None:
-        trainer.load_state_dict(saved["trainer"])
-    # CL-M: the phase trained last and the iterations of each phase (restored on resume).
-    curriculum = None
-    if cfg.curriculum is not None:
-        fresh = {"phase": 0, "iterations": [0] * len(cfg.curriculum)}
-        curriculum = saved["curriculum"] if saved is not None else fresh
-
-    run_config = {"stage": cfg.to_dict(), "task": task.to_dict(), "init": origin, "command": command}
-    write_atomic(run_dir / "config.json", json.dumps(run_config, indent=2) + "\n")
-
-    def checkpoint() -> None:
-        atomic_torch_save(
-            {
-                "format": STATE_FORMAT,
-                "config": cfg.to_dict(),
-                "origin": origin,
-                "trainer": trainer.state_dict(),
-                "curriculum": curriculum,
-            },
-            state_path,
-        )
-
-    if saved is None:
-        checkpoint()  # iteration 0: a run killed before its first periodic checkpoint can still --resume
-
-    def iterate() -> dict:
-        if curriculum is None:
-            return trainer.iterate()
-        phase = enter_curriculum_phase(trainer, cfg, phase_tasks, curriculum)
-        row = trainer.iterate()
-        curriculum["iterations"][phase] += 1
-        row.update(curriculum_phase=phase, obstacle_density=cfg.curriculum[phase])
-        return row
-
-    logger = RunLogger(run_dir, trainer.iteration, cfg.budget.iterations, desc=cfg.name, show_progress=show_progress)
-    last_row = run_state.train_under_budget(
-        trainer, cfg.budget, cfg.checkpoint_every, logger, PROGRESS_KEYS, checkpoint, iterate
+    make_env = particle_env if cfg.mujoco is None else functools.partial(mujoco_training_env, training=cfg.mujoco)
+    workers = 1 if cfg.mujoco is None else cfg.mujoco.rollout_workers
+    trainer = MAPPO(
+        task, cfg.ppo, actor, critic, seed=cfg.seed, value_norm=value_norm, make_env=make_env, rollout_workers=workers
     )
-    if not last_row and trainer.iteration:  # a finished run re-exported: report its last logged iteration
-        last_row = {k: float(v) for k, v in _last_csv_row(run_dir).items()}
+    if cfg.mujoco is not None:
+        trainer.critic_warmup = cfg.mujoco.critic_warmup
+    try:
+        if saved is not None:
+            trainer.load_state_dict(saved["trainer"])
+        # CL-M: the phase trained last and the iterations of each phase (restored on resume).
+        curriculum = None
+        if cfg.curriculum is not None:
+            fresh = {"phase": 0, "iterations": [0] * len(cfg.curriculum)}
+            curriculum = saved["curriculum"] if saved is not None else fresh
 
-    name = policy_name or cfg.name
-    policy_path = save_policy(
-        actor,
-        policies_dir / f"{name}.pt",
-        meta={
+        run_config = {"stage": cfg.to_dict(), "task": task.to_dict(), "init": origin, "command": command}
+        write_atomic(run_dir / "config.json", json.dumps(run_config, indent=2) + "\n")
+
+        def checkpoint() -> None:
+            atomic_torch_save(
+                {
+                    "format": STATE_FORMAT,
+                    "config": cfg.to_dict(),
+                    "origin": origin,
+                    "trainer": trainer.state_dict(),
+                    "curriculum": curriculum,
+                },
+                state_path,
+            )
+
+        if saved is None:
+            checkpoint()  # iteration 0: a run killed before its first periodic checkpoint can still --resume
+
+        def iterate() -> dict:
+            if curriculum is None:
+                return trainer.iterate()
+            phase = enter_curriculum_phase(trainer, cfg, phase_tasks, curriculum)
+            row = trainer.iterate()
+            curriculum["iterations"][phase] += 1
+            row.update(curriculum_phase=phase, obstacle_density=cfg.curriculum[phase])
+            return row
+
+        logger = RunLogger(
+            run_dir, trainer.iteration, cfg.budget.iterations, desc=cfg.name, show_progress=show_progress
+        )
+        last_row = run_state.train_under_budget(
+            trainer, cfg.budget, cfg.checkpoint_every, logger, PROGRESS_KEYS, checkpoint, iterate
+        )
+        if not last_row and trainer.iteration:  # a finished run re-exported: report its last logged iteration
+            last_row = {k: float(v) for k, v in _last_csv_row(run_dir).items()}
+
+        name = policy_name or cfg.name
+        policy_path = save_policy(
+            actor,
+            policies_dir / f"{name}.pt",
+            meta={
+                "name": name,
+                "method": cfg.method,
+                "formation": cfg.formation,
+                "seed": cfg.seed,
+                "iterations": trainer.iteration,
+                "agent_steps": trainer.agent_steps,
+            },
+        )
+        card = {
             "name": name,
             "method": cfg.method,
             "formation": cfg.formation,
             "seed": cfg.seed,
+            "differs_from_paper": cfg.paper_differences(),
+            "config": cfg.to_dict(),
+            "task": task.to_dict(),
+            "network": actor.cfg.to_dict(),
+            "init": origin,
+            "init_from": origin.get("init_from"),
+            **({"curriculum": _curriculum_card(cfg, curriculum)} if curriculum is not None else {}),
             "iterations": trainer.iteration,
             "agent_steps": trainer.agent_steps,
-        },
-    )
-    card = {
-        "name": name,
-        "method": cfg.method,
-        "formation": cfg.formation,
-        "seed": cfg.seed,
-        "differs_from_paper": cfg.paper_differences(),
-        "config": cfg.to_dict(),
-        "task": task.to_dict(),
-        "network": actor.cfg.to_dict(),
-        "init": origin,
-        "init_from": origin.get("init_from"),
-        **({"curriculum": _curriculum_card(cfg, curriculum)} if curriculum is not None else {}),
-        "iterations": trainer.iteration,
-        "agent_steps": trainer.agent_steps,
-        "env_steps": trainer.agent_steps // cfg.formation,
-        "train_wall_clock_s": round(trainer.elapsed, 1),
-        "last_iteration": {k: v for k, v in last_row.items() if isinstance(v, (int, float))},
-        "run_dir": display_path(run_dir),
-        "command": command,  # with config, task and init: the run's config.json
-    }
-    if evaluate:
-        card["table3"] = table3_figures(policy_path, cfg.formation, cfg.method, seed=0)
-    write_model_card(policy_path, card)
-    return card
+            "env_steps": trainer.agent_steps // cfg.formation,
+            "train_wall_clock_s": round(trainer.elapsed, 1),
+            "agent_steps_per_s": round(trainer.agent_steps / trainer.elapsed, 1) if trainer.elapsed else None,
+            "last_iteration": {k: v for k, v in last_row.items() if isinstance(v, (int, float))},
+            "run_dir": display_path(run_dir),
+            "command": command,  # with config, task and init: the run's config.json
+        }
+        if evaluate:
+            card["table3"] = table3_figures(policy_path, cfg.formation, cfg.method, seed=0)
+        write_model_card(policy_path, card)
+        return card
+    finally:
+        trainer.close()

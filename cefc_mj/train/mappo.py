@@ -22,40 +22,24 @@ the uninterrupted one would have done.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from collections.abc import Callable
 
 import numpy as np
 import torch
 
 from cefc_mj.env import BatchedCEFCEnv
 from cefc_mj.nn.atm import ATMActor, Critic
-from cefc_mj.seeds import TRAINING
 from cefc_mj.task.config import TaskConfig
 from cefc_mj.train.config import PPOConfig
 from cefc_mj.train.ppo import ValueNorm, advantages_and_targets, learner_state, load_learner_state, ppo_epochs
-
-
-def iteration_seed(seed: int, iteration: int, stream: int = 0) -> int:
-    """The env seed of one iteration's episodes: independent streams per (run seed, iteration[, stream
-    > 0 for further batches of the same iteration]), inside the training block of game seeds
-    (cefc_mj.seeds.TRAINING), so no training game is a validation or test game."""
-    drawn = int(np.random.SeedSequence([seed, iteration, *([stream] if stream else [])]).generate_state(1)[0])
-    return TRAINING.start + drawn % TRAINING.size
-
-
-@dataclass
-class Rollout:
-    """One iteration's data, time-major: T steps x B envs (x N agents)."""
-
-    obs: torch.Tensor  # [T, B, N, D]
-    next_obs: torch.Tensor  # [T, B, N, D] observation after each step (an episode's final one before reset)
-    actions: torch.Tensor  # [T, B, N, A] sampled (unclipped) actions
-    logp: torch.Tensor  # [T, B, N] log-probability of the actions under the acting policy
-    states: torch.Tensor  # [T, B, S] global state before each step
-    next_states: torch.Tensor  # [T, B, S] global state after each step (an episode's final state before reset)
-    rewards: torch.Tensor  # [T, B, N] each agent's learning reward (see the module docstring)
-    episode_end: torch.Tensor  # [T, B] bool, the step ended an episode (time limit)
-    stats: dict[str, float]  # episode statistics (returns, reward terms, F/N/C)
+from cefc_mj.train.rollout import (  # noqa: F401 - iteration_seed and Rollout are part of this module's API
+    Rollout,
+    agent_rewards,
+    collect_shard,
+    iteration_seed,
+    merge_shards,
+    particle_env,
+)
 
 
 class MAPPO:
@@ -69,11 +53,17 @@ class MAPPO:
         critic: Critic,
         seed: int,
         value_norm: ValueNorm | None = None,
+        make_env: Callable[[TaskConfig, int, int], BatchedCEFCEnv] = particle_env,
+        rollout_workers: int = 1,
     ):
+        """make_env(task, n_envs, seed): the batched env the rollouts step (a picklable module-level
+        function or partial: with rollout_workers > 1 each worker process builds its share with it).
+        rollout_workers: processes that collect the episodes, n_envs / rollout_workers envs each
+        (1: collected here). Call close() when done with workers."""
         self.task_cfg = task_cfg
         self.ppo = ppo
         self.seed = seed
-        self.env = BatchedCEFCEnv(task_cfg, n_envs=ppo.n_envs, seed=seed)
+        self.env = make_env(task_cfg, ppo.n_envs, seed)
         if critic.state_dim != self.env.state_size + self.env.layout.size:
             raise ValueError(
                 f"critic input {critic.state_dim} != global state {self.env.state_size} + "
@@ -85,71 +75,34 @@ class MAPPO:
         self.actor_opt = torch.optim.Adam(actor.parameters(), lr=ppo.lr, eps=1e-5)
         self.critic_opt = torch.optim.Adam(critic.parameters(), lr=ppo.lr, eps=1e-5)
         self.generator = torch.Generator().manual_seed(seed)
+        self.critic_warmup = 0
+        """The first this many iterations train only the critic (a fresh critic under a trained actor)."""
+        self.workers = None
+        if rollout_workers > 1:
+            from cefc_mj.train.rollout_workers import RolloutWorkers
+
+            self.workers = RolloutWorkers(
+                rollout_workers, make_env, task_cfg, ppo.n_envs // rollout_workers, actor.cfg, ppo.collision_credit
+            )
         self.iteration = 0
         self.agent_steps = 0
         self.elapsed = 0.0
 
     # ------------------------------------------------------------------ rollout
-    @torch.no_grad()
     def collect(self) -> Rollout:
-        """Run `episodes_per_iteration` whole episodes in every env with the current policy."""
-        env, steps = self.env, self.ppo.episodes_per_iteration * self.task_cfg.steps
-        obs = env.reset(seed=iteration_seed(self.seed, self.iteration)).copy()
-        state = env.global_state()
-        buf = {k: [] for k in ("obs", "next_obs", "actions", "logp", "states", "next_states", "rewards", "episode_end")}
-        w = self.task_cfg.rewards
-        episode_return = np.zeros(env.n_envs)
-        term_sums: dict[str, np.ndarray] = {}
-        returns, metrics = [], {}
-        std = self.actor.log_std.exp()
-        for _ in range(steps):
-            obs_t = torch.from_numpy(obs)
-            mean = self.actor(obs_t)
-            action = mean + std * torch.randn(mean.shape, generator=self.generator)
-            logp = torch.distributions.Normal(mean, std).log_prob(action).sum(-1)
-            next_obs, reward, done, info = env.step(self.actor.to_acceleration(action, obs_t).numpy())
-            next_state = env.global_state()
-            agent_reward = self.agent_rewards(reward, info["reward_terms"]["R_c"], env.agent_collision_penalty, w)
-            for k, v in (
-                ("obs", obs_t),
-                ("next_obs", torch.from_numpy(next_obs.copy())),
-                ("actions", action),
-                ("logp", logp),
-                ("states", torch.from_numpy(state)),
-                ("next_states", torch.from_numpy(next_state)),
-                ("rewards", torch.from_numpy(agent_reward)),
-                ("episode_end", torch.from_numpy(done.copy())),
-            ):
-                buf[k].append(v)
-            episode_return += reward
-            for name, value in info["reward_terms"].items():
-                term_sums[name] = term_sums.get(name, 0.0) + value
-            obs, state = next_obs.copy(), next_state
-            if done.any():
-                returns.extend(episode_return[done].tolist())
-                episode_return[done] = 0.0
-                for name, value in info["metrics"].items():
-                    metrics.setdefault(name, []).extend(value[done].tolist())
-                obs = env.reset(mask=done).copy()
-                state = env.global_state()
-        n_steps = steps * env.n_envs
-        stats = {
-            "episode_return": float(np.mean(returns)),
-            "reward_per_step": float(np.mean(returns)) / self.task_cfg.steps,
-            **{f"term/{name}": float(np.sum(total) / n_steps) for name, total in term_sums.items()},
-            **{f"metric/{name}": float(np.mean(v)) for name, v in metrics.items() if name != "E"},
-            "episodes": len(returns),
-        }
-        return Rollout(**{k: torch.stack(v) for k, v in buf.items()}, stats=stats)
+        """Run `episodes_per_iteration` whole episodes in every env with the current policy: here, or
+        on the rollout workers (each stepping its share of the envs) when the trainer has them."""
+        steps = self.ppo.episodes_per_iteration * self.task_cfg.steps
+        if self.workers is None:
+            env_seed = iteration_seed(self.seed, self.iteration)
+            shards = [collect_shard(self.env, self.actor, self.generator, steps, self.ppo.collision_credit, env_seed)]
+        else:
+            shards = self.workers.collect(self.actor.state_dict(), self.seed, self.iteration, steps)
+        return merge_shards(shards, self.task_cfg.steps)
 
     def agent_rewards(self, team_reward: np.ndarray, team_collision: np.ndarray, own: np.ndarray, w) -> np.ndarray:
-        """Per-agent learning rewards [B, N] from the team reward [B] and each agent's collision
-        penalty CR_i >= 0 [B, N] (see the module docstring)."""
-        n = self.env.n_agents
-        if self.ppo.collision_credit == "team":
-            return np.repeat(team_reward[:, None], n, axis=1).astype(np.float32)
-        shared = team_reward - w.collision_weight * team_collision  # 15 R_f + 4 R_n
-        return (shared[:, None] - w.collision_weight * own).astype(np.float32)
+        """Per-agent learning rewards [B, N] (see `agent_rewards`)."""
+        return agent_rewards(self.ppo.collision_credit, team_reward, team_collision, own, w)
 
     def critic_input(self, states: torch.Tensor, obs: torch.Tensor) -> torch.Tensor:
         """[..., S] global states and [..., N, D] observations -> [..., N, S + D]."""
@@ -192,6 +145,7 @@ class MAPPO:
             critic_in,
             targets,
             self.critic_opt,
+            train_policy=self.iteration >= self.critic_warmup,
         )
         stats["explained_variance"] = ev
         stats["action_std"] = float(self.actor.log_std.detach().exp().mean())
@@ -221,6 +175,12 @@ class MAPPO:
             "update_sps": samples * self.ppo.epochs / (t2 - t1),
             "sps": samples / (t2 - t0),
         }
+
+    def close(self) -> None:
+        """Stop the rollout workers (if any)."""
+        if self.workers is not None:
+            self.workers.close()
+            self.workers = None
 
     # ------------------------------------------------------------------ checkpoint state
     def state_dict(self) -> dict:

@@ -78,6 +78,7 @@ def ppo_epochs(
     critic_in: torch.Tensor,
     targets: torch.Tensor,
     critic_opt: torch.optim.Optimizer,
+    train_policy: bool = True,
 ) -> dict[str, float]:
     """PPO's epochs over one rollout of `n_samples` samples in shuffled minibatches: per minibatch,
     the clipped surrogate minus the entropy bonus for the policy and 0.5 MSE to the (normalized)
@@ -86,7 +87,8 @@ def ppo_epochs(
     policy_terms(mb) -> (log-probabilities of the taken actions [mb, ...] under the current policy,
     mean entropy); old_logp, advantages, critic_in, targets are indexed by sample first. Returns the
     mean over minibatches of PPO_STATS. Shared by the low-level (Gaussian) and high-level
-    (categorical) MAPPO updates."""
+    (categorical) MAPPO updates. train_policy=False leaves the policy as it is (a critic warm-up: its
+    loss is still reported)."""
     sums = dict.fromkeys(PPO_STATS, 0.0)
     count = 0
     for _ in range(ppo.epochs):
@@ -97,7 +99,8 @@ def ppo_epochs(
             policy_opt.zero_grad()
             (policy_loss - ppo.entropy_coef * entropy).backward()
             actor_norm = torch.nn.utils.clip_grad_norm_(policy_params, ppo.max_grad_norm)
-            policy_opt.step()
+            if train_policy:
+                policy_opt.step()
 
             value_loss = 0.5 * (critic(critic_in[mb]) - targets[mb]).pow(2).mean()
             critic_opt.zero_grad()
