@@ -28,7 +28,7 @@ import torch
 from cefc_mj.nn.atm import Critic
 from cefc_mj.nn.policy_io import load_actor, resolve_policy_path
 from cefc_mj.train.config import Budget, LowLevelConfig, MujocoTraining, PPOConfig
-from cefc_mj.train.lowlevel import mujoco_training_env, task_config_for
+from cefc_mj.train.lowlevel import critic_input_size, mujoco_training_env, task_config_for
 from cefc_mj.train.mappo import MAPPO, particle_env
 
 
@@ -48,8 +48,7 @@ def trainer_for(formation: int, n_envs: int, workers: int | None) -> MAPPO:
     task = task_config_for(cfg)
     actor = load_actor(resolve_policy_path(f"atm_c{formation}_nav"))[0]
     make_env = particle_env if mujoco is None else functools.partial(mujoco_training_env, training=mujoco)
-    probe = particle_env(task, 1, 0)
-    critic = Critic(probe.state_size + probe.layout.size)
+    critic = Critic(critic_input_size(cfg, task))
     return MAPPO(task, cfg.ppo, actor, critic, seed=0, make_env=make_env, rollout_workers=workers or 1)
 
 

@@ -18,7 +18,14 @@ from cefc_mj.nn.policy_io import load_actor, resolve_policy_path
 from cefc_mj.sim.mujoco_world import MujocoWorld, MujocoWorldConfig
 from cefc_mj.sim.wind import WindConfig, WindField
 from cefc_mj.train.config import Budget, LowLevelConfig, MujocoTraining, PPOConfig
-from cefc_mj.train.lowlevel import mujoco_training_env, read_state, task_config_for, train_lowlevel, training_wind
+from cefc_mj.train.lowlevel import (
+    critic_input_size,
+    mujoco_training_env,
+    read_state,
+    task_config_for,
+    train_lowlevel,
+    training_wind,
+)
 from cefc_mj.train.mappo import MAPPO
 from cefc_mj.train.rollout_workers import RolloutWorkerFailed
 
@@ -89,6 +96,20 @@ def test_a_fixed_wind_draws_what_the_gazebo_plugin_draws():
     assert field.vector[0, 0] == speed * math.cos(direction) and field.vector[0, 1] == speed * math.sin(direction)
 
 
+def test_the_training_critic_sees_the_wind_and_the_agents_do_not():
+    cfg = tiny(1)
+    task = task_config_for(cfg)
+    env = mujoco_training_env(task, 3, 0, cfg.mujoco)
+    obs = env.reset(seed=4)
+    state = env.global_state()
+    assert state.shape == (3, env.state_size) and env.state_size + env.layout.size == critic_input_size(cfg, task)
+    wind = env.world.wind
+    np.testing.assert_allclose(state[:, -5:-3], wind.vector[:, :2], rtol=1e-6)
+    np.testing.assert_allclose(np.hypot(state[:, -3], state[:, -2]), wind.mean_speed, rtol=1e-5)
+    np.testing.assert_allclose(state[:, -1], env.env_deviation, rtol=1e-6)
+    assert obs.shape[-1] == env.layout.size  # the actor's observation is the paper's
+
+
 # ---------------------------------------------------------------------------- physics bounds the target
 def downwind_drift(speed: float, direction_deg: float, seconds: float = 20.0) -> float:
     """Metres a hovering Iris moves downwind in `seconds` of a steady `speed` m/s wind while it commands
@@ -152,8 +173,7 @@ def test_rollout_workers_collect_the_iteration_and_report_a_dead_worker(tmp_path
     actor = actor_of("atm_c3_nav")
     task = task_config_for(cfg)
     make_env = partial(mujoco_training_env, training=cfg.mujoco)
-    env = make_env(task, 1, 0)
-    critic = Critic(env.state_size + env.layout.size)
+    critic = Critic(critic_input_size(cfg, task))
     rollouts = []
     for _ in range(2):
         trainer = MAPPO(task, cfg.ppo, actor, critic, seed=5, make_env=make_env, rollout_workers=2)

@@ -32,6 +32,7 @@ COMMANDS = [
         "cefc-train lowlevel --formation 6 --step 1 --budget 150it --out runs/mine --policies-dir my_policies",
         "--budget 1it --envs 4 --threads 1",
     ),
+    ("cefc-train lowlevel --formation 6 --step 3 --backend mujoco --budget 20it", "--budget 1it --envs 2 --threads 1"),
 ]
 
 

@@ -33,6 +33,7 @@ import functools
 import json
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from cefc_mj.env import BatchedCEFCEnv
@@ -99,13 +100,47 @@ def training_wind(training: MujocoTraining, episode_seconds: float) -> WindConfi
     )
 
 
+PRIVILEGED_STATE = 5
+"""Entries the MuJoCo training critic sees beyond the global state (WindAwareCriticEnv)."""
+
+
+class WindAwareCriticEnv(BatchedCEFCEnv):
+    """The MuJoCo training env, whose centralized critic also sees what no agent senses: the wind
+    vector now, the episode's mean wind (speed along its direction) and the episode's sensing
+    deviation. The agents' observations are unchanged (an asymmetric actor-critic): without these the
+    critic cannot tell a calm episode from an 8 m/s one, and the wind's share of each return would be
+    noise in every advantage."""
+
+    def global_state(self) -> np.ndarray:
+        wind = self.world.wind
+        privileged = np.column_stack(
+            [
+                wind.vector[:, :2],
+                wind.mean_speed * np.cos(wind.mean_direction),
+                wind.mean_speed * np.sin(wind.mean_direction),
+                self.env_deviation,
+            ]
+        ).astype(np.float32)
+        return np.concatenate([super().global_state(), privileged], axis=-1)
+
+    @property
+    def state_size(self) -> int:
+        return super().state_size + PRIVILEGED_STATE
+
+
+def critic_input_size(cfg: LowLevelConfig, task: TaskConfig) -> int:
+    """The centralized critic's input width of a stage: its env's global state and one observation."""
+    probe = BatchedCEFCEnv(task, n_envs=1)
+    return probe.state_size + probe.layout.size + (PRIVILEGED_STATE if cfg.mujoco is not None else 0)
+
+
 def mujoco_training_env(task: TaskConfig, n_envs: int, seed: int, training: MujocoTraining) -> BatchedCEFCEnv:
     """`n_envs` episodes of the stage's game on MuJoCo quadrotors, through `training`'s offboard
     interface and wind (a rollout worker builds its share with this too)."""
     world_cfg = MujocoWorldConfig(offboard=training.offboard)
     wind = training_wind(training, task.steps * world_cfg.decision_dt)
     world = make_mujoco_world(task, n_envs=n_envs, wind=wind, seed=seed, config=world_cfg)
-    return BatchedCEFCEnv(task, n_envs=n_envs, seed=seed, world=world)
+    return WindAwareCriticEnv(task, n_envs=n_envs, seed=seed, world=world)
 
 
 def _anchor_periods(periods: int) -> dict:
@@ -127,8 +162,7 @@ def read_state(path: Path) -> dict:
 def _fresh_networks(cfg: LowLevelConfig, task: TaskConfig) -> tuple[ATMActor, Critic]:
     torch.manual_seed(cfg.seed)
     actor = ATMActor(ATMConfig.from_task(task, hidden=cfg.hidden, safe=cfg.safe, log_std_init=cfg.log_std_init))
-    env = BatchedCEFCEnv(task, n_envs=1)
-    critic = Critic(env.state_size + env.layout.size, hidden=cfg.critic_hidden)
+    critic = Critic(critic_input_size(cfg, task), hidden=cfg.critic_hidden)
     return actor, critic
 
 
