@@ -66,6 +66,12 @@ def add_ppo_args(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--lr", type=float, default=d.lr, help=f"Adam learning rate (default {d.lr})")
     p.add_argument(
+        "--gamma",
+        type=float,
+        default=d.gamma,
+        help=f"discount factor (default {d.gamma}, the paper's; a horizon of about 1 / (1 - gamma) decision steps)",
+    )
+    p.add_argument(
         "--credit",
         choices=("agent", "team"),
         default=d.collision_credit,
@@ -86,6 +92,7 @@ def ppo_from(args) -> PPOConfig:
         epochs=args.epochs,
         minibatches=args.minibatches,
         lr=args.lr,
+        gamma=args.gamma,
         collision_credit=args.credit,
         update_threads=args.threads,
     )

@@ -34,6 +34,7 @@ FLAG_OF_FIELD = {
     "epochs": "--epochs",
     "minibatches": "--minibatches",
     "lr": "--lr",
+    "gamma": "--gamma",
     "collision_credit": "--credit",
     "update_threads": "--threads",
     "seed": "--seed",
