@@ -211,7 +211,7 @@ def map_unordered(
             yield item, fn(item)
     else:
         context = mp_context or multiprocessing.get_context(POOL_START_METHOD)
-        tracker_was_running = _resource_tracker_running()
+        tracker_was_running = resource_tracker_running()
         pool = ProcessPoolExecutor(
             max_workers=min(executor.workers, len(items)), mp_context=context, initializer=_one_thread_per_worker
         )
@@ -233,7 +233,7 @@ def map_unordered(
         finally:
             pool.shutdown(wait=True, cancel_futures=True)
             if not tracker_was_running:
-                _stop_resource_tracker()
+                stop_resource_tracker()
 
 
 WORKER_THREAD_VARIABLES = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMBA_NUM_THREADS")
@@ -252,13 +252,13 @@ def _one_thread_per_worker() -> None:
         sys.modules["torch"].set_num_threads(1)
 
 
-def _resource_tracker_running() -> bool:
+def resource_tracker_running() -> bool:
     from multiprocessing import resource_tracker
 
     return getattr(resource_tracker._resource_tracker, "_fd", None) is not None
 
 
-def _stop_resource_tracker() -> None:
+def stop_resource_tracker() -> None:
     """Stop the resource-tracker process a spawned pool starts (it watches the pool's semaphores, which
     are gone once the pool is shut down), so that the map leaves no process of its own behind; the
     next pool starts a new one."""

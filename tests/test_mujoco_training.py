@@ -8,6 +8,7 @@ import math
 from functools import partial
 
 import numpy as np
+import psutil
 import pytest
 import torch
 
@@ -192,6 +193,7 @@ def test_rollout_workers_collect_the_iteration_and_report_a_dead_worker(tmp_path
             trainer.collect()
     finally:
         trainer.close()
+    assert psutil.Process().children(recursive=True) == []  # workers and the resource tracker are gone
 
 
 # ---------------------------------------------------------------------------- the CLI

@@ -8,7 +8,8 @@ concatenates the shards in worker order and runs the PPO update on them.
 
 The workers are started with "spawn" (fresh interpreters, never a fork of a process whose threads may
 hold a lock) and compute with one thread each. A worker that dies or raises ends the run with one line
-(`RolloutWorkerFailed`), never a hang.
+(`RolloutWorkerFailed`), never a hang; `close()` leaves no process behind (the resource tracker that
+spawning starts included).
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ import numpy as np
 import torch
 
 from cefc_mj.errors import CefcError
+from cefc_mj.executors import resource_tracker_running, stop_resource_tracker
 from cefc_mj.nn.atm import ATMActor, ATMConfig
 from cefc_mj.task.config import TaskConfig
 from cefc_mj.train.rollout import collect_shard, iteration_seed
@@ -82,6 +84,7 @@ class RolloutWorkers:
     ):
         ctx = multiprocessing.get_context("spawn")
         self.connections, self.processes = [], []
+        self._tracker_was_running = resource_tracker_running()  # spawning starts one; close() stops ours
         try:
             for index in range(count):
                 parent, child = ctx.Pipe()
@@ -147,4 +150,6 @@ class RolloutWorkers:
                 process.join(timeout=5.0)
         for conn in self.connections:
             conn.close()
+        if self.processes and not self._tracker_was_running:
+            stop_resource_tracker()
         self.connections, self.processes = [], []
