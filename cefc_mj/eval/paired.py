@@ -52,8 +52,10 @@ def retention(cells: dict, c: int, condition: str) -> dict[int, float]:
 
 
 def _wilcoxon(diff: np.ndarray) -> float | None:
-    if len(diff) < 2 or not np.any(diff):
-        return None if len(diff) < 2 else 1.0
+    if len(diff) < 2:
+        return None
+    if not np.any(diff):  # identical seed by seed: no evidence of a difference
+        return 1.0
     return float(stats.wilcoxon(diff).pvalue)
 
 

@@ -63,7 +63,8 @@ class MAPPO:
         self.task_cfg = task_cfg
         self.ppo = ppo
         self.seed = seed
-        self.env = make_env(task_cfg, ppo.n_envs, seed)
+        # With rollout workers the episodes are stepped there: here only a one-env probe for the checks.
+        self.env = make_env(task_cfg, ppo.n_envs if rollout_workers == 1 else 1, seed)
         if critic.state_dim != self.env.state_size + self.env.layout.size:
             raise ValueError(
                 f"critic input {critic.state_dim} != global state {self.env.state_size} + "

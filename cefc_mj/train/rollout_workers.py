@@ -126,10 +126,9 @@ class RolloutWorkers:
 
     def collect(self, actor_state: dict, seed: int, iteration: int, steps: int) -> list:
         """Every worker's Shard of this iteration, in worker order."""
-        state = {k: v.detach().clone() for k, v in actor_state.items()}
         for index, conn in enumerate(self.connections):
             try:
-                conn.send((state, seed, iteration, steps))
+                conn.send((actor_state, seed, iteration, steps))  # pickled here: the workers get a copy
             except OSError:
                 self.processes[index].join(timeout=1.0)
                 code = self.processes[index].exitcode
