@@ -2,6 +2,7 @@
 
     python examples/prereg_table5.py --list              # every planned run and whether it is done
     python examples/prereg_table5.py --max-runs 4        # the next 4 runs not yet done (primary pair first)
+    python examples/prereg_table5.py --max-runs 40 --start-before 17:30   # start no run after 17:30
 
 Two drivers can run side by side (one per core): each claims a run with a lock file in runs/prereg/
 and skips runs the other one holds.
@@ -22,6 +23,7 @@ import shutil
 import subprocess
 import sys
 import time
+from datetime import datetime
 from pathlib import Path
 
 from cefc_mj.eval.prereg import planned_runs
@@ -72,7 +74,20 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--list", action="store_true", help="print every planned run and its state, then exit")
     p.add_argument("--max-runs", type=int, default=1, metavar="K", help="train at most K runs (default 1)")
+    p.add_argument(
+        "--start-before",
+        metavar="HH:MM",
+        help="start no new run after this local time today (a run already started finishes); "
+        "useful when the machine will be taken away and an unfinished run would be wasted",
+    )
     args = p.parse_args(argv)
+    start_before = None
+    if args.start_before is not None:
+        try:
+            clock = datetime.strptime(args.start_before, "%H:%M")
+        except ValueError:
+            p.error(f"--start-before {args.start_before!r}: expected HH:MM")
+        start_before = datetime.now().replace(hour=clock.hour, minute=clock.minute, second=0, microsecond=0)
     runs = planned_runs()
     if args.list:
         for stem, run_args in runs:
@@ -87,6 +102,9 @@ def main(argv: list[str] | None = None) -> int:
             break
         if done(stem):
             continue
+        if start_before is not None and datetime.now() >= start_before:
+            print(f"prereg: it is past {args.start_before}; no new run started", flush=True)
+            break
         claim = claim_run(stem)
         if claim is None:  # another driver is training it
             continue
