@@ -17,6 +17,7 @@ by its results.
 from __future__ import annotations
 
 import argparse
+import csv
 import fcntl
 import shlex
 import shutil
@@ -55,6 +56,16 @@ def keep_log(stem: str) -> None:
             shutil.copy2(source, ROOT / LOGS / stem / name)
 
 
+def train_seconds(stem: str) -> float | None:
+    """A finished run's training wall-clock (the last wall_s of its kept progress.csv), None when not kept."""
+    progress = ROOT / LOGS / stem / "progress.csv"
+    if not progress.is_file():
+        return None
+    with progress.open() as handle:
+        rows = list(csv.DictReader(handle))
+    return float(rows[-1]["wall_s"]) if rows else None
+
+
 def claim_run(stem: str):
     """An open, exclusively locked claim file for the run, or None when another driver holds it."""
     (ROOT / OUT).mkdir(parents=True, exist_ok=True)
@@ -90,9 +101,17 @@ def main(argv: list[str] | None = None) -> int:
         start_before = datetime.now().replace(hour=clock.hour, minute=clock.minute, second=0, microsecond=0)
     runs = planned_runs()
     if args.list:
+        seconds = []
         for stem, run_args in runs:
-            print(f"{'done   ' if done(stem) else 'todo   '}{shlex.join(command(stem, run_args))}")
-        print(f"{sum(done(stem) for stem, _ in runs)} of {len(runs)} runs done")
+            cost = train_seconds(stem) if done(stem) else None
+            if cost is not None:
+                seconds.append(cost)
+            state = f"done {cost / 60:5.1f} min" if cost is not None else ("done" if done(stem) else "todo")
+            print(f"{state:<16}{shlex.join(command(stem, run_args))}")
+        print(
+            f"{sum(done(stem) for stem, _ in runs)} of {len(runs)} runs done; training time of the done runs: "
+            f"{sum(seconds) / 3600:.1f} core-hours (one core per run)"
+        )
         return 0
     if args.max_runs < 1:
         p.error(f"--max-runs {args.max_runs}: must be >= 1")

@@ -308,3 +308,33 @@ def test_the_preregistered_batch_flies_only_as_planned(tmp_path, monkeypatch, ca
     monkeypatch.setenv("CEFC_TEST_LEDGER", str(ledger_file))
     ledger.record_flight("table5", seeds.GAME_PREREGISTERED_TEST_SEED, 50, "cefc-eval ...", None, [])
     assert "was already flown" in _eval_refusal([*flight, "--policies-dir", str(partial)], capsys)
+
+
+# ---------------------------------------------------------------------------- the pre-registered runs
+def test_the_prereg_driver_lists_the_plan_and_every_shipped_run_is_complete():
+    """`examples/prereg_table5.py --list` names every planned run once; a run marked done has its model
+    card (written by the training command, with the seed of its plan) and its kept progress log."""
+    import subprocess
+    import sys
+
+    from cefc_mj.eval.prereg import planned_runs
+
+    root = Path(__file__).resolve().parent.parent
+    script = root / "examples" / "prereg_table5.py"
+    listed = subprocess.run([sys.executable, script, "--list"], capture_output=True, text=True, check=True).stdout
+    lines = listed.splitlines()
+    runs = planned_runs()
+    assert len(lines) == len(runs) + 1
+    n_done = 0
+    for (stem, _), line in zip(runs, lines[:-1], strict=True):
+        policy = root / "policies" / "prereg" / f"{stem}.pt"
+        assert line.startswith("done" if policy.is_file() else "todo"), line
+        if policy.is_file():
+            n_done += 1
+            card = json.loads(policy.with_suffix(".json").read_text())
+            assert card["seed"] == int(stem.rsplit("seed", 1)[1]) and card["git_commit"]
+            assert (root / "eval" / "training_logs" / "prereg" / stem / "progress.csv").is_file()
+            assert " min " in line  # its training time, read from the kept log
+    assert lines[-1].startswith(f"{n_done} of {len(runs)} runs done")
+    bad = subprocess.run([sys.executable, script, "--start-before", "25:00"], capture_output=True, text=True)
+    assert bad.returncode == 2 and "--start-before" in bad.stderr
