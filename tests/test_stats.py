@@ -17,6 +17,7 @@ from cefc_mj.eval.highlevel import (
     aggregate_lines,
     equivalence_lines,
     sitl_fidelity,
+    table5_markdown,
 )
 from cefc_mj.eval.stats import (
     UNDECIDED,
@@ -280,3 +281,25 @@ def test_the_shipped_table5_reanalysed_is_underpowered_not_alike():
     decisions = {row["vs_reference"]["E"]["decision"] for row in result["rows"].values() if "vs_reference" in row}
     assert decisions == {UNDECIDED}
     assert result["rows"]["CI-HRL-w-CL-M"]["adversary_noninferiority"]["verdict"] == "non-inferiority not shown"
+
+
+def test_table5_markdown_has_a_row_per_method_with_its_verdicts():
+    """The report's Markdown table (what the README quotes): one row per method in the report's order,
+    its seed count, the verdict cells equal to the comparison's decisions, CI-HRL the reference, the
+    primary comparison below."""
+    result = add_comparisons(json.loads((paths.EVAL_DIR / "reports" / "table5.json").read_text()))
+    table, _, primary = table5_markdown(result).partition("\n\n")
+    lines = table.splitlines()
+    assert len(lines) == 2 + len(result["rows"]) and lines[1] == "|" + "---|" * 13
+    for line, (method, row) in zip(lines[2:], result["rows"].items()):
+        cells = [c.strip() for c in line.strip("|").split("|")]
+        assert cells[0].strip("*") == method and cells[1] == str(len(row["training_seeds"]["seeds"]))
+        if method == "CI-HRL":
+            assert cells[6] == cells[9] == "reference"
+        else:
+            assert (cells[8], cells[11]) == (
+                row["vs_reference"]["E"]["decision"],
+                row["vs_reference"]["R_H"]["decision"],
+            )
+    assert primary.startswith("Primary comparison (docs/preregistration.md; exploratory here: batch seed 10000")
+    assert table5_markdown({"rows": {}}) == ""

@@ -31,6 +31,7 @@ from cefc_mj.eval.highlevel import (
     run_table5_sitl,
     run_table6,
     run_table7,
+    table5_markdown,
 )
 from cefc_mj.eval.ledger import record_if_test
 from cefc_mj.eval.requests import GameTablesRequest
@@ -94,8 +95,9 @@ def run(request: GameTablesRequest, prov: dict, command: str) -> int:
     writes: list[tuple[Path, object]] = []
     if request.report_dir is not None:
         out = request.report_dir
+        markdown = table5_markdown(result) + "\n\n" if proto == "table5" and "comparison" in result else ""
         writes += [
-            (out / f"{proto}.md", f"# {proto}\n\n```\n{text}\n```\n\nCommand: `{command}`\n"),
+            (out / f"{proto}.md", f"# {proto}\n\n{markdown}```\n{text}\n```\n\nCommand: `{command}`\n"),
             (out / f"{proto}.json", data),
             (out / f"{proto}.png", lambda path: plot_highlevel_table(result, path)),
         ]

@@ -1259,6 +1259,64 @@ def equivalence_lines(result: dict) -> list[str]:
     return lines
 
 
+def table5_markdown(result: dict) -> str:
+    """Table V's comparison with CI-HRL as a Markdown table (the report's `.md` and the README's):
+    per row the seeds, E against the game's adversary and against the rule, the adversary's
+    non-inferiority p, R_H, and per metric of MARGINS the difference [95 % Welch CI], Welch / TOST p
+    (Benjamini-Hochberg-adjusted) and verdict; then the primary comparison. "" without a comparison."""
+    from cefc_mj.eval.stats import ALPHA
+
+    if not result.get("comparison"):
+        return ""
+    metrics = [m for m in MARGINS if m in SEED_METRICS]
+
+    def interval(block: dict, m: str) -> str:
+        factor, _, fmt = _scale(m)
+        mean, low, high = (format(block["ci95"][m][k] * factor, fmt) for k in ("mean", "ci_low", "ci_high"))
+        return f"{mean} [{low}, {high}]"
+
+    header = ["method", "seeds", "E vs adversary (s)", "E vs rule (s)", "adversary non-inferior: p", "R_H (x 0.1 s)"]
+    for m in metrics:
+        header += [f"{m} minus {REFERENCE_METHOD} [95 % CI]", f"p / TOST p {m} (BH)", f"verdict {m}"]
+    header.append("paper E / R_H")
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    for method, row in result["rows"].items():
+        seeds = row.get("training_seeds")
+        if not seeds:
+            continue
+        rule = row.get("against_rule")
+        test = row.get("adversary_noninferiority")
+        cells = [
+            f"**{method}**" if method == REFERENCE_METHOD else method,
+            str(len(seeds["seeds"])),
+            interval(seeds, "E"),
+            interval(rule, "E") if rule else "-",
+            "-"
+            if not test
+            else _p_text(test["p"]) + ("" if test["p"] is not None and test["p"] < ALPHA else " (not shown)"),
+            interval(seeds, "R_H"),
+        ]
+        vs = row.get("vs_reference")
+        for m in metrics:
+            if not vs:
+                cells += ["reference", "-", "-"]
+                continue
+            factor, unit, fmt = _scale(m)
+            d = vs[m].get("difference")
+            cells += [
+                "-"
+                if d is None
+                else f"{format(d['difference'] * factor, '+' + fmt)} [{format(d['ci_low'] * factor, fmt)}, "
+                f"{format(d['ci_high'] * factor, fmt)}]",
+                f"{_p_text(vs[m].get('p_fdr'))} / {_p_text(vs[m].get('tost_p_fdr'))}",
+                vs[m].get("decision", "-"),
+            ]
+        paper = row.get("paper")
+        cells.append(f"{paper['E']:g} / {paper['R_H']:g}" if paper else "-")
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines + _primary_lines(result))
+
+
 def _primary_lines(result: dict) -> list[str]:
     from cefc_mj.eval.stats import ALPHA
     from cefc_mj.seeds import GAME_PREREGISTERED_TEST_SEED
