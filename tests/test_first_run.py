@@ -142,6 +142,8 @@ def test_table5_cli_on_two_workers_finishes(tmp_path):
     rows = json.loads((tmp_path / "reports" / "table5.json").read_text())["rows"]
     assert set(rows) == {"MAPPO+AT-M", "CI-HRL"}
     assert list(rows["MAPPO+AT-M"]["training_seeds"]["seeds"]) == [0, 1]
+    report = (tmp_path / "reports" / "table5.md").read_text()  # the Markdown table, a one-seed row included
+    assert "| MAPPO+AT-M | 2 | " in report and "| **CI-HRL** | 1 | " in report
 
 
 def _stop_self(_item) -> None:

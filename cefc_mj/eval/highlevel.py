@@ -1272,8 +1272,13 @@ def table5_markdown(result: dict) -> str:
 
     def interval(block: dict, m: str) -> str:
         factor, _, fmt = _scale(m)
-        mean, low, high = (format(block["ci95"][m][k] * factor, fmt) for k in ("mean", "ci_low", "ci_high"))
-        return f"{mean} [{low}, {high}]"
+        c = block["ci95"][m]
+        mean = format(c["mean"] * factor, fmt)
+        return (
+            mean
+            if c["ci_low"] is None
+            else f"{mean} [{format(c['ci_low'] * factor, fmt)}, {format(c['ci_high'] * factor, fmt)}]"
+        )
 
     header = ["method", "seeds", "E vs adversary (s)", "E vs rule (s)", "adversary non-inferior: p", "R_H (x 0.1 s)"]
     for m in metrics:
