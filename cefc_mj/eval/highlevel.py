@@ -1170,6 +1170,17 @@ def _p_text(p: float | None, adjusted: float | None = None) -> str:
     return f"{p:.3f}" + ("" if adjusted is None else f" ({adjusted:.3f})")
 
 
+def _difference_text(d: dict | None, m: str) -> str:
+    """A difference of means [95 % Welch CI] (`eval.stats.welch_difference`) in metric m's printed unit."""
+    if d is None:
+        return "-"
+    factor, unit, fmt = _scale(m)
+    return (
+        f"{format(d['difference'] * factor, '+' + fmt)}{unit} "
+        f"[{format(d['ci_low'] * factor, fmt)}, {format(d['ci_high'] * factor, fmt)}]"
+    )
+
+
 def _noninferiority_text(test: dict | None) -> str:
     if not test:
         return ""
@@ -1210,13 +1221,8 @@ def equivalence_lines(result: dict) -> list[str]:
             continue
         cells = [method, str(len(row["training_seeds"]["seeds"]))]
         for m in metrics:
-            factor, unit, fmt = _scale(m)
-            d = vs[m].get("difference")
             cells += [
-                "-"
-                if d is None
-                else f"{format(d['difference'] * factor, '+' + fmt)}{unit} [{format(d['ci_low'] * factor, fmt)}, "
-                f"{format(d['ci_high'] * factor, fmt)}]",
+                _difference_text(vs[m].get("difference"), m),
                 _p_text(vs[m]["p"], vs[m].get("p_fdr")),
                 _p_text(vs[m].get("tost_p"), vs[m].get("tost_p_fdr")),
                 vs[m].get("decision", "-"),
@@ -1272,13 +1278,7 @@ def table5_markdown(result: dict) -> str:
 
     def interval(block: dict, m: str) -> str:
         factor, _, fmt = _scale(m)
-        c = block["ci95"][m]
-        mean = format(c["mean"] * factor, fmt)
-        return (
-            mean
-            if c["ci_low"] is None
-            else f"{mean} [{format(c['ci_low'] * factor, fmt)}, {format(c['ci_high'] * factor, fmt)}]"
-        )
+        return _ci_text(block["ci95"][m], factor, fmt)
 
     header = ["method", "seeds", "E vs adversary (s)", "E vs rule (s)", "adversary non-inferior: p", "R_H (x 0.1 s)"]
     for m in metrics:
@@ -1306,13 +1306,8 @@ def table5_markdown(result: dict) -> str:
             if not vs:
                 cells += ["reference", "-", "-"]
                 continue
-            factor, unit, fmt = _scale(m)
-            d = vs[m].get("difference")
             cells += [
-                "-"
-                if d is None
-                else f"{format(d['difference'] * factor, '+' + fmt)} [{format(d['ci_low'] * factor, fmt)}, "
-                f"{format(d['ci_high'] * factor, fmt)}]",
+                _difference_text(vs[m].get("difference"), m),
                 f"{_p_text(vs[m].get('p_fdr'))} / {_p_text(vs[m].get('tost_p_fdr'))}",
                 vs[m].get("decision", "-"),
             ]
