@@ -3,8 +3,9 @@ flown on games an earlier flight informed a change with is tainted, the shipped 
 rule, and cefc-eval recording its own flights of test seeds.
 
 The rule on the shipped reports fails for any tainted report not in KNOWN_TAINTED, and for any entry of
-KNOWN_TAINTED that is no longer tainted or no longer shipped: the list must shrink when the
-pre-registered Table V (docs/preregistration.md) replaces the shipped one.
+KNOWN_TAINTED that is no longer tainted or no longer shipped. The pre-registered Table V
+(eval/reports/prereg/table5.json, docs/preregistration.md) flew batch 50000 once and must stay clean; the
+generation-4 table5.json beside it is kept as the earlier, tainted result it is listed as.
 """
 
 import json
@@ -168,7 +169,7 @@ def _shipped_test_flights() -> dict[str, dict]:
 def test_every_shipped_test_report_is_in_the_ledger_and_untainted_unless_known():
     flights = read_ledger(SHIPPED_LEDGER).flights
     reports = _shipped_test_flights()
-    assert {"table5.json", "table8_test/wind8.json", "table8_test/dev08.json"} <= set(reports)
+    assert {"table5.json", "prereg/table5.json", "table8_test/wind8.json", "table8_test/dev08.json"} <= set(reports)
     tainted = {}
     for name, flew in reports.items():
         matches = [f for f in flights if all(getattr(f, k) == v for k, v in flew.items())]
@@ -338,3 +339,31 @@ def test_the_prereg_driver_lists_the_plan_and_every_shipped_run_is_complete():
     assert lines[-1].startswith(f"{n_done} of {len(runs)} runs done")
     bad = subprocess.run([sys.executable, script, "--start-before", "25:00"], capture_output=True, text=True)
     assert bad.returncode == 2 and "--start-before" in bad.stderr
+
+
+def test_the_shipped_preregistered_table_is_the_plan_flown_once():
+    """eval/reports/prereg/table5.json: the pre-registered batch, flown once (one ledger flight, which
+    informed nothing), every row with its planned training seeds; its Markdown and the README's Table V
+    are the report's own table, and its primary comparison is labelled confirmatory."""
+    from cefc_mj.eval.highlevel import EPISODES, add_comparisons, table5_markdown
+    from cefc_mj.eval.prereg import OTHER_SEEDS, PRIMARY_SEEDS
+
+    root = Path(__file__).resolve().parent.parent
+    report = REPORTS / "prereg" / "table5.json"
+    result = json.loads(report.read_text())
+    seed = seeds.GAME_PREREGISTERED_TEST_SEED
+    assert (result["protocol"]["seed"], result["protocol"]["episodes"]) == (seed, EPISODES)
+    flown = [f for f in read_ledger(SHIPPED_LEDGER).flights if f.family == seeds.GAME_FAMILY and seed in f.seeds]
+    assert len(flown) == 1 and flown[0].protocol == "table5" and not flown[0].informed_change
+    assert flown[0].outputs == ("eval/reports/prereg/table5.json",)
+    primary_rows = {"CI-HRL", "CI-HRL-wo-FT", "MAPPO+AT-M"}
+    assert len(result["rows"]) == 17
+    for method, row in result["rows"].items():
+        expected = PRIMARY_SEEDS if method in primary_rows else OTHER_SEEDS
+        assert row["training_seeds"]["seeds"] == list(expected), method
+    markdown = table5_markdown(add_comparisons(result))
+    shipped = (REPORTS / "prereg" / "table5.md").read_text()
+    assert markdown in shipped and "confirmatory: the pre-registered batch" in markdown
+    readme = (root / "README.md").read_text()
+    missing = [line for line in markdown.splitlines() if line.startswith("|") and line not in readme]
+    assert not missing, f"README's Table V is not the pre-registered report's: {missing[:1]}"
