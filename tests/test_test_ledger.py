@@ -20,6 +20,7 @@ from cefc_mj.errors import ConfigError
 from cefc_mj.eval import ledger
 from cefc_mj.eval.ledger import Flight, read_ledger, record_flight, tainting_flights
 
+ROOT = Path(__file__).resolve().parent.parent
 REPORTS = paths.EVAL_DIR / "reports"
 SHIPPED_LEDGER = paths.EVAL_DIR / ledger.LEDGER_NAME
 BATCH_10000 = "batch seed 10000, whose flights of generations 2 and 3 decided two adversary replacements"
@@ -320,21 +321,20 @@ def test_the_prereg_driver_lists_the_plan_and_every_shipped_run_is_complete():
 
     from cefc_mj.eval.prereg import planned_runs
 
-    root = Path(__file__).resolve().parent.parent
-    script = root / "examples" / "prereg_table5.py"
+    script = ROOT / "examples" / "prereg_table5.py"
     listed = subprocess.run([sys.executable, script, "--list"], capture_output=True, text=True, check=True).stdout
     lines = listed.splitlines()
     runs = planned_runs()
     assert len(lines) == len(runs) + 1
     n_done = 0
     for (stem, _), line in zip(runs, lines[:-1], strict=True):
-        policy = root / "policies" / "prereg" / f"{stem}.pt"
+        policy = ROOT / "policies" / "prereg" / f"{stem}.pt"
         assert line.startswith("done" if policy.is_file() else "todo"), line
         if policy.is_file():
             n_done += 1
             card = json.loads(policy.with_suffix(".json").read_text())
             assert card["seed"] == int(stem.rsplit("seed", 1)[1]) and card["git_commit"]
-            assert (root / "eval" / "training_logs" / "prereg" / stem / "progress.csv").is_file()
+            assert (ROOT / "eval" / "training_logs" / "prereg" / stem / "progress.csv").is_file()
             assert " min " in line  # its training time, read from the kept log
     assert lines[-1].startswith(f"{n_done} of {len(runs)} runs done")
     bad = subprocess.run([sys.executable, script, "--start-before", "25:00"], capture_output=True, text=True)
@@ -345,25 +345,23 @@ def test_the_shipped_preregistered_table_is_the_plan_flown_once():
     """eval/reports/prereg/table5.json: the pre-registered batch, flown once (one ledger flight, which
     informed nothing), every row with its planned training seeds; its Markdown and the README's Table V
     are the report's own table, and its primary comparison is labelled confirmatory."""
-    from cefc_mj.eval.highlevel import EPISODES, add_comparisons, table5_markdown
+    from cefc_mj.eval.highlevel import EPISODES, TABLE5_ROWS, add_comparisons, table5_markdown
     from cefc_mj.eval.prereg import OTHER_SEEDS, PRIMARY_SEEDS
 
-    root = Path(__file__).resolve().parent.parent
-    report = REPORTS / "prereg" / "table5.json"
-    result = json.loads(report.read_text())
+    result = json.loads((REPORTS / "prereg" / "table5.json").read_text())
     seed = seeds.GAME_PREREGISTERED_TEST_SEED
     assert (result["protocol"]["seed"], result["protocol"]["episodes"]) == (seed, EPISODES)
     flown = [f for f in read_ledger(SHIPPED_LEDGER).flights if f.family == seeds.GAME_FAMILY and seed in f.seeds]
     assert len(flown) == 1 and flown[0].protocol == "table5" and not flown[0].informed_change
     assert flown[0].outputs == ("eval/reports/prereg/table5.json",)
     primary_rows = {"CI-HRL", "CI-HRL-wo-FT", "MAPPO+AT-M"}
-    assert len(result["rows"]) == 17
+    assert list(result["rows"]) == [row[0] for row in TABLE5_ROWS]  # every row, in the table's order
     for method, row in result["rows"].items():
         expected = PRIMARY_SEEDS if method in primary_rows else OTHER_SEEDS
         assert row["training_seeds"]["seeds"] == list(expected), method
     markdown = table5_markdown(add_comparisons(result))
     shipped = (REPORTS / "prereg" / "table5.md").read_text()
     assert markdown in shipped and "confirmatory: the pre-registered batch" in markdown
-    readme = (root / "README.md").read_text()
+    readme = (ROOT / "README.md").read_text()
     missing = [line for line in markdown.splitlines() if line.startswith("|") and line not in readme]
     assert not missing, f"README's Table V is not the pre-registered report's: {missing[:1]}"
