@@ -3,7 +3,8 @@ modules, and no module imports from a layer above its own.
 
 The graph is read from the source with `ast`, without importing the package: every `import` and
 `from ... import` statement counts, at module level or inside a function, relative ones resolved.
-Imports under `if TYPE_CHECKING:` are left out: they serve annotations only and never run.
+Imports under `if TYPE_CHECKING:` count too: they never run, but a module that names a higher layer's
+type in its annotations depends on that layer all the same (and a loop through them is a loop).
 """
 
 from __future__ import annotations
@@ -64,23 +65,13 @@ def _known(name: str, modules) -> str:
     return name
 
 
-def _is_type_checking(test: ast.expr) -> bool:
-    return (isinstance(test, ast.Name) and test.id == "TYPE_CHECKING") or (
-        isinstance(test, ast.Attribute) and test.attr == "TYPE_CHECKING"
-    )
-
-
 def imports_in(source: str, module: str, is_package: bool, modules) -> list[tuple[str, int]]:
     """(imported module of the package, line) for every import statement in `source`, the module
-    `module`, once per statement and module; imports of other packages are left out, and so are
-    those under `if TYPE_CHECKING:`."""
+    `module`, once per statement and module, those under `if TYPE_CHECKING:` included; imports of
+    other packages are left out."""
     found: list[tuple[str, int]] = []
 
     def visit(node: ast.AST) -> None:
-        if isinstance(node, ast.If) and _is_type_checking(node.test):
-            for child in node.orelse:
-                visit(child)
-            return
         if isinstance(node, ast.Import):
             found.extend(
                 (_known(alias.name, modules), node.lineno)
@@ -244,6 +235,30 @@ def test_checker_reports_a_cycle_and_an_upward_import():
     assert not find_cycles(edges[:2] + edges[3:]) and not upward_imports(edges[:3] + edges[4:], layer)
 
 
+def test_a_loop_through_annotations_is_a_loop():
+    """The last loop the package had: a front end imports a recorder, which named the front end's env
+    class under TYPE_CHECKING. Read from source as it was, it is a cycle and an upward import."""
+    modules = {"cefc_mj", "cefc_mj.pettingzoo_env", "cefc_mj.viz", "cefc_mj.viz.recorder"}
+    sources = {
+        "cefc_mj.pettingzoo_env": "from cefc_mj.viz.recorder import RerunRecorder\n",
+        "cefc_mj.viz.recorder": (
+            "from typing import TYPE_CHECKING\n"
+            "if TYPE_CHECKING:\n"
+            "    from cefc_mj.pettingzoo_env import CEFCParallelEnv\n"
+        ),
+    }
+    edges = [
+        Edge(module, target, f"{module}:{line}")
+        for module, source in sources.items()
+        for target, line in imports_in(source, module, False, modules)
+    ]
+    assert [describe_cycle(c) for c in find_cycles(edges)] == [
+        "cefc_mj.pettingzoo_env -> cefc_mj.viz.recorder -> cefc_mj.pettingzoo_env  "
+        "(cefc_mj.pettingzoo_env:1, cefc_mj.viz.recorder:3)"
+    ]
+    assert upward_imports(edges) == [Edge("cefc_mj.viz.recorder", "cefc_mj.pettingzoo_env", "cefc_mj.viz.recorder:3")]
+
+
 def test_parser_reads_every_kind_of_import():
     modules = {"cefc_mj", "cefc_mj.a", "cefc_mj.a.b", "cefc_mj.a.c", "cefc_mj.d"}
     source = """
@@ -266,6 +281,7 @@ def later():
         ("cefc_mj.a.c", 5),
         ("cefc_mj.d", 6),
         ("cefc_mj.a", 7),
+        ("cefc_mj.a", 9),  # under TYPE_CHECKING: counted
         ("cefc_mj.a.c", 11),
         ("cefc_mj", 14),
     ]

@@ -10,7 +10,7 @@ import os
 import socket
 import sys
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
@@ -18,7 +18,8 @@ from cefc_mj.errors import ConfigError
 from cefc_mj.sim.particle import ParticleWorld
 
 if TYPE_CHECKING:
-    from cefc_mj.pettingzoo_env import CEFCParallelEnv
+    from cefc_mj.env import BatchedCEFCEnv
+    from cefc_mj.task.config import TaskConfig
 
 RERUN_VIEWER_PORT = 9876  # where rr.spawn starts (or finds) the viewer, and where rr.GrpcSink() sends
 FLIGHT_ALTITUDE = 2.0  # the particle world is 2D; Rerun draws it at the quadrotors' altitude (m)
@@ -59,6 +60,18 @@ _SCALARS = ("hd_error", "anchor_distance", "wind_speed", "F_so_far", "N_so_far",
 """The per-step series RerunRecorder logs under metrics/ (the names cefc-eval's recordings use)."""
 
 
+class RecordableEnv(Protocol):
+    """What `RerunRecorder` reads of an env; `cefc_mj.pettingzoo_env.CEFCParallelEnv` is one (named here
+    by its fields, not imported: the PettingZoo front end sits above this layer and imports the recorder)."""
+
+    batched: BatchedCEFCEnv
+    """The batched env underneath (one env): its world, step counter and state."""
+    config: TaskConfig
+    """The task's configuration (agents, LiDAR rays, episode length)."""
+    episode_seed: int | None
+    """The seed of the episode in progress (None before the first reset)."""
+
+
 class RerunRecorder:
     """Logs a `CEFCParallelEnv`'s episodes to Rerun step by step, with `cefc_mj.viz.rerun_log`
     (the same entities, timelines and blueprint as `cefc-eval --rrd/--spawn`).
@@ -75,7 +88,7 @@ class RerunRecorder:
     ...         env.step({a: env.action_space(a).sample() for a in env.agents}); rec.capture()
     """
 
-    def __init__(self, env: CEFCParallelEnv, rrd_path: str | os.PathLike | None = None, spawn: bool = False):
+    def __init__(self, env: RecordableEnv, rrd_path: str | os.PathLike | None = None, spawn: bool = False):
         if rrd_path is None and not spawn:
             raise ConfigError("RerunRecorder: give rrd_path, spawn=True, or both")
         self.env = env
