@@ -83,6 +83,13 @@ def ray_available() -> bool:
         return False
 
 
+def usable_cpus() -> int:
+    """The CPUs this process may run on (its affinity mask where the OS has one, else the machine's)."""
+    if hasattr(os, "sched_getaffinity"):
+        return max(1, len(os.sched_getaffinity(0)))
+    return os.cpu_count() or 1
+
+
 @dataclass(frozen=True)
 class ExecutorConfig:
     """How `map_unordered` runs its jobs."""

@@ -30,7 +30,10 @@ def test_bad_airframe_is_one_line_exit_2(argv, needle, capsys, tmp_path, monkeyp
 
 def test_crazyflie_flies_a_short_episode(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
-    assert main(["--airframe", "crazyflie", "--formation", "5", "--steps", "20", "--json", "out.json"]) == 0
+    assert (
+        main(["--airframe", "crazyflie", "--formation", "5", "--steps", "20", "--episodes", "1", "--json", "out.json"])
+        == 0
+    )
     episode = json.loads((tmp_path / "out.json").read_text())["rows"]["5"]["SITL-S"]["episodes_detail"][0]
     assert episode["airframe"] == "crazyflie" and episode["steps"] == 20 and episode["diverged"] is None
 

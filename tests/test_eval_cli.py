@@ -10,6 +10,7 @@ import torch
 
 import cefc_mj.eval.table8 as table8
 from cefc_mj.cli.eval import main
+from cefc_mj.errors import ConfigError
 from cefc_mj.eval import DEFAULT_POLICY
 from cefc_mj.nn.atm import ATMActor, ATMConfig
 from cefc_mj.nn.policy_io import save_policy
@@ -160,6 +161,8 @@ def test_particle_single_run_writes_json_and_png_into_new_folders(random_policy,
             "5",
             "--steps",
             "30",
+            "--episodes",
+            "1",
             "--deviation",
             "0.3",
             "--policy",
@@ -182,6 +185,94 @@ def test_particle_single_run_writes_json_and_png_into_new_folders(random_policy,
     assert list((tmp_path / "png").glob("*.png"))
     printed = capsys.readouterr().out
     assert "Table VIII metrics" in printed and "not comparable" in printed and "calm reference" in printed
+    assert "our cells are ONE seed (0)" in printed and "NOT A MEASUREMENT of the policy" in printed
+    assert "not saved" not in printed  # --json wrote it
+
+
+MAIN_JOB = ["--wind", "8", "--deviation", "0.5"]
+"""The README's main job."""
+
+
+def test_main_job_flies_five_seeds_per_c_on_two_processes_outside_the_test_block():
+    """`cefc-eval --wind 8 --deviation 0.5` flies seeds 0..4 of each c = 5..8 on a pool of 2 (fewer
+    only where fewer CPUs are usable), none of them a test seed (no test-ledger line); SITL-M and
+    recordings fly one at a time, and asking for a pool with them is still refused."""
+    from cefc_mj.cli.eval import build_parser, to_request
+    from cefc_mj.eval.ledger import touches_test_block
+    from cefc_mj.executors import usable_cpus
+
+    request = to_request(build_parser().parse_args(MAIN_JOB))
+    assert (request.episodes, request.seed, request.formations) == (5, 0, (5, 6, 7, 8))
+    assert request.workers == min(2, usable_cpus())
+    assert not touches_test_block("single", request.seed, request.episodes)
+    assert to_request(build_parser().parse_args([*MAIN_JOB, "--episodes", "1"])).workers == min(2, usable_cpus())
+    for one_process in (["--sitl-m"], ["--rrd", "run.rrd"], ["--png", "plots"]):
+        assert to_request(build_parser().parse_args([*MAIN_JOB, *one_process])).workers == 1
+    with pytest.raises(ConfigError, match="--workers 2: SITL-M episodes fly one at a time"):
+        to_request(build_parser().parse_args([*MAIN_JOB, "--sitl-m", "--workers", "2"]))
+
+
+def test_main_job_says_its_seeds_and_writes_nothing(tmp_path):
+    """The main job, shortened (c = 5, 5 steps), as a real process: its header and table say 5 seeds
+    per cell and on how many processes, the last line says the table is not saved, and it leaves no
+    file behind."""
+    from cefc_mj.executors import usable_cpus
+
+    done = subprocess.run(
+        [sys.executable, "-m", "cefc_mj.cli.eval", *MAIN_JOB, "--formation", "5", "--steps", "5"],
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+        timeout=300,
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    workers = min(2, usable_cpus())
+    header = done.stdout.splitlines()[0]
+    assert "seeds 0..4 (5 per cell)" in header and "10 episodes" in header
+    assert header.endswith(f"on {workers} workers") if workers > 1 else "workers" not in header
+    assert "  seeds: each of our cells is the mean ± sample std over 5 seeds (0..4)" in done.stdout
+    assert done.stdout.strip().splitlines()[-1].startswith("the table above is not saved: --json PATH writes it")
+    assert "episodes: 100%" in done.stderr  # the progress bar
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_the_seeds_behind_each_cell_are_said_in_one_line():
+    """One seed is called one seed and not a measurement; several, the mean ± std over them; cells an
+    interruption left short are named."""
+    from cefc_mj.cli.eval_single import single_table
+    from cefc_mj.eval.runner import summarize
+
+    def summary(seeds, episodes_per_cell):
+        rows = {
+            "5": {
+                cond: {**summarize([{"F": 9.0, "N": 4.0, "C": 0.0, "steps": 10}] * n), "retention": 1.0}
+                for cond, n in zip(("Wind-8", "SITL-S"), episodes_per_cell)
+            }
+        }
+        for cells in rows.values():
+            for cell in cells.values():
+                cell["retention_note"] = None
+        return {
+            "condition": "Wind-8",
+            "steps": 10,
+            "seeds": seeds,
+            "backend": "particle",
+            "policy": "nav",
+            "rows": rows,
+        }
+
+    lines = lambda text: [line for line in text.splitlines() if line.startswith("  seeds: ")]  # noqa: E731
+    one = lines(single_table(summary([7], (1, 1))))
+    assert one == [
+        "  seeds: our cells are ONE seed (7), one layout of obstacles and anchors: NOT A MEASUREMENT of the "
+        "policy (layouts differ widely); --episodes 5 or more gives mean ± std."
+    ]
+    assert lines(single_table(summary([0, 1, 2], (3, 3)))) == [
+        "  seeds: each of our cells is the mean ± sample std over 3 seeds (0..2), the same layouts in every one "
+        "of our rows."
+    ]
+    short = lines(single_table(summary([0, 1, 2], (3, 2))))
+    assert len(short) == 1 and "over 3 seeds (0..2; interrupted: c = 5 SITL-S has 2), the same" in short[0]
 
 
 def test_single_with_workers_uses_a_pool(random_policy, tmp_path, capsys):
@@ -223,6 +314,8 @@ def test_rrd_recording_into_a_missing_folder_read_back(random_policy, tmp_path):
                 "5",
                 "--steps",
                 "20",
+                "--episodes",
+                "1",
                 "--policy",
                 str(random_policy),
                 "--rrd",
@@ -255,6 +348,8 @@ def test_output_that_fails_at_the_end_is_one_line_after_the_table(random_policy,
                 "5",
                 "--steps",
                 "5",
+                "--episodes",
+                "1",
                 "--policy",
                 str(random_policy),
                 "--json",

@@ -264,6 +264,7 @@ def test_single_table_labels_columns_and_explains_dashes():
     header = next(line for line in text.splitlines() if line.startswith("c "))
     assert header.split() == ["c", "source", "condition", "F", "N", "F+N", "C", "(%)", "retention"]
     assert "paper   Wind-8" in text and "paper   Deviation-0.5" in text and "no combined" in text
+    assert "  seeds: each of our cells is the mean ± sample std over 2 seeds (0..1), the same" in text
 
 
 def test_single_json_has_mean_std_and_per_episode_rows(tmp_path, capsys):

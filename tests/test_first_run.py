@@ -86,7 +86,9 @@ def test_agents_lost_in_flight_are_not_a_result(tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
     _sitl_with_agents(monkeypatch, AGENTS_DIE_IN_FLIGHT)
     before = set(psutil.Process().children(recursive=True))
-    code = main(["--sitl-m", "--formation", "3", "--steps", "40", "--json", str(tmp_path / "out.json")])
+    code = main(
+        ["--sitl-m", "--formation", "3", "--steps", "40", "--episodes", "1", "--json", str(tmp_path / "out.json")]
+    )
     captured = capsys.readouterr()
     assert code == EXIT_NOT_A_RESULT, captured.err
     faults = [line for line in captured.err.splitlines() if line.startswith("cefc-eval: fault: ")]
@@ -103,7 +105,9 @@ def test_agents_lost_in_flight_are_not_a_result(tmp_path, monkeypatch, capsys):
 def test_agents_that_cannot_start_end_the_run_in_one_line(tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
     _sitl_with_agents(monkeypatch, "import sys; sys.exit(7)")
-    code = main(["--sitl-m", "--formation", "3", "--steps", "20", "--json", str(tmp_path / "out.json")])
+    code = main(
+        ["--sitl-m", "--formation", "3", "--steps", "20", "--episodes", "1", "--json", str(tmp_path / "out.json")]
+    )
     err = capsys.readouterr().err.strip().splitlines()
     assert code == EXIT_NOT_A_RESULT
     assert err[-1].startswith("cefc-eval: error: the agent processes exited with code 7 during startup"), err

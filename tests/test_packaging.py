@@ -264,7 +264,17 @@ def test_installed_wheel_flies_an_episode_and_the_cli(venv, tmp_path):
     assert out["airframe_parts"] > 0, "the record drew the airframe from the shipped MJCF"
 
     result = _run(
-        [venv / "bin" / "cefc-eval", "--steps", "10", "--formation", "5", "--json", tmp_path / "r.json"],
+        [
+            venv / "bin" / "cefc-eval",
+            "--steps",
+            "10",
+            "--formation",
+            "5",
+            "--episodes",
+            "1",
+            "--json",
+            tmp_path / "r.json",
+        ],
         cwd=tmp_path,
         env=_clean_env(),
         timeout=600,

@@ -274,7 +274,7 @@ def test_spawn_streams_the_episode_to_a_listening_viewer(tmp_path):
 
     live = tmp_path / "live.rrd"
     with rerun_listener(9876, live):
-        assert main(["--backend", "particle", "--formation", "5", "--steps", "20", "--spawn"]) == 0
+        assert main(["--backend", "particle", "--formation", "5", "--steps", "20", "--episodes", "1", "--spawn"]) == 0
     data = read_rrd(live)
     assert len(data["/world/uav_4"]["Transform3D:translation"]) == 20
     assert {"/world/obstacles", "/world/anchor", "/metrics/hd_error"} <= set(data)

@@ -40,7 +40,19 @@ def test_single_sitl_m_flies_beside_the_calm_reference(tmp_path, monkeypatch, ca
     before = set(psutil.Process().children(recursive=True))
     assert (
         main(
-            ["--sitl-m", "--formation", "5", "--steps", "20", "--link-delay", "5", "--json", str(tmp_path / "out.json")]
+            [
+                "--sitl-m",
+                "--formation",
+                "5",
+                "--steps",
+                "20",
+                "--episodes",
+                "1",
+                "--link-delay",
+                "5",
+                "--json",
+                str(tmp_path / "out.json"),
+            ]
         )
         == 0
     )
@@ -69,6 +81,8 @@ def test_lockstep_dropout_reports_before_and_after(tmp_path, monkeypatch, capsys
                 "particle",
                 "--steps",
                 "30",
+                "--episodes",
+                "1",
                 "--json",
                 str(tmp_path / "out.json"),
             ]

@@ -1,14 +1,20 @@
 """cefc-eval: fly the shipped policies and report the paper's metrics.
 
 Examples:
-  cefc-eval --wind 8 --deviation 0.5            # Table VIII episode, c = 5..8, vs calm
-  cefc-eval --protocol table8 --workers 2       # the full grid, resumable; reports in ./cefc-eval-reports/
+  cefc-eval --wind 8 --deviation 0.5            # the main job: 8 m/s wind and 0.5 m sensing deviation at
+                                                # once (a combination the paper does not fly), c = 5..8,
+                                                # 5 seeds per c on 2 processes, vs calm air
+  cefc-eval --protocol table8 --workers 2       # the paper's Table VIII grid, resumable, into
+                                                # a new report folder under ./cefc-eval-reports/
   cefc-eval --protocol table8 --executor ray --address HEAD:6379   # the grid on a Ray cluster
-  cefc-eval --backend particle --protocol table3 --json t3.json
-  cefc-eval --formation 6 --rrd run.rrd         # record for Rerun (`rerun run.rrd`)
+  cefc-eval --backend particle --protocol table3 --json t3.json    # the paper's Table III
+  cefc-eval --formation 6 --episodes 1 --rrd run.rrd   # record one episode for Rerun (`rerun run.rrd`)
 
-Bad input ends in one line on stderr and exit code 2, before anything is flown or written.
-Protocols, outputs, the table8 cell cache and the JSON schema: docs/evaluation.md.
+--protocol single (the default) prints its table and writes no file unless asked (--json, --rrd, --png);
+table8 writes a report folder (--report-dir). Bad input ends in one line on stderr and exit code 2,
+before anything is flown or written.
+Docs: docs/evaluate.md (the main job, Table VIII); docs/reproduce.md (every table of the paper);
+protocols, outputs, the table8 cell cache and the JSON schema: docs/evaluation.md.
 """
 
 from __future__ import annotations
@@ -30,6 +36,9 @@ from cefc_mj.eval.requests import (
     MAX_EPISODES,
     MAX_STEPS,
     MAX_WORKERS,
+    SINGLE_EPISODES,
+    SINGLE_WORKERS,
+    TABLE8_EPISODES,
     Flight,
     GameTablesRequest,
     SingleRequest,
@@ -130,7 +139,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--episodes",
         type=int,
         metavar="K",
-        help=f"seeds per cell, 1..{MAX_EPISODES} (default 1; table8 5; table3, table5-7 50)",
+        help=f"seeds per cell, 1..{MAX_EPISODES} (default {SINGLE_EPISODES}; table8 {TABLE8_EPISODES}; table3, "
+        "table5-7 50); one seed is one layout, not a measurement",
     )
     p.add_argument(
         "--steps",
@@ -234,7 +244,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--rrd",
         type=Path,
         metavar="PATH",
-        help="record the episodes to a Rerun .rrd file (single; table5 with --policy: one game)",
+        help="record the episodes to a Rerun .rrd file (single: several episodes write one file each, "
+        "PATH's name with _c<C>_s<SEED>; table5 with --policy: one game)",
     )
     p.add_argument("--spawn", action="store_true", help="stream the episodes to a live Rerun viewer (single)")
     p.add_argument(
@@ -250,8 +261,8 @@ def build_parser() -> argparse.ArgumentParser:
         type=int,
         default=None,
         metavar="W",
-        help=f"processes flying episodes, 1..{MAX_WORKERS} (single without recording, table8, table5 over every "
-        "method; default 1)",
+        help=f"processes flying episodes, 1..{MAX_WORKERS} (single without recording or SITL-M: default "
+        f"{SINGLE_WORKERS}, or the usable CPUs if fewer; table8, table5 over every method: default 1)",
     )
     p.add_argument(
         "--executor",

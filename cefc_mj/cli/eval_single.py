@@ -22,7 +22,7 @@ from cefc_mj.cli.eval_common import (
     write_outputs,
 )
 from cefc_mj.eval.ledger import record_if_test
-from cefc_mj.eval.requests import SingleRequest
+from cefc_mj.eval.requests import SINGLE_EPISODES, SingleRequest
 from cefc_mj.eval.runner import (
     TABLE8_STEPS as PAPER_STEPS,
     EpisodeSpec,
@@ -170,6 +170,8 @@ def run(request: SingleRequest, prov: dict, command: str) -> int:
     write_outputs([(request.json, json.dumps(summary, indent=2) + "\n")] if request.json is not None else [])
     for path in recorded:
         print(f"wrote {path}" + (f"  (open with: rerun {path})" if path.suffix == ".rrd" else ""))
+    if request.json is None:
+        print("the table above is not saved: --json PATH writes it (and every episode's numbers) to a file")
     faulted = report_faults(fault_lines(table), "--drop" if request.drop is not None else None)
     return EXIT_INTERRUPTED if interrupted else faulted
 
@@ -179,7 +181,6 @@ def single_table(summary: dict) -> str:
     """The single protocol's table: per c, our condition and calm rows, then the paper's rows, every
     column labelled; mean ± std over seeds; '-' with its reason where a value is undefined."""
     cond, steps = summary["condition"], summary["steps"]
-    k = len(summary["seeds"])
     components = [n for n in cond.split("+") if n != "SITL-S"]
     lines = [
         "",
@@ -199,9 +200,9 @@ def single_table(summary: dict) -> str:
         + f", policy {summary['policy']}, "
         f"{summary.get('estimator', 'raw')} position estimate"
         + guard_text(summary)
-        + (f", {summary.get('offboard', 'velocity')} offboard setpoints, " if summary["backend"] == "mujoco" else ", ")
-        + (f"mean ± sample std over {k} seeds" if k > 1 else "1 seed (no spread; --episodes K gives mean ± std)")
+        + (f", {summary.get('offboard', 'velocity')} offboard setpoints" if summary["backend"] == "mujoco" else "")
         + "; paper: its Table VIII (Gazebo + PX4 SITL, 1000 steps).",
+        seeds_line(summary),
     ]
     if steps != PAPER_STEPS:
         lines.append(f"  NOTE: F, N over {steps} steps; the paper's are over {PAPER_STEPS}: not comparable.")
@@ -251,6 +252,31 @@ def single_table(summary: dict) -> str:
     lines += _render(rows, right={0, 3, 4, 5, 6, 7})
     lines += [f"  {n}" for n in dict.fromkeys(notes)]
     return "\n".join(lines)
+
+
+def seeds_line(summary: dict) -> str:
+    """The line saying how many seeds stand behind each of our cells: the mean ± sample std over K
+    seeds, or, for one seed, that it is one layout and not a measurement; cells an interruption left
+    with fewer are named."""
+    seeds = summary["seeds"]
+    k = len(seeds)
+    if k == 1:
+        return (
+            f"  seeds: our cells are ONE seed ({seeds[0]}), one layout of obstacles and anchors: NOT A "
+            f"MEASUREMENT of the policy (layouts differ widely); --episodes {SINGLE_EPISODES} or more gives "
+            "mean ± std."
+        )
+    short = [
+        f"c = {c} {cond} has {cell['episodes']}"
+        for c, cells in summary["rows"].items()
+        for cond, cell in cells.items()
+        if cell["episodes"] < k
+    ]
+    return (
+        f"  seeds: each of our cells is the mean ± sample std over {k} seeds ({_seed_range(seeds)}"
+        + (f"; interrupted: {', '.join(short)}" if short else "")
+        + "), the same layouts in every one of our rows."
+    )
 
 
 def _fn(cell: dict) -> float | None:

@@ -29,7 +29,7 @@ from cefc_mj.eval.conditions import Conditions, check_wind_direction, is_number_
 from cefc_mj.eval.highlevel import EPISODES as GAME_EPISODES, GAME_ADVERSARY, GAME_POLICY
 from cefc_mj.eval.runner import TABLE8_FORMATIONS, TABLE8_STEPS
 from cefc_mj.eval.table3 import TABLE3_FORMATIONS
-from cefc_mj.executors import ExecutorConfig
+from cefc_mj.executors import ExecutorConfig, usable_cpus
 from cefc_mj.fileio import can_write_in
 from cefc_mj.nn.registry import WITHDRAWN
 from cefc_mj.table3_protocol import TABLE3_EPISODES, TABLE3_STEPS
@@ -51,6 +51,14 @@ DEFAULT_AIRFRAME = "iris"
 """The MuJoCo airframe flown unless --airframe names another."""
 TABLE8_EPISODES = 5
 """Seeds per cell of a Table VIII grid by default."""
+SINGLE_EPISODES = TABLE8_EPISODES
+"""Seeds per c of --protocol single (the main job) by default. One seed is one layout of obstacles and
+anchors, and layouts differ widely (the sample std of the cells of eval/reports/table8.md), so one
+seed is not a measurement. The same count as Table VIII's grid, so that from seed 0 the
+calm reference flies the grid's SITL-S episodes."""
+SINGLE_WORKERS = 2
+"""Processes --protocol single flies its lock-step episodes on by default (fewer where this process may
+use fewer CPUs); SITL-M and recorded episodes fly one at a time in this process."""
 TABLE8_BACKEND = "mujoco"
 """Table VIII is flown on quadrotors (its Wind conditions need the wind model)."""
 GAME_TABLES = ("table5", "table6", "table7")
@@ -288,7 +296,7 @@ class SingleRequest:
     """--backend, --wind, --wind-direction, --deviation: the asked condition (calm air flies alone)."""
     formations: tuple[int, ...] = TABLE8_FORMATIONS
     """--formation: formation sizes c, each in 3..8."""
-    episodes: int = 1
+    episodes: int = SINGLE_EPISODES
     """--episodes: seeds per c, 1..MAX_EPISODES."""
     steps: int = TABLE8_STEPS
     """--steps: decision steps per episode, 1..MAX_STEPS; F and N match the paper's only at 1000."""
@@ -302,8 +310,9 @@ class SingleRequest:
     """--sitl-m (--link-delay, --jitter): the asked condition flown as SITL-M; None: one process."""
     drop: tuple[int, int] | None = None
     """--drop K@STEP: (k, step), k UAVs leave before decision step `step` (k <= c - 3)."""
-    workers: int = 1
-    """--workers: processes flying episodes, 1..MAX_WORKERS (1 with SITL-M or a recording)."""
+    workers: int | None = None
+    """--workers: processes flying episodes, 1..MAX_WORKERS (1 with SITL-M or a recording); None:
+    SINGLE_WORKERS (at most the usable CPUs), or 1 with SITL-M or a recording."""
     rrd: Path | None = None
     """--rrd: record the episodes to this Rerun file (run_c5_s0.rrd etc. for several)."""
     png: Path | None = None
@@ -323,6 +332,9 @@ class SingleRequest:
         _check_count("--episodes", self.episodes, MAX_EPISODES)
         _check_count("--steps", self.steps, MAX_STEPS)
         _check_seed(self.seed)
+        if self.workers is None:
+            one_at_a_time = self.sitl is not None or self.recording
+            object.__setattr__(self, "workers", 1 if one_at_a_time else min(SINGLE_WORKERS, usable_cpus()))
         _check_count("--workers", self.workers, MAX_WORKERS)
         _check_last_seed(self.seed, self.episodes)
         recording = [flag for flag, on in (("--rrd", self.rrd), ("--png", self.png), ("--spawn", self.spawn)) if on]
