@@ -1,6 +1,8 @@
-"""`cefc-train`: train the low-level policies (AT-M steps, AT-M-Safe/Robust/Quad, the distilled student,
-the CL-M baseline).
+"""`cefc-train`: train the policies the evaluators fly: the low level (AT-M steps, AT-M-Safe/Robust/Quad,
+the distilled student, the CL-M baseline), the high level (CI-HRL's ConsMAC + anchor selector, its
+variants, BenchMARL's MASAC or MAPPO) and the game's adversaries (PPO, DDPG).
 
+Examples:
     cefc-train lowlevel --formation 6 --step 1 --budget 15m
     cefc-train lowlevel --formation 6 --step 3 --safe --init-from atm_c6_step3 --budget 100it
     cefc-train distill --budget 20000it
@@ -16,6 +18,10 @@ run folders (config, CSV and TensorBoard logs, resumable state) and the exported
 model cards in <out>/policies/ (or --policies-dir). The shipped policies/ folder is written only
 with --install, after a successful run. --resume continues an interrupted run from its last
 checkpoint. Invalid input prints one line and exits with status 2 before anything is written.
+Each subcommand's --help lists its flags, with an example.
+
+Docs: docs/train_lowlevel.md (lowlevel, distill, lowlevel-all, clm); docs/train_highlevel.md (highlevel,
+adversary, adversary-ddpg, highlevel-benchmarl).
 """
 
 from __future__ import annotations
@@ -28,7 +34,7 @@ from pathlib import Path
 
 from cefc_mj.cli import train_adversary, train_benchmarl, train_highlevel, train_lowlevel
 from cefc_mj.cli.train_common import EXIT_USAGE, PROG, check_destinations
-from cefc_mj.errors import CefcError, ConfigError, OneLineParser
+from cefc_mj.errors import CefcError, ConfigError, ExamplesHelpFormatter, OneLineParser
 from cefc_mj.train.config import Budget
 
 __all__ = ["EXIT_USAGE", "build_parser", "check_destinations", "main", "run"]
@@ -62,7 +68,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(
         prog=PROG,
         description=__doc__.split("\n\n")[0],
-        formatter_class=argparse.RawDescriptionHelpFormatter,
+        formatter_class=ExamplesHelpFormatter,
         epilog=__doc__.split("\n\n", 1)[1],
     )
     parser.add_argument("--version", action=_VersionAction, help="print the version, code digest and libraries")

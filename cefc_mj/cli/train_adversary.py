@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import argparse
 
-from cefc_mj.cli.train_common import add_common_args, check_destinations, install
+from cefc_mj.cli.train_common import HIGHLEVEL_DOCS, add_common_args, check_destinations, install, subcommand_help
 from cefc_mj.task.config import RULE_TEAMS
 from cefc_mj.train.config import Budget
 
@@ -114,6 +114,10 @@ def _adversary_parser(sub) -> None:
         "of >= 3 UAVs, avoid obstacles, against a population of teams (trained high "
         "levels and rule-driven teams, one drawn per game) over a trained low level. "
         "Written as adversary_ppo[_seed<k>].",
+        **subcommand_help(
+            ["cefc-train adversary   # imitation of the chase rule, critic warm-up, then PPO (default budget)"],
+            HIGHLEVEL_DOCS,
+        ),
     )
     _population_game_args(p)
     p.add_argument(
@@ -186,6 +190,7 @@ def _adversary_ddpg_parser(sub) -> None:
         "noise, a replay of transitions, a Q critic and target networks. Written as "
         "adversary_ddpg[_seed<k>]; Table VI (cefc-eval --protocol table6) flies it once "
         "it is in the policies folder (--install).",
+        **subcommand_help(["cefc-train adversary-ddpg --budget 150it"], HIGHLEVEL_DOCS),
     )
     _population_game_args(p)
     p.add_argument(

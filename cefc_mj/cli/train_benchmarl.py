@@ -12,7 +12,14 @@ import sys
 from pathlib import Path
 
 from cefc_mj import paths
-from cefc_mj.cli.train_common import EXIT_USAGE, check_destinations, field_default, install
+from cefc_mj.cli.train_common import (
+    EXIT_USAGE,
+    HIGHLEVEL_DOCS,
+    check_destinations,
+    field_default,
+    install,
+    subcommand_help,
+)
 from cefc_mj.nn.registry import GAME_ADVERSARY
 from cefc_mj.task.config import ADVERSARY_RULES
 from cefc_mj.train.benchmarl_config import (
@@ -57,6 +64,10 @@ def add_parser(sub) -> None:
         "decisions). The actor is exported as a high-level policy file benchmarl_<algorithm>[_seed<k>].pt "
         "that Table V flies (cefc-eval --protocol table5 --policy FILE). Needs the benchmarl extra: "
         "pip install -e '.[benchmarl]'.",
+        **subcommand_help(
+            ["cefc-train highlevel-benchmarl --algorithm masac --budget 1500ep   # the HASAC stand-in of Table V"],
+            HIGHLEVEL_DOCS,
+        ),
     )
     p.add_argument("--algorithm", choices=ALGORITHMS, required=True, help="masac or mappo")
     p.add_argument(

@@ -9,12 +9,22 @@ import dataclasses
 from pathlib import Path
 
 from cefc_mj import paths
-from cefc_mj.errors import ConfigError
+from cefc_mj.errors import ConfigError, ExamplesHelpFormatter, help_epilog
 from cefc_mj.fileio import can_write_in
 from cefc_mj.train.config import PPOConfig
 
 PROG = "cefc-train"
 EXIT_USAGE = 2
+LOWLEVEL_DOCS = "docs/train_lowlevel.md"
+"""The page on training the low level (lowlevel, distill, lowlevel-all, clm)."""
+HIGHLEVEL_DOCS = "docs/train_highlevel.md"
+"""The page on training the high level and the adversaries (highlevel, adversary, adversary-ddpg,
+highlevel-benchmarl)."""
+
+
+def subcommand_help(examples: list[str], docs: str) -> dict:
+    """The `add_parser` keywords that end a subcommand's --help with its examples and its docs page."""
+    return {"formatter_class": ExamplesHelpFormatter, "epilog": help_epilog(examples, docs)}
 
 
 def field_default(config, name: str):

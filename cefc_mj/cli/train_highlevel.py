@@ -3,7 +3,7 @@
 
 from __future__ import annotations
 
-from cefc_mj.cli.train_common import add_common_args, check_destinations, install
+from cefc_mj.cli.train_common import HIGHLEVEL_DOCS, add_common_args, check_destinations, install, subcommand_help
 from cefc_mj.nn.registry import GAME_ADVERSARY
 from cefc_mj.task.config import ADVERSARY_RULES
 from cefc_mj.train.config import Budget
@@ -19,6 +19,13 @@ def add_parser(sub) -> None:
         description="Algorithm 2: MAPPO anchor selection every 10 low-level steps, ConsMAC trained "
         "alternately by supervised learning; pre-training with a navigation-only low "
         "level, then fine-tuning with --low-level. Written as cihrl_<variant>.",
+        **subcommand_help(
+            [
+                "cefc-train highlevel --variant consmac-a --budget 75it   # CI-HRL's high level over atm_student",
+                "cefc-train highlevel --variant mappo --budget 75it       # the MAPPO row (no communication)",
+            ],
+            HIGHLEVEL_DOCS,
+        ),
     )
     p.add_argument(
         "--variant",

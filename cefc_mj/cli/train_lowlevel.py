@@ -9,12 +9,14 @@ from pathlib import Path
 
 from cefc_mj import paths
 from cefc_mj.cli.train_common import (
+    LOWLEVEL_DOCS,
     add_common_args,
     add_ppo_args,
     check_destinations,
     field_default,
     install,
     ppo_from,
+    subcommand_help,
 )
 from cefc_mj.errors import ConfigError
 from cefc_mj.train.config import (
@@ -129,6 +131,14 @@ def _lowlevel_parser(sub) -> None:
         "--deviation, --response-time/--velocity-noise fine-tune the step-3 result. Step 3 "
         "and its fine-tunes read the earlier stages' state from --out, or start from a "
         "trained policy with --init-from (e.g. the shipped atm_c6_step3).",
+        **subcommand_help(
+            [
+                "cefc-train lowlevel --formation 6 --step 1 --budget 15m       # Step 1 for c = 6, 15 minutes",
+                "cefc-train lowlevel --formation 6 --step 3 --safe --init-from atm_c6_step3 --budget 100it",
+                "cefc-train lowlevel --formation 6 --step 3 --backend mujoco --budget 20it   # on quadrotors",
+            ],
+            LOWLEVEL_DOCS,
+        ),
     )
     _formation_arg(p)
     p.add_argument("--step", type=int, required=True, choices=(1, 2, 3), help="AT-M step")
@@ -305,6 +315,13 @@ def _distill_parser(sub) -> None:
         description="Collect (observation, action) replay from each atm_c{c}_step3 (or, with "
         "--teacher nav, atm_c{c}_nav) teacher in --teachers-dir and train one student "
         "(hidden 256, MSE, Adam 1e-4, batch 600).",
+        **subcommand_help(
+            [
+                "cefc-train distill --budget 20000it                 # the student of the shipped Step 3 teachers",
+                "cefc-train distill --teacher nav --budget 20000it   # ... of the AT-M-Nav teachers",
+            ],
+            LOWLEVEL_DOCS,
+        ),
     )
     p.add_argument(
         "--formations",
@@ -342,6 +359,10 @@ def _pipeline_parser(sub) -> None:
         description="AT-M steps 1-3 and Safe for every formation, then distillation of the "
         "pipeline's own Step 3 policies; one --budget split over the stages (see "
         "cefc_mj.train.pipeline).",
+        **subcommand_help(
+            ["cefc-train lowlevel-all --budget 80m --workers 2   # every c, two formations side by side"],
+            LOWLEVEL_DOCS,
+        ),
     )
     p.add_argument(
         "--formations", type=_formations, default=FORMATIONS, help=f"formation sizes (default {_sizes(FORMATIONS)})"
@@ -370,6 +391,10 @@ def _clm_parser(sub) -> None:
         "network from random weights while the obstacle density rises through "
         "--curriculum, each density for an equal share of --budget; written as "
         "clm_c<C>. Not part of lowlevel-all.",
+        **subcommand_help(
+            ["cefc-train clm --formation 6 --budget 1404s   # densities 0, 0.01, 0.02, 0.03 in turn"],
+            LOWLEVEL_DOCS,
+        ),
     )
     _formation_arg(p)
     p.add_argument(

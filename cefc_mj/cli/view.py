@@ -5,9 +5,13 @@ Examples:
   cefc-view formation_c8 --wind 8 --seed 3    # 8 quadrotors in 8 m/s wind
   cefc-view cefc_game                         # the game, the swarm hovering (--policy none) under attack
 
-The viewer needs a display (DISPLAY or WAYLAND_DISPLAY); without one, and for bad input, it prints
-one line on stderr and exits with status 2 before anything is built. The viewer opens paused: Space
-runs and pauses, Backspace starts a new episode, F1 lists the viewer's keys. The environment: docs/dm_control.md.
+The viewer is a window: it needs a display (DISPLAY or WAYLAND_DISPLAY). Without one, and for bad
+input, it prints one line on stderr and exits with status 2 before anything is built. Headless (a
+server, CI), render frames offscreen instead: set MUJOCO_GL=egl (or MUJOCO_GL=osmesa) before dm_control
+is imported and call the task's env.physics.render(). The viewer opens paused: Space runs and pauses,
+Backspace starts a new episode, F1 lists the viewer's keys.
+
+Docs: docs/dm_control.md (the suite, the viewer, offscreen frames).
 """
 
 from __future__ import annotations
@@ -15,7 +19,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from cefc_mj.errors import CefcError, ConfigError, OneLineParser
+from cefc_mj.errors import CefcError, ConfigError, ExamplesHelpFormatter, OneLineParser
 from cefc_mj.suite.tasks import DOMAIN, TASKS, task_options
 from cefc_mj.viz.recorder import has_display
 
@@ -29,8 +33,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser = OneLineParser(
         prog=PROG,
         description="Open dm_control's viewer on a task of the cefc suite (cefc_mj.suite), a shipped policy flying.",
-        epilog=__doc__.split("\n\n", 1)[1].split("\n\nThe viewer")[0],
-        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog=__doc__.split("\n\n", 1)[1],
+        formatter_class=ExamplesHelpFormatter,
     )
     tasks = ", ".join(f"{name} ({task.policy or NO_POLICY})" for name, task in TASKS.items())
     parser.add_argument(

@@ -40,6 +40,7 @@ import time
 import numpy as np
 
 from cefc_mj.deploy import wire
+from cefc_mj.errors import ExamplesHelpFormatter, help_epilog
 from cefc_mj.eval import DEFAULT_POLICY
 
 EXIT_USAGE = 2
@@ -446,7 +447,21 @@ class _Parser(argparse.ArgumentParser):
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = _Parser(prog="cefc-agent", description="Run UAV policies as SITL-M agent processes (one process per UAV).")
+    p = _Parser(
+        prog="cefc-agent",
+        description="Run UAV policies as SITL-M agent processes (one process per UAV), for a simulator that "
+        "waits for agents on other machines (SitlConfig(bind=..., remote_agents=...)); `cefc-eval --sitl-m` "
+        "starts its local agents itself.",
+        formatter_class=ExamplesHelpFormatter,
+        epilog=help_epilog(
+            [
+                "cefc-agent --connect tcp://SIM_HOST:5555 --uav 3 --policy atm_c6_step3   # UAV 3, AT-M Step 3",
+                "cefc-agent --connect tcp://SIM_HOST:5555 --uav 3 4 5      # UAVs 3-5, AT-M-Nav (the default)",
+                "cefc-agent --game --connect tcp://SIM_HOST:5555 --uav 3 --policy cihrl_consmac_a   # the game",
+            ],
+            "docs/sitl_m.md (SITL-M: the processes, the wire format, agents on other machines)",
+        ),
+    )
     p.add_argument(
         "--connect",
         required=True,

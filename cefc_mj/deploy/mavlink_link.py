@@ -73,7 +73,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from cefc_mj.deploy.sim_server import OFFBOARD_LOSS_TIMEOUT_S, offboard_lost
-from cefc_mj.errors import ConfigError, OneLineParser
+from cefc_mj.errors import ConfigError, ExamplesHelpFormatter, OneLineParser, help_epilog
 
 EXIT_USAGE = 2
 EXIT_DIVERGED = 1
@@ -946,7 +946,17 @@ def build_parser() -> argparse.ArgumentParser:
         description="Serve testbed drones as MAVLink 2 vehicles (PX4 SITL's offboard interface over UDP): "
         "HEARTBEAT, LOCAL_POSITION_NED and ATTITUDE out; position, velocity or "
         "acceleration SET_POSITION_TARGET_LOCAL_NED, ARM_DISARM and DO_SET_MODE "
-        "(OFFBOARD) in.",
+        "(OFFBOARD) in. A script written for PX4's offboard API (pymavlink, MAVSDK) connects to "
+        "udp:127.0.0.1:14540 as it would to PX4 SITL. Needs the mavlink extra: pip install -e '.[mavlink]'.",
+        formatter_class=ExamplesHelpFormatter,
+        epilog=help_epilog(
+            [
+                "cefc-mavlink                     # one drone: UDP 127.0.0.1:14580 -> 127.0.0.1:14540, until Ctrl-C",
+                "cefc-mavlink --drones 3 --real-time-factor 2 --duration 120   # 3 drones, twice real time, 120 simulated s",
+                "cefc-mavlink --bind 0.0.0.0 --remote-host 192.168.1.20 --wind 5   # a script on another machine",
+            ],
+            "docs/sitl_m.md (SITL-M and MAVLink, with a short pymavlink script)",
+        ),
     )
     p.add_argument("--drones", type=int, default=d.n_drones, metavar="N", help="how many drones (default 1)")
     p.add_argument(
