@@ -291,7 +291,7 @@ def test_single_with_workers_uses_a_pool(random_policy, tmp_path, capsys):
         "--policy",
         str(random_policy),
     ]
-    assert main(argv + ["--json", str(tmp_path / "one.json")]) == 0
+    assert main(argv + ["--workers", "1", "--json", str(tmp_path / "one.json")]) == 0
     assert main(argv + ["--workers", "2", "--json", str(tmp_path / "two.json")]) == 0
     one, two = (json.loads((tmp_path / f"{n}.json").read_text())["rows"] for n in ("one", "two"))
     for cond in ("SITL-S", "Deviation-0.5"):
@@ -350,6 +350,8 @@ def test_output_that_fails_at_the_end_is_one_line_after_the_table(random_policy,
                 "5",
                 "--episodes",
                 "1",
+                "--workers",
+                "1",
                 "--policy",
                 str(random_policy),
                 "--json",
@@ -396,3 +398,13 @@ def test_default_policy_is_shipped_for_every_formation_and_says_how_it_differs()
         assert card["task"].get("straggler_fraction", 0.0) == stragglers
         assert card["task"]["rewards"]["navigation_weight_low"] == card["config"]["navigation_weight"]
         assert card["task"]["anchor_redraw_steps"] == (None if periods == 1 else 100)
+
+
+def test_table3_shows_its_progress_in_episodes(capsys):
+    """Table III's batches count on a progress bar on stderr (episodes done of those planned), the
+    method flying named beside it; the table goes to stdout."""
+    argv = ["--backend", "particle", "--protocol", "table3", "--formation", "6", "--episodes", "2", "--steps", "5"]
+    assert main([*argv, "--policy", "atm"]) == 0
+    out, err = capsys.readouterr()
+    assert "| 2/2 [" in err and "c = 6 AT-M-Step3" in err and "episodes: 100%" in err
+    assert "episodes:" not in out and "AT-M-Step3" in out

@@ -281,6 +281,8 @@ def test_single_json_has_mean_std_and_per_episode_rows(tmp_path, capsys):
                 "10",
                 "--episodes",
                 "3",
+                "--workers",
+                "1",
                 "--policy",
                 str(policy),
                 "--json",

@@ -83,18 +83,22 @@ def run(request: SingleRequest, prov: dict, command: str) -> int:
     ]
     asked = list(range(len(formations) * len(seeds)))  # the first condition's episodes
     calm = list(range(len(asked), len(specs)))
-    # (indices into specs, how they fly): the asked condition carries the deployment and the dropout
-    batches = [
-        (
-            asked,
-            {
-                "sitl": sitl,
-                "drop": None if sitl is not None else request.drop,
-                "runners": deploy_runners(sitl is not None, request.drop is not None),
-            },
-        ),
-        (calm, {}),
-    ]
+    # (indices into specs, how they fly): the asked condition carries the deployment, the dropout and
+    # the recording; without them both conditions fly as one batch, on one pool (started once)
+    if sitl is None and request.drop is None and not request.recording:
+        batches = [(asked + calm, {})]
+    else:
+        batches = [
+            (
+                asked,
+                {
+                    "sitl": sitl,
+                    "drop": None if sitl is not None else request.drop,
+                    "runners": deploy_runners(sitl is not None, request.drop is not None),
+                },
+            ),
+            (calm, {}),
+        ]
     wind = {"wind": where.wind, "wind_direction": where.wind_direction}
     vs = " vs calm air (SITL-S)" if condition != "SITL-S" else ""
     world = (

@@ -6,6 +6,8 @@ from __future__ import annotations
 import json
 import sys
 
+from tqdm import tqdm
+
 from cefc_mj.cli.eval_common import PROG, write_outputs
 from cefc_mj.errors import ConfigError
 from cefc_mj.eval.requests import Table3Request
@@ -40,14 +42,16 @@ def run(request: Table3Request, prov: dict, command: str) -> int:
         f"{PROG} table3: particle, c = {', '.join(map(str, request.formations))}, {request.episodes} episodes x "
         f"{request.steps} steps, seed {request.seed}, policy {request.policy or 'every Table III method'}"
     )
-    result = run_table3(
-        formations=request.formations,
-        episodes=request.episodes,
-        seed=request.seed,
-        steps=request.steps,
-        policy=request.policy,
-        provenance={k: v for k, v in prov.items() if k != "policies"},
-    )
+    with tqdm(total=None, desc="episodes", unit="ep", file=sys.stderr) as bar:
+        result = run_table3(
+            formations=request.formations,
+            episodes=request.episodes,
+            seed=request.seed,
+            steps=request.steps,
+            policy=request.policy,
+            provenance={k: v for k, v in prov.items() if k != "policies"},
+            progress=bar,
+        )
     result["protocol"]["command"] = command
     print(format_table3(result))
     if request.json is not None:

@@ -952,7 +952,7 @@ def build_parser() -> argparse.ArgumentParser:
         epilog=help_epilog(
             [
                 "cefc-mavlink                     # one drone: UDP 127.0.0.1:14580 -> 127.0.0.1:14540, until Ctrl-C",
-                "cefc-mavlink --drones 3 --real-time-factor 2 --duration 120   # 3 drones, twice real time, 120 simulated s",
+                "cefc-mavlink --drones 3 --real-time-factor 2 --duration 120   # 3 drones, 2x real time, 120 sim. s",
                 "cefc-mavlink --bind 0.0.0.0 --remote-host 192.168.1.20 --wind 5   # a script on another machine",
             ],
             "docs/sitl_m.md (SITL-M and MAVLink, with a short pymavlink script)",

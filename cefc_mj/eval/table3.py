@@ -138,7 +138,7 @@ def _row(per_episode: dict[str, np.ndarray], c: int, method: str) -> dict:
     return {**episode_stats(per_episode), "paper": PAPER_TABLE3.get(str(c), {}).get(PAPER_ROW.get(method, method))}
 
 
-def _orca_row(c: int, episodes: int, seed: int, steps: int, required: bool) -> dict | None:
+def _orca_row(c: int, episodes: int, seed: int, steps: int, required: bool, progress=None) -> dict | None:
     """ORCA-F's row (same episodes as the policies'), or None when pyrvo is missing and not required."""
     from cefc_mj.baselines.orca import PYRVO_MISSING, evaluate_orca_episodes, pyrvo_available
 
@@ -146,8 +146,27 @@ def _orca_row(c: int, episodes: int, seed: int, steps: int, required: bool) -> d
         if required:
             raise ConfigError(f"--policy orca: {PYRVO_MISSING}")
         return None
+    _flying(progress, c, "ORCA-F")
     per_episode = evaluate_orca_episodes(c, episodes=episodes, seed=seed, steps=steps)
     return {**_row(per_episode, c, "ORCA-F"), "policy": "ORCA-F (pyrvo, RVO2)", "sha256": None}
+
+
+def _flying(progress, c: int, method: str) -> None:
+    """Name the batch now flying beside the bar (only a method that is flown is named)."""
+    if progress is not None:
+        progress.set_postfix_str(f"c = {c} {method}")
+
+
+def _advance(progress, episodes: int) -> None:
+    if progress is not None:
+        progress.update(episodes)
+
+
+def _skip(progress, episodes: int) -> None:
+    """Take a method that is not flown (its file is missing) off the bar's total."""
+    if progress is not None:
+        progress.total -= episodes
+        progress.refresh()
 
 
 def run_table3(
@@ -159,6 +178,7 @@ def run_table3(
     steps: int = TABLE3_STEPS,
     policy: str | None = None,
     provenance: dict | None = None,
+    progress=None,
 ) -> dict:
     """Evaluate every available Table III method for each formation c (or only `policy`).
 
@@ -168,7 +188,9 @@ def run_table3(
     (means), "R_L_std", ... (sample std over episodes), "per_episode": {metric: [...]}, "paper":
     {...} or None, "policy": file name, "sha256"}, ...}, ...}. A method whose policy file is missing
     is left out (listed in protocol["missing"]). `provenance` (library versions, commit) rides
-    along. Writes the same dict as JSON to json_path if given.
+    along. Writes the same dict as JSON to json_path if given. `progress` (a tqdm bar, or anything
+    with its `reset(total)`, `update(n)` and `set_postfix_str(text)`) counts the episodes as each
+    method's batch finishes.
     """
     from cefc_mj.nn.policy_io import resolve_policy_path
 
@@ -198,6 +220,7 @@ def run_table3(
     }
     if provenance is not None:
         result["provenance"] = provenance
+    plan = []
     for c in formations:
         if policy is None:
             wanted = [(method, policy_file_for(method, c)) for method in METHODS]
@@ -206,16 +229,22 @@ def run_table3(
         else:
             path = resolve_policy_path(policy, policies_dir)
             wanted = [(path.stem, str(path))]
+        plan.append((c, wanted))
+    if progress is not None:  # an upper bound: a method whose file (or pyrvo) is missing is taken off
+        progress.reset(total=episodes * sum(len(wanted) for _, wanted in plan))
+    for c, wanted in plan:
         rows = {}
         for method, name in wanted:
             if method == "ORCA-F":
-                row = _orca_row(c, episodes, seed, steps, required=policy is not None)
+                row = _orca_row(c, episodes, seed, steps, required=policy is not None, progress=progress)
                 if row is None:
                     result["protocol"]["missing"].append(
                         f"{c}/ORCA-F (pyrvo not installed: pip install -e '.[baselines]')"
                     )
+                    _skip(progress, episodes)
                 else:
                     rows[method] = row
+                    _advance(progress, episodes)
                 continue
             try:
                 path = resolve_policy_path(name, policies_dir)
@@ -224,9 +253,12 @@ def run_table3(
                     raise
                 hint = f": train it with cefc-train clm --formation {c}" if method == "CL-M" else ""
                 result["protocol"]["missing"].append(f"{c}/{method} ({name}.pt{hint})")
+                _skip(progress, episodes)
                 continue
+            _flying(progress, c, method)
             per_episode = evaluate_lowlevel_episodes(load_policy(path), c, episodes=episodes, seed=seed, steps=steps)
             rows[method] = {**_row(per_episode, c, method), "policy": path.name, "sha256": file_sha256(path)}
+            _advance(progress, episodes)
         result[str(c)] = rows
     if json_path is not None:
         write_atomic(Path(json_path), json.dumps(result, indent=2) + "\n")
