@@ -40,6 +40,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from tqdm import tqdm
 
 from cefc_mj.errors import CheckpointError, ConfigError
 from cefc_mj.eval.highlevel import game_task, highlevel_policy_path, play_highlevel
@@ -462,15 +463,20 @@ class AdversaryTrainer(PopulationGames):
             )
         return torch.cat(obs_rows), torch.cat(act_rows)
 
-    def imitate(self) -> dict[str, float]:
+    def imitate(self, progress=None) -> dict[str, float]:
         """Fit the actor's mean to the rule's wish (MSE) over cfg.imitation_rounds DAgger rounds, the
-        data of every round kept; returns the fit of each round on the states of all rounds."""
+        data of every round kept; returns the fit of each round on the states of all rounds.
+        `progress` (a tqdm bar) counts the fitting steps, the round named beside it."""
         cfg = self.cfg
         optimizer = torch.optim.Adam(self.actor.parameters(), lr=1e-3)
         obs, target = torch.zeros(0, ADVERSARY_OBS_DIM), torch.zeros(0, 2)
         per_round = []
         for round_ in range(cfg.imitation_rounds):
+            if progress is not None:
+                progress.set_postfix_str(f"round {round_ + 1}/{cfg.imitation_rounds}: flying the demonstrations")
             new_obs, new_target = self.demonstrations(round_)
+            if progress is not None:
+                progress.set_postfix_str(f"round {round_ + 1}/{cfg.imitation_rounds}: fitting")
             obs, target = torch.cat([obs, new_obs]), torch.cat([target, new_target])
             with torch.no_grad():  # how far the actor is from the rule where it flew itself (before fitting)
                 on_policy = float((self.actor(new_obs) - new_target).pow(2).sum(-1).mean())
@@ -480,6 +486,8 @@ class AdversaryTrainer(PopulationGames):
                 optimizer.zero_grad()
                 loss.backward()
                 optimizer.step()
+                if progress is not None:
+                    progress.update(1)
             with torch.no_grad():
                 fit = float((self.actor(obs) - target).pow(2).sum(-1).mean())
             per_round.append({"samples": len(obs), "mse_on_new_states_before": on_policy, "mse_after": fit})
@@ -705,7 +713,11 @@ def train_adversary(
                 flush=True,
             )
         start = time.perf_counter()
-        imitation = {**trainer.imitate(), "wall_s": round(time.perf_counter() - start, 1)}
+        fitting_steps = cfg.imitation_steps // cfg.imitation_rounds * cfg.imitation_rounds
+        with tqdm(
+            total=fitting_steps, desc="imitation", unit="step", disable=not show_progress, mininterval=2.0
+        ) as bar:
+            imitation = {**trainer.imitate(progress=bar), "wall_s": round(time.perf_counter() - start, 1)}
     write_atomic(
         run_dir / "config.json",
         json.dumps(

@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from tqdm import tqdm
 
 from cefc_mj.env import BatchedCEFCEnv
 from cefc_mj.errors import CheckpointError, ConfigError
@@ -51,9 +52,17 @@ LOG_EVERY = 200
 
 @torch.no_grad()
 def collect_replay(
-    teacher: Policy, formation: int, tuples: int, density: float, seed: int, held_out: float, n_envs: int = COLLECT_ENVS
+    teacher: Policy,
+    formation: int,
+    tuples: int,
+    density: float,
+    seed: int,
+    held_out: float,
+    n_envs: int = COLLECT_ENVS,
+    progress=None,
 ) -> dict[str, torch.Tensor]:
-    """Fly `teacher` with `formation` agents until `tuples` training tuples are stored.
+    """Fly `teacher` with `formation` agents until `tuples` training tuples are stored (`progress`, a
+    tqdm bar, counts them).
 
     The stored action is the teacher's deterministic head output (for the velocity head: the
     velocity setpoint, which the shared fixed loop turns into the acceleration the env applies).
@@ -77,7 +86,10 @@ def collect_replay(
                 train_act.append(command[:-held_envs].reshape(-1, 2))
                 held_obs.append(obs_t[-held_envs:].reshape(-1, obs.shape[-1]))
                 held_act.append(command[-held_envs:].reshape(-1, 2))
+                added = min(train_obs[-1].shape[0], tuples - stored)
                 stored += train_obs[-1].shape[0]
+                if progress is not None:
+                    progress.update(added)
                 obs, _, done, _ = env.step(teacher.actor.to_acceleration(command, obs_t).numpy())
             episode += 1
     finally:
@@ -145,15 +157,21 @@ def train_student(
             raise ConfigError(f"{replay_path} was collected with other settings; use another --out")
     else:
         replay = {}
-        for c, teacher in teachers.items():
-            replay[c] = collect_replay(
-                teacher,
-                c,
-                cfg.tuples_per_formation,
-                cfg.collect_density,
-                iteration_seed(cfg.seed, 1000 + c),
-                cfg.held_out,
-            )
+        total = cfg.tuples_per_formation * len(teachers)
+        with tqdm(
+            total=total, desc="collecting replay", unit="tuple", disable=not show_progress, mininterval=2.0
+        ) as bar:
+            for c, teacher in teachers.items():
+                bar.set_postfix_str(f"teacher c = {c}")
+                replay[c] = collect_replay(
+                    teacher,
+                    c,
+                    cfg.tuples_per_formation,
+                    cfg.collect_density,
+                    iteration_seed(cfg.seed, 1000 + c),
+                    cfg.held_out,
+                    progress=bar,
+                )
         atomic_torch_save({"config": cfg.to_dict(), "replay": {str(c): r for c, r in replay.items()}}, replay_path)
     teacher_files = {
         str(c): {"path": display_path(path), "sha256": file_sha256(path.resolve())} for c, path in teacher_paths.items()
