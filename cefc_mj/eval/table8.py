@@ -12,6 +12,7 @@ JSON and a PNG of ours beside the paper's numbers are written atomically at the 
 from __future__ import annotations
 
 import csv
+import dataclasses
 import functools
 import hashlib
 import io
@@ -204,6 +205,21 @@ def _fly(
     return run_episode(spec, cached_policy(spec.policy, spec.formation), record=record)
 
 
+def warm_up_here(specs: list[EpisodeSpec]) -> None:
+    """Fly a 2-step episode of `specs`' kinds (their largest wind and deviation) in this process before
+    a local pool starts: on a cold numba cache it compiles the kernels once, and the workers load them,
+    instead of every worker compiling the same kernels at once (tens of CPU-seconds each); warm, it
+    costs one world build."""
+    probe = dataclasses.replace(
+        specs[0],
+        steps=2,
+        wind=max(s.wind for s in specs),
+        wind_direction=None,
+        deviation=max(s.deviation for s in specs),
+    )
+    _fly(probe)
+
+
 def _fly_row(spec: EpisodeSpec, drop=None, runners: RowRunners | None = None) -> dict:
     return _fly(spec, drop=drop, runners=runners).to_dict()
 
@@ -273,6 +289,7 @@ def fly_episodes(
         return
     if record is not None:
         raise ValueError("fly_episodes: recording needs workers = 1")
+    warm_up_here(specs)
     index = {id(spec): i for i, spec in enumerate(specs)}
     fly_row = functools.partial(_fly_row, drop=drop, runners=runners)
     with closing(map_unordered(fly_row, specs, ExecutorConfig(workers=workers))) as rows:
