@@ -139,8 +139,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--episodes",
         type=int,
         metavar="K",
-        help=f"seeds per cell, 1..{MAX_EPISODES} (default {SINGLE_EPISODES}; table8 {TABLE8_EPISODES}; table3, "
-        "table5-7 50); one seed is one layout, not a measurement",
+        help=f"seeds per cell, 1..{MAX_EPISODES} (default: single {SINGLE_EPISODES}, table8 {TABLE8_EPISODES}, "
+        "table3 and table5-7 50); one seed is one layout, not a measurement",
     )
     p.add_argument(
         "--steps",

@@ -115,7 +115,7 @@ def _adversary_parser(sub) -> None:
         "levels and rule-driven teams, one drawn per game) over a trained low level. "
         "Written as adversary_ppo[_seed<k>].",
         **subcommand_help(
-            ["cefc-train adversary   # imitation of the chase rule, critic warm-up, then PPO (default budget)"],
+            ["cefc-train adversary   # imitation of a chase rule, critic warm-up, then PPO (default budget)"],
             HIGHLEVEL_DOCS,
         ),
     )

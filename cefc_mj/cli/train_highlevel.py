@@ -22,7 +22,7 @@ def add_parser(sub) -> None:
         **subcommand_help(
             [
                 "cefc-train highlevel --variant consmac-a --budget 75it   # CI-HRL's high level over atm_student",
-                "cefc-train highlevel --variant mappo --budget 75it       # the MAPPO row (no communication)",
+                "cefc-train highlevel --variant mappo --budget 75it       # the MAPPO baseline (no messages)",
             ],
             HIGHLEVEL_DOCS,
         ),
