@@ -75,6 +75,8 @@ def test_cli_flies_the_given_direction_and_names_the_airframe(tmp_path, capsys):
                 "3",
                 "--episodes",
                 "1",
+                "--workers",
+                "1",
                 "--wind",
                 "4",
                 "--wind-direction",
