@@ -946,8 +946,9 @@ def build_parser() -> argparse.ArgumentParser:
         description="Serve testbed drones as MAVLink 2 vehicles (PX4 SITL's offboard interface over UDP): "
         "HEARTBEAT, LOCAL_POSITION_NED and ATTITUDE out; position, velocity or "
         "acceleration SET_POSITION_TARGET_LOCAL_NED, ARM_DISARM and DO_SET_MODE "
-        "(OFFBOARD) in. A script written for PX4's offboard API (pymavlink, MAVSDK) connects to "
-        "udp:127.0.0.1:14540 as it would to PX4 SITL. Needs the mavlink extra: pip install -e '.[mavlink]'.",
+        "(OFFBOARD) in. A script written for PX4's offboard API (pymavlink, MAVSDK) listens on UDP port "
+        "14540 (udpin:127.0.0.1:14540), as it would for PX4 SITL. Needs the mavlink extra: "
+        "pip install -e '.[mavlink]'.",
         formatter_class=ExamplesHelpFormatter,
         epilog=help_epilog(
             [
