@@ -18,7 +18,7 @@ adversary's policy name (shipped folder) or file, flown by its mean action.
     python benchmarks/adversary_strength.py --adversaries adversary_ppo_nearest_group_intercept \\
         --teams benchmarl_masac,benchmarl_masac_seed1,rule-split --episodes 10
 
-The figures depend on the policy files flown: the table in docs/high_level.md ("The next adversary")
+The figures depend on the policy files flown: the table in docs/research/high_level.md ("The next adversary")
 was flown against the files the shipped `adversary_ppo_nearest_group_intercept` was trained against
 (its model card lists them with their checksums).
 """

@@ -1,4 +1,4 @@
-"""benchmarks/adversary_strength.py (docs/high_level.md, "The next adversary"): a real run as a subprocess on
+"""benchmarks/adversary_strength.py (docs/research/high_level.md, "The next adversary"): a real run as a subprocess on
 a learned team and a rule team (its figures are evaluate_adversary's for the same adversary and games,
 the kept rule's spec flies exactly the named rule, a trained adversary by its file), rule specs parsed
 into InterceptRule, and one-line

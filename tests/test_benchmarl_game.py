@@ -1,4 +1,4 @@
-"""BenchMARL on the high-level game (cefc_mj/train/benchmarl_game.py, docs/baselines.md "BenchMARL
+"""BenchMARL on the high-level game (cefc_mj/train/benchmarl_game.py, docs/research/baselines.md "BenchMARL
 baselines"): the torchrl env against `HierarchicalCEFCEnv`, tiny MASAC and MAPPO runs exported as
 high-level policy files that Table V's evaluator flies, and `cefc-train highlevel-benchmarl`'s checks.
 

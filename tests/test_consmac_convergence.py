@@ -1,4 +1,4 @@
-"""benchmarks/consmac_convergence.py (docs/high_level.md, "Does ConsMAC's label loss converge at 200 steps
+"""benchmarks/consmac_convergence.py (docs/research/high_level.md, "Does ConsMAC's label loss converge at 200 steps
 per round?"): its --smoke mode as a real subprocess on a tiny run state in the trainer's format (a real
 ConsMAC for N = 3, a real Adam state, a replay ring buffer that has wrapped, learnable labels), the
 episode-wise held-out split, the fresh held-out set (the run's next iteration, from a real tiny run), and

@@ -1,4 +1,4 @@
-"""The MASIA and NVIF baselines (cefc_mj/nn/obs_comm.py, `--variant masia|nvif`; docs/baselines.md).
+"""The MASIA and NVIF baselines (cefc_mj/nn/obs_comm.py, `--variant masia|nvif`; docs/research/baselines.md).
 
 What they send (the paper's Table IV sizes, the sender's raw local observation), that the PPO loss
 never reaches their modules, that their supervised losses learn, and that their policy files train,

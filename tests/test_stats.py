@@ -270,7 +270,7 @@ def test_table5_comparison_fields_verdicts_and_primary():
     json.dumps(result)  # every field is JSON
     text = "\n".join(equivalence_lines(result) + aggregate_lines(result))
     assert "MAPPO+AT-M" in text and "equivalent within ±1.5 s" in text and "Minimum detectable difference" in text
-    assert "Primary comparison (docs/preregistration.md; exploratory here: batch seed 10000" in text
+    assert "Primary comparison (docs/research/preregistration.md; exploratory here: batch seed 10000" in text
 
 
 def test_the_shipped_table5_reanalysed_is_underpowered_not_alike():
@@ -301,5 +301,6 @@ def test_table5_markdown_has_a_row_per_method_with_its_verdicts():
                 row["vs_reference"]["E"]["decision"],
                 row["vs_reference"]["R_H"]["decision"],
             )
-    assert primary.startswith("Primary comparison (docs/preregistration.md; exploratory here: batch seed 10000")
+    primary_head = "Primary comparison (docs/research/preregistration.md; exploratory here: batch seed 10000"
+    assert primary.startswith(primary_head)
     assert table5_markdown({"rows": {}}) == ""

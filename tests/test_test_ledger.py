@@ -4,7 +4,7 @@ rule, and cefc-eval recording its own flights of test seeds.
 
 The rule on the shipped reports fails for any tainted report not in KNOWN_TAINTED, and for any entry of
 KNOWN_TAINTED that is no longer tainted or no longer shipped. The pre-registered Table V
-(eval/reports/prereg/table5.json, docs/preregistration.md) flew batch 50000 once and must stay clean; the
+(eval/reports/prereg/table5.json, docs/research/preregistration.md) flew batch 50000 once and must stay clean; the
 generation-4 table5.json beside it is kept as the earlier, tainted result it is listed as.
 """
 

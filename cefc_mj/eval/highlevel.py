@@ -11,7 +11,7 @@ within 2 m of the adversary). Each is summed over an episode's 400 low-level ste
 and reported also in seconds of flight (`x dt`, dt = 0.1 s): the paper's printed values fit the
 second scale (its MAPPO+AT-M E of 8.78 against our 8.8 s; its R_n of -327 is impossible as a
 400-step sum, since the urgency-weighted distances start at about 180 per step and both targets
-cannot be covered in under 2 s). docs/high_level.md, "Units of Tables V and VI", has the argument.
+cannot be covered in under 2 s). docs/research/high_level.md, "Units of Tables V and VI", has the argument.
 
 >>> result = run_table5(episodes=50, seed=0)          # doctest: +SKIP
 >>> print(format_highlevel_table(result))             # doctest: +SKIP
@@ -81,7 +81,7 @@ and `cefc-train highlevel-benchmarl` write). The paper's rows first, in its orde
 paper's Table V does not list: ConsMAC trained on the other label the paper defines (all agents'
 relative positions and velocities), BenchMARL's MAPPO as a cross-check of ours, and the ablations of
 the paper's Fig. 7 (which the paper shows as learning curves only). BenchMARL's MASAC stands in for
-HASAC (docs/baselines.md); the row says so. Every file is flown over the student, except those whose
+HASAC (docs/research/baselines.md); the row says so. Every file is flown over the student, except those whose
 meta records a per-group low level (`hierarchy.recorded_low_level`): the CI-HRL-w-CL-M rows fly over
 the CL-M policy of each agent's group size (what they were fine-tuned with, and the paper's pairing)."""
 TABLE6_ROWS = (
@@ -125,7 +125,7 @@ def game_task(adversary: str = "nearest_group", deviation: float = 0.0, n_agents
     'learned' (the env then needs the adversary's policy: `resolve_adversary`). n_agents: the
     swarm's size (Table VII; the observations read the 7 nearest neighbours whatever N is). A rule
     adversary steers around the obstacles, as the PPO adversary learns to (it is penalised inside
-    them): both play by the same physical rule (docs/high_level.md, "The adversary")."""
+    them): both play by the same physical rule (docs/research/high_level.md, "The adversary")."""
     if adversary not in ADVERSARIES:
         raise ConfigError(f"adversary={adversary!r}: must be one of {', '.join(ADVERSARIES)}")
     return TaskConfig(
@@ -393,15 +393,15 @@ def _adversary_strength(e_adversary: list[float], e_rule: list[float]) -> dict:
 
 MARGINS = {"E": 15.0, "R_H": 3500.0}
 """Equivalence margins of the comparisons against CI-HRL, in the per-seed figures' units (per-episode
-sums): E +-15 steps (+-1.5 s), R_H +-3500 (+-350 on the paper's x dt scale); docs/preregistration.md
+sums): E +-15 steps (+-1.5 s), R_H +-3500 (+-350 on the paper's x dt scale); docs/research/preregistration.md
 argues both. Metrics without a margin get no equivalence test."""
 MARGIN_TEXT = {"E": "±1.5 s", "R_H": "±350 (x dt)"}
 ADVERSARY_MARGIN = 0.10
 """Relative non-inferiority margin of the game's adversary against the nearest-group rule: H0 its E
-is below 0.9 x the rule's (docs/preregistration.md)."""
+is below 0.9 x the rule's (docs/research/preregistration.md)."""
 PRIMARY = ("MAPPO+AT-M", ("E", "R_H"))
 """The pre-registered primary comparison: CI-HRL against this row on these metrics, Holm-adjusted
-over the two metrics (docs/preregistration.md)."""
+over the two metrics (docs/research/preregistration.md)."""
 AGGREGATE_METRICS = ("E", "R_H")
 """The metrics of the rliable-style aggregates (IQM, probability of improvement) of CI-HRL and PRIMARY's row."""
 
@@ -1338,7 +1338,7 @@ def _primary_lines(result: dict) -> list[str]:
         parts.append(f"{m} {diff}, p {_p_text(c['p_holm'])}, TOST p {_p_text(c['tost_p_holm'])}: {c['decision']}")
     return [
         "",
-        f"Primary comparison (docs/preregistration.md; {status}): {primary['method']} against "
+        f"Primary comparison (docs/research/preregistration.md; {status}): {primary['method']} against "
         f"{primary['reference']} ({primary['method']} minus {primary['reference']}, "
         f"the verdict {primary['method']}'s), "
         f"p's Holm-adjusted over {', '.join(PRIMARY[1])}, verdicts at {ALPHA}: " + "; ".join(parts) + ".",

@@ -1,4 +1,4 @@
-"""Two Table VIII reports flown on the same seeds, compared seed by seed (docs/training_in_mujoco.md).
+"""Two Table VIII reports flown on the same seeds, compared seed by seed (docs/research/training_in_mujoco.md).
 
     python -m cefc_mj.eval.paired BEFORE/table8.json AFTER/table8.json [--md OUT.md]
 

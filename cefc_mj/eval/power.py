@@ -1,5 +1,5 @@
 """How much a Table V report can tell: the SD over training seeds pooled over its rows, and the minimum
-detectable difference and equivalence power at given seed counts (docs/preregistration.md, "Power").
+detectable difference and equivalence power at given seed counts (docs/research/preregistration.md, "Power").
 
     python -m cefc_mj.eval.power                                  # the shipped eval/reports/table5.json
     python -m cefc_mj.eval.power REPORT --pairs 20:20 5:20        # other seed counts

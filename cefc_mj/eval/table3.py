@@ -7,7 +7,7 @@ acts deterministically (Gaussian mean). Columns as the paper prints them:
 - R_L: the team reward R_L = 15 R_f + 4 R_n + 100 R_c per step, averaged over steps and episodes
   (R_n = -|centre - anchor|, the paper's low-level navigation reward);
 - R_L^a: the same with the navigation term summed over the agents, -sum_i |p_i - anchor| (the paper's
-  eq. 14 form); the paper's printed R_L values match this one (docs/baselines.md, "The unit of R_L");
+  eq. 14 form); the paper's printed R_L values match this one (docs/research/baselines.md, "The unit of R_L");
 - F, N: steps per episode in formation (HD < 1 m) / with the swarm centre within 1 m of the anchor;
 - C: % of agent-steps in collision (a UAV disc overlapping an obstacle or another UAV).
 
@@ -48,9 +48,9 @@ METHODS = (
 )
 """Row names as the paper writes them (AT-M-Nav and the student are this project's additions;
 ORCA-F is the baseline of cefc_mj/baselines/orca.py, CL-M the curriculum baseline trained by `cefc-train clm`,
-docs/baselines.md). AT-M-Step1 is the Step 1 that Step 3 starts from, its LiDAR seeing obstacles and
+docs/research/baselines.md). AT-M-Step1 is the Step 1 that Step 3 starts from, its LiDAR seeing obstacles and
 UAVs; the obstacle-LiDAR row is Step 1 trained with a LiDAR that sees obstacles only, as the paper's
-Step 1 evidently was (docs/layouts.md): both stand beside the paper's Step 1 row."""
+Step 1 evidently was (docs/research/layouts.md): both stand beside the paper's Step 1 row."""
 PAPER_ROW = {OBSTACLE_LIDAR_STEP1: "AT-M-Step1"}
 """Our rows compared with a paper row of another name."""
 COLUMNS = ("R_L", "F", "N", "C")

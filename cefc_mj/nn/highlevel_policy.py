@@ -1,5 +1,5 @@
 """pi_H, the high level's policy: the communication module (ConsMAC, MASIA's or NVIF's, or none)
-and the anchor selector, with its own policy file format (docs/high_level.md).
+and the anchor selector, with its own policy file format (docs/research/high_level.md).
 
 `HighLevelPolicy.decide(obs, inbox)` gives each agent's anchor index and the message it sends;
 `save_highlevel_policy` / `load_highlevel_policy` write and read `cefc-mj/highlevel-policy` files

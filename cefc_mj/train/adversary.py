@@ -143,11 +143,11 @@ class AdversaryConfig(BudgetPPODict):
     imitation_rule: str = "nearest_group_strike"
     """The rule the actor imitates before PPO (steering round obstacles, as the game's rules do): by
     default the nearest group of >= 3, or the nearest UAV once one is within 3 m; an imitation of the
-    plain nearest-group rule chased at 0.7-1.0 of that rule's E (docs/high_level.md)."""
+    plain nearest-group rule chased at 0.7-1.0 of that rule's E (docs/research/high_level.md)."""
     imitation_episodes: int = 200
     """Before PPO, the actor imitates `imitation_rule` on this many episodes of the population's games
     (its observations, the rule's wishes); 0 starts PPO from random weights. PPO alone stayed at 0.4-0.8
-    of the nearest-group rule's E (docs/high_level.md)."""
+    of the nearest-group rule's E (docs/research/high_level.md)."""
     imitation_steps: int = 8000
     """Adam steps (batch 1024, rate 1e-3) of that imitation, split over the rounds."""
     imitation_rounds: int = 8
@@ -162,10 +162,10 @@ class AdversaryConfig(BudgetPPODict):
     """Reward for the share of UAVs within the alert distance (2 m), every step."""
     collision_weight: float = 30.0
     """Penalty for a step inside an obstacle (within obstacle + body radius of its centre); 30 kept
-    the chase of 10 with half the time inside obstacles (docs/high_level.md)."""
+    the chase of 10 with half the time inside obstacles (docs/research/high_level.md)."""
     progress_weight: float = 10.0
     """Weight of the approach d_before - d_after (m) of each step; without it the distance term
-    alone taught the chase about 3x slower (docs/high_level.md)."""
+    alone taught the chase about 3x slower (docs/research/high_level.md)."""
     critic_warmup: int = 20
     """Iterations at the start of PPO in which only the critic learns (the actor's rate is 0): an
     imitated actor is not pushed about by the advantages of a critic that has not yet fitted it. The

@@ -97,7 +97,7 @@ class BenchMARLConfig:
     alone; it stands in for what BenchMARL lacks and our trainer has (value normalisation, advantage
     standardisation): R_H is -500 to -2000 per decision, and Adam at lr 5e-5 moves a critic's output
     bias by about lr per step, so unscaled values are out of the critics' reach in 75 iterations
-    (measured: MASAC's Q loss 1e7 unscaled, about 1 at 1e-3; docs/baselines.md)."""
+    (measured: MASAC's Q loss 1e7 unscaled, about 1 at 1e-3; docs/research/baselines.md)."""
     gamma: float = 0.8
     """Discount per decision (our trainer's and the paper's 0.8; BenchMARL's default is 0.99)."""
     lr: float = 5e-5

@@ -1,6 +1,6 @@
 """BenchMARL on the high-level game: MASAC (the stand-in for the paper's HASAC) and MAPPO (a cross-check of
 `cefc-train highlevel --variant mappo`), trained on our `HierarchicalCEFCEnv` and exported as our own
-high-level policy files, which Table V's evaluator flies unchanged (docs/baselines.md, "BenchMARL
+high-level policy files, which Table V's evaluator flies unchanged (docs/research/baselines.md, "BenchMARL
 baselines"). Needs the optional `benchmarl` extra (BenchMARL 1.5.2, torchrl 0.11).
 
 - `HighLevelGameEnv`: a torchrl `EnvBase` over the batched game (batch [B], one group "agents" of N):

@@ -149,12 +149,12 @@ def _check_int(name: str, value: object, least: int, most: int | None = None) ->
 @dataclass(frozen=True)
 class HighLevelConfig(BudgetPPODict):
     """One high-level training run (Algorithm 2). Defaults are the paper's where it gives a value
-    (Sec. V-A); `consmac_steps` is scaled to a 2-core budget (docs/high_level.md)."""
+    (Sec. V-A); `consmac_steps` is scaled to a 2-core budget (docs/research/high_level.md)."""
 
     budget: Budget
     """Iterations (each: n_envs x episodes_per_iteration episodes, then the updates) and/or
     wall-clock time, counted across resumes. The paper's 1000 + 500 episodes are 75 iterations of 20;
-    the shipped high levels ran those 75 and were continued with --resume to 150 (docs/decisions.md)."""
+    the shipped high levels ran those 75 and were continued with --resume to 150 (docs/research/decisions.md)."""
     variant: str = "consmac-a"
     """consmac-a / consmac-o: ConsMAC with the anchors / the observations of all agents as labels;
     mappo: no communication; tarmac: the communication module trained end to end by the RL loss;
@@ -173,7 +173,7 @@ class HighLevelConfig(BudgetPPODict):
     space is obstacle-cluttered but gives no density for it)."""
     adversary: str = GAME_ADVERSARY
     """The game's adversary during training (default the shipped PPO adversary, the opponent of Tables
-    V and VII, trained against a population of teams and at least as strong as the rules: docs/decisions.md):
+    V and VII, trained against a population of teams and at least as strong as the rules: docs/research/decisions.md):
     a rule (TaskConfig.adversary: nearest_group, r_nearest, r_largest, none) or a trained adversary's
     policy name (in the shipped folder) or file (`cefc-train adversary`)."""
     episode_steps: int = 400
@@ -197,7 +197,7 @@ class HighLevelConfig(BudgetPPODict):
     consmac_lr: float = 1e-4
     """ConsMAC's Adam learning rate (paper: 1e-4). The selector reads ConsMAC's messages, so every
     round moves its input; at 1e-3 (Adam's steps scale with the rate) the selector learned to evade
-    worse (docs/decisions.md)."""
+    worse (docs/research/decisions.md)."""
     replay_capacity: int = 50_000
     """Tuples (agent-decisions) the replay B_C keeps, newest first out last (about 8 iterations of
     20 envs; 2.5 KB each)."""
