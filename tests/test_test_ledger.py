@@ -343,7 +343,7 @@ def test_the_prereg_driver_lists_the_plan_and_every_shipped_run_is_complete():
 
 def test_the_shipped_preregistered_table_is_the_plan_flown_once():
     """eval/reports/prereg/table5.json: the pre-registered batch, flown once (one ledger flight, which
-    informed nothing), every row with its planned training seeds; its Markdown and the README's Table V
+    informed nothing), every row with its planned training seeds; its Markdown and docs/results.md's Table V
     are the report's own table, and its primary comparison is labelled confirmatory."""
     from cefc_mj.eval.highlevel import EPISODES, TABLE5_ROWS, add_comparisons, table5_markdown
     from cefc_mj.eval.prereg import OTHER_SEEDS, PRIMARY_SEEDS
@@ -362,6 +362,6 @@ def test_the_shipped_preregistered_table_is_the_plan_flown_once():
     markdown = table5_markdown(add_comparisons(result))
     shipped = (REPORTS / "prereg" / "table5.md").read_text()
     assert markdown in shipped and "confirmatory: the pre-registered batch" in markdown
-    readme = (ROOT / "README.md").read_text()
-    missing = [line for line in markdown.splitlines() if line.startswith("|") and line not in readme]
-    assert not missing, f"README's Table V is not the pre-registered report's: {missing[:1]}"
+    results = (ROOT / "docs" / "results.md").read_text()
+    missing = [line for line in markdown.splitlines() if line.startswith("|") and line not in results]
+    assert not missing, f"docs/results.md's Table V is not the pre-registered report's: {missing[:1]}"
