@@ -328,6 +328,7 @@ def record_flight(
         "source": source,
     }
     flight = _flight_from({**record, "id": _flight_id(protocol, seed, date, record)}, "record")
+    read_ledger(Path(path))  # a damaged or unreadable ledger: ConfigError, as every reader says it
     try:
         _append(Path(path), flight.to_json())
     except OSError as e:

@@ -60,14 +60,16 @@ def _one_line(error: BaseException) -> str:
 
 @contextmanager
 def checkpoint_errors(path: Path, reason: str):
-    """Inside it, any exception but a CheckpointError (a file's content that fails to build, fit or
-    restore a network: KeyError, TypeError, RuntimeError, a ConfigError of a config read from the
-    file, ...) becomes CheckpointError, `<path>: <reason> (<Type>: <its first line>)`: everything a
+    """Inside it, any exception but a CheckpointError that names `path` (a file's content that fails
+    to build, fit or restore a network: KeyError, TypeError, RuntimeError, a ConfigError of a config
+    read from the file, ...) becomes CheckpointError, `<path>: <reason> (<Type>: <its first line>)`: everything a
     loader does with a file's content is a question about that file."""
     try:
         yield
-    except CheckpointError:
-        raise
+    except CheckpointError as e:
+        if str(path) in str(e):
+            raise
+        raise CheckpointError(f"{path}: {reason} ({_one_line(e)})") from None
     except Exception as e:  # noqa: BLE001 (any failure here is the file's)
         raise CheckpointError(f"{path}: {reason} ({_one_line(e)})") from None
 
