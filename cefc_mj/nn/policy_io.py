@@ -62,8 +62,8 @@ def _one_line(error: BaseException) -> str:
 def checkpoint_errors(path: Path, reason: str):
     """Inside it, any exception but a CheckpointError that names `path` (a file's content that fails
     to build, fit or restore a network: KeyError, TypeError, RuntimeError, a ConfigError of a config
-    read from the file, ...) becomes CheckpointError, `<path>: <reason> (<Type>: <its first line>)`: everything a
-    loader does with a file's content is a question about that file."""
+    read from the file, ...) becomes CheckpointError `<path>: <reason> (<Type>: <its first line>)`:
+    everything a loader does with a file's content is a question about that file."""
     try:
         yield
     except CheckpointError as e:
