@@ -70,22 +70,38 @@ def test_records_round_trip_marks_and_queries(tmp_path):
         ledger.mark_informed_change("nope", "x", path=path)
 
 
-def test_only_test_seeds_are_recorded_and_a_torn_line_is_closed(tmp_path):
+def test_only_declared_test_batches_are_recorded_and_a_damaged_ledger_is_refused(tmp_path, capsys):
     path = tmp_path / "ledger.jsonl"
     with pytest.raises(ConfigError, match="flies no seed of the test block"):
         record_flight("table5", 200, 50, "cmd", path=path)
+    with pytest.raises(ConfigError, match="flies no declared test batch"):
+        record_flight("single", 91731, 1, "cmd", path=path)
     assert ledger.touches_test_block("table8", 9995, 10) and not ledger.touches_test_block("table8", 9990, 10)
     assert not ledger.touches_test_block("table5", 9999, 50)  # a batch seed is one seed, not 50
-    path.write_text('{"kind": "flight", "id": "torn"')  # a crash in the middle of a line
-    with pytest.raises(ConfigError, match=r"ledger.jsonl:1: not JSON"):
-        read_ledger(path)
-    path.write_text("")
-    record_flight("table8", 10000, 20, "cmd", path=path)
-    with open(path, "a") as fh:
-        fh.write('{"kind": "fli')
-    flight = record_flight("table7", 10000, 50, "cmd", path=path)
-    lines = path.read_text().splitlines()
-    assert json.loads(lines[-1])["id"] == flight.id and lines[-2] == '{"kind": "fli'
+    assert [b.name for b in ledger.declared_batches("table8", 10015, 10)] == ["Table VIII"]
+    assert [b.name for b in ledger.declared_batches("table5-sitl-m", 20099, 5)] == ["SITL-M game fidelity"]
+    assert ledger.declared_batches("table5", 10001, 50) == []  # another batch seed: other games
+    assert ledger.declared_batches("single", 50000, 1) == []  # the formation family's games
+    assert ledger.record_if_test("single", 91731, 3, "cmd", None) is None and not path.exists()
+    assert capsys.readouterr().out == (
+        "test ledger: not recorded: seeds 91731..91733 are in the test block but in no declared test batch "
+        "(cefc_mj.seeds.TEST_BATCHES)\n"
+    )
+    # every reader and writer checks the ledger the same way: a damaged line, torn or not, is refused
+    good = record_flight("table8", 10000, 20, "cmd", path=path)
+    for damage in ('{"kind": "fli', '{"kind": "flight"}\n', "[1, 2]\n", b"\xff\xfe\n"):
+        path.write_text(json.dumps(good.to_json()) + "\n")
+        with open(path, "ab") as fh:
+            fh.write(damage if isinstance(damage, bytes) else damage.encode())
+        before = path.read_bytes()
+        with pytest.raises(ConfigError, match=r"ledger.jsonl:2: ") as refused:
+            read_ledger(path)
+        assert "\n" not in str(refused.value)
+        with pytest.raises(ConfigError, match=r"ledger.jsonl:2: "):
+            record_flight("table7", 10000, 50, "cmd", path=path)
+        with pytest.raises(ConfigError, match=r"ledger.jsonl:2: "):
+            ledger.mark_informed_change(good.id, "x", path=path)
+        assert path.read_bytes() == before  # nothing appended
 
 
 def test_where_it_writes(tmp_path, monkeypatch, capsys):
@@ -265,7 +281,10 @@ def test_cefc_eval_records_its_test_flights_and_reads_another_folder(seed_only_p
     assert main([*argv, "--seed", "10000", "--report-dir", str(out)]) == 0
     printed = capsys.readouterr().out
     flights = read_ledger(path).flights
-    assert len(flights) == before + 1 and f"test ledger: flight {flights[-1].id} recorded" in printed
+    assert (
+        len(flights) == before + 1
+        and f"test ledger: flight {flights[-1].id} of test batch 'Tables V-VII (shipped)' recorded" in printed
+    )
     flight = flights[-1]
     assert (flight.protocol, flight.seed, flight.episodes, flight.source) == ("table5", 10000, 1, "cefc-eval")
     assert flight.command.endswith("--report-dir " + str(out)) and flight.outputs == (str(out / "table5.json"),)

@@ -33,7 +33,7 @@ from cefc_mj.eval.highlevel import (
     run_table7,
     table5_markdown,
 )
-from cefc_mj.eval.ledger import record_if_test
+from cefc_mj.eval.ledger import check_before_flight, record_if_test
 from cefc_mj.eval.requests import GameTablesRequest
 from cefc_mj.eval.runner import provenance
 from cefc_mj.hierarchy import DECISION_INTERVAL, load_low_level
@@ -53,6 +53,8 @@ def check(request: GameTablesRequest) -> dict:
             )
     if request.protocol in ("table5", "table7"):  # a missing or broken adversary file fails before any episode
         resolve_adversary(request.played_adversary, request.policies_dir)
+    protocol = request.protocol if request.sitl is None else "table5-sitl-m"
+    check_before_flight(protocol, request.seed, request.episodes)  # a damaged test ledger: refused here
     return provenance("atm", [])  # the tables record each row's file and sha256 themselves
 
 

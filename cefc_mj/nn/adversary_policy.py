@@ -23,9 +23,9 @@ import numpy as np
 import torch
 from torch import nn
 
-from cefc_mj.errors import CheckpointError, ConfigError
+from cefc_mj.errors import ConfigError
 from cefc_mj.nn.layers import mlp
-from cefc_mj.nn.policy_io import read_policy_payload, write_policy_payload
+from cefc_mj.nn.policy_io import checkpoint_errors, policy_meta, read_policy_payload, write_policy_payload
 from cefc_mj.task.adversary import (
     ADVERSARY_GOAL_COLUMNS,
     ADVERSARY_OBS_DIM,
@@ -151,15 +151,11 @@ def load_adversary_policy(path: Path) -> tuple[AdversaryPolicy, dict]:
     path = Path(path)
     payload = read_policy_payload(path, POLICY_FORMAT, POLICY_VERSION, "an adversary policy")
     state = payload["state_dict"]
-    try:
+    with checkpoint_errors(path, "weights do not fit the described network"):
         cfg = AdversaryNetConfig(**payload["net"])
         if cfg.obs_dim != ADVERSARY_OBS_DIM:
             raise ConfigError(f"observation size {cfg.obs_dim}, this code builds {ADVERSARY_OBS_DIM}")
         policy = AdversaryPolicy(cfg)
         policy.load_state_dict(state)
-    except (ConfigError, RuntimeError, TypeError, KeyError) as e:
-        raise CheckpointError(
-            f"{path}: weights do not fit the described network ({str(e).splitlines()[0][:160]})"
-        ) from None
     policy.eval()
-    return policy, dict(payload.get("meta") or {})
+    return policy, policy_meta(path, payload)

@@ -13,10 +13,10 @@ import numpy as np
 import torch
 from torch import nn
 
-from cefc_mj.errors import CheckpointError, ConfigError
+from cefc_mj.errors import ConfigError
 from cefc_mj.nn.consmac import ABLATIONS, ConsMAC, ConsMACConfig, inbox_tensors
 from cefc_mj.nn.obs_comm import ObservationComm, build_comm
-from cefc_mj.nn.policy_io import read_policy_payload, write_policy_payload
+from cefc_mj.nn.policy_io import checkpoint_errors, policy_meta, read_policy_payload, write_policy_payload
 from cefc_mj.nn.selector import AnchorSelector, SelectorConfig
 from cefc_mj.task.config import TaskConfig
 from cefc_mj.task.messages import Inbox
@@ -183,14 +183,10 @@ def load_highlevel_policy(path: Path) -> tuple[HighLevelPolicy, dict]:
     path = Path(path)
     payload = read_policy_payload(path, POLICY_FORMAT, POLICY_VERSION, "a high-level policy")
     state = payload["state_dict"]
-    try:
+    with checkpoint_errors(path, "weights do not fit the described networks"):
         comm = None if payload.get("comm") is None else build_comm(ConsMACConfig.from_dict(payload["comm"]))
         selector = AnchorSelector(SelectorConfig.from_dict(payload["selector"]))
         policy = HighLevelPolicy(selector, comm, str(payload.get("variant")))
         policy.load_state_dict(state)
-    except (ConfigError, RuntimeError, TypeError, KeyError) as e:
-        raise CheckpointError(
-            f"{path}: weights do not fit the described networks ({str(e).splitlines()[0][:160]})"
-        ) from None
     policy.eval()
-    return policy, dict(payload.get("meta") or {})
+    return policy, policy_meta(path, payload)

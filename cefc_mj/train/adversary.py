@@ -695,7 +695,7 @@ def train_adversary(
     trainer = AdversaryTrainer(cfg, population, low_level, interval, team_low_levels)
     imitation = None
     if saved is not None:
-        trainer.load_state_dict(saved["trainer"])
+        run_state.restore_trainer(trainer, saved, state_path)
         imitation = saved.get("imitation")
     elif cfg.imitation_episodes and cfg.imitation_steps:
         if show_progress:

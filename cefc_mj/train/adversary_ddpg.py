@@ -484,7 +484,7 @@ def train_ddpg_adversary(
         )
     trainer = DDPGAdversaryTrainer(cfg, population, low_level, interval, team_low_levels)
     if saved is not None:
-        trainer.load_state_dict(saved["trainer"])
+        run_state.restore_trainer(trainer, saved, state_path)
     write_atomic(
         run_dir / "config.json",
         json.dumps(

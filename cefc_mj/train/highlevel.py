@@ -861,7 +861,7 @@ def train_highlevel(
     trainer = HighLevelTrainer(cfg, low_levels, adversary_policy)
     trainer.adversary_record = adversary_record
     if saved is not None:
-        trainer.load_state_dict(saved["trainer"])
+        run_state.restore_trainer(trainer, saved, state_path)
     low_level_record = {
         "pretrain": display_paths(low_levels[0].describe()),
         "finetune": display_paths(low_levels[1].describe()),
