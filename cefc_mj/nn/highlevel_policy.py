@@ -16,7 +16,7 @@ from torch import nn
 from cefc_mj.errors import CheckpointError, ConfigError
 from cefc_mj.nn.consmac import ABLATIONS, ConsMAC, ConsMACConfig, inbox_tensors
 from cefc_mj.nn.obs_comm import ObservationComm, build_comm
-from cefc_mj.nn.policy_io import read_policy_payload, write_policy_payload
+from cefc_mj.nn.policy_io import read_policy_payload, resolve_policy_path, write_policy_payload
 from cefc_mj.nn.selector import AnchorSelector, SelectorConfig
 from cefc_mj.task.config import TaskConfig
 from cefc_mj.task.messages import Inbox
@@ -194,3 +194,14 @@ def load_highlevel_policy(path: Path) -> tuple[HighLevelPolicy, dict]:
         ) from None
     policy.eval()
     return policy, dict(payload.get("meta") or {})
+
+
+def highlevel_policy_path(policy: str, policies_dir: Path | None = None) -> Path:
+    """The file of a high-level policy given by name (in policies_dir, default the shipped folder) or
+    path (`resolve_policy_path`); CheckpointError (one line) when there is none."""
+    try:
+        return resolve_policy_path(policy, policies_dir)
+    except CheckpointError as e:
+        raise CheckpointError(
+            f"--policy {policy}: no high-level policy file ({e}); train it with cefc-train highlevel"
+        ) from None
