@@ -170,6 +170,9 @@ def test_power_and_mdd_against_a_textbook_value_and_a_simulation():
     assert two_sample_power(1.0, 20, 20, 1.0) == pytest.approx(0.8689528, abs=2e-6)
     normal = minimum_detectable_difference(5, 20, 1.7, method="normal")
     assert normal == pytest.approx((stats.norm.ppf(0.975) + stats.norm.ppf(0.8)) * 1.7 * np.sqrt(1 / 5 + 1 / 20))
+    # few seeds at a strict level: scipy's noncentral t cdf is NaN there, the power is not
+    assert 0.9 < two_sample_power(1000.0, 2, 2, 100.0, alpha=0.025) < 1.0
+    assert minimum_detectable_difference(2, 2, 100.0, alpha=0.025) > minimum_detectable_difference(2, 2, 100.0)
     mdd = minimum_detectable_difference(5, 5, 1.7)
     assert two_sample_power(mdd, 5, 5, 1.7) == pytest.approx(0.8) and mdd > minimum_detectable_difference(
         5, 5, 1.7, method="normal"
