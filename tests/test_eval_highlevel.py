@@ -121,8 +121,12 @@ def test_table5_rows_units_seeds_and_missing_methods(policies):
     assert "missing policies: MASAC+AT-M (BenchMARL; stands in for HASAC)" in text
     assert "Table IV, message size per agent and decision: MAPPO+AT-M 0 (paper 0), CI-HRL 64 (paper 64)" in text
     # The same seed flies the same episodes: bit-identical figures.
-    again = run_table5(episodes=2, seed=3, policies_dir=policies, policy="cihrl_mappo")
+    calls = []
+    again = run_table5(
+        episodes=2, seed=3, policies_dir=policies, policy="cihrl_mappo", progress=lambda *c: calls.append(c)
+    )
     assert again["rows"]["cihrl_mappo"]["per_episode"] == result["rows"]["MAPPO+AT-M"]["per_episode"]
+    assert calls == [(0, 2), (2, 2)]  # one policy: one batch of games
 
 
 def test_the_evaluation_follows_the_policy_a_better_anchor_choice_scores_more():

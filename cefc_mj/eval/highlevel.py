@@ -309,10 +309,12 @@ def run_table5(
         result["provenance"] = provenance
     if policy is not None:
         path = highlevel_policy_path(policy, policies_dir)
+        report = _progress_reporter(progress, episodes)
         result["rows"][path.stem] = {
             **_evaluate_file(path, task, low_level, episodes, seed, where, adversary_policy, record),
             "paper": None,
         }
+        report(episodes)
         return result
     rows = []  # (method, stem, paper_row, {seed: file})
     for method, stem, suffix, paper_row in TABLE5_ROWS:
