@@ -38,8 +38,9 @@ from pathlib import Path
 
 from cefc_mj import paths
 from cefc_mj.errors import CefcError, CheckpointError, ConfigError
-from cefc_mj.eval.highlevel import TABLE5_ROWS, resolve_adversary
+from cefc_mj.eval.highlevel import TABLE5_ROWS
 from cefc_mj.fileio import make_writable_folder, write_atomic
+from cefc_mj.nn.adversary_policy import resolve_adversary
 from cefc_mj.provenance import display_path, git_commit, library_versions
 from cefc_mj.seeds import GAME_VALIDATION_SEED, VALIDATION
 from cefc_mj.task.adversary import InterceptRule

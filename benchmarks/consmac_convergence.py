@@ -155,8 +155,8 @@ def fresh_rows(run: dict, iterations: int) -> tuple[dict[str, torch.Tensor], dic
     restored from state.pt, the same low levels and adversary, the next iterations' seeds, anchors
     sampled by the final selector): data no supervised step of the run has seen. ConfigError when the
     run flew another low level or adversary than the files found now."""
-    from cefc_mj.eval.highlevel import resolve_adversary
     from cefc_mj.hierarchy import NAVIGATION, load_low_level
+    from cefc_mj.nn.adversary_policy import resolve_adversary
     from cefc_mj.train.model_card import display_paths
 
     cfg, state = run["cfg"], run["state"]

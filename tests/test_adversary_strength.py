@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 from benchmark_scripts import load_benchmark
 
-from cefc_mj.eval.highlevel import resolve_adversary
+from cefc_mj.nn.adversary_policy import resolve_adversary
 from cefc_mj.task.adversary import InterceptRule
 from cefc_mj.train.adversary import AdversaryConfig, evaluate_adversary, load_population
 from cefc_mj.train.config import Budget

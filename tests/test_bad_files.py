@@ -10,8 +10,8 @@ loader (BenchMARL exports included), `--init-from` and `--resume` (in-process CL
 `python -m cefc_mj.eval.paired`, and the test ledger's reader, writer and pre-flight check; then a few
 real CLI processes. A checkpoint is checked whole (every zip member's CRC-32, its headers against the
 zip directory, the end records), so a flipped bit of one is refused wherever it lands but in the two
-version fields of the zip64 end record (4 bytes of a file, which no reader uses). A text file (MJCF, JSON, the ledger) has no
-checksum: a flipped bit that leaves a valid file of its kind (a digit of a mass, a letter of a
+version fields of the zip64 end record (4 bytes of a file, which no reader uses). A text file (MJCF,
+JSON, the ledger) has no checksum: a flipped bit that leaves a valid file of its kind (a digit of a mass, a letter of a
 command) is loaded and checked like any other file of that kind; those are counted apart.
 
     pytest -q -s tests/test_bad_files.py     # prints the counts per loader and kind of bad file

@@ -41,8 +41,8 @@ def tiny(algorithm: str, **overrides) -> BenchMARLConfig:
 
 # ---------------------------------------------------------------------------- config and command line
 def test_the_default_run_is_our_trainers_game_and_budget():
-    from cefc_mj.eval.highlevel import GAME_ADVERSARY
     from cefc_mj.hierarchy import DECISION_INTERVAL
+    from cefc_mj.nn.registry import GAME_ADVERSARY
     from cefc_mj.train.benchmarl_config import DECISION_INTERVAL as OURS
     from cefc_mj.train.config import Budget
     from cefc_mj.train.highlevel import HighLevelConfig

@@ -21,7 +21,7 @@ LAYERS = (
     ("foundation", ("errors", "version", "paths", "fileio", "seeds", "jit", "provenance", "executors")),
     ("core", ("task", "control", "sim")),
     ("networks", ("nn",)),
-    ("environments", ("env", "hierarchy", "rule_teams", "table3_protocol")),
+    ("environments", ("env", "hierarchy", "rule_teams", "table3_protocol", "game_protocol")),
     ("baselines", ("baselines",)),
     ("evaluation", ("eval",)),
     ("applications", ("train", "viz")),

@@ -226,19 +226,36 @@ def test_the_preregistered_batch_is_a_never_informing_test_batch_of_other_games(
                 assert not set(a.seeds) & set(b.seeds)
     touching = [f for f in read_ledger(SHIPPED_LEDGER).flights if f.family == seeds.GAME_FAMILY and seed in f.seeds]
     assert all(f.protocol in seeds.BATCH_SEEDED and not f.informed_change for f in touching)
-    # a batch seed seeds one generator for the whole batch: other batch seeds draw other games
-    from cefc_mj.eval.highlevel import EPISODES, game_task
-    from cefc_mj.task.scenario import sample_scenario
+    # A batch seed seeds one generator for the whole batch: other batch seeds draw other games. The games
+    # are built as the evaluation builds them (the env of a batch, reset with the batch seed) and
+    # compared by content: each game's spawns, adversary start, obstacles, targets and anchor.
+    from cefc_mj.game_protocol import EPISODES
 
-    task = game_task()
-    layouts = {
-        s: sample_scenario(task, np.random.default_rng(s), EPISODES)
-        for s in (seed, seeds.GAME_TEST_SEED, seeds.GAME_VALIDATION_SEED)
-    }
-    ours = {tuple(np.round(p, 9).ravel()) for p in layouts[seed].agent_pos}
+    shared = {s: _game_contents(s) for s in (seed, seeds.GAME_TEST_SEED, seeds.GAME_VALIDATION_SEED)}
+    assert len(set(shared[seed])) == EPISODES  # fifty different games in the batch
+    assert _game_contents(seed) == shared[seed]  # the same seed is the same games: the comparison sees sameness
     for other in (seeds.GAME_TEST_SEED, seeds.GAME_VALIDATION_SEED):
-        assert not ours & {tuple(np.round(p, 9).ravel()) for p in layouts[other].agent_pos}
-        assert not np.isclose(layouts[seed].anchor[:, None], layouts[other].anchor[None]).all(-1).any()
+        assert not set(shared[seed]) & set(shared[other]), f"batch {seed} shares games with batch {other}"
+        # nor any drawn part of a game: the spawns, the adversary's start, the obstacles, the anchor
+        # (not the targets: 2 of the 4 corners, a dozen layouts, which batches share by design)
+        for part in (0, 1, 2, 4):
+            assert not {g[part] for g in shared[seed]} & {g[part] for g in shared[other]}, (other, part)
+
+
+def _game_contents(batch_seed: int) -> list[tuple]:
+    """Each game of a batch as the evaluation flies it (`game_protocol.game_task`, EPISODES envs, reset with
+    the batch seed): (agent spawns, adversary start, obstacles, targets, anchor), rounded to 1e-9 m."""
+    from cefc_mj.env import BatchedCEFCEnv
+    from cefc_mj.game_protocol import EPISODES, game_task
+
+    env = BatchedCEFCEnv(game_task(), n_envs=EPISODES, seed=batch_seed)
+    env.reset(seed=batch_seed)
+    parts = (env.world.agent_pos, env.world.adversary_pos, env.obstacles, env.targets, env.anchor)
+
+    def key(a) -> tuple:
+        return tuple(np.round(np.asarray(a, dtype=float), 9).ravel())
+
+    return [tuple(key(part[e]) for part in parts) for e in range(EPISODES)]
 
 
 # ---------------------------------------------------------------------------- cefc-eval records itself
@@ -246,9 +263,10 @@ def test_the_preregistered_batch_is_a_never_informing_test_batch_of_other_games(
 def seed_only_policies(tmp_path):
     """A folder with MAPPO and CI-HRL at training seeds 100 and 101 only (untrained weights) and the
     game's adversary, as a pre-registered run's folder would be."""
-    from cefc_mj.eval.highlevel import GAME_ADVERSARY, game_task
+    from cefc_mj.game_protocol import game_task
     from cefc_mj.nn.adversary_policy import AdversaryNetConfig, AdversaryPolicy, save_adversary_policy
     from cefc_mj.nn.highlevel_policy import HighLevelPolicy, save_highlevel_policy
+    from cefc_mj.nn.registry import GAME_ADVERSARY
 
     folder = tmp_path / "prereg"
     folder.mkdir()
@@ -364,8 +382,11 @@ def test_the_shipped_preregistered_table_is_the_plan_flown_once():
     """eval/reports/prereg/table5.json: the pre-registered batch, flown once (one ledger flight, which
     informed nothing), every row with its planned training seeds; its Markdown and docs/results.md's Table V
     are the report's own table, and its primary comparison is labelled confirmatory."""
-    from cefc_mj.eval.highlevel import EPISODES, TABLE5_ROWS, add_comparisons, table5_markdown
+    from cefc_mj.eval.highlevel import TABLE5_ROWS
+    from cefc_mj.eval.highlevel_comparison import add_comparisons
+    from cefc_mj.eval.highlevel_report import table5_markdown
     from cefc_mj.eval.prereg import OTHER_SEEDS, PRIMARY_SEEDS
+    from cefc_mj.game_protocol import EPISODES
 
     result = json.loads((REPORTS / "prereg" / "table5.json").read_text())
     seed = seeds.GAME_PREREGISTERED_TEST_SEED

@@ -17,8 +17,10 @@ from pathlib import Path
 
 from cefc_mj import paths
 from cefc_mj.errors import OneLineParser
-from cefc_mj.eval.highlevel import DT, MARGINS, add_comparisons, equivalence_lines
+from cefc_mj.eval.highlevel_comparison import MARGINS, add_comparisons
+from cefc_mj.eval.highlevel_report import equivalence_lines
 from cefc_mj.eval.stats import ALPHA, POWER, equivalence_power, minimum_detectable_difference, pooled_sd
+from cefc_mj.game_protocol import DT
 
 DEFAULT_PAIRS = ((3, 5), (5, 5), (5, 20), (20, 20))
 """(row's seeds, CI-HRL's seeds): the shipped table's and the pre-registered ones."""

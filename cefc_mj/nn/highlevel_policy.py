@@ -13,10 +13,16 @@ import numpy as np
 import torch
 from torch import nn
 
-from cefc_mj.errors import ConfigError
+from cefc_mj.errors import CheckpointError, ConfigError
 from cefc_mj.nn.consmac import ABLATIONS, ConsMAC, ConsMACConfig, inbox_tensors
 from cefc_mj.nn.obs_comm import ObservationComm, build_comm
-from cefc_mj.nn.policy_io import checkpoint_errors, policy_meta, read_policy_payload, write_policy_payload
+from cefc_mj.nn.policy_io import (
+    checkpoint_errors,
+    policy_meta,
+    read_policy_payload,
+    resolve_policy_path,
+    write_policy_payload,
+)
 from cefc_mj.nn.selector import AnchorSelector, SelectorConfig
 from cefc_mj.task.config import TaskConfig
 from cefc_mj.task.messages import Inbox
@@ -190,3 +196,14 @@ def load_highlevel_policy(path: Path) -> tuple[HighLevelPolicy, dict]:
         policy.load_state_dict(state)
     policy.eval()
     return policy, policy_meta(path, payload)
+
+
+def highlevel_policy_path(policy: str, policies_dir: Path | None = None) -> Path:
+    """The file of a high-level policy given by name (in policies_dir, default the shipped folder) or
+    path (`resolve_policy_path`); CheckpointError (one line) when there is none."""
+    try:
+        return resolve_policy_path(policy, policies_dir)
+    except CheckpointError as e:
+        raise CheckpointError(
+            f"--policy {policy}: no high-level policy file ({e}); train it with cefc-train highlevel"
+        ) from None

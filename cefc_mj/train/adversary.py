@@ -42,8 +42,8 @@ import numpy as np
 import torch
 
 from cefc_mj.errors import CheckpointError, ConfigError
-from cefc_mj.eval.highlevel import game_task, highlevel_policy_path, play_highlevel
 from cefc_mj.fileio import write_atomic
+from cefc_mj.game_protocol import game_task, play_highlevel
 from cefc_mj.hierarchy import DECISION_INTERVAL, HierarchicalCEFCEnv, LowLevel, load_low_level, recorded_low_level
 from cefc_mj.nn.adversary_policy import (
     ADVERSARY_ACTIONS,
@@ -53,7 +53,7 @@ from cefc_mj.nn.adversary_policy import (
     save_adversary_policy,
 )
 from cefc_mj.nn.atm import Critic
-from cefc_mj.nn.highlevel_policy import HighLevelPolicy, load_highlevel_policy
+from cefc_mj.nn.highlevel_policy import HighLevelPolicy, highlevel_policy_path, load_highlevel_policy
 from cefc_mj.nn.policy_io import atomic_torch_save
 from cefc_mj.nn.registry import HIERARCHY_LOWLEVEL
 from cefc_mj.provenance import file_sha256

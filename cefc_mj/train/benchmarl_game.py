@@ -41,9 +41,11 @@ from torchrl.data import Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
 from cefc_mj.errors import CheckpointError, ConfigError
-from cefc_mj.eval.highlevel import evaluate_highlevel, resolve_adversary, run_table5
+from cefc_mj.eval.highlevel import run_table5
 from cefc_mj.fileio import write_atomic
+from cefc_mj.game_protocol import evaluate_highlevel
 from cefc_mj.hierarchy import HierarchicalCEFCEnv, LowLevel, load_low_level
+from cefc_mj.nn.adversary_policy import resolve_adversary
 from cefc_mj.nn.consmac import LOCAL_PARTS
 from cefc_mj.nn.highlevel_policy import HighLevelPolicy, save_highlevel_policy
 from cefc_mj.seeds import GAME_VALIDATION_SEED

@@ -55,8 +55,8 @@ import numpy as np
 import torch
 
 from cefc_mj.errors import CheckpointError, ConfigError
-from cefc_mj.eval.highlevel import GAME_ADVERSARY, evaluate_highlevel, resolve_adversary
 from cefc_mj.fileio import write_atomic
+from cefc_mj.game_protocol import evaluate_highlevel
 from cefc_mj.hierarchy import (
     CLM_PER_GROUP,
     DECISION_INTERVAL,
@@ -65,6 +65,7 @@ from cefc_mj.hierarchy import (
     LowLevel,
     load_low_level,
 )
+from cefc_mj.nn.adversary_policy import resolve_adversary
 from cefc_mj.nn.atm import Critic
 from cefc_mj.nn.consmac import ABLATIONS, ConsMACConfig, global_labels, seeded
 from cefc_mj.nn.highlevel_policy import (
@@ -76,7 +77,7 @@ from cefc_mj.nn.highlevel_policy import (
     save_highlevel_policy,
 )
 from cefc_mj.nn.policy_io import atomic_torch_save
-from cefc_mj.nn.registry import HIERARCHY_LOWLEVEL
+from cefc_mj.nn.registry import GAME_ADVERSARY, HIERARCHY_LOWLEVEL
 from cefc_mj.nn.selector import build_critic
 from cefc_mj.task.config import ADVERSARY_RULES, LEARNED_ADVERSARY, TaskConfig
 from cefc_mj.task.messages import MessageChannel
