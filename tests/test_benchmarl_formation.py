@@ -79,6 +79,7 @@ def test_the_task_is_the_atm_stages_and_the_name_table3s():
         (["--step", "3"], "--step 3: must be 1 (no obstacles) or 2"),
         (["--epochs", "3"], "--epochs: a setting of ippo, mappo, not maddpg's"),
         (["--updates", "3", "--algorithm", "mappo"], "--updates: a setting of maddpg, masac, not mappo's"),
+        (["--anneal-frames", "10", "--algorithm", "masac"], "--anneal-frames: a setting of maddpg, not masac's"),
         (["--reward-scale", "0"], "--reward-scale 0.0: must be a number in (0, 1e+06]"),
     ],
 )

@@ -157,6 +157,15 @@ def add_parser(sub) -> None:
         help=f"maddpg, masac: replay capacity in frames (default {default('memory_frames')})",
     )
     p.add_argument(
+        "--anneal-frames",
+        type=int,
+        default=None,
+        dest="exploration_anneal_frames",
+        metavar="FRAMES",
+        help="maddpg: frames over which the exploration noise falls from sigma 0.8 to 0.01 "
+        f"(default {default('exploration_anneal_frames')})",
+    )
+    p.add_argument(
         "--epochs",
         type=int,
         default=None,

@@ -308,6 +308,7 @@ def build_experiment(cfg: FormationBenchMARLConfig, run_dir: Path, callbacks=(),
         "off_policy_n_optimizer_steps": cfg.updates,
         "off_policy_train_batch_size": cfg.batch_size,
         "off_policy_memory_size": cfg.memory_frames,
+        "exploration_anneal_frames": cfg.exploration_anneal_frames,
         "checkpoint_interval": cfg.checkpoint_every * frames,
         # the last iteration's checkpoint is the end's unless the budget stops between two of them
         "checkpoint_at_end": cfg.iterations % cfg.checkpoint_every != 0,
