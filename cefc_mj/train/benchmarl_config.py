@@ -315,12 +315,12 @@ class FormationBenchMARLConfig:
     critics are BenchMARL's MLPs on the global state. The budget is counted in frames (env-steps; one
     frame is c agent-steps). The other hyperparameters are BenchMARL 1.5.2's defaults
     (conf/experiment/base_experiment.yaml, conf/algorithm/*.yaml) except gamma (our trainer's), the
-    reward's scale, no tanh squashing of the actions (the file's actions are clipped, as the env clips)
-    and the widths.
+    reward's scale, no tanh squashing of the actions (the file's actions are clipped, as the env clips),
+    the replay's capacity, a fixed exploration schedule and the widths.
 
     >>> cfg = FormationBenchMARLConfig(formation=7, seed=2)
-    >>> cfg.name, cfg.frames_per_batch, cfg.iterations
-    ('benchmarl_maddpg_c7_seed2', 6000, 50)
+    >>> cfg.name, cfg.frames_per_batch, cfg.iterations, cfg.agent_steps
+    ('benchmarl_maddpg_c7_seed2', 6000, 200, 8400000)
     """
 
     algorithm: str = "maddpg"
@@ -332,8 +332,10 @@ class FormationBenchMARLConfig:
     Steps 2 and 3). Training always starts from random weights: there is no Step 3 merge."""
     seed: int = 0
     """BenchMARL's seed (networks, sampling) and the seed of every batch of training episodes."""
-    budget_frames: int = 300_000
-    """Training frames (env-steps, each c agent-steps), a multiple of frames_per_batch."""
+    budget_frames: int = 1_200_000
+    """Training frames (env-steps, each c agent-steps), a multiple of frames_per_batch. 1.2M is the
+    proposed budget of Table III's MADDPG runs: 200 iterations, 200,000 gradient steps, 1.3-1.7
+    core-hours (docs/formation_benchmarl.md, "Budget proposal")."""
     n_envs: int = 10
     """Envs stepped as one batch (BenchMARL's default)."""
     episodes_per_iteration: int = 6
