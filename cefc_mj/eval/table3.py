@@ -51,13 +51,13 @@ ORCA-F is the baseline of cefc_mj/baselines/orca.py, CL-M the curriculum baselin
 docs/baselines.md). AT-M-Step1 is the Step 1 that Step 3 starts from, its LiDAR seeing obstacles and
 UAVs; the obstacle-LiDAR row is Step 1 trained with a LiDAR that sees obstacles only, as the paper's
 Step 1 evidently was (docs/layouts.md): both stand beside the paper's Step 1 row."""
+PAPER_ROW = {OBSTACLE_LIDAR_STEP1: "AT-M-Step1"}
+"""Our rows compared with a paper row of another name."""
+COLUMNS = ("R_L", "F", "N", "C")
 MADDPG = "MADDPG"
 """The paper's MADDPG row: BenchMARL's MADDPG on the formation task (`cefc-train formation-benchmarl`,
 docs/formation_benchmarl.md), its policy files named MADDPG_FILE; not in METHODS until files ship."""
 MADDPG_FILE = "benchmarl_maddpg_c{c}"
-PAPER_ROW = {OBSTACLE_LIDAR_STEP1: "AT-M-Step1"}
-"""Our rows compared with a paper row of another name."""
-COLUMNS = ("R_L", "F", "N", "C")
 
 
 def _paper_table3() -> dict[str, dict[str, dict[str, float]]]:
