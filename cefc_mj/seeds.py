@@ -163,3 +163,8 @@ TEST_BATCHES = (
     ),
 )
 """Every test batch a shipped or planned report uses, in one place."""
+
+FORMATION_VALIDATION_SEED = 300
+"""The batch seed of the formation task's validation episodes (50 episodes of Table III's protocol,
+VALIDATION): what BenchMARL formation runs report in their model cards and what their budgets are
+chosen on (docs/formation_benchmarl.md). Table III itself flies the PROTOCOL batch seed 0."""

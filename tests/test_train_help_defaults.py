@@ -69,6 +69,10 @@ def _benchmarl(sub):
     return _by_field((benchmarl_config.BenchMARLConfig(),), benchmarl_config.FLAG_OF_FIELD)
 
 
+def _formation_benchmarl(sub):
+    return _by_field((benchmarl_config.FormationBenchMARLConfig(),), benchmarl_config.FORMATION_FLAG_OF_FIELD)
+
+
 CASES = {
     # command: (flag -> the config's default, of the subcommand's parser; fewest flags checked)
     "adversary": (_by_dest(adversary.AdversaryConfig, adversary.CLI_FIELDS, adversary.CLI_PPO_FIELDS), 5),
@@ -79,6 +83,7 @@ CASES = {
     "distill": (_distill, 3),
     "lowlevel-all": (_pipeline, 5),
     "highlevel-benchmarl": (_benchmarl, 5),
+    "formation-benchmarl": (_formation_benchmarl, 5),
 }
 
 

@@ -148,7 +148,7 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="NAME|PATH",
         help="nav (AT-M-Nav of each c, the default), atm (AT-M Step 3 of each c, the paper's), safe, "
         "clm (the CL-M baseline, where trained), student, orca (the ORCA-F baseline, table3 "
-        "only), a name in policies/, or a .pt path; "
+        "only), maddpg (BenchMARL's MADDPG, table3, where trained), a name in policies/, or a .pt path; "
         "table3 without it evaluates every method; table5: one high-level policy (default every "
         "method); table6, table7: the high-level policy to play (default cihrl_consmac_a)",
     )

@@ -10,6 +10,7 @@ the CL-M baseline).
     cefc-train adversary                                     # the PPO adversary (imitation, critic warm-up)
     cefc-train adversary-ddpg --budget 150it                 # the DDPG adversary (Table VI)
     cefc-train highlevel-benchmarl --algorithm masac --budget 1500ep   # BenchMARL's MASAC (benchmarl extra)
+    cefc-train formation-benchmarl --algorithm maddpg --formation 6    # BenchMARL's MADDPG, Table III's baseline
 
 Everything a run writes goes under --out (default runs/<command>, relative to the current folder):
 run folders (config, CSV and TensorBoard logs, resumable state) and the exported policies with their
@@ -26,17 +27,23 @@ import sys
 import time
 from pathlib import Path
 
-from cefc_mj.cli import train_adversary, train_benchmarl, train_highlevel, train_lowlevel
+from cefc_mj.cli import (
+    train_adversary,
+    train_benchmarl,
+    train_benchmarl_formation,
+    train_highlevel,
+    train_lowlevel,
+)
 from cefc_mj.cli.train_common import EXIT_USAGE, PROG, check_destinations
 from cefc_mj.errors import CefcError, ConfigError, OneLineParser
 from cefc_mj.train.config import Budget
 
 __all__ = ["EXIT_USAGE", "build_parser", "check_destinations", "main", "run"]
 
-FAMILIES = (train_lowlevel, train_highlevel, train_adversary, train_benchmarl)
+FAMILIES = (train_lowlevel, train_highlevel, train_adversary, train_benchmarl, train_benchmarl_formation)
 """The trainer modules, in the order their subcommands are listed: each has COMMANDS, add_parser(sub)
 adding their parsers, and run(args, budget, command) -> the model cards; a module with parse_budget(text)
-reads its own --budget (highlevel-benchmarl: episodes), the others get a Budget."""
+reads its own --budget (highlevel-benchmarl: episodes; formation-benchmarl: frames), the others get a Budget."""
 
 RUNNERS = {command: family for family in FAMILIES for command in family.COMMANDS}
 """The module that runs each subcommand."""
@@ -114,7 +121,9 @@ def _resume_hint(args, started: float) -> str:
     from cefc_mj.train.run_state import STATE_FILE
 
     out = getattr(args, "out", None)
-    states = sorted(Path(out).glob(f"**/{STATE_FILE}")) if out is not None and Path(out).is_dir() else []
+    patterns = (f"**/{STATE_FILE}", "**/checkpoints/checkpoint_*.pt")  # ours; BenchMARL's (formation-benchmarl)
+    found = out is not None and Path(out).is_dir()
+    states = sorted(p for pattern in patterns for p in Path(out).glob(pattern)) if found else []
     if getattr(args, "resume", False) or any(p.stat().st_mtime >= started for p in states):
         return "the same command with --resume continues from the last checkpoint"
     return "no checkpoint was written yet: run the same command again (without --resume) to start over"

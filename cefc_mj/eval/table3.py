@@ -54,13 +54,19 @@ Step 1 evidently was (docs/research/layouts.md): both stand beside the paper's S
 PAPER_ROW = {OBSTACLE_LIDAR_STEP1: "AT-M-Step1"}
 """Our rows compared with a paper row of another name."""
 COLUMNS = ("R_L", "F", "N", "C")
+MADDPG = "MADDPG"
+"""The paper's MADDPG row: BenchMARL's MADDPG on the formation task (`cefc-train formation-benchmarl`,
+docs/formation_benchmarl.md), its policy files named MADDPG_FILE; not in METHODS until files ship."""
+MADDPG_FILE = "benchmarl_maddpg_c{c}"
 
 
 def _paper_table3() -> dict[str, dict[str, dict[str, float]]]:
-    """The paper's Table III AT-M, ORCA-F and CL-M rows from the shipped transcription (eval/paper_tables.json)."""
+    """The paper's Table III AT-M, ORCA-F, CL-M and MADDPG rows from the shipped transcription
+    (eval/paper_tables.json; MADDPG's R_L and C are not printed: None)."""
     raw = json.loads((paths.EVAL_DIR / "paper_tables.json").read_text())["table3_atm_mpe"]
+    baselines = ("ORCA-F", "CL-M", MADDPG)
     return {
-        c: {m: dict(zip(COLUMNS, v)) for m, v in rows.items() if m.startswith("AT-M") or m in ("ORCA-F", "CL-M")}
+        c: {m: dict(zip(COLUMNS, v)) for m, v in rows.items() if m.startswith("AT-M") or m in baselines}
         for c, rows in raw.items()
         if c.isdigit()
     }
@@ -77,6 +83,8 @@ def policy_file_for(method: str, formation: int) -> str | None:
         return registry.STUDENT
     if method == "CL-M":
         return registry.clm_name(formation)
+    if method == MADDPG:
+        return MADDPG_FILE.format(c=formation)
     if method == OBSTACLE_LIDAR_STEP1:
         return registry.lowlevel_name(formation, "step1") + "_obstacle_lidar"
     kind = {"AT-M-Safe": "safe", "AT-M-Nav": "nav"}.get(method, f"step{method[-1]}")
@@ -127,6 +135,7 @@ POLICY_CHOICES = {
     "student": "Student",
     "orca": "ORCA-F",
     "clm": "CL-M",
+    "maddpg": MADDPG,
 }
 """cefc-eval's --policy aliases and the Table III row each one is."""
 
@@ -222,7 +231,10 @@ def run_table3(
             except CheckpointError:
                 if policy is not None:
                     raise
-                hint = f": train it with cefc-train clm --formation {c}" if method == "CL-M" else ""
+                hint = {
+                    "CL-M": f": train it with cefc-train clm --formation {c}",
+                    MADDPG: f": train it with cefc-train formation-benchmarl --formation {c}",
+                }.get(method, "")
                 result["protocol"]["missing"].append(f"{c}/{method} ({name}.pt{hint})")
                 continue
             per_episode = evaluate_lowlevel_episodes(load_policy(path), c, episodes=episodes, seed=seed, steps=steps)
