@@ -67,6 +67,7 @@ from cefc_mj.hierarchy import (
 )
 from cefc_mj.nn.atm import Critic
 from cefc_mj.nn.consmac import ABLATIONS, ConsMACConfig, global_labels, seeded
+from cefc_mj.nn.consmac_grad import fused_supported, supervised_grads
 from cefc_mj.nn.highlevel_policy import (
     CONSMAC_VARIANTS,
     SUPERVISED_VARIANTS,
@@ -368,7 +369,7 @@ class ConsMACReplay:
 
     def sample(self, batch: int, generator: torch.Generator) -> dict[str, torch.Tensor]:
         index = torch.randint(0, self.size, (batch,), generator=generator)
-        return {name: self.data[name][index] for name in self.FIELDS}
+        return {name: self.data[name].index_select(0, index) for name in self.FIELDS}
 
     def newest(self, rows: int) -> dict[str, torch.Tensor]:
         """The `rows` most recently added rows (fewer when the buffer holds fewer)."""
@@ -473,7 +474,7 @@ class HighLevelTrainer:
         self.policy_opt = torch.optim.Adam(rl_params, lr=cfg.ppo.lr, eps=1e-5)
         self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=cfg.ppo.lr, eps=1e-5)
         self.consmac_opt = (
-            torch.optim.Adam(self.policy.comm.parameters(), lr=cfg.consmac_lr) if cfg.supervised else None
+            torch.optim.Adam(self.policy.comm.parameters(), lr=cfg.consmac_lr, foreach=True) if cfg.supervised else None
         )
         # wt-rl: the PPO step also steps ConsMAC, with ConsMAC's own optimizer (one Adam state for both losses)
         self.rl_step = _Joint(self.policy_opt, self.consmac_opt) if cfg.ablation == "wt-rl" else self.policy_opt
@@ -706,13 +707,18 @@ class HighLevelTrainer:
         """`steps` Adam steps of the module's supervised loss (eq. (11) for ConsMAC; MASIA's and
         NVIF's own: `supervised_loss`) on batches from the replay; returns the round's losses."""
         comm, opt = self.policy.comm, self.consmac_opt
+        fused = fused_supported(comm)  # ConsMAC: the hand-written backward pass, else autograd
+        params = list(comm.parameters())
         losses = []
         for _ in range(steps):
             batch = self.replay.sample(self.cfg.consmac_batch, self.generator)
-            loss = comm.supervised_loss(batch, generator=self.generator)
-            opt.zero_grad()
-            loss.backward()
-            torch.nn.utils.clip_grad_norm_(comm.parameters(), self.cfg.ppo.max_grad_norm)
+            if fused:
+                loss = supervised_grads(comm, batch)
+            else:
+                loss = comm.supervised_loss(batch, generator=self.generator)
+                opt.zero_grad()
+                loss.backward()
+            torch.nn.utils.clip_grad_norm_(params, self.cfg.ppo.max_grad_norm)
             opt.step()
             losses.append(loss.item())
         self.consmac_rounds += 1
