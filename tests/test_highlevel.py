@@ -309,6 +309,8 @@ def test_cli_trains_exports_and_resumes_a_run(tmp_path, monkeypatch, capsys):
     assert [p["iterations"] for p in card["phases"]] == [1, 1]
     assert [p["low_level"] for p in card["phases"]] == ["navigation", "atm_student"]
     assert card["consmac_training"]["steps"] == 6 and card["consmac_training"]["paper"]["steps"] == 5000
+    assert config["highlevel"]["schedule"] == "short" and card["schedule"]["name"] == "short"
+    assert card["schedule"]["consmac_steps"] == 200 and not card["schedule"]["fixed"]
     fit = card["consmac_training"]["label_fit"]  # the newest iteration's rows: 2 envs x 5 decisions x 8 agents
     assert (
         fit["rows"] == 2 * 5 * 8

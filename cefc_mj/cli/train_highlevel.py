@@ -126,10 +126,25 @@ def add_parser(sub) -> None:
         metavar="N",
         help="torch threads of the updates and ConsMAC (default 2)",
     )
+    p.add_argument(
+        "--schedule",
+        choices=("short", "paper"),  # train.highlevel.SCHEDULES
+        default=None,
+        help="the reading of the paper's training budget: short (default, the shipped runs': 75 iterations "
+        "of 20 envs, ConsMAC 200 steps after each; flags may change its numbers) or paper (1500 iterations of "
+        "20 envs, 1000 of them pre-training, ConsMAC 5000 steps of batch 2048 after every 20; those numbers are "
+        "fixed, so --budget, --envs, --pretrain-share and the --consmac-* flags must be left out or match)",
+    )
     add_common_args(p, "highlevel", "75it")
+    p.set_defaults(budget=None)  # the schedule's iterations (parse_budget)
 
 
-def run(args, budget: Budget, command: str | None = None) -> list[dict]:
+def parse_budget(text: str | None) -> Budget | None:
+    """--budget as a Budget; None when left out (the schedule's iterations: 75, or 1500 under paper)."""
+    return None if text is None else Budget.parse(text)
+
+
+def run(args, budget: Budget | None, command: str | None = None) -> list[dict]:
     """Check the config and folders, train, export and, with --install, install the policy and its
     pre-trained (wo-FT) weights; returns the model card."""
     from cefc_mj.nn.highlevel_policy import load_highlevel_policy

@@ -44,6 +44,7 @@ run as if it had not stopped.
 
 from __future__ import annotations
 
+import copy
 import csv
 import json
 import math
@@ -126,6 +127,33 @@ PPO loss reaches the senders through the inbox recomputed from their previous de
 States written before this had no gradient through received messages."""
 PHASES = ("pretrain", "finetune")
 PAPER_CONSMAC = {"every_episodes": 20, "steps": 5000, "batch": 2048}
+SCHEDULES = {
+    "short": {
+        "iterations": 75,
+        "n_envs": 20,
+        "pretrain_share": 2 / 3,
+        "consmac_every": 1,
+        "consmac_steps": 200,
+        "consmac_batch": 2048,
+    },
+    "paper": {
+        "iterations": 1500,
+        "n_envs": 20,
+        "pretrain_share": 2 / 3,
+        "consmac_every": 20,
+        "consmac_steps": 5000,
+        "consmac_batch": 2048,
+    },
+}
+"""Two readings of the paper's training budget (Sec. V-A: the high level "is updated for 1,000
+episodes during pre-training and 500 episodes during fine-tuning", data "collected in 20 threads",
+and "after every 20 episodes of interaction, the collected data are utilized to train ConsMAC for
+5,000 times with a batch size of 2,048"). "paper": one episode of the training loop is one rollout
+in each of the 20 envs followed by one update, as in the on-policy MAPPO code base the paper
+follows, so 1,500 iterations of 20 envs (1,000 pre-training), ConsMAC 5,000 steps after every 20
+iterations. "short": the project's first reading, 1,500 games in all (75 iterations of 20 envs)
+with 200 ConsMAC steps after each iteration; the shipped high levels were trained so. Under "paper"
+every number here is fixed; "short" only names the defaults, which flags may change."""
 """Algorithm 2's ConsMAC schedule (paper Sec. V-A), recorded beside what a run did."""
 STATE_FORMAT = "cefc-mj/highlevel-state"
 PROGRESS_KEYS = ("episode_return", "metric/E", "consmac_loss", "approx_kl")
@@ -214,6 +242,12 @@ class HighLevelConfig(BudgetPPODict):
     eval_episodes: int = 20
     """Episodes of the final policy (the mode of each anchor distribution, the fine-tuning low level)
     whose mean rewards the model card reports; 0 skips the evaluation."""
+    schedule: str = "short"
+    """Which reading of the paper's budget the run follows (SCHEDULES): "short" (the default and the
+    shipped runs': its numbers are the other fields' defaults, free to change) or "paper" (1,500
+    iterations of 20 envs, 1,000 of them pre-training, ConsMAC 5,000 steps of 2,048 after every 20;
+    those fields must then hold exactly the paper's values). Runs saved before this field existed
+    load as "short"."""
 
     def __post_init__(self) -> None:
         if isinstance(self.pretrain_share, int) and not isinstance(self.pretrain_share, bool):
@@ -332,6 +366,36 @@ class HighLevelConfig(BudgetPPODict):
             )
         self.ppo.validate()
         self.task()  # the game itself (obstacle packing, ...)
+        self.check_schedule()
+
+    def check_schedule(self) -> None:
+        """Under schedule "paper", every number of SCHEDULES["paper"] must be the config's."""
+        if self.schedule not in SCHEDULES:
+            _fail("schedule", self.schedule, f"must be one of {', '.join(SCHEDULES)}")
+        if self.schedule != "paper":
+            return
+        paper = SCHEDULES["paper"]
+        held = {
+            "budget": (self.budget, Budget(iterations=paper["iterations"])),
+            "n_envs": (self.ppo.n_envs, paper["n_envs"]),
+            "episodes_per_iteration": (self.ppo.episodes_per_iteration, 1),
+            **{
+                name: (getattr(self, name), paper[name]) for name in ("consmac_every", "consmac_steps", "consmac_batch")
+            },
+            "pretrain_share": (self.pretrain_share, paper["pretrain_share"]),
+        }
+        for name, (value, expected) in held.items():
+            if name == "pretrain_share" and math.isclose(value, expected):
+                continue
+            if value != expected:
+                if name == "budget":  # as --budget takes it
+                    value = "".join(f"{v:g}{unit}" for v, unit in ((value.iterations, "it"), (value.seconds, "s")) if v)
+                    expected = f"{paper['iterations']} iterations"
+                _fail(
+                    name,
+                    value,
+                    f"schedule 'paper' fixes it to {expected} (paper Sec. V-A); leave it out or use schedule 'short'",
+                )
 
 
 class ConsMACReplay:
@@ -980,6 +1044,7 @@ def export_policy(
         "low_level": low_level_record,
         "adversary": trainer.adversary_record,
         "phases": phases[:1] if wo_ft else phases,
+        "schedule": {"name": cfg.schedule, **SCHEDULES[cfg.schedule], "fixed": cfg.schedule == "paper"},
         "consmac_training": None
         if not cfg.supervised
         else {
@@ -1074,6 +1139,8 @@ _FLAG_OF_FIELD = {
     "lr": "--lr",
     "update_threads": "--threads",
     "entropy_coef": "--entropy",
+    "schedule": "--schedule",
+    "budget": "--budget",
 }
 """Config fields set by `cefc-train highlevel` flags: their errors name the flag the user typed."""
 CLI_FIELDS = (
@@ -1091,13 +1158,23 @@ CLI_FIELDS = (
     "consmac_lr",
     "replay_capacity",
     "eval_episodes",
+    "schedule",
 )
 CLI_PPO_FIELDS = ("n_envs", "epochs", "minibatches", "lr", "update_threads", "entropy_coef")
 
 
-def config_from_args(args, budget: Budget) -> HighLevelConfig:
+def config_from_args(args, budget: Budget | None) -> HighLevelConfig:
     """The HighLevelConfig of `cefc-train highlevel` arguments (flags left out keep the config's
-    defaults); a bad value raises ConfigError naming the flag."""
+    defaults, and take the numbers of `--schedule paper` under that schedule; budget None: the
+    schedule's iterations); a bad value raises ConfigError naming the flag."""
+    schedule = SCHEDULES[getattr(args, "schedule", None) or "short"]
+    if budget is None:
+        budget = Budget(iterations=schedule["iterations"])
+    if getattr(args, "schedule", None) == "paper":
+        args = copy.copy(args)
+        for name in ("consmac_every", "consmac_steps", "consmac_batch", "n_envs"):
+            if getattr(args, name, None) is None:
+                setattr(args, name, schedule[name])
     return config_from_flags(HighLevelConfig, args, budget, CLI_FIELDS, CLI_PPO_FIELDS, _paper_ppo(), _FLAG_OF_FIELD)
 
 
