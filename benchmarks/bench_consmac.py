@@ -32,7 +32,7 @@ from reference_impl import consmac_train_step_reference  # noqa: E402
 from cefc_mj.nn.consmac import ConsMAC, ConsMACConfig  # noqa: E402
 from cefc_mj.nn.consmac_grad import supervised_grads  # noqa: E402
 from cefc_mj.task.config import TaskConfig  # noqa: E402
-from cefc_mj.train.highlevel import ConsMACReplay  # noqa: E402
+from cefc_mj.train.consmac_replay import ConsMACReplay  # noqa: E402
 
 MAX_GRAD_NORM = 0.5
 

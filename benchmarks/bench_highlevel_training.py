@@ -35,7 +35,8 @@ from bench_consmac import StepPair  # noqa: E402
 
 from cefc_mj.hierarchy import NAVIGATION, HierarchicalCEFCEnv, load_low_level  # noqa: E402
 from cefc_mj.train.config import Budget  # noqa: E402
-from cefc_mj.train.highlevel import SCHEDULES, HighLevelConfig, HighLevelTrainer  # noqa: E402
+from cefc_mj.train.highlevel_config import SCHEDULES, HighLevelConfig  # noqa: E402
+from cefc_mj.train.highlevel_trainer import HighLevelTrainer  # noqa: E402
 
 
 def time_iterations(trainer: HighLevelTrainer, iterations: int) -> dict[str, list[float]]:

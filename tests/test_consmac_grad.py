@@ -15,7 +15,8 @@ from test_highlevel import make_trainer, tiny_config
 from cefc_mj.nn import consmac_grad
 from cefc_mj.nn.consmac import ABLATIONS, ConsMAC, ConsMACConfig
 from cefc_mj.task.config import TaskConfig
-from cefc_mj.train import highlevel
+from cefc_mj.train import highlevel_trainer
+from cefc_mj.train.config import Budget
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 GRAD_TOL = 1e-5
@@ -81,11 +82,11 @@ def test_a_short_run_learns_as_with_the_old_step(monkeypatch):
     """Three iterations (ConsMAC rounds after each) with the new step and with the old one."""
 
     def run() -> list[dict]:
-        trainer = make_trainer(tiny_config("consmac-a", budget=highlevel.Budget(iterations=3), consmac_steps=20))
+        trainer = make_trainer(tiny_config("consmac-a", budget=Budget(iterations=3), consmac_steps=20))
         return [trainer.iterate() for _ in range(3)]
 
     new_rows = run()
-    monkeypatch.setattr(highlevel, "supervised_grads", reference_grads)
+    monkeypatch.setattr(highlevel_trainer, "supervised_grads", reference_grads)
     old_rows = run()
     keys = ("episode_return", "consmac_loss", "consmac_loss_last", "policy_loss", "value_loss", "entropy")
     for new, old in zip(new_rows, old_rows):

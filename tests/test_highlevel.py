@@ -18,11 +18,13 @@ from cefc_mj.cli.train import main
 from cefc_mj.env import BatchedCEFCEnv
 from cefc_mj.errors import CefcError, CheckpointError, ConfigError
 from cefc_mj.hierarchy import HierarchicalCEFCEnv, NavigationOnly, PerGroupPolicies, load_low_level
+from cefc_mj.nn.highlevel_policy import load_highlevel_policy
 from cefc_mj.nn.registry import GAME_ADVERSARY
 from cefc_mj.task.config import TaskConfig
 from cefc_mj.task.observation import build_low_level_observation
 from cefc_mj.train.config import Budget, PPOConfig
-from cefc_mj.train.highlevel import HighLevelConfig, HighLevelTrainer, load_highlevel_policy
+from cefc_mj.train.highlevel_config import HighLevelConfig
+from cefc_mj.train.highlevel_trainer import HighLevelTrainer
 
 TASK = TaskConfig(n_agents=8, mode="cefc", obstacle_density=0.03)
 

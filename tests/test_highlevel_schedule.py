@@ -1,5 +1,5 @@
 """`cefc-train highlevel --schedule`: the two readings of the paper's training budget
-(cefc_mj/train/highlevel.py, SCHEDULES). "short" keeps today's defaults; "paper" fixes 1,500
+(cefc_mj/train/highlevel_config.py, SCHEDULES). "short" keeps today's defaults; "paper" fixes 1,500
 iterations of 20 envs (1,000 pre-training) and ConsMAC 5,000 steps of 2,048 after every 20, refuses
 any flag that would change them, and is saved in the run's config (a resumed run keeps it)."""
 
@@ -12,7 +12,7 @@ from cefc_mj.cli.train import build_parser, main
 from cefc_mj.cli.train_highlevel import parse_budget
 from cefc_mj.errors import ConfigError
 from cefc_mj.train.config import Budget
-from cefc_mj.train.highlevel import SCHEDULES, HighLevelConfig, config_from_args
+from cefc_mj.train.highlevel_config import SCHEDULES, HighLevelConfig, config_from_args
 from cefc_mj.train.run_state import check_same_run
 
 
