@@ -99,13 +99,12 @@ def supervised_grads(net: ConsMAC, batch: dict[str, torch.Tensor]) -> torch.Tens
     q_h = q.view(n_rows, h_count, hd).transpose(0, 1)  # [H, L, hd]
     w_key = att.key.weight.view(h_count, hd, sent + dist_dim)
     w_key_sent, w_key_code = w_key[..., :sent], w_key[..., sent:]
-    q_key_sent = torch.bmm(q_h, w_key_sent).transpose(0, 1)  # [L, H, sent]: W_K,h^T q_h, message half
-    q_key_code = torch.bmm(q_h, w_key_code).transpose(0, 1)  # [L, H, D]
+    q_key_sent = torch.bmm(q_h, w_key_sent)  # [H, L, sent]: W_K,h^T q_h, the message half
+    q_key_code = torch.bmm(q_h, w_key_code)  # [H, L, D]
     key_bias = (q_heads * att.key.bias.view(h_count, hd)).sum(-1)  # [L, H]
-    q_key_sent, q_key_code = q_key_sent.contiguous(), q_key_code.contiguous()
     weights = torch.empty(n_rows, h_count, k, dtype=dtype)
-    pooled_sent = torch.empty(n_rows, h_count, sent, dtype=dtype)
-    pooled_code = torch.empty(n_rows, h_count, dist_dim, dtype=dtype)
+    pooled_sent = torch.empty(h_count, n_rows, sent, dtype=dtype)  # head-major, as the projections take it
+    pooled_code = torch.empty(h_count, n_rows, dist_dim, dtype=dtype)
     mask_np = mask.numpy()
     _attend(
         q_key_sent.numpy(),
@@ -119,7 +118,6 @@ def supervised_grads(net: ConsMAC, batch: dict[str, torch.Tensor]) -> torch.Tens
         pooled_sent.numpy(),
         pooled_code.numpy(),
     )
-    pooled_sent, pooled_code = pooled_sent.transpose(0, 1), pooled_code.transpose(0, 1)  # [H, L, .]
     weight_sum = weights.sum(-1, keepdim=True)  # [L, H, 1]
     w_value = att.value.weight.view(h_count, hd, sent + dist_dim)
     w_value_sent, w_value_code = w_value[..., :sent], w_value[..., sent:]
@@ -159,11 +157,11 @@ def supervised_grads(net: ConsMAC, batch: dict[str, torch.Tensor]) -> torch.Tens
         [torch.bmm(d_heads_h.transpose(1, 2), pooled_sent), torch.bmm(d_heads_h.transpose(1, 2), pooled_code)], dim=-1
     ).reshape(-1, sent + dist_dim)
     grads[att.value.bias] = (d_heads * weight_sum).sum(0).reshape(-1)
-    d_pooled_sent = torch.bmm(d_heads_h, w_value_sent).transpose(0, 1)  # [L, H, sent]
-    d_pooled_code = torch.bmm(d_heads_h, w_value_code).transpose(0, 1)  # [L, H, D]
+    d_pooled_sent = torch.bmm(d_heads_h, w_value_sent)  # [H, L, sent]
+    d_pooled_code = torch.bmm(d_heads_h, w_value_code)  # [H, L, D]
     d_value_bias = (d_heads * att.value.bias.view(h_count, hd)).sum(-1)  # [L, H]: d weight_sum
-    d_q_key_sent = torch.empty(n_rows, h_count, sent, dtype=dtype)
-    d_q_key_code = torch.empty(n_rows, h_count, dist_dim, dtype=dtype)
+    d_q_key_sent = torch.empty(h_count, n_rows, sent, dtype=dtype)
+    d_q_key_code = torch.empty(h_count, n_rows, dist_dim, dtype=dtype)
     d_key_bias = torch.empty(n_rows, h_count, dtype=dtype)
     d_code = torch.empty(n_rows, k, dist_dim, dtype=dtype)  # written on the open slots
     _attend_backward(
@@ -171,8 +169,8 @@ def supervised_grads(net: ConsMAC, batch: dict[str, torch.Tensor]) -> torch.Tens
         sent_keys.numpy(),
         code.numpy(),
         weights.numpy(),
-        d_pooled_sent.contiguous().numpy(),
-        d_pooled_code.contiguous().numpy(),
+        d_pooled_sent.numpy(),
+        d_pooled_code.numpy(),
         d_value_bias.numpy(),
         mask_np,
         inv_sqrt_hd,
@@ -181,7 +179,6 @@ def supervised_grads(net: ConsMAC, batch: dict[str, torch.Tensor]) -> torch.Tens
         d_key_bias.numpy(),
         d_code.numpy(),
     )
-    d_q_key_sent, d_q_key_code = d_q_key_sent.transpose(0, 1), d_q_key_code.transpose(0, 1)  # [H, L, .]
     q_h_t = q_h.transpose(1, 2)  # [H, hd, L]
     grads[att.key.weight] = torch.cat([torch.bmm(q_h_t, d_q_key_sent), torch.bmm(q_h_t, d_q_key_code)], dim=-1).reshape(
         -1, sent + dist_dim
@@ -227,8 +224,9 @@ def supervised_grads(net: ConsMAC, batch: dict[str, torch.Tensor]) -> torch.Tens
 
 # ---------------------------------------------------------------------------- compiled kernels
 # Per row l and head h, one query against the row's K keys, each key in two halves (the message and
-# the distance code); only open slots are read. The contractions are over K <= 7 slots and the
-# key widths, too small for batched matrix products to run well on a CPU.
+# the distance code); only open slots are read. The query products, pooled keys and their gradients
+# are head-major, [H, L, .], as the per-head projections make and take them. The contractions are
+# over K <= 7 slots and the key widths, too small for batched matrix products to run well on a CPU.
 _FAST = {"reassoc", "contract", "nsz"}  # reorder sums (SIMD), fuse multiply-adds; no NaN/inf assumptions
 
 
@@ -236,7 +234,7 @@ _FAST = {"reassoc", "contract", "nsz"}  # reorder sums (SIMD), fuse multiply-add
 def _attend(q_sent, q_code, k_sent, k_code, key_bias, mask, scale, weights, pooled_sent, pooled_code):
     """scores = (q . e_j + q . b_K) * scale on the open slots, weights = their softmax (zero on empty
     slots and where none is open), pooled = sum_j weights_j e_j (both halves)."""
-    n_rows, n_heads, n_sent = q_sent.shape
+    n_heads, n_rows, n_sent = q_sent.shape
     n_slots, n_code = mask.shape[1], q_code.shape[2]
     scores = np.empty(n_slots, dtype=np.float32)
     for row in range(n_rows):
@@ -247,15 +245,15 @@ def _attend(q_sent, q_code, k_sent, k_code, key_bias, mask, scale, weights, pool
                 if mask[row, slot]:
                     acc = np.float32(0.0)
                     for e in range(n_sent):
-                        acc += q_sent[row, head, e] * k_sent[row, slot, e]
+                        acc += q_sent[head, row, e] * k_sent[row, slot, e]
                     for e in range(n_code):
-                        acc += q_code[row, head, e] * k_code[row, slot, e]
+                        acc += q_code[head, row, e] * k_code[row, slot, e]
                     scores[slot] = (acc + key_bias[row, head]) * scale
                     top = max(top, scores[slot])
             for e in range(n_sent):
-                pooled_sent[row, head, e] = 0.0
+                pooled_sent[head, row, e] = 0.0
             for e in range(n_code):
-                pooled_code[row, head, e] = 0.0
+                pooled_code[head, row, e] = 0.0
             if top == -np.inf:
                 continue
             total = np.float32(0.0)
@@ -268,9 +266,9 @@ def _attend(q_sent, q_code, k_sent, k_code, key_bias, mask, scale, weights, pool
                     w = scores[slot] / total
                     weights[row, head, slot] = w
                     for e in range(n_sent):
-                        pooled_sent[row, head, e] += w * k_sent[row, slot, e]
+                        pooled_sent[head, row, e] += w * k_sent[row, slot, e]
                     for e in range(n_code):
-                        pooled_code[row, head, e] += w * k_code[row, slot, e]
+                        pooled_code[head, row, e] += w * k_code[row, slot, e]
 
 
 @njit(fastmath=_FAST)
@@ -292,7 +290,7 @@ def _attend_backward(
     """The gradient of `_attend` (with `weight_sum` = sum_j weights_j, whose gradient is
     d_weight_sum) with respect to the query products q_sent, q_code, the key bias term and the
     distance codes (written on the open slots only)."""
-    n_rows, n_heads, n_sent = d_pooled_sent.shape
+    n_heads, n_rows, n_sent = d_pooled_sent.shape
     n_slots, n_code = mask.shape[1], q_code.shape[2]
     d_scores = np.empty(n_slots, dtype=np.float32)
     for row in range(n_rows):
@@ -307,24 +305,24 @@ def _attend_backward(
                 if mask[row, slot]:
                     acc = np.float32(0.0)
                     for e in range(n_sent):
-                        acc += d_pooled_sent[row, head, e] * k_sent[row, slot, e]
+                        acc += d_pooled_sent[head, row, e] * k_sent[row, slot, e]
                     for e in range(n_code):
-                        acc += d_pooled_code[row, head, e] * k_code[row, slot, e]
+                        acc += d_pooled_code[head, row, e] * k_code[row, slot, e]
                     d_scores[slot] = acc + d_weight_sum[row, head]  # d weights_j
                     inner += weights[row, head, slot] * d_scores[slot]
             bias = np.float32(0.0)
             for e in range(n_sent):
-                d_q_sent[row, head, e] = 0.0
+                d_q_sent[head, row, e] = 0.0
             for e in range(n_code):
-                d_q_code[row, head, e] = 0.0
+                d_q_code[head, row, e] = 0.0
             for slot in range(n_slots):
                 if mask[row, slot]:
                     w = weights[row, head, slot]
                     ds = w * (d_scores[slot] - inner) * scale  # softmax, then the score's scale
                     bias += ds
                     for e in range(n_sent):
-                        d_q_sent[row, head, e] += ds * k_sent[row, slot, e]
+                        d_q_sent[head, row, e] += ds * k_sent[row, slot, e]
                     for e in range(n_code):
-                        d_q_code[row, head, e] += ds * k_code[row, slot, e]
-                        d_code[row, slot, e] += w * d_pooled_code[row, head, e] + ds * q_code[row, head, e]
+                        d_q_code[head, row, e] += ds * k_code[row, slot, e]
+                        d_code[row, slot, e] += w * d_pooled_code[head, row, e] + ds * q_code[head, row, e]
             d_key_bias[row, head] = bias
