@@ -73,12 +73,15 @@ def _check_int(name: str, value: object, least: int, most: int | None = None) ->
 @dataclass(frozen=True)
 class HighLevelConfig(BudgetPPODict):
     """One high-level training run (Algorithm 2). Defaults are the paper's where it gives a value
-    (Sec. V-A); `consmac_steps` is scaled to a 2-core budget (docs/high_level.md)."""
+    (Sec. V-A); the budget and the ConsMAC schedule default to the short reading of `SCHEDULES`
+    (docs/high_level.md, docs/research/highlevel_speed.md)."""
 
     budget: Budget
     """Iterations (each: n_envs x episodes_per_iteration episodes, then the updates) and/or
-    wall-clock time, counted across resumes. The paper's 1000 + 500 episodes are 75 iterations of 20;
-    the shipped high levels ran those 75 and were continued with --resume to 150 (docs/decisions.md)."""
+    wall-clock time, counted across resumes. Read as 1,500 games, the paper's 1000 + 500 episodes
+    are 75 iterations of 20 (schedule "short"; the shipped high levels ran those 75 and were continued
+    with --resume to 150, docs/decisions.md); read as the MAPPO code base counts them, 1,500
+    iterations of 20 (schedule "paper")."""
     variant: str = "consmac-a"
     """consmac-a / consmac-o: ConsMAC with the anchors / the observations of all agents as labels;
     mappo: no communication; tarmac: the communication module trained end to end by the RL loss;
@@ -112,10 +115,11 @@ class HighLevelConfig(BudgetPPODict):
     """Share of the budget flown with the navigation-only low level before fine-tuning with
     `low_level` (paper: 1000 of 1500 episodes); 0 trains with `low_level` only (CI-HRL-DT)."""
     consmac_every: int = 1
-    """ConsMAC trains after every this many iterations (1 with 20 envs: every 20 episodes, the paper's)."""
+    """ConsMAC trains after every this many iterations: 1 in the short schedule (20 envs make an
+    iteration 20 games, the paper's "every 20 episodes" read as games), 20 in the paper schedule."""
     consmac_steps: int = 200
-    """Adam steps per ConsMAC round (paper: 5000; one step of batch 2048 costs 50-200 ms on a shared
-    2-core CPU, so 5000 would be 98 % of a run)."""
+    """Adam steps per ConsMAC round (paper: 5000, schedule "paper"; the short schedule's 200 kept the
+    shipped runs affordable when a step of batch 2048 cost 50-200 ms on a shared 2-core CPU)."""
     consmac_batch: int = 2048
     """Tuples per ConsMAC step (paper: 2048), drawn uniformly with replacement from the replay."""
     consmac_lr: float = 1e-4
