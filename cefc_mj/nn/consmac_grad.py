@@ -13,8 +13,12 @@ to float rounding (about 1e-6 relative; tests/test_consmac_grad.py). What it sav
   projection is one row, added as a bias (its gradient through the frequencies is exactly zero:
   d cos(w 0) / dw = 0);
 - the attention with one query per row runs on the reassociated products of
-  `MaskedMultiHeadAttention(fast=True)` as three batched products, with the masking done once, in
-  place, on the concatenated keys.
+  `MaskedMultiHeadAttention(fast=True)`: the per-head projections W_K,h^T q_h and W_V,h (pooled) as
+  torch matrix products, head-major, and the scores, the masked softmax, the pooled keys and their
+  gradients in two numba kernels that read open inbox slots only (the contractions over at most 7
+  slots are too small for batched matrix products to run well on a CPU); the keys stay as their two
+  halves, received messages and distance codes, never concatenated, and the distance code (cos, and
+  sin in the backward pass) is computed on open slots only.
 
 `fused_supported(net)` says which modules it covers: ConsMAC (message_content "learned") with the
 residual LayerNorm message, every Fig. 7 ablation included; anything else keeps autograd.
