@@ -45,7 +45,7 @@ def test_the_default_run_is_our_trainers_game_and_budget():
     from cefc_mj.nn.registry import GAME_ADVERSARY
     from cefc_mj.train.benchmarl_config import DECISION_INTERVAL as OURS
     from cefc_mj.train.config import Budget
-    from cefc_mj.train.highlevel import HighLevelConfig
+    from cefc_mj.train.highlevel_config import HighLevelConfig
 
     cfg = BenchMARLConfig()
     trainer = HighLevelConfig(budget=Budget(iterations=75), variant="mappo")

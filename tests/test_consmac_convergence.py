@@ -20,7 +20,9 @@ from cefc_mj.hierarchy import load_low_level
 from cefc_mj.nn.consmac import consmac_loss
 from cefc_mj.nn.highlevel_policy import HighLevelPolicy
 from cefc_mj.train.config import Budget, PPOConfig
-from cefc_mj.train.highlevel import STATE_FORMAT, HighLevelConfig, HighLevelTrainer, train_highlevel
+from cefc_mj.train.highlevel import STATE_FORMAT, train_highlevel
+from cefc_mj.train.highlevel_config import HighLevelConfig
+from cefc_mj.train.highlevel_trainer import HighLevelTrainer
 from cefc_mj.train.run_state import STATE_FILE
 
 ROOT = Path(__file__).resolve().parent.parent

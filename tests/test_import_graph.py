@@ -220,6 +220,24 @@ def test_the_graph_is_read():
     assert len(MODULES) > 50 and len(EDGES) > 300
 
 
+HIGHLEVEL_TRAINING = (
+    "cefc_mj.train.highlevel_config",
+    "cefc_mj.train.consmac_replay",
+    "cefc_mj.train.highlevel_trainer",
+    "cefc_mj.train.highlevel_export",
+    "cefc_mj.train.highlevel",
+)
+"""The high level's training, split by job, bottom first: config, replay, learner, export, the run."""
+
+
+def test_the_high_level_training_modules_import_only_downward():
+    rank = {module: i for i, module in enumerate(HIGHLEVEL_TRAINING)}
+    assert set(HIGHLEVEL_TRAINING) <= set(MODULES)
+    upward = [e for e in EDGES if e.source in rank and e.target in rank and rank[e.target] >= rank[e.source]]
+    assert not upward, "\n".join(f"{e.where}: {e.source} imports {e.target}" for e in upward)
+    assert all(len(MODULES[m].read_text().splitlines()) <= 600 for m in HIGHLEVEL_TRAINING)
+
+
 # ---------------------------------------------------------------------------------- the checker itself
 def test_checker_reports_a_cycle_and_an_upward_import():
     layers = (("low", ("low",)), ("high", ("high",)))

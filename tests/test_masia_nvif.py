@@ -23,7 +23,8 @@ from cefc_mj.task.config import TaskConfig
 from cefc_mj.task.messages import Inbox
 from cefc_mj.task.observation import cefc_layout
 from cefc_mj.train.config import Budget, PPOConfig
-from cefc_mj.train.highlevel import HighLevelConfig, HighLevelTrainer
+from cefc_mj.train.highlevel_config import HighLevelConfig
+from cefc_mj.train.highlevel_trainer import HighLevelTrainer
 
 TASK = TaskConfig(n_agents=8, mode="cefc", obstacle_density=0.03)
 TABLE_IV = {"mappo": 0, "tarmac": 64, "masia": 38, "nvif": 102, "consmac-a": 64, "consmac-o": 64}

@@ -7,7 +7,7 @@ import pytest
 
 from cefc_mj.cli import train_lowlevel
 from cefc_mj.cli.train import build_parser
-from cefc_mj.train import adversary, adversary_ddpg, benchmarl_config, highlevel
+from cefc_mj.train import adversary, adversary_ddpg, benchmarl_config, highlevel_config
 from cefc_mj.train.config import CLM_CURRICULUM, Budget, DistillConfig, LowLevelConfig, PPOConfig
 
 BUDGET = Budget(iterations=1)
@@ -76,7 +76,10 @@ def _formation_benchmarl(sub):
 CASES = {
     # command: (flag -> the config's default, of the subcommand's parser; fewest flags checked)
     "adversary": (_by_dest(adversary.AdversaryConfig, adversary.CLI_FIELDS, adversary.CLI_PPO_FIELDS), 5),
-    "highlevel": (_by_dest(highlevel.HighLevelConfig, highlevel.CLI_FIELDS, highlevel.CLI_PPO_FIELDS), 5),
+    "highlevel": (
+        _by_dest(highlevel_config.HighLevelConfig, highlevel_config.CLI_FIELDS, highlevel_config.CLI_PPO_FIELDS),
+        5,
+    ),
     "adversary-ddpg": (_ddpg, 5),
     "lowlevel": (_lowlevel, 5),
     "clm": (_clm, 5),

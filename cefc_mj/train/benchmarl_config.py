@@ -162,7 +162,7 @@ class BenchMARLConfig:
     def game_config(self):
         """The HighLevelConfig of the same game (its `task()` is the TaskConfig trained on)."""
         from cefc_mj.train.config import Budget
-        from cefc_mj.train.highlevel import HighLevelConfig
+        from cefc_mj.train.highlevel_config import HighLevelConfig
 
         return HighLevelConfig(
             budget=Budget(iterations=self.iterations),
