@@ -18,7 +18,7 @@ adversary's policy name (shipped folder) or file, flown by its mean action.
     python benchmarks/adversary_strength.py --adversaries adversary_ppo_nearest_group_intercept \\
         --teams benchmarl_masac,benchmarl_masac_seed1,rule-split --episodes 10
 
-The figures depend on the policy files flown: the table in docs/high_level.md ("The next adversary")
+The figures depend on the policy files flown: the table in docs/research/high_level.md ("The next adversary")
 was flown against the files the shipped `adversary_ppo_nearest_group_intercept` was trained against
 (its model card lists them with their checksums).
 """
@@ -38,8 +38,9 @@ from pathlib import Path
 
 from cefc_mj import paths
 from cefc_mj.errors import CefcError, CheckpointError, ConfigError
-from cefc_mj.eval.highlevel import TABLE5_ROWS, resolve_adversary
+from cefc_mj.eval.highlevel import TABLE5_ROWS
 from cefc_mj.fileio import make_writable_folder, write_atomic
+from cefc_mj.nn.adversary_policy import resolve_adversary
 from cefc_mj.provenance import display_path, git_commit, library_versions
 from cefc_mj.seeds import GAME_VALIDATION_SEED, VALIDATION
 from cefc_mj.task.adversary import InterceptRule

@@ -26,9 +26,9 @@ import time
 import numpy as np
 import torch
 
-from cefc_mj.eval.highlevel import LOW_LEVEL, game_task, highlevel_policy_path
+from cefc_mj.game_protocol import LOW_LEVEL, game_task
 from cefc_mj.hierarchy import HierarchicalCEFCEnv, load_low_level
-from cefc_mj.nn.highlevel_policy import load_highlevel_policy
+from cefc_mj.nn.highlevel_policy import highlevel_policy_path, load_highlevel_policy
 from cefc_mj.nn.policy_io import load_policy, resolve_policy_path
 from cefc_mj.task.messages import Inbox, MessageChannel
 

@@ -31,7 +31,7 @@ cannot be flat).
 (iii) `--scaling [8,64,256]`: the swarm loop of (ii) for each N with both rotor paths, "actuators" and
 "external", interleaved round by round in one process (best of `--rounds`), plus raw mj_step of each
 model (drones hovering); prints loop RTF of each path, external / actuators, and what the default
-rotor_actuation = "auto" resolves to at that N (docs/mujoco_world.md, Performance).
+rotor_actuation = "auto" resolves to at that N (docs/research/mujoco_world.md, Performance).
 
 `--smoke`: every mode at tiny sizes, one round (a few seconds; tests/test_benchmarks.py runs it).
 

@@ -49,13 +49,11 @@ from cefc_mj.fileio import write_atomic
 from cefc_mj.nn.consmac import consmac_loss
 from cefc_mj.nn.highlevel_policy import HighLevelPolicy
 from cefc_mj.provenance import display_path, display_run_path, file_sha256, git_commit, library_versions
-from cefc_mj.train.highlevel import (
-    PAPER_CONSMAC,
-    ConsMACReplay,
-    HighLevelConfig,
-    HighLevelTrainer,
-    read_state,
-)
+from cefc_mj.train.consmac_replay import ConsMACReplay
+from cefc_mj.train.highlevel import read_state
+from cefc_mj.train.highlevel_config import HighLevelConfig
+from cefc_mj.train.highlevel_export import PAPER_CONSMAC
+from cefc_mj.train.highlevel_trainer import HighLevelTrainer
 from cefc_mj.train.run_state import STATE_FILE
 
 PROG = "consmac_convergence"
@@ -155,8 +153,8 @@ def fresh_rows(run: dict, iterations: int) -> tuple[dict[str, torch.Tensor], dic
     restored from state.pt, the same low levels and adversary, the next iterations' seeds, anchors
     sampled by the final selector): data no supervised step of the run has seen. ConfigError when the
     run flew another low level or adversary than the files found now."""
-    from cefc_mj.eval.highlevel import resolve_adversary
     from cefc_mj.hierarchy import NAVIGATION, load_low_level
+    from cefc_mj.nn.adversary_policy import resolve_adversary
     from cefc_mj.train.model_card import display_paths
 
     cfg, state = run["cfg"], run["state"]

@@ -59,7 +59,7 @@ def make_env(
             renders offscreen with OpenGL, EGL when there is no display) or "human" (streams every
             step to a live Rerun viewer).
         airframe: MuJoCo only: "iris" (default), "crazyflie", or your own MJCF quadrotor with four
-            site-mounted thrust motors and a PX4-style params file (docs/mujoco_world.md).
+            site-mounted thrust motors and a PX4-style params file (docs/airframes.md).
         evaluator_agent: True makes each agent the one `cefc-eval` flies (mode="formation"): it acts on the
             fused position estimate (position_estimator="fused") and the env passes its actions through
             the separation guard (separation_guard=True) before they reach the physics. False (the

@@ -43,7 +43,7 @@ LOCAL_HOST = "127.0.0.1"
 """The only address a Ray instance started here listens on."""
 FORWARDED_ENV = ("MKL_CBWR",)
 """Variables of this process that Ray workers on other machines get too: they change the numbers
-(docs/reproducibility.md). A Ray instance started here passes its whole environment on anyway."""
+(docs/reproduce.md). A Ray instance started here passes its whole environment on anyway."""
 
 CONNECT_TIMEOUT_S = 10.0
 """How long to wait for the head's port to accept a connection before giving up on --address."""

@@ -15,7 +15,7 @@ i.e. [its anchor minus its perceived position, its velocity, every agent within 
 neighbour, nearest first, the neighbour mask, its LiDAR], 63 numbers for N <= 8. Neighbours are not
 filtered by anchor: an agent whose neighbours chose another anchor still sees them (and keeps its
 distance), and leaves them once the anchors pull the two sub-groups more than 3 m apart, the
-secession the paper describes (docs/high_level.md).
+secession the paper describes (docs/research/high_level.md).
 
 Why this module is here and not in `task/`: it calls trained networks (the low-level policies of
 `cefc_mj.nn`), and `task/` is physics- and torch-free. It sits beside `env.py`, one layer up.

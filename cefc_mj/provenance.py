@@ -92,7 +92,7 @@ def cpu_model() -> str:
 
 @functools.lru_cache(maxsize=None)
 def library_versions() -> dict[str, str]:
-    """Versions of everything that changes a closed-loop number, plus the CPU (see docs/reproducibility.md)."""
+    """Versions of everything that changes a closed-loop number, plus the CPU (see docs/reproduce.md)."""
     import mujoco
     import numba
     import numpy

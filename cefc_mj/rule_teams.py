@@ -9,7 +9,7 @@ so the adversary meets behaviours no learned team shows; they are not deployable
   left, to the anchor farthest from it.
 
 A team plays like a `HighLevelPolicy` without communication (`comm` None, `decide(obs, inbox)`), so
-`eval.highlevel.play_highlevel` plays it unchanged.
+`game_protocol.play_highlevel` plays it unchanged.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Game-seed blocks: which games train, which choose, which report (docs/evaluation.md, "Seed blocks").
+"""Game-seed blocks: which games train, which choose, which report (docs/evaluate.md, "Seed blocks").
 
 A game seed is the integer that seeds the layouts of an episode (Table VIII: one seed per episode) or
 of a batch of episodes (Tables III and V-VII: one seed per batch of 50). The blocks are disjoint:
@@ -6,9 +6,9 @@ of a batch of episodes (Tables III and V-VII: one seed per batch of 50). The blo
 - TRAINING: every training episode; `train.mappo.iteration_seed` maps (run seed, iteration) into it.
 - VALIDATION: every choice (budgets, learning rates, which checkpoint, any selection among
   candidates) is made on these games.
-- TEST: the shipped comparison reports are flown once on these, after every choice is made. Every
-  flight of a test seed is recorded in the test ledger (`cefc_mj.eval.ledger`), and the test
-  batches reports use are declared below (TEST_BATCHES).
+- TEST: the shipped comparison reports are flown once on these, after every choice is made. The test
+  batches reports use are declared below (TEST_BATCHES), and every flight of a declared batch is
+  recorded in the test ledger (`cefc_mj.eval.ledger`); other test seeds are not recorded.
 - PROTOCOL: the paper's protocols as this project first flew them and the regression tests (Table VIII
   seeds 0..5, the batch seed 0 of Tables III and V-VII). Earlier choices looked at them, so they are
   kept for reproduction and regression, not for deciding.
@@ -56,14 +56,14 @@ GAME_TEST_SEED = TEST.start
 Flown in several generations, and two adversary replacements were decided from its numbers
 (eval/test_ledger.jsonl): it no longer decides anything, see GAME_PREREGISTERED_TEST_SEED."""
 GAME_PREREGISTERED_TEST_SEED = 50_000
-"""The batch seed of the pre-registered Table V (docs/preregistration.md): never flown before that
+"""The batch seed of the pre-registered Table V (docs/research/preregistration.md): never flown before that
 flight, and `cefc-eval` flies it only with --preregistered-flight. A batch seed seeds one generator
 (`numpy.random.default_rng(seed)`) that draws every game of the batch at reset
 (`env.BatchedCEFCEnv.reset`), so two batch seeds give unrelated games, not shifted copies
 (tests/test_test_ledger.py compares the layouts of this batch with 10000's and 200's). Far from
 10000 to keep clear of the one-game-per-seed protocols too, which fly seed, seed + 1, ... (the SITL-M
 game study flew 20000..20099). The batches reserved before it, 30000 and 40000, were each flown once
-by accident before any new run's result was in (eval/test_ledger.jsonl, docs/preregistration.md
+by accident before any new run's result was in (eval/test_ledger.jsonl, docs/research/preregistration.md
 "Deviations"), so they are spent (SPENT_PREREGISTERED_TEST_SEEDS)."""
 SPENT_PREREGISTERED_TEST_SEEDS = (30_000, 40_000)
 """The pre-registration's earlier test batches, each flown once by accident (see GAME_PREREGISTERED_TEST_SEED)."""
@@ -73,7 +73,7 @@ TABLE8_MUJOCO_TEST_SEEDS = TEST.seeds(20, offset=50_000)
 """The test batch of AT-M-MuJoCo's Table VIII (episode seeds 60000..60019 of every c and condition):
 never flown before the fine-tuned policy was chosen; then flown once per grid, before (AT-M-Nav) and
 after (AT-M-MuJoCo) with the acceleration interface and no guard, and the new policy on the default
-path (docs/training_in_mujoco.md)."""
+path (docs/research/training_in_mujoco.md)."""
 
 
 def block_of(seed: int) -> str:
@@ -133,7 +133,7 @@ TEST_BATCHES = (
         GAME_FAMILY,
         GAME_PREREGISTERED_TEST_SEED,
         1,
-        "reserved: never flown; flown once by the pre-registered comparison (docs/preregistration.md)",
+        "reserved: never flown; flown once by the pre-registered comparison (docs/research/preregistration.md)",
     ),
     *(
         TestBatch(
@@ -141,7 +141,8 @@ TEST_BATCHES = (
             GAME_FAMILY,
             seed,
             1,
-            "spent: flown once by accident before the planned runs were in (docs/preregistration.md, Deviations)",
+            "spent: flown once by accident before the planned runs were in "
+            "(docs/research/preregistration.md, Deviations)",
         )
         for seed in SPENT_PREREGISTERED_TEST_SEEDS
     ),
@@ -158,7 +159,12 @@ TEST_BATCHES = (
         FORMATION_FAMILY,
         TABLE8_MUJOCO_TEST_SEEDS[0],
         len(TABLE8_MUJOCO_TEST_SEEDS),
-        "reserved: flown once per grid after the fine-tuned policy is chosen (docs/training_in_mujoco.md)",
+        "reserved: flown once per grid after the fine-tuned policy is chosen (docs/research/training_in_mujoco.md)",
     ),
 )
 """Every test batch a shipped or planned report uses, in one place."""
+
+FORMATION_VALIDATION_SEED = 300
+"""The batch seed of the formation task's validation episodes (50 episodes of Table III's protocol,
+VALIDATION): what BenchMARL formation runs report in their model cards and what their budgets are
+chosen on (docs/formation_benchmarl.md). Table III itself flies the PROTOCOL batch seed 0."""

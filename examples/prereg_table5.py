@@ -1,4 +1,4 @@
-"""Train the runs of the pre-registered Table V (docs/preregistration.md), resumably, one after another.
+"""Train the runs of the pre-registered Table V (docs/research/preregistration.md), resumably, one after another.
 
     python examples/prereg_table5.py --list              # every planned run and whether it is done
     python examples/prereg_table5.py --max-runs 4        # the next 4 runs not yet done (primary pair first)

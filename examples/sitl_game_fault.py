@@ -65,7 +65,8 @@ def main(argv: list[str] | None = None) -> int:
     from cefc_mj.deploy.episode import AgentFault
     from cefc_mj.errors import CefcError
     from cefc_mj.eval.conditions import Conditions
-    from cefc_mj.eval.highlevel import GAME_AGENTS, GAME_STEPS, GameSpec
+    from cefc_mj.eval.highlevel_sitl import GameSpec
+    from cefc_mj.game_protocol import GAME_AGENTS, GAME_STEPS
 
     if not 0 <= args.uav < GAME_AGENTS:
         usage_error(f"--uav {args.uav}: must be in 0..{GAME_AGENTS - 1}")

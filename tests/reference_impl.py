@@ -99,3 +99,69 @@ def low_level_observation_reference(
     return np.concatenate([anchor - perceived_pos, velocity, feats.reshape(b, n, -1), mask, lidar], axis=-1).astype(
         np.float32
     )
+
+
+# ---------------------------------------------------------------------------- ConsMAC's supervised step
+def consmac_supervised_loss_reference(net, batch):
+    """Eq. (11) on a replay batch as `ConsMAC.supervised_loss` computed it before the hand-written
+    backward pass (`cefc_mj/nn/consmac_grad.py`): a frozen copy of `ConsMAC.forward` with the
+    reassociated attention (`fast=True`), differentiated by autograd. The speed benchmark and the
+    equivalence tests compare the new step against this one."""
+    import math
+
+    import torch
+
+    cfg, att = net.cfg, net.attention
+    obs, own, messages, mask, distance = (batch[k] for k in ("obs", "own", "messages", "mask", "distance"))
+    rows, k = mask.shape
+    dtype = net.distance_encoder.frequency.weight.dtype
+    mask = mask.to(torch.bool)
+    if cfg.ablation == "wo-com":
+        mask = torch.zeros_like(mask)
+    o = obs.index_select(-1, net.local_index) * cfg.obs_scale
+    hidden = own.reshape(rows, cfg.sent_dim)
+    if cfg.ablation == "wo-mem":
+        hidden = torch.zeros(rows, cfg.message_dim, dtype=dtype)
+    elif cfg.sent_dim < cfg.message_dim:
+        hidden = torch.nn.functional.pad(hidden, (0, cfg.message_dim - cfg.sent_dim))
+    memory = net.memory(o, hidden)
+    query_code = net.distance_encoder(memory.new_zeros(rows))
+    key_code = net.distance_encoder(distance)
+    if cfg.ablation == "wo-de":
+        query_code, key_code = torch.zeros_like(query_code), torch.zeros_like(key_code)
+    query = torch.cat([memory, query_code], dim=-1)
+    keys = torch.cat([messages, key_code], dim=-1)
+    # MaskedMultiHeadAttention(fast=True)
+    h, hd = att.n_heads, att.head_dim
+    keys = keys.masked_fill(~mask.unsqueeze(-1), 0.0)
+    has_neighbour = mask.any(dim=-1, keepdim=True)
+    open_slot = mask.unsqueeze(1)
+    q = att.query(query).view(rows, h, hd)
+    w_key = att.key.weight.view(h, hd, keys.shape[-1])
+    q_key = (q.transpose(0, 1) @ w_key).transpose(0, 1)
+    scores = (q_key @ keys.transpose(1, 2) + (q * att.key.bias.view(h, hd)).sum(-1, keepdim=True)) / math.sqrt(hd)
+    scores = scores.masked_fill(~open_slot, torch.finfo(scores.dtype).min)
+    weights = torch.softmax(scores, dim=-1) * open_slot
+    w_value = att.value.weight.view(h, hd, -1).transpose(1, 2)
+    pooled = weights @ keys
+    heads = (pooled.transpose(0, 1) @ w_value).transpose(0, 1)
+    heads = (heads + weights.sum(-1, keepdim=True) * att.value.bias.view(h, hd)).reshape(rows, h * hd)
+    attended = att.out(heads) * has_neighbour
+    message = net.norm(memory + attended)
+    estimate = net.estimator(message)
+    return ((estimate - batch["label"]) ** 2).sum(dim=-1).mean()
+
+
+def consmac_train_step_reference(net, opt, replay_data, size, batch, generator, max_grad_norm):
+    """One step of `HighLevelTrainer.train_consmac` before the speed-up: the replay draw by advanced
+    indexing, the autograd loss above, zero_grad, backward, clip and Adam. Returns the loss."""
+    import torch
+
+    index = torch.randint(0, size, (batch,), generator=generator)
+    rows = {name: tensor[index] for name, tensor in replay_data.items()}
+    loss = consmac_supervised_loss_reference(net, rows)
+    opt.zero_grad()
+    loss.backward()
+    torch.nn.utils.clip_grad_norm_(net.parameters(), max_grad_norm)
+    opt.step()
+    return loss.item()

@@ -21,7 +21,8 @@ from cefc_mj.nn.highlevel_policy import HighLevelPolicy, load_highlevel_policy, 
 from cefc_mj.task.config import TaskConfig
 from cefc_mj.task.messages import Inbox
 from cefc_mj.train.config import Budget, PPOConfig
-from cefc_mj.train.highlevel import HighLevelConfig, HighLevelTrainer
+from cefc_mj.train.highlevel_config import HighLevelConfig
+from cefc_mj.train.highlevel_trainer import HighLevelTrainer
 
 TASK = TaskConfig(n_agents=8, mode="cefc", obstacle_density=0.03)
 ABLATED = [a for a in ABLATIONS if a != "none"]

@@ -12,7 +12,7 @@ from cefc_mj import paths
 from cefc_mj.cli.train import build_parser, main
 from cefc_mj.env import BatchedCEFCEnv
 from cefc_mj.errors import CheckpointError, ConfigError
-from cefc_mj.eval.highlevel import game_task
+from cefc_mj.game_protocol import game_task
 from cefc_mj.nn.adversary_policy import (
     AdversaryNetConfig,
     AdversaryPolicy,

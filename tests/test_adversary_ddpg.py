@@ -10,7 +10,9 @@ import torch
 
 from cefc_mj.cli.train import build_parser, main
 from cefc_mj.errors import ConfigError
-from cefc_mj.eval.highlevel import GAME_ADVERSARY, format_highlevel_table, game_task, run_table6
+from cefc_mj.eval.highlevel import run_table6
+from cefc_mj.eval.highlevel_report import format_highlevel_table
+from cefc_mj.game_protocol import game_task
 from cefc_mj.nn.adversary_policy import (
     AdversaryNetConfig,
     AdversaryPolicy,
@@ -18,6 +20,7 @@ from cefc_mj.nn.adversary_policy import (
     save_adversary_policy,
 )
 from cefc_mj.nn.highlevel_policy import HighLevelPolicy, save_highlevel_policy
+from cefc_mj.nn.registry import GAME_ADVERSARY
 from cefc_mj.task.adversary import ADVERSARY_OBS_DIM
 from cefc_mj.train.adversary import load_population
 from cefc_mj.train.adversary_ddpg import (

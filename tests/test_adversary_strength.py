@@ -1,4 +1,4 @@
-"""benchmarks/adversary_strength.py (docs/high_level.md, "The next adversary"): a real run as a subprocess on
+"""benchmarks/adversary_strength.py (docs/research/high_level.md, "The next adversary"): a real run as a subprocess on
 a learned team and a rule team (its figures are evaluate_adversary's for the same adversary and games,
 the kept rule's spec flies exactly the named rule, a trained adversary by its file), rule specs parsed
 into InterceptRule, and one-line
@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 from benchmark_scripts import load_benchmark
 
-from cefc_mj.eval.highlevel import resolve_adversary
+from cefc_mj.nn.adversary_policy import resolve_adversary
 from cefc_mj.task.adversary import InterceptRule
 from cefc_mj.train.adversary import AdversaryConfig, evaluate_adversary, load_population
 from cefc_mj.train.config import Budget

@@ -41,6 +41,14 @@ CASES = {
     "particle": (["bench_particle.py", "--smoke"], [r"(?m)^ +4 +[\d,]+ +[\d,]+ +[\d.]+x$"]),
     "consmac": (["bench_consmac.py", "--smoke"], [r"new / old: [\d.]+"]),
     "highlevel": (["bench_highlevel.py", "--smoke"], [r"full decision +[\d.]+ us = [\d.]+ x the low level alone"]),
+    "highlevel-training": (
+        ["bench_highlevel_training.py", "--smoke"],
+        [
+            r"consmac-a: .*ConsMAC step old [\d.]+ ms, new [\d.]+ ms \([\d.]+x\)",
+            r"paper schedule: iteration [\d.]+ s \(old [\d.]+ s, [\d.]+x\); whole run [\d.]+ core-hours",
+            r"(?s)mappo: .*paper schedule: iteration [\d.]+ s; whole run [\d.]+ core-hours",
+        ],
+    ),
     "rerun": (["bench_rerun.py", "--smoke"], [r"overhead vs a \d+ s episode at +\d+x real time .*: +[\d.]+ %"]),
 }
 

@@ -1,4 +1,4 @@
-"""BenchMARL on the high-level game (cefc_mj/train/benchmarl_game.py, docs/baselines.md "BenchMARL
+"""BenchMARL on the high-level game (cefc_mj/train/benchmarl_game.py, docs/research/baselines.md "BenchMARL
 baselines"): the torchrl env against `HierarchicalCEFCEnv`, tiny MASAC and MAPPO runs exported as
 high-level policy files that Table V's evaluator flies, and `cefc-train highlevel-benchmarl`'s checks.
 
@@ -41,11 +41,11 @@ def tiny(algorithm: str, **overrides) -> BenchMARLConfig:
 
 # ---------------------------------------------------------------------------- config and command line
 def test_the_default_run_is_our_trainers_game_and_budget():
-    from cefc_mj.eval.highlevel import GAME_ADVERSARY
     from cefc_mj.hierarchy import DECISION_INTERVAL
+    from cefc_mj.nn.registry import GAME_ADVERSARY
     from cefc_mj.train.benchmarl_config import DECISION_INTERVAL as OURS
     from cefc_mj.train.config import Budget
-    from cefc_mj.train.highlevel import HighLevelConfig
+    from cefc_mj.train.highlevel_config import HighLevelConfig
 
     cfg = BenchMARLConfig()
     trainer = HighLevelConfig(budget=Budget(iterations=75), variant="mappo")

@@ -1,4 +1,4 @@
-"""benchmarks/consmac_convergence.py (docs/high_level.md, "Does ConsMAC's label loss converge at 200 steps
+"""benchmarks/consmac_convergence.py (docs/research/high_level.md, "Does ConsMAC's label loss converge at 200 steps
 per round?"): its --smoke mode as a real subprocess on a tiny run state in the trainer's format (a real
 ConsMAC for N = 3, a real Adam state, a replay ring buffer that has wrapped, learnable labels), the
 episode-wise held-out split, the fresh held-out set (the run's next iteration, from a real tiny run), and
@@ -20,7 +20,9 @@ from cefc_mj.hierarchy import load_low_level
 from cefc_mj.nn.consmac import consmac_loss
 from cefc_mj.nn.highlevel_policy import HighLevelPolicy
 from cefc_mj.train.config import Budget, PPOConfig
-from cefc_mj.train.highlevel import STATE_FORMAT, HighLevelConfig, HighLevelTrainer, train_highlevel
+from cefc_mj.train.highlevel import STATE_FORMAT, train_highlevel
+from cefc_mj.train.highlevel_config import HighLevelConfig
+from cefc_mj.train.highlevel_trainer import HighLevelTrainer
 from cefc_mj.train.run_state import STATE_FILE
 
 ROOT = Path(__file__).resolve().parent.parent

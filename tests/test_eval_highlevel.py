@@ -13,21 +13,14 @@ from scipy import stats
 from cefc_mj import paths
 from cefc_mj.cli.eval import main
 from cefc_mj.errors import ConfigError
-from cefc_mj.eval.highlevel import (
-    DT,
-    GAME_ADVERSARY,
-    Conditions,
-    evaluate_highlevel_episodes,
-    format_highlevel_table,
-    game_task,
-    plot_highlevel_table,
-    run_table5,
-    run_table6,
-    run_table7,
-)
+from cefc_mj.eval.conditions import Conditions
+from cefc_mj.eval.highlevel import run_table5, run_table6, run_table7
+from cefc_mj.eval.highlevel_report import format_highlevel_table, plot_highlevel_table
+from cefc_mj.game_protocol import DT, evaluate_highlevel_episodes, game_task
 from cefc_mj.hierarchy import CLM_PER_GROUP, load_low_level, recorded_low_level
 from cefc_mj.nn.adversary_policy import AdversaryNetConfig, AdversaryPolicy, save_adversary_policy
 from cefc_mj.nn.highlevel_policy import HighLevelPolicy, load_highlevel_policy, save_highlevel_policy
+from cefc_mj.nn.registry import GAME_ADVERSARY
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -56,8 +49,11 @@ def policies(tmp_path):
 def test_table5_on_two_processes_is_the_table_on_one(policies):
     """Each policy file's batch is seeded on its own: the pool changes where it flies, not a number."""
     one = run_table5(episodes=2, seed=3, policies_dir=policies)
-    two = run_table5(episodes=2, seed=3, policies_dir=policies, workers=2)
+    calls = []
+    two = run_table5(episodes=2, seed=3, policies_dir=policies, workers=2, progress=lambda *c: calls.append(c))
     assert json.dumps(two, default=float) == json.dumps(one, default=float)
+    # progress: 0 of all games first, then each batch of 2 games (2 rows x seeds x 2 adversaries = 6 batches)
+    assert calls == [(0, 12), (2, 12), (4, 12), (6, 12), (8, 12), (10, 12), (12, 12)]
     assert list(two["rows"]["MAPPO+AT-M"]["against_rule"]["seeds"]) == [0, 1]
 
 
@@ -114,12 +110,23 @@ def test_table5_rows_units_seeds_and_missing_methods(policies):
     r_e = seeds["ci95"]["R_e"]["mean"]
     mappo_line = next(line for line in text.splitlines() if line.startswith("MAPPO+AT-M") and "[" in line)
     assert f"{r_e:.0f} [" in mappo_line and f"{r_e / 8:.0f} [" in mappo_line
-    assert "MAPPO+AT-M" in text and "2 training seeds" in text
+    # the row's top-level figures are its first training seed's episodes, and say so
+    assert result["rows"]["MAPPO+AT-M"]["episodes_of"]["training_seed"] == 0
+    assert result["rows"]["MAPPO+AT-M"]["episodes_of"]["policy"] == result["rows"]["MAPPO+AT-M"]["policy"]
+    seed_line, seeds_line = [line for line in text.splitlines() if line.startswith("MAPPO+AT-M ")][0], ""
+    seeds_line = text.splitlines()[text.splitlines().index(seed_line) + 1]
+    assert seed_line.split()[1:3] == ["seed", "0"] and seeds_line.split()[:2] == ["2", "seeds"]
+    assert f"{seeds['mean']['E'] * DT:.1f} ± {seeds['std']['E'] * DT:.1f}" in seeds_line
+    assert "'seed k' is that one training seed's policy" in text
     assert "missing policies: MASAC+AT-M (BenchMARL; stands in for HASAC)" in text
     assert "Table IV, message size per agent and decision: MAPPO+AT-M 0 (paper 0), CI-HRL 64 (paper 64)" in text
     # The same seed flies the same episodes: bit-identical figures.
-    again = run_table5(episodes=2, seed=3, policies_dir=policies, policy="cihrl_mappo")
+    calls = []
+    again = run_table5(
+        episodes=2, seed=3, policies_dir=policies, policy="cihrl_mappo", progress=lambda *c: calls.append(c)
+    )
     assert again["rows"]["cihrl_mappo"]["per_episode"] == result["rows"]["MAPPO+AT-M"]["per_episode"]
+    assert calls == [(0, 2), (2, 2)]  # one policy: one batch of games
 
 
 def test_the_evaluation_follows_the_policy_a_better_anchor_choice_scores_more():
@@ -185,7 +192,11 @@ def test_table6_plays_one_policy_against_each_adversary(policies):
 def test_table7_plays_the_n8_policy_in_larger_swarms_per_agent(policies, tmp_path):
     """Table VII: the same policy file, trained for N = 8, plays 8 and 12 UAVs (the observations read
     the 7 nearest neighbours); the per-agent columns are the seconds-scale means divided by N."""
-    result = run_table7(episodes=2, policies_dir=policies, policy="cihrl_consmac_a", sizes=(8, 12))
+    calls = []
+    result = run_table7(
+        episodes=2, policies_dir=policies, policy="cihrl_consmac_a", sizes=(8, 12), progress=lambda *c: calls.append(c)
+    )
+    assert calls == [(0, 4), (2, 4), (4, 4)]
     assert list(result["rows"]) == ["N = 8", "N = 12"] and result["protocol"]["n_agents"] == [8, 12]
     for n, row in zip((8, 12), result["rows"].values()):
         assert len(row["per_episode"]["R_H"]) == 2 and row["n_agents"] == n
@@ -236,7 +247,8 @@ def test_cli_writes_the_report_folder(policies, tmp_path, monkeypatch, capsys):
         )
         == 0
     )
-    assert "MAPPO+AT-M" in capsys.readouterr().out
+    captured = capsys.readouterr()
+    assert "MAPPO+AT-M" in captured.out and "games" not in captured.err  # stderr no terminal: no progress bar
     assert {p.name for p in out.iterdir()} == {"table5.md", "table5.json", "table5.png"}
     data = json.loads((out / "table5.json").read_text())
     assert data == json.loads((tmp_path / "t5.json").read_text())
@@ -361,3 +373,58 @@ def test_a_high_level_flies_over_the_per_group_low_level_its_file_records():
         assert recorded_low_level(meta, "student") == expected
     assert recorded_low_level({"low_level": {"name": "some_file"}}, None) is None
     assert recorded_low_level({}, "student") == "student"
+
+
+def test_a_table5_report_is_reanalysed_from_its_json_without_flying(tmp_path, capsys):
+    """`python -m cefc_mj.eval.highlevel_reanalyse`: the pre-registered report's statistics recomputed
+    from the per-seed figures it holds and written again beside it (JSON, Markdown, figure), every
+    flown number unchanged, the flight's command and provenance kept, the test ledger untouched; bad
+    input is one line and exit code 2 before anything is written."""
+    from cefc_mj.eval import ledger
+    from cefc_mj.eval.highlevel_reanalyse import main as reanalyse
+
+    shipped = paths.EVAL_DIR / "reports" / "prereg" / "table5.json"
+    report = tmp_path / "table5.json"
+    report.write_text(shipped.read_text())
+    flights = len(ledger.read_ledger(paths.EVAL_DIR / ledger.LEDGER_NAME).flights)
+    assert reanalyse([str(report)]) == 0
+    assert {p.name for p in tmp_path.iterdir()} == {"table5.json", "table5.md", "table5.png"}
+    before, after = json.loads(shipped.read_text()), json.loads(report.read_text())
+    for key in ("protocol", "provenance"):
+        assert after[key] == before[key]
+    for method, row in before["rows"].items():
+        for key in ("per_episode", "training_seeds", "against_rule", "E", "R_H"):
+            assert after["rows"][method][key] == row[key], (method, key)
+    assert after["reanalysis"]["command"] == f"python -m cefc_mj.eval.highlevel_reanalyse {report}"
+    assert len(ledger.read_ledger(paths.EVAL_DIR / ledger.LEDGER_NAME).flights) == flights
+    assert "Re-analysed from its JSON, no game flown again" in (tmp_path / "table5.md").read_text()
+    assert (tmp_path / "table5.png").read_bytes()[:4] == b"\x89PNG"
+    capsys.readouterr()
+    for argv, needle in (
+        ([str(tmp_path / "nope.json")], "No such file"),
+        ([str(paths.EVAL_DIR / "reports" / "table6.json")], "not a Table V report"),
+        ([str(report), "--report-dir", str(tmp_path / "absent")], "not a folder"),
+    ):
+        assert reanalyse(argv) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and needle in err, err
+
+
+def test_cli_draws_the_games_flown_on_a_terminal(policies, monkeypatch, capsys):
+    """On a terminal, cefc-eval's table runs draw a bar of the games flown (count, rate, time left) on
+    stderr; the table itself stays on stdout."""
+    import io
+    import sys
+
+    class Terminal(io.StringIO):
+        def isatty(self) -> bool:
+            return True
+
+    (policies / "atm_student.pt").write_bytes((paths.POLICIES_DIR / "atm_student.pt").read_bytes())
+    monkeypatch.setattr(paths, "POLICIES_DIR", policies)
+    terminal = Terminal()
+    monkeypatch.setattr(sys, "stderr", terminal)
+    assert main(["--backend", "particle", "--protocol", "table7", "--episodes", "1"]) == 0
+    bar = terminal.getvalue()
+    assert "games" in bar and "5/5" in bar and "<00:00" in bar, bar
+    assert "5/5" not in capsys.readouterr().out

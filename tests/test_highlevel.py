@@ -18,11 +18,13 @@ from cefc_mj.cli.train import main
 from cefc_mj.env import BatchedCEFCEnv
 from cefc_mj.errors import CefcError, CheckpointError, ConfigError
 from cefc_mj.hierarchy import HierarchicalCEFCEnv, NavigationOnly, PerGroupPolicies, load_low_level
+from cefc_mj.nn.highlevel_policy import load_highlevel_policy
 from cefc_mj.nn.registry import GAME_ADVERSARY
 from cefc_mj.task.config import TaskConfig
 from cefc_mj.task.observation import build_low_level_observation
 from cefc_mj.train.config import Budget, PPOConfig
-from cefc_mj.train.highlevel import HighLevelConfig, HighLevelTrainer, load_highlevel_policy
+from cefc_mj.train.highlevel_config import HighLevelConfig
+from cefc_mj.train.highlevel_trainer import HighLevelTrainer
 
 TASK = TaskConfig(n_agents=8, mode="cefc", obstacle_density=0.03)
 
@@ -309,6 +311,8 @@ def test_cli_trains_exports_and_resumes_a_run(tmp_path, monkeypatch, capsys):
     assert [p["iterations"] for p in card["phases"]] == [1, 1]
     assert [p["low_level"] for p in card["phases"]] == ["navigation", "atm_student"]
     assert card["consmac_training"]["steps"] == 6 and card["consmac_training"]["paper"]["steps"] == 5000
+    assert config["highlevel"]["schedule"] == "short" and card["schedule"]["name"] == "short"
+    assert card["schedule"]["consmac_steps"] == 200 and not card["schedule"]["fixed"]
     fit = card["consmac_training"]["label_fit"]  # the newest iteration's rows: 2 envs x 5 decisions x 8 agents
     assert (
         fit["rows"] == 2 * 5 * 8

@@ -20,7 +20,7 @@ from rerun.chunk import RrdReader
 from rrd_reader import read_rrd
 
 from cefc_mj.errors import ConfigError
-from cefc_mj.eval.highlevel import evaluate_highlevel_episodes, game_task
+from cefc_mj.game_protocol import evaluate_highlevel_episodes, game_task
 from cefc_mj.hierarchy import HierarchicalCEFCEnv, load_low_level
 from cefc_mj.nn.highlevel_policy import HighLevelPolicy
 from cefc_mj.viz.highlevel_log import (

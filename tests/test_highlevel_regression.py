@@ -24,10 +24,11 @@ import numpy as np
 import pytest
 
 from cefc_mj import paths
-from cefc_mj.eval.highlevel import DT, GAME_ADVERSARY, evaluate_highlevel, game_task, resolve_adversary
+from cefc_mj.game_protocol import DT, evaluate_highlevel, game_task
 from cefc_mj.hierarchy import load_low_level
+from cefc_mj.nn.adversary_policy import resolve_adversary
 from cefc_mj.nn.highlevel_policy import HighLevelPolicy, load_highlevel_policy
-from cefc_mj.nn.registry import HIERARCHY_LOWLEVEL
+from cefc_mj.nn.registry import GAME_ADVERSARY, HIERARCHY_LOWLEVEL
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 

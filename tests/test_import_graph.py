@@ -22,7 +22,7 @@ LAYERS = (
     ("foundation", ("errors", "version", "paths", "fileio", "seeds", "jit", "provenance", "executors")),
     ("core", ("task", "control", "sim")),
     ("networks", ("nn",)),
-    ("environments", ("env", "hierarchy", "rule_teams", "table3_protocol")),
+    ("environments", ("env", "hierarchy", "rule_teams", "table3_protocol", "game_protocol")),
     ("baselines", ("baselines",)),
     ("evaluation", ("eval",)),
     ("applications", ("train", "viz")),
@@ -209,6 +209,24 @@ def test_the_graph_is_read():
     assert ("cefc_mj.cli.eval_common", "cefc_mj.deploy.episode") in seen  # inside a function
     assert ("cefc_mj.provenance", "cefc_mj.paths") in seen  # `from cefc_mj import paths`: the submodule
     assert len(MODULES) > 50 and len(EDGES) > 300
+
+
+HIGHLEVEL_TRAINING = (
+    "cefc_mj.train.highlevel_config",
+    "cefc_mj.train.consmac_replay",
+    "cefc_mj.train.highlevel_trainer",
+    "cefc_mj.train.highlevel_export",
+    "cefc_mj.train.highlevel",
+)
+"""The high level's training, split by job, bottom first: config, replay, learner, export, the run."""
+
+
+def test_the_high_level_training_modules_import_only_downward():
+    rank = {module: i for i, module in enumerate(HIGHLEVEL_TRAINING)}
+    assert set(HIGHLEVEL_TRAINING) <= set(MODULES)
+    upward = [e for e in EDGES if e.source in rank and e.target in rank and rank[e.target] >= rank[e.source]]
+    assert not upward, "\n".join(f"{e.where}: {e.source} imports {e.target}" for e in upward)
+    assert all(len(MODULES[m].read_text().splitlines()) <= 600 for m in HIGHLEVEL_TRAINING)
 
 
 # ---------------------------------------------------------------------------------- the checker itself

@@ -1,4 +1,4 @@
-"""The MASIA and NVIF baselines (cefc_mj/nn/obs_comm.py, `--variant masia|nvif`; docs/baselines.md).
+"""The MASIA and NVIF baselines (cefc_mj/nn/obs_comm.py, `--variant masia|nvif`; docs/research/baselines.md).
 
 What they send (the paper's Table IV sizes, the sender's raw local observation), that the PPO loss
 never reaches their modules, that their supervised losses learn, and that their policy files train,
@@ -23,7 +23,8 @@ from cefc_mj.task.config import TaskConfig
 from cefc_mj.task.messages import Inbox
 from cefc_mj.task.observation import cefc_layout
 from cefc_mj.train.config import Budget, PPOConfig
-from cefc_mj.train.highlevel import HighLevelConfig, HighLevelTrainer
+from cefc_mj.train.highlevel_config import HighLevelConfig
+from cefc_mj.train.highlevel_trainer import HighLevelTrainer
 
 TASK = TaskConfig(n_agents=8, mode="cefc", obstacle_density=0.03)
 TABLE_IV = {"mappo": 0, "tarmac": 64, "masia": 38, "nvif": 102, "consmac-a": 64, "consmac-o": 64}

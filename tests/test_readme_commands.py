@@ -23,7 +23,6 @@ README = (paths.PROJECT_ROOT / "README.md").read_text() if (paths.PROJECT_ROOT /
 # (the command as the README writes it, the extra flags that make it cheap)
 COMMANDS = [
     ("cefc-eval --wind 8 --deviation 0.5", "--formation 5 --steps 20"),
-    ("cefc-eval --wind 8 --episodes 5 --workers 2", "--formation 5 --steps 10"),
     ("cefc-eval --protocol table8 --workers 2", "--formation 5 --episodes 1 --steps 5"),
     ("cefc-eval --backend particle --protocol table3", "--formation 6 --episodes 2"),
     ("cefc-eval --formation 6 --rrd run.rrd --png plots/", "--steps 5"),

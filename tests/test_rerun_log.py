@@ -1,4 +1,5 @@
-"""Rerun logging: write an .rrd from a synthetic episode, read it back (docs/design.md §9) and check it."""
+"""Rerun logging: write an .rrd from a synthetic episode, read it back (docs/research/dependency_facts.md)
+and check it."""
 
 from __future__ import annotations
 

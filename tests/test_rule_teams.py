@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from cefc_mj.errors import ConfigError
-from cefc_mj.eval.highlevel import game_task, play_highlevel
+from cefc_mj.game_protocol import game_task, play_highlevel
 from cefc_mj.hierarchy import HierarchicalCEFCEnv, load_low_level
 from cefc_mj.rule_teams import RULE_TEAMS, RuleTeam
 

@@ -1,6 +1,6 @@
 """Obstacle layouts: the "clear-start" option is bit-identical to the original sampler, and the
 paper-faithful "paper" layout puts obstacles between the swarm and its anchor far more often
-(docs/layouts.md)."""
+(docs/research/layouts.md)."""
 
 import hashlib
 
@@ -144,7 +144,7 @@ def test_obstacle_near_path_geometry():
     assert obstacle_near_path(sc, r, 0.5).tolist() == [False, False, False, False]
 
 
-# Bands around the measured fractions (docs/layouts.md: 5000 layouts, seed 0) wide enough for
+# Bands around the measured fractions (docs/research/layouts.md: 5000 layouts, seed 0) wide enough for
 # 2000 layouts of another seed (binomial std about 1 point).
 @pytest.mark.parametrize(
     "density,clear_band,paper_band",

@@ -20,7 +20,8 @@ from cefc_mj.deploy.episode import AgentFault, SitlConfig
 from cefc_mj.deploy.game import GameServer, game_sensor_packets, run_sitl_game
 from cefc_mj.errors import ConfigError
 from cefc_mj.eval.conditions import Conditions
-from cefc_mj.eval.highlevel import GameSpec, game_task, play_game
+from cefc_mj.eval.highlevel_sitl import GameSpec, play_game
+from cefc_mj.game_protocol import game_task
 from cefc_mj.hierarchy import agent_cefc_observation, agent_inbox
 from cefc_mj.task.messages import MessageChannel
 

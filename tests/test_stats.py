@@ -9,16 +9,16 @@ import pytest
 from scipy import stats
 
 from cefc_mj import paths
-from cefc_mj.eval.highlevel import (
-    SEED_METRICS,
-    _compare_with_reference,
+from cefc_mj.eval.highlevel_comparison import SEED_METRICS, _compare_with_reference, add_comparisons
+from cefc_mj.eval.highlevel_report import (
     _fdr_lines,
-    add_comparisons,
+    _unadjusted_lines,
     aggregate_lines,
     equivalence_lines,
-    sitl_fidelity,
+    paired_lines,
     table5_markdown,
 )
+from cefc_mj.eval.highlevel_sitl import sitl_fidelity
 from cefc_mj.eval.stats import (
     UNDECIDED,
     comparison_verdict,
@@ -107,7 +107,9 @@ def test_a_table_names_only_the_differences_that_survive_the_adjustment():
     assert welch_p(borderline, reference) < 0.05 and rows["B"]["vs_reference"]["E"]["verdict"] == "better"
     assert rows["B"]["vs_reference"]["E"]["p_fdr"] > 0.05 > rows["A"]["vs_reference"]["E"]["p_fdr"]
     held = {line.split(":")[0].strip(): line for line in _fdr_lines(rows) if line.startswith("  ")}
-    assert set(held) == {"R_H", "R_t", "E"}
+    assert set(held) == set(SEED_METRICS)  # every compared metric, not only the printed p columns
+    below = {line.split(":")[0].strip(): line for line in _unadjusted_lines(rows) if line.startswith("  ")}
+    assert set(below) == set(SEED_METRICS) and "B (better" in below["E"] and "A (better" in below["E"]
     assert "A (better" in held["E"] and "B (" not in held["E"] and "A (worse" in held["R_H"]
 
 
@@ -168,6 +170,9 @@ def test_power_and_mdd_against_a_textbook_value_and_a_simulation():
     assert two_sample_power(1.0, 20, 20, 1.0) == pytest.approx(0.8689528, abs=2e-6)
     normal = minimum_detectable_difference(5, 20, 1.7, method="normal")
     assert normal == pytest.approx((stats.norm.ppf(0.975) + stats.norm.ppf(0.8)) * 1.7 * np.sqrt(1 / 5 + 1 / 20))
+    # few seeds at a strict level: scipy's noncentral t cdf is NaN there, the power is not
+    assert 0.9 < two_sample_power(1000.0, 2, 2, 100.0, alpha=0.025) < 1.0
+    assert minimum_detectable_difference(2, 2, 100.0, alpha=0.025) > minimum_detectable_difference(2, 2, 100.0)
     mdd = minimum_detectable_difference(5, 5, 1.7)
     assert two_sample_power(mdd, 5, 5, 1.7) == pytest.approx(0.8) and mdd > minimum_detectable_difference(
         5, 5, 1.7, method="normal"
@@ -270,7 +275,57 @@ def test_table5_comparison_fields_verdicts_and_primary():
     json.dumps(result)  # every field is JSON
     text = "\n".join(equivalence_lines(result) + aggregate_lines(result))
     assert "MAPPO+AT-M" in text and "equivalent within ±1.5 s" in text and "Minimum detectable difference" in text
-    assert "Primary comparison (docs/preregistration.md; exploratory here: batch seed 10000" in text
+    assert "Primary comparison (docs/research/preregistration.md; exploratory here: batch seed 10000" in text
+
+
+def test_same_runs_are_paired_and_the_mdd_is_given_at_the_holm_level_with_the_margins_units():
+    """CI-HRL-wo-FT is CI-HRL's runs before fine-tuning: besides Welch's test it gets the paired t-test
+    over the seeds, which sees a shift that the spread between seeds hides from Welch's; the primary
+    comparison's MDD at Holm's first level (alpha / 2) is above the unadjusted one; margins carry units."""
+    rng = np.random.default_rng(3)
+    reference = 150 + rng.normal(0, 10, 20)
+    rows = {
+        "CI-HRL": reference,
+        "CI-HRL-wo-FT": reference + 2 + rng.normal(0, 1, 20),
+        "MAPPO+AT-M": 152 + rng.normal(0, 10, 20),
+    }
+    result = {"protocol": {"seed": 10000}, "rows": {}}
+    for name, e in rows.items():
+        seeds = {m: list(e) for m in SEED_METRICS} | {"seeds": list(range(100, 120))}
+        result["rows"][name] = {"training_seeds": seeds, "policy": f"{name}_seed100.pt"}
+    add_comparisons(result)
+    wo_ft = result["rows"]["CI-HRL-wo-FT"]["vs_reference"]
+    paired = wo_ft["paired"]["E"]
+    assert wo_ft["paired"]["method"] == "CI-HRL" and paired["p"] == pytest.approx(
+        stats.ttest_rel(rows["CI-HRL-wo-FT"], reference).pvalue
+    )
+    assert paired["p"] < 0.001 and wo_ft["E"]["p"] > 0.05  # the pairing is what finds the shift
+    low, high = stats.t.interval(0.95, 19, loc=paired["mean"], scale=paired["se"])
+    assert (paired["ci_low"], paired["ci_high"]) == (pytest.approx(low), pytest.approx(high))
+    assert "paired" not in result["rows"]["MAPPO+AT-M"]["vs_reference"]
+    assert result["comparison"]["paired"]["rows"] == ["CI-HRL-wo-FT"]
+    text = "\n".join(paired_lines(result))
+    assert "Paired (the same runs): CI-HRL-wo-FT is CI-HRL's 20 training runs" in text
+    assert f"E {paired['mean'] * 0.1:+.2f} s [{low * 0.1:.2f}, {high * 0.1:.2f}], p {paired['p']:.3f}" in text
+    holm = result["comparison"]["primary"]["mdd_holm"]
+    sd = result["comparison"]["pooled_sd"]["E"]["sd"]
+    assert holm["alpha"] == 0.025 and holm["E"] == pytest.approx(minimum_detectable_difference(20, 20, sd, alpha=0.025))
+    assert holm["E"] > result["rows"]["MAPPO+AT-M"]["vs_reference"]["E"]["mdd"]
+    lines = "\n".join(equivalence_lines(result))
+    assert "Minimum detectable difference, unadjusted" in lines and f"E {holm['E'] * 0.1:.2f} s" in lines
+    assert "at the Holm level of the primary comparison (alpha 0.025" in lines
+    assert (
+        result["comparison"]["margins"]["E"]["value"] == 15.0
+        and "steps" in result["comparison"]["margins"]["E"]["unit"]
+    )
+    assert result["rows"]["CI-HRL"]["episodes_of"] == {
+        "training_seed": 100,
+        "policy": "CI-HRL_seed100.pt",
+        "what": result["rows"]["CI-HRL"]["episodes_of"]["what"],
+    }
+    # not the same seeds: not the same runs, no paired test
+    result["rows"]["CI-HRL-wo-FT"]["training_seeds"]["seeds"] = list(range(200, 220))
+    assert "paired" not in add_comparisons(result)["rows"]["CI-HRL-wo-FT"]["vs_reference"]
 
 
 def test_the_shipped_table5_reanalysed_is_underpowered_not_alike():
@@ -301,5 +356,6 @@ def test_table5_markdown_has_a_row_per_method_with_its_verdicts():
                 row["vs_reference"]["E"]["decision"],
                 row["vs_reference"]["R_H"]["decision"],
             )
-    assert primary.startswith("Primary comparison (docs/preregistration.md; exploratory here: batch seed 10000")
+    primary_head = "Primary comparison (docs/research/preregistration.md; exploratory here: batch seed 10000"
+    assert primary.startswith(primary_head)
     assert table5_markdown({"rows": {}}) == ""

@@ -116,8 +116,8 @@ def test_flies_like_cefc_eval():
 
 
 def test_tasks_are_cefc_evals_scenes():
-    from cefc_mj.eval.highlevel import game_task
     from cefc_mj.eval.runner import EpisodeSpec
+    from cefc_mj.game_protocol import game_task
 
     assert suite.ALL_TASKS == tuple(("cefc", name) for name in suite.TASKS)
     assert set(suite.TASKS) == {f"formation_c{c}" for c in range(3, 9)} | {"cefc_game"}

@@ -4,7 +4,7 @@ The shipped default policy flies seeds 0..n-1 of each cell (c = 5..8 x calm / Wi
 default; every Table VIII condition with `-m slow`) on MuJoCo quadrotors; each cell's mean F, N, C over
 the seeds must lie in its band in eval/table8_bands.json. The bands were set from the floating-point
 noise of the same seeds measured under several floating-point paths (cefc_mj/eval/bands.py,
-docs/reproducibility.md), so a different CPU or library build passes while a real regression fails:
+docs/reproduce.md), so a different CPU or library build passes while a real regression fails:
 `test_degraded_policy_fails_the_bands` flies a policy whose obstacle module is switched off and
 checks that the same comparison turns red.
 """
@@ -61,7 +61,7 @@ def test_bands_were_set_for_the_shipped_policy():
     now = policy_checksums(BANDS["policy"], FORMATIONS)
     assert now == BANDS["policy_sha256"], (
         f"the shipped {BANDS['policy']!r} policies changed since {BANDS_FILE.name} was set; re-measure the bands "
-        "(python -m cefc_mj.eval.bands measure ... && ... make, docs/reproducibility.md)"
+        "(python -m cefc_mj.eval.bands measure ... && ... make, docs/reproduce.md)"
     )
 
 

@@ -4,7 +4,7 @@ rule, and cefc-eval recording its own flights of test seeds.
 
 The rule on the shipped reports fails for any tainted report not in KNOWN_TAINTED, and for any entry of
 KNOWN_TAINTED that is no longer tainted or no longer shipped. The pre-registered Table V
-(eval/reports/prereg/table5.json, docs/preregistration.md) flew batch 50000 once and must stay clean; the
+(eval/reports/prereg/table5.json, docs/research/preregistration.md) flew batch 50000 once and must stay clean; the
 generation-4 table5.json beside it is kept as the earlier, tainted result it is listed as.
 """
 
@@ -70,22 +70,38 @@ def test_records_round_trip_marks_and_queries(tmp_path):
         ledger.mark_informed_change("nope", "x", path=path)
 
 
-def test_only_test_seeds_are_recorded_and_a_torn_line_is_closed(tmp_path):
+def test_only_declared_test_batches_are_recorded_and_a_damaged_ledger_is_refused(tmp_path, capsys):
     path = tmp_path / "ledger.jsonl"
     with pytest.raises(ConfigError, match="flies no seed of the test block"):
         record_flight("table5", 200, 50, "cmd", path=path)
+    with pytest.raises(ConfigError, match="flies no declared test batch"):
+        record_flight("single", 91731, 1, "cmd", path=path)
     assert ledger.touches_test_block("table8", 9995, 10) and not ledger.touches_test_block("table8", 9990, 10)
     assert not ledger.touches_test_block("table5", 9999, 50)  # a batch seed is one seed, not 50
-    path.write_text('{"kind": "flight", "id": "torn"')  # a crash in the middle of a line
-    with pytest.raises(ConfigError, match=r"ledger.jsonl:1: not JSON"):
-        read_ledger(path)
-    path.write_text("")
-    record_flight("table8", 10000, 20, "cmd", path=path)
-    with open(path, "a") as fh:
-        fh.write('{"kind": "fli')
-    flight = record_flight("table7", 10000, 50, "cmd", path=path)
-    lines = path.read_text().splitlines()
-    assert json.loads(lines[-1])["id"] == flight.id and lines[-2] == '{"kind": "fli'
+    assert [b.name for b in ledger.declared_batches("table8", 10015, 10)] == ["Table VIII"]
+    assert [b.name for b in ledger.declared_batches("table5-sitl-m", 20099, 5)] == ["SITL-M game fidelity"]
+    assert ledger.declared_batches("table5", 10001, 50) == []  # another batch seed: other games
+    assert ledger.declared_batches("single", 50000, 1) == []  # the formation family's games
+    assert ledger.record_if_test("single", 91731, 3, "cmd", None) is None and not path.exists()
+    assert capsys.readouterr().out == (
+        "test ledger: not recorded: seeds 91731..91733 are in the test block but in no declared test batch "
+        "(cefc_mj.seeds.TEST_BATCHES)\n"
+    )
+    # every reader and writer checks the ledger the same way: a damaged line, torn or not, is refused
+    good = record_flight("table8", 10000, 20, "cmd", path=path)
+    for damage in ('{"kind": "fli', '{"kind": "flight"}\n', "[1, 2]\n", b"\xff\xfe\n"):
+        path.write_text(json.dumps(good.to_json()) + "\n")
+        with open(path, "ab") as fh:
+            fh.write(damage if isinstance(damage, bytes) else damage.encode())
+        before = path.read_bytes()
+        with pytest.raises(ConfigError, match=r"ledger.jsonl:2: ") as refused:
+            read_ledger(path)
+        assert "\n" not in str(refused.value)
+        with pytest.raises(ConfigError, match=r"ledger.jsonl:2: "):
+            record_flight("table7", 10000, 50, "cmd", path=path)
+        with pytest.raises(ConfigError, match=r"ledger.jsonl:2: "):
+            ledger.mark_informed_change(good.id, "x", path=path)
+        assert path.read_bytes() == before  # nothing appended
 
 
 def test_where_it_writes(tmp_path, monkeypatch, capsys):
@@ -210,19 +226,36 @@ def test_the_preregistered_batch_is_a_never_informing_test_batch_of_other_games(
                 assert not set(a.seeds) & set(b.seeds)
     touching = [f for f in read_ledger(SHIPPED_LEDGER).flights if f.family == seeds.GAME_FAMILY and seed in f.seeds]
     assert all(f.protocol in seeds.BATCH_SEEDED and not f.informed_change for f in touching)
-    # a batch seed seeds one generator for the whole batch: other batch seeds draw other games
-    from cefc_mj.eval.highlevel import EPISODES, game_task
-    from cefc_mj.task.scenario import sample_scenario
+    # A batch seed seeds one generator for the whole batch: other batch seeds draw other games. The games
+    # are built as the evaluation builds them (the env of a batch, reset with the batch seed) and
+    # compared by content: each game's spawns, adversary start, obstacles, targets and anchor.
+    from cefc_mj.game_protocol import EPISODES
 
-    task = game_task()
-    layouts = {
-        s: sample_scenario(task, np.random.default_rng(s), EPISODES)
-        for s in (seed, seeds.GAME_TEST_SEED, seeds.GAME_VALIDATION_SEED)
-    }
-    ours = {tuple(np.round(p, 9).ravel()) for p in layouts[seed].agent_pos}
+    shared = {s: _game_contents(s) for s in (seed, seeds.GAME_TEST_SEED, seeds.GAME_VALIDATION_SEED)}
+    assert len(set(shared[seed])) == EPISODES  # fifty different games in the batch
+    assert _game_contents(seed) == shared[seed]  # the same seed is the same games: the comparison sees sameness
     for other in (seeds.GAME_TEST_SEED, seeds.GAME_VALIDATION_SEED):
-        assert not ours & {tuple(np.round(p, 9).ravel()) for p in layouts[other].agent_pos}
-        assert not np.isclose(layouts[seed].anchor[:, None], layouts[other].anchor[None]).all(-1).any()
+        assert not set(shared[seed]) & set(shared[other]), f"batch {seed} shares games with batch {other}"
+        # nor any drawn part of a game: the spawns, the adversary's start, the obstacles, the anchor
+        # (not the targets: 2 of the 4 corners, a dozen layouts, which batches share by design)
+        for part in (0, 1, 2, 4):
+            assert not {g[part] for g in shared[seed]} & {g[part] for g in shared[other]}, (other, part)
+
+
+def _game_contents(batch_seed: int) -> list[tuple]:
+    """Each game of a batch as the evaluation flies it (`game_protocol.game_task`, EPISODES envs, reset with
+    the batch seed): (agent spawns, adversary start, obstacles, targets, anchor), rounded to 1e-9 m."""
+    from cefc_mj.env import BatchedCEFCEnv
+    from cefc_mj.game_protocol import EPISODES, game_task
+
+    env = BatchedCEFCEnv(game_task(), n_envs=EPISODES, seed=batch_seed)
+    env.reset(seed=batch_seed)
+    parts = (env.world.agent_pos, env.world.adversary_pos, env.obstacles, env.targets, env.anchor)
+
+    def key(a) -> tuple:
+        return tuple(np.round(np.asarray(a, dtype=float), 9).ravel())
+
+    return [tuple(key(part[e]) for part in parts) for e in range(EPISODES)]
 
 
 # ---------------------------------------------------------------------------- cefc-eval records itself
@@ -230,9 +263,10 @@ def test_the_preregistered_batch_is_a_never_informing_test_batch_of_other_games(
 def seed_only_policies(tmp_path):
     """A folder with MAPPO and CI-HRL at training seeds 100 and 101 only (untrained weights) and the
     game's adversary, as a pre-registered run's folder would be."""
-    from cefc_mj.eval.highlevel import GAME_ADVERSARY, game_task
+    from cefc_mj.game_protocol import game_task
     from cefc_mj.nn.adversary_policy import AdversaryNetConfig, AdversaryPolicy, save_adversary_policy
     from cefc_mj.nn.highlevel_policy import HighLevelPolicy, save_highlevel_policy
+    from cefc_mj.nn.registry import GAME_ADVERSARY
 
     folder = tmp_path / "prereg"
     folder.mkdir()
@@ -265,7 +299,10 @@ def test_cefc_eval_records_its_test_flights_and_reads_another_folder(seed_only_p
     assert main([*argv, "--seed", "10000", "--report-dir", str(out)]) == 0
     printed = capsys.readouterr().out
     flights = read_ledger(path).flights
-    assert len(flights) == before + 1 and f"test ledger: flight {flights[-1].id} recorded" in printed
+    assert (
+        len(flights) == before + 1
+        and f"test ledger: flight {flights[-1].id} of test batch 'Tables V-VII (shipped)' recorded" in printed
+    )
     flight = flights[-1]
     assert (flight.protocol, flight.seed, flight.episodes, flight.source) == ("table5", 10000, 1, "cefc-eval")
     assert flight.command.endswith("--report-dir " + str(out)) and flight.outputs == (str(out / "table5.json"),)
@@ -343,10 +380,13 @@ def test_the_prereg_driver_lists_the_plan_and_every_shipped_run_is_complete():
 
 def test_the_shipped_preregistered_table_is_the_plan_flown_once():
     """eval/reports/prereg/table5.json: the pre-registered batch, flown once (one ledger flight, which
-    informed nothing), every row with its planned training seeds; its Markdown and the README's Table V
+    informed nothing), every row with its planned training seeds; its Markdown and docs/results.md's Table V
     are the report's own table, and its primary comparison is labelled confirmatory."""
-    from cefc_mj.eval.highlevel import EPISODES, TABLE5_ROWS, add_comparisons, table5_markdown
+    from cefc_mj.eval.highlevel import TABLE5_ROWS
+    from cefc_mj.eval.highlevel_comparison import add_comparisons
+    from cefc_mj.eval.highlevel_report import table5_markdown
     from cefc_mj.eval.prereg import OTHER_SEEDS, PRIMARY_SEEDS
+    from cefc_mj.game_protocol import EPISODES
 
     result = json.loads((REPORTS / "prereg" / "table5.json").read_text())
     seed = seeds.GAME_PREREGISTERED_TEST_SEED
@@ -362,6 +402,6 @@ def test_the_shipped_preregistered_table_is_the_plan_flown_once():
     markdown = table5_markdown(add_comparisons(result))
     shipped = (REPORTS / "prereg" / "table5.md").read_text()
     assert markdown in shipped and "confirmatory: the pre-registered batch" in markdown
-    readme = (ROOT / "README.md").read_text()
-    missing = [line for line in markdown.splitlines() if line.startswith("|") and line not in readme]
-    assert not missing, f"README's Table V is not the pre-registered report's: {missing[:1]}"
+    results = (ROOT / "docs" / "results.md").read_text()
+    missing = [line for line in markdown.splitlines() if line.startswith("|") and line not in results]
+    assert not missing, f"docs/results.md's Table V is not the pre-registered report's: {missing[:1]}"

@@ -7,7 +7,7 @@ import pytest
 
 from cefc_mj.cli import train_lowlevel
 from cefc_mj.cli.train import build_parser
-from cefc_mj.train import adversary, adversary_ddpg, benchmarl_config, highlevel
+from cefc_mj.train import adversary, adversary_ddpg, benchmarl_config, highlevel_config
 from cefc_mj.train.config import CLM_CURRICULUM, Budget, DistillConfig, LowLevelConfig, PPOConfig
 
 BUDGET = Budget(iterations=1)
@@ -69,16 +69,24 @@ def _benchmarl(sub):
     return _by_field((benchmarl_config.BenchMARLConfig(),), benchmarl_config.FLAG_OF_FIELD)
 
 
+def _formation_benchmarl(sub):
+    return _by_field((benchmarl_config.FormationBenchMARLConfig(),), benchmarl_config.FORMATION_FLAG_OF_FIELD)
+
+
 CASES = {
     # command: (flag -> the config's default, of the subcommand's parser; fewest flags checked)
     "adversary": (_by_dest(adversary.AdversaryConfig, adversary.CLI_FIELDS, adversary.CLI_PPO_FIELDS), 5),
-    "highlevel": (_by_dest(highlevel.HighLevelConfig, highlevel.CLI_FIELDS, highlevel.CLI_PPO_FIELDS), 5),
+    "highlevel": (
+        _by_dest(highlevel_config.HighLevelConfig, highlevel_config.CLI_FIELDS, highlevel_config.CLI_PPO_FIELDS),
+        5,
+    ),
     "adversary-ddpg": (_ddpg, 5),
     "lowlevel": (_lowlevel, 5),
     "clm": (_clm, 5),
     "distill": (_distill, 3),
     "lowlevel-all": (_pipeline, 5),
     "highlevel-benchmarl": (_benchmarl, 5),
+    "formation-benchmarl": (_formation_benchmarl, 5),
 }
 
 

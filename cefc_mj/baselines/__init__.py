@@ -1,1 +1,1 @@
-"""Non-learning baselines of the paper's tables (docs/baselines.md): ORCA-F (`orca`)."""
+"""Non-learning baselines of the paper's tables (docs/research/baselines.md): ORCA-F (`orca`)."""

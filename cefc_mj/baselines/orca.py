@@ -1,4 +1,4 @@
-"""ORCA-F: formation keeping by ORCA, the paper's Table III baseline (docs/baselines.md).
+"""ORCA-F: formation keeping by ORCA, the paper's Table III baseline (docs/research/baselines.md).
 
 Each decision step, every agent's preferred velocity points to its slot in the formation template
 Delta_c placed a little ahead of the swarm centre, toward the anchor; ORCA (the RVO2 library through

@@ -13,8 +13,8 @@ Examples:
 --protocol single (the default) prints its table and writes no file unless asked (--json, --rrd, --png);
 table8 writes a report folder (--report-dir). Bad input ends in one line on stderr and exit code 2,
 before anything is flown or written.
-Docs: docs/evaluate.md (the main job, Table VIII); docs/reproduce.md (every table of the paper);
-protocols, outputs, the table8 cell cache and the JSON schema: docs/evaluation.md.
+Docs: docs/evaluate.md (the main job, Table VIII; protocols, outputs, the table8 cell cache, the JSON
+schema); docs/reproduce.md (every table of the paper).
 """
 
 from __future__ import annotations
@@ -158,7 +158,7 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="NAME|PATH",
         help="nav (AT-M-Nav of each c, the default), atm (AT-M Step 3 of each c, the paper's), safe, "
         "clm (the CL-M baseline, where trained), student, orca (the ORCA-F baseline, table3 "
-        "only), a name in policies/, or a .pt path; "
+        "only), maddpg (BenchMARL's MADDPG, table3, where trained), a name in policies/, or a .pt path; "
         "table3 without it evaluates every method; table5: one high-level policy (default every "
         "method); table6, table7: the high-level policy to play (default cihrl_consmac_a)",
     )
@@ -205,7 +205,7 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         metavar="NAME|PATH",
         help="MuJoCo airframe: iris (default), crazyflie (a 27 g micro quad), or your own MJCF quadrotor "
-        "with four site-mounted thrust motors and a PX4-style .params file (docs/mujoco_world.md)",
+        "with four site-mounted thrust motors and a PX4-style .params file (docs/airframes.md)",
     )
     p.add_argument(
         "--estimator",
@@ -220,7 +220,7 @@ def build_parser() -> argparse.ArgumentParser:
         choices=("on", "off"),
         default=None,
         help="the agents' separation guard: on (default; each agent limits its closing speed towards "
-        "neighbours and LiDAR hits so that a lagging quadrotor stops in time; docs/decisions.md) or "
+        "neighbours and LiDAR hits so that a lagging quadrotor stops in time; docs/research/decisions.md) or "
         "off (the policy's actions as they are, the paper's agent); single and table8",
     )
     p.add_argument(
@@ -237,7 +237,7 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="MuJoCo: how the rotor thrusts reach the physics: auto (default; live actuators up to 16 "
         "drones per env, the same forces through xfrc_applied above, where the actuators' cost grows "
-        "with the square of the swarm), actuators or external (docs/mujoco_world.md); single, "
+        "with the square of the swarm), actuators or external (docs/research/mujoco_world.md); single, "
         "table8",
     )
     p.add_argument(
@@ -255,7 +255,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="write a top-down PNG of each episode into DIR (single; table5 with --policy: the game's "
         "message-similarity matrices; with --sitl-m the paper's Figs. 11 and 12)",
     )
-    p.add_argument("--json", type=Path, metavar="PATH", help="also write the results as JSON (docs/evaluation.md)")
+    p.add_argument("--json", type=Path, metavar="PATH", help="also write the results as JSON (docs/evaluate.md)")
     p.add_argument(
         "--workers",
         type=int,
@@ -295,7 +295,7 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         metavar="DIR",
         help="table5 over every method: read the rows' policy files (<stem>.pt, <stem>_seed<k>.pt) from DIR "
-        "instead of the shipped policies/ (docs/preregistration.md)",
+        "instead of the shipped policies/ (docs/research/preregistration.md)",
     )
     p.add_argument(
         "--fresh",
@@ -306,7 +306,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--preregistered-flight",
         action="store_true",
         help=f"table5: fly the pre-registered comparison's test batch (--seed {GAME_PREREGISTERED_TEST_SEED}), "
-        "which is flown once, after every planned run is in (docs/preregistration.md); refused without it",
+        "which is flown once, after every planned run is in (docs/research/preregistration.md); refused without it",
     )
     return p
 
@@ -320,7 +320,7 @@ def check_preregistered_batch(args: argparse.Namespace) -> None:
     if proto in GAME_TABLES and seed == GAME_PREREGISTERED_TEST_SEED and not args.preregistered_flight:
         raise ConfigError(
             f"--seed {seed}: the pre-registered Table V's test batch, flown once after every planned run is in "
-            "(docs/preregistration.md); add --preregistered-flight to fly it"
+            "(docs/research/preregistration.md); add --preregistered-flight to fly it"
         )
     if not args.preregistered_flight:
         return
@@ -386,7 +386,7 @@ def refuse_flags(args: argparse.Namespace) -> None:
         if given:
             raise ConfigError(
                 f"{given[0]}: --protocol {proto} plays the paper's game as it is (8 UAVs, 400 steps, "
-                "the fused estimate); docs/high_level.md"
+                "the fused estimate); docs/research/high_level.md"
             )
     for flag, value in (("--link-delay", args.link_delay), ("--jitter", args.jitter)):
         if value is not None and not args.sitl_m:

@@ -5,7 +5,10 @@ recorded game with its message-similarity matrices."""
 from __future__ import annotations
 
 import json
+import sys
 from pathlib import Path
+
+from tqdm import tqdm
 
 from cefc_mj.cli.eval_common import (
     PROG,
@@ -16,28 +19,16 @@ from cefc_mj.cli.eval_common import (
     write_outputs,
 )
 from cefc_mj.errors import ConfigError
-from cefc_mj.eval.highlevel import (
-    GAME_AGENTS,
-    GAME_STEPS,
-    LOW_LEVEL,
-    TABLE7_SIZES,
-    format_highlevel_table,
-    format_sitl_game,
-    game_task,
-    highlevel_policy_path,
-    plot_highlevel_table,
-    resolve_adversary,
-    run_table5,
-    run_table5_sitl,
-    run_table6,
-    run_table7,
-    table5_markdown,
-)
-from cefc_mj.eval.ledger import record_if_test
+from cefc_mj.eval.highlevel import TABLE7_SIZES, run_table5, run_table6, run_table7
+from cefc_mj.eval.highlevel_report import format_highlevel_table, plot_highlevel_table, report_markdown
+from cefc_mj.eval.highlevel_sitl import format_sitl_game, run_table5_sitl
+from cefc_mj.eval.ledger import check_before_flight, record_if_test
 from cefc_mj.eval.requests import GameTablesRequest
 from cefc_mj.eval.runner import provenance
+from cefc_mj.game_protocol import GAME_AGENTS, GAME_STEPS, LOW_LEVEL, game_task
 from cefc_mj.hierarchy import DECISION_INTERVAL, load_low_level
-from cefc_mj.nn.highlevel_policy import load_highlevel_policy
+from cefc_mj.nn.adversary_policy import resolve_adversary
+from cefc_mj.nn.highlevel_policy import highlevel_policy_path, load_highlevel_policy
 from cefc_mj.provenance import file_sha256
 
 
@@ -53,6 +44,8 @@ def check(request: GameTablesRequest) -> dict:
             )
     if request.protocol in ("table5", "table7"):  # a missing or broken adversary file fails before any episode
         resolve_adversary(request.played_adversary, request.policies_dir)
+    protocol = request.protocol if request.sitl is None else "table5-sitl-m"
+    check_before_flight(protocol, request.seed, request.episodes)  # a damaged test ledger: refused here
     return provenance("atm", [])  # the tables record each row's file and sha256 themselves
 
 
@@ -74,18 +67,22 @@ def run(request: GameTablesRequest, prov: dict, command: str) -> int:
     common = {"episodes": request.episodes, "seed": request.seed, "provenance": prov, "where": where}
     if request.sitl is not None:
         return _run_sitl_game(request, common, command)
-    if proto == "table5":
-        result = run_table5(
-            policy=request.policy,
-            adversary=request.played_adversary,
-            workers=request.workers,
-            policies_dir=request.policies_dir,
-            **common,
-        )
-    elif proto == "table6":
-        result = run_table6(policy=request.played_policy, **common)
-    else:
-        result = run_table7(policy=request.played_policy, adversary=request.played_adversary, **common)
+    with _GameBar() as bar:
+        if proto == "table5":
+            result = run_table5(
+                policy=request.policy,
+                adversary=request.played_adversary,
+                workers=request.workers,
+                policies_dir=request.policies_dir,
+                progress=bar,
+                **common,
+            )
+        elif proto == "table6":
+            result = run_table6(policy=request.played_policy, progress=bar, **common)
+        else:
+            result = run_table7(
+                policy=request.played_policy, adversary=request.played_adversary, progress=bar, **common
+            )
     result["protocol"]["command"] = command
     text = format_highlevel_table(result)
     print(text)
@@ -95,9 +92,8 @@ def run(request: GameTablesRequest, prov: dict, command: str) -> int:
     writes: list[tuple[Path, object]] = []
     if request.report_dir is not None:
         out = request.report_dir
-        markdown = table5_markdown(result) + "\n\n" if proto == "table5" and "comparison" in result else ""
         writes += [
-            (out / f"{proto}.md", f"# {proto}\n\n{markdown}```\n{text}\n```\n\nCommand: `{command}`\n"),
+            (out / f"{proto}.md", report_markdown(result, text)),
             (out / f"{proto}.json", data),
             (out / f"{proto}.png", lambda path: plot_highlevel_table(result, path)),
         ]
@@ -108,6 +104,24 @@ def run(request: GameTablesRequest, prov: dict, command: str) -> int:
         for path in _record_game(request):
             print(f"wrote {path}")
     return 0
+
+
+class _GameBar:
+    """The games flown of a table's run as a tqdm bar on stderr (games, rate, time left), drawn only
+    when stderr is a terminal; a table's run calls it with (games flown, games in all)."""
+
+    def __enter__(self) -> _GameBar:
+        self.bar = tqdm(total=None, desc="games", unit="game", file=sys.stderr, disable=None)
+        return self
+
+    def __call__(self, flown: int, total: int) -> None:
+        if self.bar.total != total:
+            self.bar.total = total
+            self.bar.refresh()
+        self.bar.update(flown - self.bar.n)
+
+    def __exit__(self, *exc) -> None:
+        self.bar.close()
 
 
 def _run_sitl_game(request: GameTablesRequest, common: dict, command: str) -> int:

@@ -21,7 +21,7 @@ from cefc_mj.cli.eval_common import (
     wind_direction_text,
     write_outputs,
 )
-from cefc_mj.eval.ledger import record_if_test
+from cefc_mj.eval.ledger import check_before_flight, record_if_test
 from cefc_mj.eval.requests import SINGLE_EPISODES, SingleRequest
 from cefc_mj.eval.runner import (
     TABLE8_STEPS as PAPER_STEPS,
@@ -47,6 +47,7 @@ def check(request: SingleRequest) -> dict:
     prov = provenance(request.policy, request.formations)
     for c in request.formations:
         cached_policy(request.policy, c)
+    check_before_flight("single", request.seed, request.episodes)  # a damaged test ledger: refused here
     return prov
 
 

@@ -21,7 +21,7 @@ from cefc_mj.cli.eval_common import (
     write_outputs,
 )
 from cefc_mj.eval import table8
-from cefc_mj.eval.ledger import record_if_test
+from cefc_mj.eval.ledger import check_before_flight, record_if_test
 from cefc_mj.eval.requests import Table8Request
 from cefc_mj.eval.runner import fault_lines, provenance
 
@@ -39,6 +39,7 @@ def check(request: Table8Request) -> dict:
     prov = provenance(request.policy, request.formations)
     for c in request.formations:
         table8.cached_policy(request.policy, c)
+    check_before_flight("table8", request.seed, request.episodes)  # a damaged test ledger: refused here
     return prov
 
 

@@ -1,6 +1,7 @@
 """`cefc-train`: train the policies the evaluators fly: the low level (AT-M steps, AT-M-Safe/Robust/Quad,
-the distilled student, the CL-M baseline), the high level (CI-HRL's ConsMAC + anchor selector, its
-variants, BenchMARL's MASAC or MAPPO) and the game's adversaries (PPO, DDPG).
+the distilled student, the CL-M baseline, BenchMARL's algorithms on the formation task), the high level
+(CI-HRL's ConsMAC + anchor selector, its variants, BenchMARL's MASAC or MAPPO) and the game's
+adversaries (PPO, DDPG).
 
 Examples:
     cefc-train lowlevel --formation 6 --step 1 --budget 15m
@@ -12,6 +13,7 @@ Examples:
     cefc-train adversary                                     # the PPO adversary (imitation, critic warm-up)
     cefc-train adversary-ddpg --budget 150it                 # the DDPG adversary (Table VI)
     cefc-train highlevel-benchmarl --algorithm masac --budget 1500ep   # BenchMARL's MASAC (benchmarl extra)
+    cefc-train formation-benchmarl --algorithm maddpg --formation 6    # BenchMARL's MADDPG, Table III's baseline
 
 Everything a run writes goes under --out (default runs/<command>, relative to the current folder):
 run folders (config, CSV and TensorBoard logs, resumable state) and the exported policies with their
@@ -21,7 +23,7 @@ checkpoint. Invalid input prints one line and exits with status 2 before anythin
 Each subcommand's --help lists its flags, with an example.
 
 Docs: docs/train_lowlevel.md (lowlevel, distill, lowlevel-all, clm); docs/train_highlevel.md (highlevel,
-adversary, adversary-ddpg, highlevel-benchmarl).
+adversary, adversary-ddpg, highlevel-benchmarl); docs/formation_benchmarl.md (formation-benchmarl).
 """
 
 from __future__ import annotations
@@ -32,17 +34,23 @@ import sys
 import time
 from pathlib import Path
 
-from cefc_mj.cli import train_adversary, train_benchmarl, train_highlevel, train_lowlevel
+from cefc_mj.cli import (
+    train_adversary,
+    train_benchmarl,
+    train_benchmarl_formation,
+    train_highlevel,
+    train_lowlevel,
+)
 from cefc_mj.cli.train_common import EXIT_USAGE, PROG, check_destinations
 from cefc_mj.errors import CefcError, ConfigError, ExamplesHelpFormatter, OneLineParser
 from cefc_mj.train.config import Budget
 
 __all__ = ["EXIT_USAGE", "build_parser", "check_destinations", "main", "run"]
 
-FAMILIES = (train_lowlevel, train_highlevel, train_adversary, train_benchmarl)
+FAMILIES = (train_lowlevel, train_highlevel, train_adversary, train_benchmarl, train_benchmarl_formation)
 """The trainer modules, in the order their subcommands are listed: each has COMMANDS, add_parser(sub)
 adding their parsers, and run(args, budget, command) -> the model cards; a module with parse_budget(text)
-reads its own --budget (highlevel-benchmarl: episodes), the others get a Budget."""
+reads its own --budget (highlevel-benchmarl: episodes; formation-benchmarl: frames), the others get a Budget."""
 
 RUNNERS = {command: family for family in FAMILIES for command in family.COMMANDS}
 """The module that runs each subcommand."""
@@ -120,7 +128,9 @@ def _resume_hint(args, started: float) -> str:
     from cefc_mj.train.run_state import STATE_FILE
 
     out = getattr(args, "out", None)
-    states = sorted(Path(out).glob(f"**/{STATE_FILE}")) if out is not None and Path(out).is_dir() else []
+    patterns = (f"**/{STATE_FILE}", "**/checkpoints/checkpoint_*.pt")  # ours; BenchMARL's (formation-benchmarl)
+    found = out is not None and Path(out).is_dir()
+    states = sorted(p for pattern in patterns for p in Path(out).glob(pattern)) if found else []
     if getattr(args, "resume", False) or any(p.stat().st_mtime >= started for p in states):
         return "the same command with --resume continues from the last checkpoint"
     return "no checkpoint was written yet: run the same command again (without --resume) to start over"

@@ -1,5 +1,5 @@
 """`cefc-train highlevel-benchmarl`: BenchMARL's MASAC (the stand-in for the paper's HASAC) or MAPPO on our
-high-level game, exported as a high-level policy file that Table V flies (docs/baselines.md, "BenchMARL
+high-level game, exported as a high-level policy file that Table V flies (docs/research/baselines.md, "BenchMARL
 baselines"). The flags default to None so that BenchMARLConfig (cefc_mj/train/benchmarl_config.py) owns
 the defaults and the range checks. Needs the optional `benchmarl` extra; without it the subcommand
 prints one line and exits 2."""

@@ -1,5 +1,5 @@
 """`cefc-train highlevel`: the high level's flags, which default to None so that HighLevelConfig
-(cefc_mj/train/highlevel.py) owns the defaults and the range checks, and its run."""
+(cefc_mj/train/highlevel_config.py) owns the defaults and the range checks, and its run."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ COMMANDS = ("highlevel",)
 
 
 def add_parser(sub) -> None:
-    """`cefc-train highlevel`; flags left out keep HighLevelConfig's defaults (cefc_mj/train/highlevel.py)."""
+    """`cefc-train highlevel`; flags left out keep HighLevelConfig's defaults (cefc_mj/train/highlevel_config.py)."""
     p = sub.add_parser(
         "highlevel",
         help="the high level (ConsMAC + anchor selector) over a trained low level",
@@ -133,14 +133,30 @@ def add_parser(sub) -> None:
         metavar="N",
         help="torch threads of the updates and ConsMAC (default 2)",
     )
+    p.add_argument(
+        "--schedule",
+        choices=("short", "paper"),  # train.highlevel_config.SCHEDULES
+        default=None,
+        help="the reading of the paper's training budget: short (default, the shipped runs': 75 iterations "
+        "of 20 envs, ConsMAC 200 steps after each; flags may change its numbers) or paper (1500 iterations of "
+        "20 envs, 1000 of them pre-training, ConsMAC 5000 steps of batch 2048 after every 20; those numbers are "
+        "fixed, so --budget, --envs, --pretrain-share and the --consmac-* flags must be left out or match)",
+    )
     add_common_args(p, "highlevel", "75it")
+    p.set_defaults(budget=None)  # the schedule's iterations (parse_budget)
 
 
-def run(args, budget: Budget, command: str | None = None) -> list[dict]:
+def parse_budget(text: str | None) -> Budget | None:
+    """--budget as a Budget; None when left out (the schedule's iterations: 75, or 1500 under paper)."""
+    return None if text is None else Budget.parse(text)
+
+
+def run(args, budget: Budget | None, command: str | None = None) -> list[dict]:
     """Check the config and folders, train, export and, with --install, install the policy and its
     pre-trained (wo-FT) weights; returns the model card."""
     from cefc_mj.nn.highlevel_policy import load_highlevel_policy
-    from cefc_mj.train.highlevel import config_from_args, summary_lines, train_highlevel
+    from cefc_mj.train.highlevel import summary_lines, train_highlevel
+    from cefc_mj.train.highlevel_config import config_from_args
 
     cfg = config_from_args(args, budget)
     policies_dir = check_destinations(args)

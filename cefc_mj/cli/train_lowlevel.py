@@ -237,7 +237,7 @@ def _lowlevel_parser(sub) -> None:
         default="particle",
         help="where the stage learns: particle (the paper's MPE-like world; default) or mujoco (AT-M-MuJoCo: "
         "a Step 3 fine-tune on MuJoCo quadrotors in wind, from --init-from, by default the shipped "
-        "atm_c<C>_nav, written as atm_c<C>_mujoco; docs/training.md)",
+        "atm_c<C>_nav, written as atm_c<C>_mujoco; docs/train_lowlevel.md)",
     )
     p.add_argument(
         "--offboard",

@@ -125,6 +125,8 @@ def airframe_path(name_or_path: str | Path) -> Path:
     text = str(name_or_path)
     if is_airframe_path(name_or_path):
         path = Path(text).expanduser()
+        if path.is_dir():
+            raise ConfigError(f"airframe: {text!r} is a folder, not an MJCF file")
         if not path.is_file():
             raise ConfigError(f"airframe: no MJCF file {text!r}")
         return path
@@ -146,8 +148,9 @@ def load_airframe(name_or_path: str | Path) -> Airframe:
     path = airframe_path(name_or_path)
     try:
         model = mujoco.MjModel.from_xml_path(str(path))
-    except ValueError as exc:
-        raise ConfigError(f"airframe: {path} does not compile: {str(exc).strip().splitlines()[0]}") from None
+    except Exception as exc:  # noqa: BLE001 (MuJoCo's parser and compiler: a bad file, in one line)
+        reason = "; ".join(line.strip() for line in str(exc).strip().splitlines() if line.strip())[:240]
+        raise ConfigError(f"airframe: {path} does not compile: {reason or type(exc).__name__}") from None
     if model.nbody != 2 or model.njnt != 1 or model.jnt_type[0] != mujoco.mjtJoint.mjJNT_FREE:
         _fail(
             path,

@@ -90,7 +90,7 @@ def params_for_airframe(mjcf_path: Path) -> Path:
             return path
     raise ConfigError(
         f"params: no parameter file for airframe {mjcf_path.stem!r} (looked for {candidates[0]} and "
-        f"{candidates[1]}); write one (docs/mujoco_world.md, Adding an airframe) or name it with params="
+        f"{candidates[1]}); write one (docs/airframes.md, Adding an airframe) or name it with params="
     )
 
 

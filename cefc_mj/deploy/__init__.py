@@ -7,9 +7,9 @@
   hierarchy in its own process (`cefc-agent --game`) and the ConsMAC messages over the transport.
 - `cefc_mj.deploy.agent`: the agent process; `cefc_mj.deploy.wire`: the message format.
 
-docs/sitl_m.md describes the timing model, the wire format and the fault handling. The names below
-are imported on first use, so that an agent process (`python -m cefc_mj.deploy.agent`) checks its
-command line before it pays for torch.
+docs/sitl_m.md describes SITL-M and its faults, docs/research/sitl_m.md the timing model and wire
+format. The names below are imported on first use, so that an agent process
+(`python -m cefc_mj.deploy.agent`) checks its command line before it pays for torch.
 """
 
 import importlib

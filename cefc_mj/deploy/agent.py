@@ -343,9 +343,8 @@ class GameAgent(Agent):
 
     def _welcome(self, message: dict) -> int | None:
         from cefc_mj.errors import CefcError
-        from cefc_mj.eval.highlevel import highlevel_policy_path
         from cefc_mj.hierarchy import AgentHierarchy, load_low_level
-        from cefc_mj.nn.highlevel_policy import load_highlevel_policy
+        from cefc_mj.nn.highlevel_policy import highlevel_policy_path, load_highlevel_policy
         from cefc_mj.task.config import TaskConfig
 
         if message["uav"] != self.uav:
@@ -606,7 +605,7 @@ def main(argv: list[str] | None = None) -> int:
         import cefc_mj.eval.runner  # noqa: F401 - the heavy imports (torch, numba kernels) before saying hello
 
         if args.game:
-            import cefc_mj.eval.highlevel  # noqa: F401 - the game's networks and observation code
+            import cefc_mj.game_protocol  # noqa: F401 - the game's networks and observation code
         from cefc_mj.task.config import TaskConfig
 
         torch.set_num_threads(1)

@@ -95,7 +95,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.json:
         args.json.write_text(json.dumps({"command": " ".join(sys.argv), "rows": rows}, indent=1))
     faults = [f"c = {r['formation']} seed {r['seed']}: {line}" for r in rows for line in r["SITL-M"]["faults"]]
-    for line in faults:  # a SITL-M episode that lost agents is not a measurement (docs/evaluation.md)
+    for line in faults:  # a SITL-M episode that lost agents is not a measurement (docs/evaluate.md)
         print(f"python -m cefc_mj.deploy.bench: fault: {line}", file=sys.stderr)
     return 3 if faults else 0
 

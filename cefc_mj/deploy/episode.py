@@ -5,7 +5,7 @@ process; each agent (`cefc_mj.deploy.agent`) runs in its own process with its ow
 policy, local or on another machine, and talks to the simulator over ZeroMQ (`SitlServer`). Per
 decision step (0.1 s) the simulator sends every flying agent its sensor packet, then flies the step
 in control ticks (0.01 s on MuJoCo), applying at each tick the newest setpoint that has taken effect
-(zero-order hold; timing model in `cefc_mj.deploy.sim_server` and docs/sitl_m.md).
+(zero-order hold; timing model in `cefc_mj.deploy.sim_server` and docs/research/sitl_m.md).
 
 >>> from cefc_mj.eval.runner import EpisodeSpec
 >>> result = run_sitl_episode(EpisodeSpec(formation=5, seed=0, steps=50), SitlConfig())  # doctest: +SKIP

@@ -12,7 +12,7 @@ decision late), one inbox frame per agent; a message that has not arrived by the
 waits for it only as long as the wall clock has advanced less than simulated time) is late, and its
 sender is an absent neighbour, as in the in-process game. docs/sitl_m.md, "The game over SITL-M".
 
->>> from cefc_mj.eval.highlevel import GameSpec
+>>> from cefc_mj.eval.highlevel_sitl import GameSpec
 >>> result = run_sitl_game(GameSpec(seed=0, steps=60, n_agents=4), SitlConfig())  # doctest: +SKIP
 >>> result.figures["R_t"], result.sitl["high_latency_ms"]["p50"]  # doctest: +SKIP
 """
@@ -40,9 +40,10 @@ from cefc_mj.deploy.results import _percentiles, unrequested_faults
 from cefc_mj.deploy.sim_server import AgentFleet, SitlServer, block_sigint, restore_sigint
 from cefc_mj.deploy.tick_world import make_ticked_world
 from cefc_mj.errors import ConfigError, SimulationDiverged
-from cefc_mj.eval.highlevel import GameSpec, game_figures, highlevel_policy_path
+from cefc_mj.eval.highlevel_sitl import GameSpec, game_figures
 from cefc_mj.eval.runner import diverged_faults
 from cefc_mj.hierarchy import DECISION_INTERVAL
+from cefc_mj.nn.highlevel_policy import highlevel_policy_path
 from cefc_mj.nn.registry import HIERARCHY_LOWLEVEL
 from cefc_mj.nn.selector import ANCHOR_VALUES, anchor_grid
 from cefc_mj.task.config import LEARNED_ADVERSARY

@@ -5,7 +5,7 @@
 each flying agent its sensor packet, reads and validates every reply (a malformed message is dropped
 and counted, never acted on), and decides at every control tick which setpoint each vehicle flies.
 
-Timing model (docs/sitl_m.md has the full story). Simulated time runs faster than wall time, so a
+Timing model (docs/research/sitl_m.md, "Timing", has the full story). Simulated time runs faster than wall time, so a
 decision's wall-clock latency is carried over into simulated time:
 
 - the packet for decision step k leaves at simulated time t_k; each direction of the link adds

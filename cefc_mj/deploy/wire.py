@@ -7,7 +7,7 @@ UTF-8 JSON object. `decode` reads both (a binary frame starts with the two bytes
 JSON text does) and returns the same dict either way; sensor and action are also accepted as JSON.
 Floats cross the wire bit for bit (float64, or Python's shortest round-trip repr in JSON); NaN and
 infinities are refused in both directions. In JSON, receivers ignore fields they do not know (a new
-optional field keeps the version; a changed or new required field bumps it). docs/sitl_m.md has
+optional field keeps the version; a changed or new required field bumps it). docs/research/sitl_m.md has
 the table of messages and fields and the binary layouts.
 
 `decode` validates a frame completely (size, encoding, version, type, every field's type, length
@@ -125,7 +125,7 @@ _HEADER = struct.Struct("<2sBBIHH")
 neighbours (u16); action: uav (u16), 0 (u16)."""
 _SENSOR, _ACTION = 1, 2
 _GAME_SENSOR, _MESSAGE, _INBOX = 3, 5, 6
-"""The game's frames (docs/sitl_m.md, "The game over SITL-M"): a game sensor packet (kind 3, sim ->
+"""The game's frames (docs/research/sitl_m.md, "Frame layout"): a game sensor packet (kind 3, sim ->
 agent), a ConsMAC message (kind 5, agent -> sim) and an inbox of neighbours' messages (kind 6, sim ->
 agent)."""
 _SENSOR_FIXED = 7  # t, pos[2], vel[2], anchor[2]

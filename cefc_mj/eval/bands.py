@@ -1,4 +1,4 @@
-"""Regression bands on the Table VIII metrics that hold on any machine (docs/reproducibility.md).
+"""Regression bands on the Table VIII metrics that hold on any machine (docs/reproduce.md).
 
 A 1000-step closed loop is chaotic: the same seed gives bit-identical metrics on one machine, but a
 last-bit difference anywhere (another CPU's libm or SIMD kernels, another MuJoCo build) grows into a
@@ -60,7 +60,7 @@ before the world clips it): 0 is the loop as users run it. The evaluators' polic
 same bits on any CPU (cefc_mj/nn/inference.py), so pinning MKL's code paths (MKL_CBWR), which once
 made the spread, no longer changes a bit; what can still differ between machines is the last bit of
 libm, of numpy's SIMD kernels or of another MuJoCo build, and a one-ulp nudge of the actions is that
-kind of difference (docs/reproducibility.md)."""
+kind of difference (docs/reproduce.md)."""
 FACTS = ("no-collisions-SITL-S", "no-collisions-Wind-8", "Wind-8-lowers-F+N", "Deviation-0.8-lowers-F+N")
 """The paper's qualitative Table VIII facts checked per formation c."""
 
@@ -253,7 +253,7 @@ def make_bands(rows: list[dict], formations=FORMATIONS, seeds: int = SEEDS) -> d
             "noise_of_mean = fp_std_one_seed x sqrt((1 + 1/P) / n), fp_std_one_seed being the "
             "within-seed standard deviation across the paths, pooled over the seeds. The test flies the same seeds "
             "once and compares each cell's mean. Facts: 'holds' is asserted, 'broken' is a strict xfail (a known gap), "
-            "'undecided' (|margin| within the noise) is reported and skipped. See docs/reproducibility.md."
+            "'undecided' (|margin| within the noise) is reported and skipped. See docs/reproduce.md."
         ),
         "created_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
         "versions": _versions(),

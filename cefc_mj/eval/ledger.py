@@ -3,7 +3,12 @@
 A test batch is worth something only while no choice has looked at it. The ledger says which flights
 have: one JSON object per line of `eval/test_ledger.jsonl` in the checkout, appended and never
 rewritten. `cefc-eval` appends a flight record by itself whenever a game table (table5/6/7, the
-SITL-M game) or Table VIII flies a seed of the test block; a later line can mark a flight as having
+SITL-M game), Table VIII or a single run flies games of a declared test batch
+(`cefc_mj.seeds.TEST_BATCHES`) and says so in one line; a flight of other test-block seeds is not
+recorded, and says that in one line. Before such a flight starts, the ledger it would be recorded in
+is read and checked as every reader checks it (`read_ledger`): a damaged ledger (a line that is not a
+record, torn lines included) is refused with one line naming the line, and nothing flies; the
+writer checks it again under its lock before it appends. A later line can mark a flight as having
 informed a change (`python -m cefc_mj.eval.ledger mark ID "what changed"`). A report flown on games
 that an earlier flight informed a change with is tainted (`tainting_flights`; tests/test_test_ledger.py
 holds every shipped report to that rule).
@@ -17,7 +22,7 @@ Where it writes (`ledger_path`):
   is when the file cannot be written; the flight itself goes on.
 
 Appends are atomic: one `write` of one line on a file opened with O_APPEND, under an exclusive
-`flock`, then fsync; a line left without its newline by a crash is closed before the next is added.
+`flock`, then fsync.
 
     python -m cefc_mj.eval.ledger                      # every flight, one line each
     python -m cefc_mj.eval.ledger mark ID "CHANGE"     # mark flight ID as having informed CHANGE
@@ -129,6 +134,10 @@ def _flight_from(record: dict, where: str) -> Flight:
         flight = Flight(**record)
     except TypeError as e:
         raise ConfigError(f"{where}: not a flight record ({e})") from None
+    kinds = {"id": str, "protocol": str, "seed": int, "episodes": int, "command": str, "date": str}
+    wrong = [name for name, kind in kinds.items() if not isinstance(getattr(flight, name), kind)]
+    if wrong or isinstance(flight.seed, bool) or isinstance(flight.episodes, bool):
+        raise ConfigError(f"{where}: not a flight record ({(wrong or ['seed'])[0]} of the wrong type)")
     if flight.protocol not in seed_blocks.PROTOCOL_FAMILY:
         raise ConfigError(
             f"{where}: protocol {flight.protocol!r} is not one of {', '.join(seed_blocks.PROTOCOL_FAMILY)}"
@@ -138,20 +147,37 @@ def _flight_from(record: dict, where: str) -> Flight:
 
 def read_ledger(path: Path | None = None) -> Ledger:
     """The flights of `path` (default `ledger_path()`), marks applied; an empty ledger where there is
-    no file. ConfigError (one line, with the line number) for a line that is not a record."""
+    no file. ConfigError (one line, with the line number) for a line that is not a record, a torn
+    last line included, and for a ledger that cannot be read: the one check every reader and writer
+    of the ledger makes."""
     if path is None:
         path, _ = ledger_path()
-    if path is None or not Path(path).is_file():
+    if path is None or not Path(path).exists():
         return Ledger(path)
+    try:
+        data = Path(path).read_bytes()
+    except OSError as e:
+        raise ConfigError(f"test ledger {path}: cannot be read ({e.strerror or e})") from None
+    return Ledger(Path(path), _parse(Path(path), data))
+
+
+def _parse(path: Path, data: bytes) -> list[Flight]:
+    """The flights of a ledger file's bytes (see read_ledger)."""
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as e:
+        line = data[: e.start].count(b"\n") + 1
+        raise ConfigError(f"test ledger {path}:{line}: not UTF-8 text; repair or remove that line") from None
     flights: dict[str, Flight] = {}
-    for number, line in enumerate(Path(path).read_text().splitlines(), 1):
+    for number, line in enumerate(text.split("\n"), 1):
         where = f"test ledger {path}:{number}"
         if not line.strip():
             continue
         try:
             record = json.loads(line)
-        except json.JSONDecodeError as e:
-            raise ConfigError(f"{where}: not JSON ({e.msg})") from None
+        except (json.JSONDecodeError, RecursionError) as e:
+            reason = e.msg if isinstance(e, json.JSONDecodeError) else "nested too deeply"
+            raise ConfigError(f"{where}: not JSON ({reason}); repair or remove that line") from None
         kind = record.get("kind") if isinstance(record, dict) else None
         if kind == FLIGHT:
             flight = _flight_from(record, where)
@@ -159,7 +185,7 @@ def read_ledger(path: Path | None = None) -> Ledger:
                 raise ConfigError(f"{where}: flight {flight.id!r} recorded twice")
             flights[flight.id] = flight
         elif kind == MARK:
-            target = flights.get(record.get("flight"))
+            target = flights.get(record.get("flight")) if isinstance(record.get("flight"), str) else None
             if target is None:
                 raise ConfigError(f"{where}: marks flight {record.get('flight')!r}, which no earlier line records")
             flights[target.id] = Flight(
@@ -167,7 +193,7 @@ def read_ledger(path: Path | None = None) -> Ledger:
             )
         else:
             raise ConfigError(f"{where}: kind {kind!r} is neither {FLIGHT!r} nor {MARK!r}")
-    return Ledger(Path(path), list(flights.values()))
+    return list(flights.values())
 
 
 def flights(protocol: str | None = None, seed: int | None = None, path: Path | None = None) -> list[Flight]:
@@ -189,18 +215,20 @@ def tainting_flights(flight: Flight, ledger: list[Flight]) -> list[Flight]:
 
 
 def _append(path: Path, record: dict) -> None:
-    """Append one JSON line atomically (O_APPEND, flock, one write, fsync)."""
+    """Append one JSON line atomically (O_APPEND, flock, one write, fsync), after checking the ledger
+    as `read_ledger` does, under the lock (ConfigError for a damaged ledger: nothing is appended)."""
     line = (json.dumps(record, sort_keys=False) + "\n").encode()
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o666)
+    fd = os.open(path, os.O_RDWR | os.O_APPEND | os.O_CREAT, 0o666)
     try:
         fcntl.flock(fd, fcntl.LOCK_EX)
-        size = os.fstat(fd).st_size
-        if size:
-            with open(path, "rb") as fh:
-                fh.seek(size - 1)
-                if fh.read(1) != b"\n":  # a line torn by a crash: close it, so this one stays whole
-                    line = b"\n" + line
+        chunks = []
+        while chunk := os.pread(fd, 1 << 20, sum(map(len, chunks))):
+            chunks.append(chunk)
+        data = b"".join(chunks)
+        _parse(path, data)
+        if data and not data.endswith(b"\n"):
+            raise ConfigError(f"test ledger {path}: its last line has no newline (torn); repair it before recording")
         os.write(fd, line)
         os.fsync(fd)
     finally:
@@ -214,6 +242,32 @@ def _now() -> str:
 def _flight_id(protocol: str, seed: int, date: str, record: dict) -> str:
     digest = hashlib.sha256(json.dumps(record, sort_keys=True).encode()).hexdigest()[:8]
     return f"{protocol}-s{seed}-{date[:10]}-{digest}"
+
+
+def flight_seeds(protocol: str, seed: int, episodes: int) -> range:
+    """The seeds a flight touches: its batch seed (table5-7), or one per game (the others)."""
+    return range(seed, seed + 1) if protocol in seed_blocks.BATCH_SEEDED else range(seed, seed + episodes)
+
+
+def declared_batches(protocol: str, seed: int, episodes: int) -> list[seed_blocks.TestBatch]:
+    """The declared test batches (`cefc_mj.seeds.TEST_BATCHES`) whose games a flight flies: same
+    family of games, a seed in common."""
+    family, seeds = seed_blocks.PROTOCOL_FAMILY[protocol], flight_seeds(protocol, seed, episodes)
+    return [
+        b
+        for b in seed_blocks.TEST_BATCHES
+        if b.family == family and b.first < seeds.stop and seeds.start < b.first + b.count
+    ]
+
+
+def check_before_flight(protocol: str, seed: int, episodes: int) -> None:
+    """What `cefc-eval` calls before a flight starts: where the flight would be recorded (it flies a
+    declared test batch), the ledger is read and checked (`read_ledger`); ConfigError with one line for
+    a damaged one, so that nothing flies."""
+    if declared_batches(protocol, seed, episodes):
+        path, _ = ledger_path()
+        if path is not None:
+            read_ledger(path)
 
 
 def touches_test_block(protocol: str, seed: int, episodes: int) -> bool:
@@ -240,12 +294,17 @@ def record_flight(
     """Append a flight of test-block seeds to the ledger (path: default `ledger_path()`) and return it;
     None, with one line on stderr saying why, where nothing could be recorded (no checkout and no
     CEFC_TEST_LEDGER, or the file cannot be written). provenance: the run's (`git_commit`,
-    `code_version`). A flight that flies no test seed is refused (ConfigError): only the test block is
-    ledgered."""
+    `code_version`). A flight that flies no declared test batch is refused (ConfigError): only the
+    declared test batches are ledgered. ConfigError, nothing appended, for a damaged ledger."""
     if protocol not in seed_blocks.PROTOCOL_FAMILY:
         raise ConfigError(f"protocol {protocol!r}: must be one of {', '.join(seed_blocks.PROTOCOL_FAMILY)}")
     if not touches_test_block(protocol, seed, episodes):
         raise ConfigError(f"{protocol} from seed {seed} ({episodes} episodes) flies no seed of the test block")
+    if not declared_batches(protocol, seed, episodes):
+        raise ConfigError(
+            f"{protocol} from seed {seed} ({episodes} episodes) flies no declared test batch "
+            "(cefc_mj.seeds.TEST_BATCHES)"
+        )
     where = "given"
     if path is None:
         path, where = ledger_path()
@@ -269,6 +328,7 @@ def record_flight(
         "source": source,
     }
     flight = _flight_from({**record, "id": _flight_id(protocol, seed, date, record)}, "record")
+    read_ledger(Path(path))  # a damaged or unreadable ledger: ConfigError, as every reader says it
     try:
         _append(Path(path), flight.to_json())
     except OSError as e:
@@ -279,12 +339,23 @@ def record_flight(
 
 def record_if_test(protocol: str, seed: int, episodes: int, command: str, provenance: dict | None, outputs=()):
     """What cefc-eval calls once a flight's numbers are out: `record_flight` where the flight flies a
-    seed of the test block (saying so in one line), nothing otherwise. Returns the flight or None."""
+    declared test batch, saying so in one line; one line saying it is not recorded where it flies
+    other seeds of the test block; nothing for seeds outside the test block. Returns the flight or None."""
     if not touches_test_block(protocol, seed, episodes):
+        return None
+    batches = declared_batches(protocol, seed, episodes)
+    if not batches:
+        seeds = flight_seeds(protocol, seed, episodes)
+        shown = f"seed {seed} is" if len(seeds) == 1 else f"seeds {seeds.start}..{seeds.stop - 1} are"
+        print(
+            f"test ledger: not recorded: {shown} in the test block but in no declared test batch "
+            "(cefc_mj.seeds.TEST_BATCHES)"
+        )
         return None
     flight = record_flight(protocol, seed, episodes, command, provenance, [str(o) for o in outputs if o is not None])
     if flight is not None:
-        print(f"test ledger: flight {flight.id} recorded in {display_path(ledger_path()[0])}")
+        names = ", ".join(repr(b.name) for b in batches)
+        print(f"test ledger: flight {flight.id} of test batch {names} recorded in {display_path(ledger_path()[0])}")
     return flight
 
 

@@ -1,4 +1,4 @@
-"""Two Table VIII reports flown on the same seeds, compared seed by seed (docs/training_in_mujoco.md).
+"""Two Table VIII reports flown on the same seeds, compared seed by seed (docs/research/training_in_mujoco.md).
 
     python -m cefc_mj.eval.paired BEFORE/table8.json AFTER/table8.json [--md OUT.md]
 
@@ -39,6 +39,49 @@ def per_seed(report: dict) -> dict[tuple[int, str], dict[int, dict[str, float]]]
                 int(e["seed"]): {k: float(e[k]) for k in ("F", "N", "C")} for e in cell["episodes_detail"]
             }
     return out
+
+
+def read_report(path: Path) -> dict:
+    """A table8.json read and checked for what `compare` uses (a "rows" table of cells with
+    per-episode F, N and C); ConfigError with one line naming `path` for a missing, unreadable,
+    damaged or foreign file."""
+    path = Path(path)
+    if path.is_dir():
+        raise ConfigError(f"{path}: a folder, not a report")
+    if not path.is_file():
+        raise ConfigError(f"{path}: no such report")
+    try:
+        report = json.loads(path.read_bytes().decode("utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as e:
+        reason = e.msg if isinstance(e, json.JSONDecodeError) else "not UTF-8 text"
+        raise ConfigError(f"{path}: not a JSON report ({reason})") from None
+    except (OSError, RecursionError, ValueError) as e:
+        raise ConfigError(f"{path}: cannot be read ({type(e).__name__}: {str(e).strip()[:160]})") from None
+    try:
+        if not isinstance(report, dict) or not isinstance(report.get("rows"), dict):
+            raise ValueError("no table of rows")
+        if not all(
+            isinstance(cells, dict) and all(isinstance(c, dict) for c in cells.values())
+            for cells in report["rows"].values()
+        ):
+            raise ValueError("a row that is not a table of cells")
+        cells = per_seed(report)
+        if any((c, CALM) not in cells for c, _ in cells):
+            raise ValueError(f"a formation without its {CALM} (calm) cell, the retention reference")
+        if any(not np.isfinite(v) for seeds in cells.values() for record in seeds.values() for v in record.values()):
+            raise ValueError("a figure that is not a finite number")
+    except ConfigError as e:
+        raise ConfigError(f"{path}: {e}") from None
+    except (KeyError, TypeError, ValueError, AttributeError) as e:
+        what = (
+            f"missing {e}"
+            if isinstance(e, KeyError)
+            else str(e).strip().splitlines()[0][:160]
+            if str(e).strip()
+            else type(e).__name__
+        )
+        raise ConfigError(f"{path}: not a table8.json report ({what})") from None
+    return report
 
 
 def retention(cells: dict, c: int, condition: str) -> dict[int, float]:
@@ -132,17 +175,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--md", type=Path, default=None, help="also write the table to this markdown file")
     args = p.parse_args(argv)
     try:
-        for path in (args.before, args.after):
-            if not path.is_file():
-                raise ConfigError(f"{path}: no such report")
         if args.md is not None and not args.md.parent.is_dir():
             raise ConfigError(f"--md {args.md}: folder {args.md.parent} does not exist")
-        reports = [json.loads(path.read_text()) for path in (args.before, args.after)]
+        reports = [read_report(path) for path in (args.before, args.after)]
         names = [str(r.get("policy")) for r in reports]
         rows = compare(*reports)
         if not rows:
             raise ConfigError("the two reports share no (c, condition) cell")
-    except (ConfigError, json.JSONDecodeError, KeyError) as e:
+    except ConfigError as e:
         print(f"paired: error: {e}", file=sys.stderr)
         return 2
     text = format_rows(rows, *names)

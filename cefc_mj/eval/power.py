@@ -1,5 +1,5 @@
 """How much a Table V report can tell: the SD over training seeds pooled over its rows, and the minimum
-detectable difference and equivalence power at given seed counts (docs/preregistration.md, "Power").
+detectable difference and equivalence power at given seed counts (docs/research/preregistration.md, "Power").
 
     python -m cefc_mj.eval.power                                  # the shipped eval/reports/table5.json
     python -m cefc_mj.eval.power REPORT --pairs 20:20 5:20        # other seed counts
@@ -17,8 +17,10 @@ from pathlib import Path
 
 from cefc_mj import paths
 from cefc_mj.errors import OneLineParser
-from cefc_mj.eval.highlevel import DT, MARGINS, add_comparisons, equivalence_lines
+from cefc_mj.eval.highlevel_comparison import MARGINS, add_comparisons
+from cefc_mj.eval.highlevel_report import equivalence_lines
 from cefc_mj.eval.stats import ALPHA, POWER, equivalence_power, minimum_detectable_difference, pooled_sd
+from cefc_mj.game_protocol import DT
 
 DEFAULT_PAIRS = ((3, 5), (5, 5), (5, 20), (20, 20))
 """(row's seeds, CI-HRL's seeds): the shipped table's and the pre-registered ones."""

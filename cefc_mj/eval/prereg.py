@@ -1,4 +1,4 @@
-"""The pre-registered Table V's plan (docs/preregistration.md): every training run it asks for, by the
+"""The pre-registered Table V's plan (docs/research/preregistration.md): every training run it asks for, by the
 policy file the run writes, and the check that the test flight waits for all of them.
 
 `examples/prereg_table5.py` trains the runs in this order; `cefc-eval --preregistered-flight` refuses

@@ -26,12 +26,13 @@ import numpy as np
 from cefc_mj.errors import CefcError, ConfigError
 from cefc_mj.eval import DEFAULT_POLICY
 from cefc_mj.eval.conditions import Conditions, check_wind_direction, is_number_in, number_text
-from cefc_mj.eval.highlevel import EPISODES as GAME_EPISODES, GAME_ADVERSARY, GAME_POLICY
+from cefc_mj.eval.highlevel import GAME_POLICY
 from cefc_mj.eval.runner import TABLE8_FORMATIONS, TABLE8_STEPS
 from cefc_mj.eval.table3 import TABLE3_FORMATIONS
 from cefc_mj.executors import ExecutorConfig, usable_cpus
 from cefc_mj.fileio import can_write_in
-from cefc_mj.nn.registry import WITHDRAWN
+from cefc_mj.game_protocol import EPISODES as GAME_EPISODES
+from cefc_mj.nn.registry import GAME_ADVERSARY, WITHDRAWN
 from cefc_mj.table3_protocol import TABLE3_EPISODES, TABLE3_STEPS
 from cefc_mj.task.estimator import POSITION_ESTIMATORS
 

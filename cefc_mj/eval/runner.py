@@ -91,7 +91,7 @@ class EpisodeSpec:
     policy: str = DEFAULT_POLICY
     """Policy choice (see policy_name_for)."""
     airframe: str = "iris"
-    """MuJoCo airframe: a shipped name ("iris", "crazyflie") or an MJCF path (docs/mujoco_world.md);
+    """MuJoCo airframe: a shipped name ("iris", "crazyflie") or an MJCF path (docs/airframes.md);
     the particle backend has none and ignores it."""
     estimator: str = "fused"
     """The agents' position estimate (cefc_mj/task/estimator.py): "fused" (onboard filter of the
@@ -101,11 +101,11 @@ class EpisodeSpec:
     """The agents pass their actions through the separation guard (cefc_mj/task/guard.py), the
     evaluators' default; False flies the policy's actions as they are (the paper's agent)."""
     rotor_actuation: str = "auto"
-    """MuJoCo: how the rotor thrusts reach the physics (docs/mujoco_world.md): "auto" (live actuators up
+    """MuJoCo: how the rotor thrusts reach the physics (docs/research/mujoco_world.md): "auto" (live actuators up
     to 16 drones per env, the same forces through xfrc_applied above), "actuators" or "external"; the
     particle backend ignores it."""
     offboard: str = "velocity"
-    """MuJoCo's offboard interface (docs/mujoco_world.md): "velocity" (the setpoint is integrated
+    """MuJoCo's offboard interface (docs/research/mujoco_world.md): "velocity" (the setpoint is integrated
     into a velocity setpoint, the default) or "acceleration" (sent as PX4 acceleration setpoints, as
     the paper does); the particle backend ignores it."""
 

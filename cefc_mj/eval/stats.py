@@ -229,7 +229,9 @@ def two_sample_power(
         raise ValueError(f"method={method!r}: must be 't' or 'normal'")
     df = n + n_reference - 2
     crit = stats.t.ppf(1 - alpha / 2, df)
-    return float(stats.nct.sf(crit, df, ncp) + stats.nct.cdf(-crit, df, ncp))
+    # The lower tail P(T < -crit) as P(T' > crit) of the mirrored noncentrality: the same number, but
+    # scipy's nct.cdf returns NaN there for some large noncentralities at few df (e.g. df 2, ncp 10).
+    return float(stats.nct.sf(crit, df, ncp) + stats.nct.sf(crit, df, -ncp))
 
 
 def minimum_detectable_difference(

@@ -7,7 +7,7 @@ acts deterministically (Gaussian mean). Columns as the paper prints them:
 - R_L: the team reward R_L = 15 R_f + 4 R_n + 100 R_c per step, averaged over steps and episodes
   (R_n = -|centre - anchor|, the paper's low-level navigation reward);
 - R_L^a: the same with the navigation term summed over the agents, -sum_i |p_i - anchor| (the paper's
-  eq. 14 form); the paper's printed R_L values match this one (docs/baselines.md, "The unit of R_L");
+  eq. 14 form); the paper's printed R_L values match this one (docs/research/baselines.md, "The unit of R_L");
 - F, N: steps per episode in formation (HD < 1 m) / with the swarm centre within 1 m of the anchor;
 - C: % of agent-steps in collision (a UAV disc overlapping an obstacle or another UAV).
 
@@ -48,19 +48,25 @@ METHODS = (
 )
 """Row names as the paper writes them (AT-M-Nav and the student are this project's additions;
 ORCA-F is the baseline of cefc_mj/baselines/orca.py, CL-M the curriculum baseline trained by `cefc-train clm`,
-docs/baselines.md). AT-M-Step1 is the Step 1 that Step 3 starts from, its LiDAR seeing obstacles and
+docs/research/baselines.md). AT-M-Step1 is the Step 1 that Step 3 starts from, its LiDAR seeing obstacles and
 UAVs; the obstacle-LiDAR row is Step 1 trained with a LiDAR that sees obstacles only, as the paper's
-Step 1 evidently was (docs/layouts.md): both stand beside the paper's Step 1 row."""
+Step 1 evidently was (docs/research/layouts.md): both stand beside the paper's Step 1 row."""
 PAPER_ROW = {OBSTACLE_LIDAR_STEP1: "AT-M-Step1"}
 """Our rows compared with a paper row of another name."""
 COLUMNS = ("R_L", "F", "N", "C")
+MADDPG = "MADDPG"
+"""The paper's MADDPG row: BenchMARL's MADDPG on the formation task (`cefc-train formation-benchmarl`,
+docs/formation_benchmarl.md), its policy files named MADDPG_FILE; not in METHODS until files ship."""
+MADDPG_FILE = "benchmarl_maddpg_c{c}"
 
 
 def _paper_table3() -> dict[str, dict[str, dict[str, float]]]:
-    """The paper's Table III AT-M, ORCA-F and CL-M rows from the shipped transcription (eval/paper_tables.json)."""
+    """The paper's Table III AT-M, ORCA-F, CL-M and MADDPG rows from the shipped transcription
+    (eval/paper_tables.json; MADDPG's R_L and C are not printed: None)."""
     raw = json.loads((paths.EVAL_DIR / "paper_tables.json").read_text())["table3_atm_mpe"]
+    baselines = ("ORCA-F", "CL-M", MADDPG)
     return {
-        c: {m: dict(zip(COLUMNS, v)) for m, v in rows.items() if m.startswith("AT-M") or m in ("ORCA-F", "CL-M")}
+        c: {m: dict(zip(COLUMNS, v)) for m, v in rows.items() if m.startswith("AT-M") or m in baselines}
         for c, rows in raw.items()
         if c.isdigit()
     }
@@ -77,6 +83,8 @@ def policy_file_for(method: str, formation: int) -> str | None:
         return registry.STUDENT
     if method == "CL-M":
         return registry.clm_name(formation)
+    if method == MADDPG:
+        return MADDPG_FILE.format(c=formation)
     if method == OBSTACLE_LIDAR_STEP1:
         return registry.lowlevel_name(formation, "step1") + "_obstacle_lidar"
     kind = {"AT-M-Safe": "safe", "AT-M-Nav": "nav"}.get(method, f"step{method[-1]}")
@@ -127,6 +135,7 @@ POLICY_CHOICES = {
     "student": "Student",
     "orca": "ORCA-F",
     "clm": "CL-M",
+    "maddpg": MADDPG,
 }
 """cefc-eval's --policy aliases and the Table III row each one is."""
 
@@ -251,7 +260,10 @@ def run_table3(
             except CheckpointError:
                 if policy is not None:
                     raise
-                hint = f": train it with cefc-train clm --formation {c}" if method == "CL-M" else ""
+                hint = {
+                    "CL-M": f": train it with cefc-train clm --formation {c}",
+                    MADDPG: f": train it with cefc-train formation-benchmarl --formation {c}",
+                }.get(method, "")
                 result["protocol"]["missing"].append(f"{c}/{method} ({name}.pt{hint})")
                 _skip(progress, episodes)
                 continue

@@ -25,7 +25,14 @@ from torch import nn
 
 from cefc_mj.errors import CheckpointError, ConfigError
 from cefc_mj.nn.layers import mlp
-from cefc_mj.nn.policy_io import read_policy_payload, write_policy_payload
+from cefc_mj.nn.policy_io import (
+    checkpoint_errors,
+    policy_meta,
+    read_policy_payload,
+    resolve_policy_path,
+    write_policy_payload,
+)
+from cefc_mj.provenance import file_sha256
 from cefc_mj.task.adversary import (
     ADVERSARY_GOAL_COLUMNS,
     ADVERSARY_OBS_DIM,
@@ -33,6 +40,7 @@ from cefc_mj.task.adversary import (
     clip_speed,
     velocity_tracking_acceleration,
 )
+from cefc_mj.task.config import ADVERSARY_RULES, LEARNED_ADVERSARY
 
 POLICY_FORMAT = "cefc-mj/adversary-policy"
 POLICY_VERSION = 1
@@ -151,15 +159,28 @@ def load_adversary_policy(path: Path) -> tuple[AdversaryPolicy, dict]:
     path = Path(path)
     payload = read_policy_payload(path, POLICY_FORMAT, POLICY_VERSION, "an adversary policy")
     state = payload["state_dict"]
-    try:
+    with checkpoint_errors(path, "weights do not fit the described network"):
         cfg = AdversaryNetConfig(**payload["net"])
         if cfg.obs_dim != ADVERSARY_OBS_DIM:
             raise ConfigError(f"observation size {cfg.obs_dim}, this code builds {ADVERSARY_OBS_DIM}")
         policy = AdversaryPolicy(cfg)
         policy.load_state_dict(state)
-    except (ConfigError, RuntimeError, TypeError, KeyError) as e:
-        raise CheckpointError(
-            f"{path}: weights do not fit the described network ({str(e).splitlines()[0][:160]})"
-        ) from None
     policy.eval()
-    return policy, dict(payload.get("meta") or {})
+    return policy, policy_meta(path, payload)
+
+
+def resolve_adversary(spec: str, policies_dir: Path | None = None) -> tuple[str, object, dict]:
+    """(TaskConfig.adversary, the env's adversary_policy or None, a record for reports) of an
+    adversary given as a rule name or as a trained adversary's policy name (in policies_dir, default
+    the shipped folder) or file; CheckpointError (one line) for a missing or broken file."""
+    if spec in ADVERSARY_RULES:
+        return spec, None, {"rule": spec}
+    try:
+        path = resolve_policy_path(spec, policies_dir)
+        policy, _ = load_adversary_policy(path)
+    except CheckpointError as e:
+        raise CheckpointError(
+            f"adversary {spec}: {e} (a rule is one of {', '.join(ADVERSARY_RULES)}; a trained "
+            "adversary comes from cefc-train adversary)"
+        ) from None
+    return LEARNED_ADVERSARY, policy.act, {"policy": path.name, "sha256": file_sha256(path)}

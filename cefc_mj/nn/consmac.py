@@ -10,7 +10,7 @@ m_ij^(t) of its k neighbours at distances d_j (received through `cefc_mj.task.me
     (10) GE      g_hat_i^(t) = F_psiE(m_i^(t+1))                          3-layer MLP
     (11) celoss  L_ConsMAC   = E_i,t ||g_hat_i^(t) - g_i^(t)||^2
 
-Equation numbers count the paper's numbered equations in order (docs/high_level.md); the names are
+Equation numbers count the paper's numbered equations in order (docs/research/high_level.md); the names are
 the paper's own labels.
 
 m_i^(t+1) is both the message agent i broadcasts next step and the consensus feature the anchor
@@ -18,7 +18,7 @@ selector reads (eq. (12), `cefc_mj.nn.selector`). ConsMAC is trained by supervis
 the RL loss must never reach it (paper Sec. IV-C3), so the policy reads it through
 `ConsMACOutput.detach_for_policy()` and the selector detaches its input again.
 
-Decisions where the paper is silent (docs/high_level.md gives the reasons):
+Decisions where the paper is silent (docs/research/high_level.md gives the reasons):
 - the memory is a GRU cell with o_i as input and m_i0 as hidden state (its gates read [m || o]);
 - o_i is the paper's 38-number local observation (targets, adversary, neighbours), scaled by
   `obs_scale`;
@@ -136,7 +136,7 @@ class ConsMACConfig(LocalObservationSizes):
     message_content: str = "learned"
     """One of MESSAGE_CONTENTS: "learned" is ConsMAC (this module); "observation" (MASIA) and
     "latent+observation" (NVIF) are `cefc_mj.nn.obs_comm.ObservationComm`, which shares this
-    config, the distance code and the masked attention (docs/baselines.md). Policy files written
+    config, the distance code and the masked attention (docs/research/baselines.md). Policy files written
     before this field existed load as "learned"."""
     kl_weight: float = 0.01
     """NVIF only: the weight beta of the KL term KL(q(z | o, inbox) || N(0, I)) beside the

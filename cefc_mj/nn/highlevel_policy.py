@@ -1,5 +1,5 @@
 """pi_H, the high level's policy: the communication module (ConsMAC, MASIA's or NVIF's, or none)
-and the anchor selector, with its own policy file format (docs/high_level.md).
+and the anchor selector, with its own policy file format (docs/research/high_level.md).
 
 `HighLevelPolicy.decide(obs, inbox)` gives each agent's anchor index and the message it sends;
 `save_highlevel_policy` / `load_highlevel_policy` write and read `cefc-mj/highlevel-policy` files
@@ -16,7 +16,13 @@ from torch import nn
 from cefc_mj.errors import CheckpointError, ConfigError
 from cefc_mj.nn.consmac import ABLATIONS, ConsMAC, ConsMACConfig, inbox_tensors
 from cefc_mj.nn.obs_comm import ObservationComm, build_comm
-from cefc_mj.nn.policy_io import read_policy_payload, write_policy_payload
+from cefc_mj.nn.policy_io import (
+    checkpoint_errors,
+    policy_meta,
+    read_policy_payload,
+    resolve_policy_path,
+    write_policy_payload,
+)
 from cefc_mj.nn.selector import AnchorSelector, SelectorConfig
 from cefc_mj.task.config import TaskConfig
 from cefc_mj.task.messages import Inbox
@@ -183,14 +189,21 @@ def load_highlevel_policy(path: Path) -> tuple[HighLevelPolicy, dict]:
     path = Path(path)
     payload = read_policy_payload(path, POLICY_FORMAT, POLICY_VERSION, "a high-level policy")
     state = payload["state_dict"]
-    try:
+    with checkpoint_errors(path, "weights do not fit the described networks"):
         comm = None if payload.get("comm") is None else build_comm(ConsMACConfig.from_dict(payload["comm"]))
         selector = AnchorSelector(SelectorConfig.from_dict(payload["selector"]))
         policy = HighLevelPolicy(selector, comm, str(payload.get("variant")))
         policy.load_state_dict(state)
-    except (ConfigError, RuntimeError, TypeError, KeyError) as e:
-        raise CheckpointError(
-            f"{path}: weights do not fit the described networks ({str(e).splitlines()[0][:160]})"
-        ) from None
     policy.eval()
-    return policy, dict(payload.get("meta") or {})
+    return policy, policy_meta(path, payload)
+
+
+def highlevel_policy_path(policy: str, policies_dir: Path | None = None) -> Path:
+    """The file of a high-level policy given by name (in policies_dir, default the shipped folder) or
+    path (`resolve_policy_path`); CheckpointError (one line) when there is none."""
+    try:
+        return resolve_policy_path(policy, policies_dir)
+    except CheckpointError as e:
+        raise CheckpointError(
+            f"--policy {policy}: no high-level policy file ({e}); train it with cefc-train highlevel"
+        ) from None

@@ -1,5 +1,5 @@
 """The MASIA and NVIF baselines of the paper's Table IV: communication modules whose messages carry
-the sender's raw local observation o_i (docs/baselines.md, "MASIA and NVIF").
+the sender's raw local observation o_i (docs/research/baselines.md, "MASIA and NVIF").
 
 Both share ConsMAC's config (`ConsMACConfig.message_content`), channel, distance code and masked
 attention, and are trained, like ConsMAC, by a supervised loss on the trainer's replay only: the
@@ -15,7 +15,7 @@ selector reads their output detached, so the RL loss never reaches them.
       g_hat_i = F_E(z_i),   L = ||g_hat_i - g_i||^2                    the global state, ConsMAC-O's label
 
   The selector reads z_i (64 numbers). MASIA's latent future-prediction loss is left out (it needs
-  the next decision's inputs in the replay and a momentum target encoder; docs/baselines.md).
+  the next decision's inputs in the replay and a momentum target encoder; docs/research/baselines.md).
 
 - **NVIF** (Chai et al., IEEE TNNLS 2024; message_content "latent+observation"): agent i's
   variational encoder reads its own o_i and its neighbours' messages [z_j || o_j] (attention, as

@@ -23,9 +23,11 @@ Example (the name is resolved in POLICIES_DIR):
 from __future__ import annotations
 
 import dataclasses
-import pickle
+import struct
+import warnings
 import zipfile
 from collections.abc import Mapping
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -33,7 +35,7 @@ import torch
 from torch.overrides import TorchFunctionMode
 
 from cefc_mj import paths
-from cefc_mj.errors import CheckpointError, ConfigError
+from cefc_mj.errors import CefcError, CheckpointError, ConfigError
 from cefc_mj.fileio import atomic_write
 from cefc_mj.nn.atm import ATMActor, ATMConfig
 from cefc_mj.nn.layers import state_digest
@@ -49,16 +51,148 @@ def atomic_torch_save(payload: dict, path: Path) -> None:
     atomic_write(path, lambda fh: torch.save(payload, fh))
 
 
+def _one_line(error: BaseException) -> str:
+    """`Type: first line of the message` (at most 160 characters of it), for a one-line error."""
+    text = str(error).strip()
+    first = text.splitlines()[0][:160] if text else ""
+    return f"{type(error).__name__}: {first}" if first else type(error).__name__
+
+
+@contextmanager
+def checkpoint_errors(path: Path, reason: str):
+    """Inside it, any exception but a CheckpointError that names `path` (a file's content that fails
+    to build, fit or restore a network: KeyError, TypeError, RuntimeError, a ConfigError of a config
+    read from the file, ...) becomes CheckpointError `<path>: <reason> (<Type>: <its first line>)`:
+    everything a loader does with a file's content is a question about that file."""
+    try:
+        yield
+    except CheckpointError as e:
+        if str(path) in str(e):
+            raise
+        raise CheckpointError(f"{path}: {reason} ({_one_line(e)})") from None
+    except Exception as e:  # noqa: BLE001 (any failure here is the file's)
+        raise CheckpointError(f"{path}: {reason} ({_one_line(e)})") from None
+
+
+_LOCAL_HEADER = struct.Struct("<4sHHHHHIIIHH")
+_DATA_DESCRIPTOR = b"PK\x07\x08"
+_TORCH_PADDING_FIELD = 0x4246  # "FB": torch.save's alignment padding, filled with b"Z"
+_ZIP64_FIELD = 0x0001
+_END = struct.Struct("<4sHHHHIIH")  # end of central directory (no comment: torch.save writes none)
+_ZIP64_END = struct.Struct("<4sQHHIIQQQQ")
+_ZIP64_LOCATOR = struct.Struct("<4sIQI")
+
+
+def _check_archive_end(path: Path, raw, size: int, start_dir: int, entries: int) -> None:
+    """The end records (classic and zip64) agree with each other and with the directory zipfile read."""
+    raw.seek(size - _END.size)
+    sig, disk, cd_disk, here, total, cd_size, cd_offset, comment = _END.unpack(raw.read(_END.size))
+    end_at = size - _END.size
+    if sig != b"PK\x05\x06" or comment or disk or cd_disk:
+        raise CheckpointError(f"{path}: corrupted (the zip end record)")
+    real = (entries, entries, end_at - start_dir, start_dir)
+    if size >= _END.size + _ZIP64_LOCATOR.size:
+        raw.seek(end_at - _ZIP64_LOCATOR.size)
+        loc_sig, loc_disk, record_at, disks = _ZIP64_LOCATOR.unpack(raw.read(_ZIP64_LOCATOR.size))
+        if loc_sig == b"PK\x06\x07":
+            raw.seek(record_at)
+            record = raw.read(_ZIP64_END.size)
+            fields = _ZIP64_END.unpack(record) if len(record) == _ZIP64_END.size else (None,) * 10
+            rec_sig, rec_size, _, _, rec_disk, rec_cd_disk, *counts = fields
+            real = (entries, entries, record_at - start_dir, start_dir)
+            if (
+                rec_sig != b"PK\x06\x06"
+                or (loc_disk, disks, rec_disk, rec_cd_disk) != (0, 1, 0, 0)
+                or rec_size != end_at - _ZIP64_LOCATOR.size - record_at - 12
+                or tuple(counts) != real
+            ):
+                raise CheckpointError(f"{path}: corrupted (the zip64 end record)")
+    for value, expected, marker in zip((here, total, cd_size, cd_offset), real, (0xFFFF, 0xFFFF, 2**32 - 1, 2**32 - 1)):
+        if value not in (expected, marker):
+            raise CheckpointError(f"{path}: corrupted (the zip end record)")
+
+
+def _check_torch_archive(path: Path) -> None:
+    """What torch.load leaves unchecked in a torch.save zip archive, checked: every member's CRC-32
+    (torch reads the members without it, so a flipped bit in the pickle would load), each local
+    header and data descriptor against the central directory, the alignment padding, and that the
+    members agree on what the writer recorded about them. CheckpointError names what is wrong."""
+    with zipfile.ZipFile(path) as archive, path.open("rb") as raw:
+        infos = archive.infolist()
+        if not infos or min(info.header_offset for info in infos) != 0:
+            raise CheckpointError(f"{path}: not a checkpoint (a zip archive with data before its first member)")
+        recorded = {
+            (i.create_version, i.create_system, i.reserved, i.volume, i.internal_attr, i.external_attr) for i in infos
+        }
+        if len(recorded) != 1:
+            raise CheckpointError(f"{path}: corrupted (the zip directory's entries disagree)")
+        for info in infos:
+            raw.seek(info.header_offset)
+            head = raw.read(_LOCAL_HEADER.size)
+            if len(head) != _LOCAL_HEADER.size:
+                raise CheckpointError(f"{path}: truncated (member {info.filename})")
+            _, version, flags, method, time, date, crc, csize, usize, n_name, n_extra = _LOCAL_HEADER.unpack(head)
+            y, mo, d, h, mi, sec = info.date_time
+            central = (
+                info.extract_version | info.reserved << 8,
+                info.flag_bits,
+                info.compress_type,
+                h << 11 | mi << 5 | sec // 2,
+            )
+            sizes = {(crc, csize, usize)} - {(0, 0, 0)} if flags & 0x08 else {(crc, csize, usize)}
+            if (
+                (version, flags, method, time) != central
+                or date != ((y - 1980) << 9 | mo << 5 | d)
+                or not sizes <= {(info.CRC, info.compress_size, info.file_size), (info.CRC, 0xFFFFFFFF, 0xFFFFFFFF)}
+            ):
+                raise CheckpointError(f"{path}: corrupted (member {info.filename}: header and directory disagree)")
+            raw.seek(n_name, 1)
+            extra = raw.read(n_extra)
+            while extra:
+                field_id, size = struct.unpack("<HH", extra[:4]) if len(extra) >= 4 else (None, len(extra))
+                body = extra[4 : 4 + size]
+                known = field_id == _ZIP64_FIELD or (field_id == _TORCH_PADDING_FIELD and not body.strip(b"Z"))
+                if not known or len(body) != size:
+                    raise CheckpointError(f"{path}: corrupted (member {info.filename}: bad extra field)")
+                extra = extra[4 + size :]
+            if flags & 0x08:
+                raw.seek(info.compress_size, 1)
+                tail = raw.read(24)
+                tail = tail[4:] if tail.startswith(_DATA_DESCRIPTOR) else tail
+                short, wide = struct.unpack("<III", tail[:12]), struct.unpack("<IQQ", tail[:20].ljust(20, b"\0"))
+                expected = (info.CRC, info.compress_size, info.file_size)
+                if expected not in (short, wide):
+                    raise CheckpointError(f"{path}: corrupted (member {info.filename}: data descriptor disagrees)")
+        _check_archive_end(path, raw, path.stat().st_size, archive.start_dir, len(infos))
+        broken = archive.testzip()  # reads every member and checks its CRC-32
+        if broken is not None:
+            raise CheckpointError(f"{path}: corrupted (member {broken} fails its CRC-32 check)")
+
+
 def safe_torch_load(path: Path) -> dict:
-    """torch.load(weights_only=True) with every failure turned into one-line CheckpointError."""
+    """The one way the project reads a checkpoint (policy files of every level, training states):
+    `torch.load(weights_only=True)` of a zip archive as torch.save writes it, after
+    `_check_torch_archive`. Every way a file can be wrong (missing, a folder, empty, text, truncated,
+    a flipped bit, a pickle with a global the weights-only unpickler refuses, a top level that is not
+    a dict) raises CheckpointError with one line naming the file and the reason."""
     path = Path(path)
+    if path.is_dir():
+        raise CheckpointError(f"{path}: a folder, not a checkpoint file")
     if not path.is_file():
         raise CheckpointError(f"{path}: no such checkpoint file")
     try:
-        payload = torch.load(path, map_location="cpu", weights_only=True)
-    except (pickle.UnpicklingError, RuntimeError, EOFError, zipfile.BadZipFile, ValueError, OSError, KeyError) as e:
-        first = str(e).strip().splitlines()[0] if str(e).strip() else ""
-        raise CheckpointError(f"{path}: not a readable checkpoint ({type(e).__name__}: {first[:160]})") from None
+        if not zipfile.is_zipfile(path):
+            size = path.stat().st_size
+            what = "an empty file" if size == 0 else "not a zip archive as torch.save writes one"
+            raise CheckpointError(f"{path}: not a readable checkpoint ({what})")
+        _check_torch_archive(path)
+        with warnings.catch_warnings():  # a damaged pickle may warn before it fails: the error says it
+            warnings.simplefilter("ignore")
+            payload = torch.load(path, map_location="cpu", weights_only=True)
+    except CefcError:
+        raise
+    except Exception as e:  # noqa: BLE001 (the unpickler and the zip reader raise many types)
+        raise CheckpointError(f"{path}: not a readable checkpoint ({_one_line(e)})") from None
     if not isinstance(payload, dict):
         raise CheckpointError(f"{path}: not a cefc-mj checkpoint (top level is {type(payload).__name__})")
     return payload
@@ -101,7 +235,9 @@ def read_policy_payload(path: Path, file_format: str, version: int, what: str) -
     state = payload.get("state_dict")
     if not isinstance(state, dict) or not all(isinstance(v, torch.Tensor) for v in state.values()):
         raise CheckpointError(f"{path}: {what} file without a tensor state_dict")
-    if state_digest(state) != payload.get("sha256"):
+    with checkpoint_errors(path, f"{what} file with unreadable weights"):
+        digest = state_digest(state)
+    if digest != payload.get("sha256"):
         raise CheckpointError(f"{path}: weights do not match the stored SHA-256 (file modified or corrupted)")
     return payload
 
@@ -110,22 +246,27 @@ def load_actor(path: Path, obs_dim: int | None = None) -> tuple[ATMActor, dict]:
     """(actor, meta) from a policy file. obs_dim, if given, must match the file's input size."""
     payload = read_policy_payload(path, POLICY_FORMAT, POLICY_VERSION, "an AT-M policy")
     state = payload["state_dict"]
-    cfg = ATMConfig.from_dict(payload.get("net"))
+    with checkpoint_errors(path, "an AT-M policy file whose network description is not valid"):
+        cfg = ATMConfig.from_dict(payload.get("net"))
     if obs_dim is not None and cfg.obs_dim != obs_dim:
         raise CheckpointError(f"{path}: made for observations of size {cfg.obs_dim}, this env gives {obs_dim}")
-    with _ParametersOnMeta():
-        actor = ATMActor(cfg)
-    expected = actor.state_dict()
-    # assign=True puts the file's tensors in place of the meta ones; cast as copying into them would
-    state = {k: v.to(expected[k].dtype).contiguous() if k in expected else v for k, v in state.items()}
-    try:
+    with checkpoint_errors(path, "weights do not fit the described network"):
+        with _ParametersOnMeta():
+            actor = ATMActor(cfg)
+        expected = actor.state_dict()
+        # assign=True puts the file's tensors in place of the meta ones; cast as copying into them would
+        state = {k: v.to(expected[k].dtype).contiguous() if k in expected else v for k, v in state.items()}
         actor.load_state_dict(state, assign=True)
-    except RuntimeError as e:
-        raise CheckpointError(
-            f"{path}: weights do not fit the described network ({str(e).splitlines()[0][:160]})"
-        ) from None
     actor.eval()
-    return actor, dict(payload.get("meta") or {})
+    return actor, policy_meta(path, payload)
+
+
+def policy_meta(path: Path, payload: dict) -> dict:
+    """A policy file's "meta" record (a dict; {} where it has none)."""
+    meta = payload.get("meta") or {}
+    if not isinstance(meta, dict):
+        raise CheckpointError(f"{path}: a policy file whose meta is a {type(meta).__name__}, not a dict")
+    return dict(meta)
 
 
 class _ParametersOnMeta(TorchFunctionMode):

@@ -23,21 +23,21 @@ ALIASES = {"atm": "step3", "safe": "safe", "nav": "nav", "mujoco": "mujoco", "cl
 """What users type (`--policy`) -> the kind of policy flown for each c."""
 WITHDRAWN = {
     "robust": "AT-M-Robust is withdrawn: the shipped one was a fine-tune of the first Step 3 generation on the "
-    "old layouts; train one from today's Step 3 (docs/training.md) and give its file",
+    "old layouts; train one from today's Step 3 (docs/train_lowlevel.md) and give its file",
     "quad": "AT-M-Quad is withdrawn: the shipped one was a fine-tune of the first Step 3 generation on the old "
-    "layouts; train one from today's Step 3 (docs/training.md) and give its file",
+    "layouts; train one from today's Step 3 (docs/train_lowlevel.md) and give its file",
 }
 """Aliases that once named shipped policies, with the line that says why they are gone."""
 
 DEFAULT_LOWLEVEL = "nav"
 """The low level the evaluators (cefc-eval, the SITL-M agents, the benchmarks) fly without --policy:
-AT-M-Nav of each c, the Step 3 policy fine-tuned with a larger navigation weight (docs/decisions.md)."""
+AT-M-Nav of each c, the Step 3 policy fine-tuned with a larger navigation weight (docs/research/decisions.md)."""
 HIERARCHY_LOWLEVEL = STUDENT
 """The low level under every high level (training and the game tables)."""
 GAME_ADVERSARY = "adversary_ppo_nearest_group_intercept"
 """The adversary of the high level's game (training, Tables V and VII): the PPO adversary that imitates
 the nearest-group-intercept rule; `adversary_ppo_nearest_group_member` and `adversary_ppo` (imitating
-nearest_group_member and nearest_group_strike) were the previous generations' (docs/high_level.md)."""
+nearest_group_member and nearest_group_strike) were the previous generations' (docs/research/high_level.md)."""
 DISTILL_TEACHER = "step3"
 """The teachers `cefc-train distill` imitates by default (the paper's: AT-M Step 3)."""
 

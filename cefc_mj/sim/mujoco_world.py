@@ -84,7 +84,7 @@ rotor wrench above. MuJoCo's site transmission builds a dense 3 x nv Jacobian pe
 actuators cost O(drones^2) per mj_step (no transmission MuJoCo offers applies a body-frame force at a
 rotor in O(1); jacobian="sparse" does not change it); the external path is the same physics (~1e-15)
 and linear. 16 keeps every shipped scene (Table VIII: 5-8 drones, Tables V/VI: 9, Table VII: up to 16)
-on the actuators, bit for bit as before "auto"; measured cross-over in docs/mujoco_world.md (Performance)."""
+on the actuators, bit for bit as before "auto"; measured cross-over in docs/research/mujoco_world.md (Performance)."""
 
 
 def _mj_step_address() -> int | None:
@@ -110,7 +110,7 @@ class MujocoWorldConfig:
 
     airframe: str = "iris"
     """Airframe: a name in assets/mjcf/ (without .xml; "iris", "crazyflie") or the path of an MJCF
-    quadrotor file with four site-mounted thrust motors (cefc_mj.control.airframe; docs/mujoco_world.md)."""
+    quadrotor file with four site-mounted thrust motors (cefc_mj.control.airframe; docs/airframes.md)."""
     params: str | None = None
     """Controller gains: a name in controllers/ (without .params) or a path to a .params file; None:
     the airframe's own, `<stem>.params` beside an airframe given as a file, else controllers/<stem>.params."""
@@ -133,7 +133,7 @@ class MujocoWorldConfig:
     flight_altitude: float = 2.0
     """Altitude the drones hold and the LiDAR casts at (m)."""
     offboard: str = "velocity"
-    """What the offboard interface makes of the policy's acceleration setpoint (docs/mujoco_world.md):
+    """What the offboard interface makes of the policy's acceleration setpoint (docs/research/mujoco_world.md):
     "velocity" integrates it into a velocity setpoint as the particle world integrates velocity and
     flies that with PX4's velocity PID (acceleration feed-forward; the integral rejects wind);
     "acceleration" passes it open loop to PX4's acceleration -> thrust path (docs/design.md §8 literally;
@@ -893,7 +893,7 @@ def make_mujoco_world(
     or a whole WindConfig (then without wind_direction).
     `airframe` (a shipped name or an MJCF path) replaces config.airframe; its gains are found as for
     MujocoWorldConfig.params = None.
-    The footprint disc is the task's uav_radius whatever the airframe (docs/mujoco_world.md)."""
+    The footprint disc is the task's uav_radius whatever the airframe (docs/airframes.md)."""
     for name in ("response_time", "velocity_noise"):  # the quadrotor has its own lag and tracking error
         if getattr(task, name):
             raise ConfigError(

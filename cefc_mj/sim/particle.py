@@ -3,7 +3,7 @@
 Per decision step (semi-implicit Euler, dt = 0.1 s): v <- v + a dt, then the speed is clipped to
 speed_max (norm), then p <- p + v dt. With `TaskConfig.response_time` tau > 0 the action integrates
 into a commanded velocity instead, which v follows as a first-order lag, v <- v + dt/(dt + tau)
-(v_cmd - v): the quadrotor's velocity loop takes about 0.1 s to respond (docs/decisions.md). With
+(v_cmd - v): the quadrotor's velocity loop takes about 0.1 s to respond (docs/research/decisions.md). With
 `velocity_noise` sigma > 0 every UAV's velocity then gets a Normal(0, sigma) kick per axis (drawn
 from `rng`) before the position update, the residual tracking error of a real vehicle; the lag
 carries it over into the next steps. A UAV whose disc overlaps an obstacle is in collision this

@@ -36,7 +36,7 @@ class SuiteTask:
 
 # The scenes cefc-eval flies (tests/test_suite_dm_control.py holds them equal): Table VIII for formation,
 # cefc_mj.eval.runner.EpisodeSpec(formation=c).task_config() (its agent options aside: they are task_kwargs
-# here, e.g. evaluator_agent=True), and the game of Tables V and VI, cefc_mj.eval.highlevel.game_task().
+# here, e.g. evaluator_agent=True), and the game of Tables V and VI, cefc_mj.game_protocol.game_task().
 _TABLE8 = {"mode": "formation", "obstacle_density": 0.03, "episode_steps": 1000, "anchor_redraw_steps": 250}
 TASKS: dict[str, SuiteTask] = {
     **{

@@ -5,16 +5,16 @@
 - "r_nearest": the nearest agent (R-Nearest).
 - "r_largest": the centre of the largest group, nearest first among equals (R-Largest).
 - "nearest_group_strike": "nearest_group", but the nearest agent once one is within STRIKE_DISTANCE
-  (not in the paper: the teacher the PPO adversary imitated before PPO, docs/high_level.md).
+  (not in the paper: the teacher the PPO adversary imitated before PPO, docs/research/high_level.md).
 - "nearest_group_member": "nearest_group", but the nearest member of that group once one is within
   STRIKE_DISTANCE (not in the paper): unlike "nearest_group_strike" a lone UAV cannot lure it away
-  from the group it chases (docs/high_level.md).
+  from the group it chases (docs/research/high_level.md).
 - "nearest_group_intercept": "nearest_group_member", but aiming ahead (not in the paper): at the
   group's centre plus the group's mean velocity times the time it needs to get there (at most
   INTERCEPT_HORIZON), and at a member within STRIKE_DISTANCE plus STRIKE_LEAD of its velocity. The
   UAVs fly faster than the adversary, so a pure pursuit falls behind what it chases; like the member
   rule it ignores a lone UAV, which teams learn to use as a lure (the game adversary's teacher,
-  chosen on validation games: docs/high_level.md). `InterceptRule` holds its settings; other
+  chosen on validation games: docs/research/high_level.md). `InterceptRule` holds its settings; other
   settings of the same family are the variants it was chosen among.
 
 The adversary flies at top speed toward that point (`pursuit_acceleration`). With

@@ -102,7 +102,7 @@ class TaskConfig:
     """Agents start uniformly in [-s, s]^2 m."""
     start_min_spacing: float = 0.6
     """Minimum distance between two start positions (m): two UAV radii (0.5) plus START_SPACING_MARGIN, so no
-    pair is in contact at the start or after its first decision step (docs/decisions.md, "Start spacing")."""
+    pair is in contact at the start or after its first decision step (docs/research/decisions.md, "Start spacing")."""
     straggler_fraction: float = 0.0
     """Fraction of episodes (drawn per env at reset) in which the last agent starts away from the
     others: 3-7 m from the start square's centre and at least observation_distance from every other
@@ -115,7 +115,7 @@ class TaskConfig:
     obstacle_min_gap: float = 0.5
     """Minimum free gap between two obstacle surfaces (m): twice the UAV radius, so a UAV fits."""
     obstacle_layout: ObstacleLayout = "paper"
-    """How obstacle centres are drawn (docs/layouts.md). "paper" (the paper's description):
+    """How obstacle centres are drawn (docs/research/layouts.md). "paper" (the paper's description):
     uniform over the arena, a centre rejected only when the obstacle would overlap another
     (obstacle_min_gap) or a UAV's start disc (with 0.1 m to spare), or lie within anchor_clearance
     of the anchor or a target centre. "clear-start" (the project's first, easier sampler): also

@@ -1,5 +1,5 @@
 """The agent's separation guard (`TaskConfig.separation_guard`, on in `cefc-eval` unless `--guard off`;
-docs/decisions.md, "Separation guard").
+docs/research/decisions.md, "Separation guard").
 
 A quadrotor follows a velocity command about 0.2-0.3 s late. The AT-M policies learned in a world
 where the velocity follows at once: they brake hard only once a neighbour is 0.9 m away, and on

@@ -1,4 +1,4 @@
-"""Seeded scenario sampling: starts, targets, anchors, obstacles (docs/design.md §4, docs/layouts.md).
+"""Seeded scenario sampling: starts, targets, anchors, obstacles (docs/design.md §4, docs/research/layouts.md).
 
 Everything is drawn from one `numpy.random.Generator`, batched over envs; rejection sampling loops
 over slots (agents, obstacles) and vectorizes over envs. A placement that keeps failing raises
@@ -99,7 +99,7 @@ def sample_obstacles(
 
     cfg.obstacle_layout picks what else is kept free: "clear-start" the whole start square grown by
     the obstacle and UAV radii; "paper" only each UAV's start disc (`starts` [B, N, 2], required) plus
-    START_DISC_MARGIN, so obstacles may stand between the swarm and its anchor (docs/layouts.md).
+    START_DISC_MARGIN, so obstacles may stand between the swarm and its anchor (docs/research/layouts.md).
     """
     n_envs = anchor.shape[0]
     k = cfg.n_obstacles

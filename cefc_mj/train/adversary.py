@@ -43,8 +43,8 @@ import torch
 from tqdm import tqdm
 
 from cefc_mj.errors import CheckpointError, ConfigError
-from cefc_mj.eval.highlevel import game_task, highlevel_policy_path, play_highlevel
 from cefc_mj.fileio import write_atomic
+from cefc_mj.game_protocol import game_task, play_highlevel
 from cefc_mj.hierarchy import DECISION_INTERVAL, HierarchicalCEFCEnv, LowLevel, load_low_level, recorded_low_level
 from cefc_mj.nn.adversary_policy import (
     ADVERSARY_ACTIONS,
@@ -54,7 +54,7 @@ from cefc_mj.nn.adversary_policy import (
     save_adversary_policy,
 )
 from cefc_mj.nn.atm import Critic
-from cefc_mj.nn.highlevel_policy import HighLevelPolicy, load_highlevel_policy
+from cefc_mj.nn.highlevel_policy import HighLevelPolicy, highlevel_policy_path, load_highlevel_policy
 from cefc_mj.nn.policy_io import atomic_torch_save
 from cefc_mj.nn.registry import HIERARCHY_LOWLEVEL
 from cefc_mj.provenance import file_sha256
@@ -144,11 +144,11 @@ class AdversaryConfig(BudgetPPODict):
     imitation_rule: str = "nearest_group_strike"
     """The rule the actor imitates before PPO (steering round obstacles, as the game's rules do): by
     default the nearest group of >= 3, or the nearest UAV once one is within 3 m; an imitation of the
-    plain nearest-group rule chased at 0.7-1.0 of that rule's E (docs/high_level.md)."""
+    plain nearest-group rule chased at 0.7-1.0 of that rule's E (docs/research/high_level.md)."""
     imitation_episodes: int = 200
     """Before PPO, the actor imitates `imitation_rule` on this many episodes of the population's games
     (its observations, the rule's wishes); 0 starts PPO from random weights. PPO alone stayed at 0.4-0.8
-    of the nearest-group rule's E (docs/high_level.md)."""
+    of the nearest-group rule's E (docs/research/high_level.md)."""
     imitation_steps: int = 8000
     """Adam steps (batch 1024, rate 1e-3) of that imitation, split over the rounds."""
     imitation_rounds: int = 8
@@ -163,10 +163,10 @@ class AdversaryConfig(BudgetPPODict):
     """Reward for the share of UAVs within the alert distance (2 m), every step."""
     collision_weight: float = 30.0
     """Penalty for a step inside an obstacle (within obstacle + body radius of its centre); 30 kept
-    the chase of 10 with half the time inside obstacles (docs/high_level.md)."""
+    the chase of 10 with half the time inside obstacles (docs/research/high_level.md)."""
     progress_weight: float = 10.0
     """Weight of the approach d_before - d_after (m) of each step; without it the distance term
-    alone taught the chase about 3x slower (docs/high_level.md)."""
+    alone taught the chase about 3x slower (docs/research/high_level.md)."""
     critic_warmup: int = 20
     """Iterations at the start of PPO in which only the critic learns (the actor's rate is 0): an
     imitated actor is not pushed about by the advantages of a critic that has not yet fitted it. The
@@ -703,7 +703,7 @@ def train_adversary(
     trainer = AdversaryTrainer(cfg, population, low_level, interval, team_low_levels)
     imitation = None
     if saved is not None:
-        trainer.load_state_dict(saved["trainer"])
+        run_state.restore_trainer(trainer, saved, state_path)
         imitation = saved.get("imitation")
     elif cfg.imitation_episodes and cfg.imitation_steps:
         if show_progress:

@@ -39,8 +39,8 @@ import torch
 from torch import nn
 
 from cefc_mj.errors import ConfigError
-from cefc_mj.eval.highlevel import play_highlevel
 from cefc_mj.fileio import write_atomic
+from cefc_mj.game_protocol import play_highlevel
 from cefc_mj.hierarchy import DECISION_INTERVAL, LowLevel
 from cefc_mj.nn.adversary_policy import (
     AdversaryNetConfig,
@@ -484,7 +484,7 @@ def train_ddpg_adversary(
         )
     trainer = DDPGAdversaryTrainer(cfg, population, low_level, interval, team_low_levels)
     if saved is not None:
-        trainer.load_state_dict(saved["trainer"])
+        run_state.restore_trainer(trainer, saved, state_path)
     write_atomic(
         run_dir / "config.json",
         json.dumps(

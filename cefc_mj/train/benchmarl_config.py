@@ -97,7 +97,7 @@ class BenchMARLConfig:
     alone; it stands in for what BenchMARL lacks and our trainer has (value normalisation, advantage
     standardisation): R_H is -500 to -2000 per decision, and Adam at lr 5e-5 moves a critic's output
     bias by about lr per step, so unscaled values are out of the critics' reach in 75 iterations
-    (measured: MASAC's Q loss 1e7 unscaled, about 1 at 1e-3; docs/baselines.md)."""
+    (measured: MASAC's Q loss 1e7 unscaled, about 1 at 1e-3; docs/research/baselines.md)."""
     gamma: float = 0.8
     """Discount per decision (our trainer's and the paper's 0.8; BenchMARL's default is 0.99)."""
     lr: float = 5e-5
@@ -162,7 +162,7 @@ class BenchMARLConfig:
     def game_config(self):
         """The HighLevelConfig of the same game (its `task()` is the TaskConfig trained on)."""
         from cefc_mj.train.config import Budget
-        from cefc_mj.train.highlevel import HighLevelConfig
+        from cefc_mj.train.highlevel_config import HighLevelConfig
 
         return HighLevelConfig(
             budget=Budget(iterations=self.iterations),
@@ -276,4 +276,268 @@ def config_from_args(args, budget_episodes: int) -> BenchMARLConfig:
         cfg.game_config()  # the game: adversary, low level, obstacle packing
     except ConfigError as e:
         raise flag_error(e, FLAG_OF_FIELD) from None
+    return cfg
+
+
+# ---------------------------------------------------------------------------- the formation task
+FORMATION_ALGORITHMS = ("maddpg", "ippo", "mappo", "masac")
+"""BenchMARL's algorithms run on the formation task: MADDPG (the paper's Table III baseline), IPPO,
+MAPPO and MASAC (exploratory rows beside it)."""
+OFF_POLICY = ("maddpg", "masac")
+ON_POLICY = ("ippo", "mappo")
+FORMATION_COMMAND = "formation-benchmarl"
+FORMATION_EXTRA = f"cefc-train {FORMATION_COMMAND}: needs the benchmarl extra (pip install -e '.[benchmarl]')"
+"""The one line `cefc-train formation-benchmarl` prints (exit 2) when BenchMARL is not installed."""
+MAX_FRAMES = 10**10
+
+
+def parse_frame_budget(text: str) -> int:
+    """'600000', '600000f', '600kf' or '6mf' -> frames (env-steps) of `cefc-train formation-benchmarl`."""
+    text = str(text)
+    shown = text if len(text) <= 40 else text[:37] + "..."
+    m = re.fullmatch(r"\s*(\d+)\s*([km]?)f?\s*", text.lower())
+    if not m:
+        raise ConfigError(f"--budget {shown!r}: expected a number of frames (env-steps): '600000', '600kf' or '6mf'")
+    frames = int(m.group(1)) * {"": 1, "k": 1000, "m": 1_000_000}[m.group(2)]
+    if not 1 <= frames <= MAX_FRAMES:
+        raise ConfigError(f"--budget {shown!r}: must be 1 to {MAX_FRAMES} frames")
+    return frames
+
+
+@dataclass(frozen=True)
+class FormationBenchMARLConfig:
+    """One BenchMARL run (MADDPG, IPPO, MAPPO or MASAC) on the formation task of AT-M's stages.
+
+    The task is `cefc_mj.train.lowlevel.task_config_for` of the AT-M stage with the same formation and
+    step: one group of c agents flying to an anchor for 100 steps, Step 1's scenario (no obstacles) or
+    Steps 2 and 3's (density 0.03). The actor is AT-M's network (eq. 8, `nn.atm.ATMActor`, velocity
+    head) so that the trained actor is an AT-M policy file that every low-level evaluator flies; the
+    critics are BenchMARL's MLPs on the global state. The budget is counted in frames (env-steps; one
+    frame is c agent-steps). The other hyperparameters are BenchMARL 1.5.2's defaults
+    (conf/experiment/base_experiment.yaml, conf/algorithm/*.yaml) except gamma (our trainer's), the
+    reward's scale, no tanh squashing of the actions (the file's actions are clipped, as the env clips),
+    the replay's capacity, a fixed exploration schedule and the widths.
+
+    >>> cfg = FormationBenchMARLConfig(formation=7, seed=2)
+    >>> cfg.name, cfg.frames_per_batch, cfg.iterations, cfg.agent_steps
+    ('benchmarl_maddpg_c7_seed2', 6000, 200, 8400000)
+    """
+
+    algorithm: str = "maddpg"
+    """maddpg, ippo, mappo or masac (BenchMARL's)."""
+    formation: int = 6
+    """c: agents in the group (3..8; Table III: 6, 7, 8)."""
+    step: int = 2
+    """The AT-M stage whose scenario is trained: 1 (no obstacles) or 2 (density 0.03, the scenario of
+    Steps 2 and 3). Training always starts from random weights: there is no Step 3 merge."""
+    seed: int = 0
+    """BenchMARL's seed (networks, sampling) and the seed of every batch of training episodes."""
+    budget_frames: int = 1_200_000
+    """Training frames (env-steps, each c agent-steps), a multiple of frames_per_batch. 1.2M is the
+    proposed budget of Table III's MADDPG runs: 200 iterations, 200,000 gradient steps, 1.3-1.7
+    core-hours (docs/formation_benchmarl.md, "Budget proposal")."""
+    n_envs: int = 10
+    """Envs stepped as one batch (BenchMARL's default)."""
+    episodes_per_iteration: int = 6
+    """Episodes each env plays per iteration: an iteration collects n_envs x this x 100 frames (6000 at
+    the defaults, BenchMARL's frames per batch) and always ends at the episodes' end."""
+    reward_scale: float = 0.01
+    """Factor on each agent's reward before BenchMARL sees it (1: unscaled). R_L is about -100 per step
+    (std 170) under random actions; BenchMARL's critics have no value normalisation, which our MAPPO
+    trainer has. A positive factor leaves the optimal policy alone."""
+    gamma: float = 0.8
+    """Discount per step (our low-level trainer's and the paper's; BenchMARL's default is 0.99)."""
+    lr: float = 5e-5
+    """Adam learning rate of every network (BenchMARL's default)."""
+    updates: int = 1000
+    """maddpg, masac: gradient steps after each iteration (BenchMARL's off_policy_n_optimizer_steps)."""
+    batch_size: int = 128
+    """maddpg, masac: frames per gradient step, drawn uniformly from the replay (BenchMARL's default)."""
+    memory_frames: int = 100_000
+    """maddpg, masac: replay capacity in frames. BenchMARL's default is 1e6, but its replay storage is
+    allocated whole and saved whole in every checkpoint: a frame at c = 6 holds about 1150 numbers
+    (both observations of 6 agents and both global states), 4.6 GB at 1e6 frames, 0.46 GB at 1e5."""
+    exploration_anneal_frames: int = 400_000
+    """maddpg: frames over which its Gaussian exploration noise falls from sigma 0.8 to 0.01 m/s^2
+    (BenchMARL's defaults). BenchMARL's own rule is a third of the budget; this is that third of the
+    proposed 1.2M frames, fixed so that a run trained in legs (--resume with a larger budget) follows
+    the schedule of one trained at once."""
+    epochs: int = 45
+    """ippo, mappo: passes over each iteration's frames (BenchMARL's on_policy_n_minibatch_iters)."""
+    minibatch_size: int = 400
+    """ippo, mappo: frames per minibatch (BenchMARL's default)."""
+    hidden: int = 128
+    """Width of AT-M's actor modules (AT-M's 128)."""
+    critic_cells: tuple[int, ...] = (256, 256)
+    """Hidden layers of BenchMARL's critic MLP (tanh; BenchMARL's default)."""
+    checkpoint_every: int = 5
+    """Write BenchMARL's resumable checkpoint every this many iterations (and at the end)."""
+    eval_episodes: int = 50
+    """Episodes of Table III's protocol (density 0.05, 100 steps) flown by the exported policy for the
+    model card, on the validation batch cefc_mj.seeds.FORMATION_VALIDATION_SEED; 0 skips."""
+    threads: int = 1
+    """torch threads of the whole run (collection and updates)."""
+
+    def __post_init__(self) -> None:
+        if isinstance(self.critic_cells, list):
+            object.__setattr__(self, "critic_cells", tuple(self.critic_cells))
+        for name in ("reward_scale", "gamma", "lr"):
+            value = getattr(self, name)
+            if isinstance(value, int) and not isinstance(value, bool):
+                object.__setattr__(self, name, float(value))
+        self.validate()
+
+    # ------------------------------------------------------------------ derived
+    @property
+    def name(self) -> str:
+        """Run folder and policy file stem: benchmarl_<algorithm>_c<c>, then _step1 for Step 1's
+        scenario and _seed<k> for seeds other than 0."""
+        return (
+            f"benchmarl_{self.algorithm}_c{self.formation}"
+            + ("_step1" if self.step == 1 else "")
+            + (f"_seed{self.seed}" if self.seed else "")
+        )
+
+    @property
+    def on_policy(self) -> bool:
+        return self.algorithm in ON_POLICY
+
+    @property
+    def episode_steps(self) -> int:
+        from cefc_mj.task.config import FORMATION_EPISODE_STEPS
+
+        return FORMATION_EPISODE_STEPS
+
+    @property
+    def frames_per_batch(self) -> int:
+        """Frames (env-steps) per iteration: whole episodes in every env."""
+        return self.n_envs * self.episodes_per_iteration * self.episode_steps
+
+    @property
+    def iterations(self) -> int:
+        return self.budget_frames // self.frames_per_batch
+
+    @property
+    def agent_steps(self) -> int:
+        return self.budget_frames * self.formation
+
+    def stage(self):
+        """The AT-M stage (`LowLevelConfig`) whose task is trained."""
+        from cefc_mj.train.config import Budget, LowLevelConfig
+
+        return LowLevelConfig(formation=self.formation, step=self.step, budget=Budget(iterations=1), seed=self.seed)
+
+    def task(self):
+        """The TaskConfig trained on: the AT-M stage's (`lowlevel.task_config_for`)."""
+        from cefc_mj.train.lowlevel import task_config_for
+
+        return task_config_for(self.stage())
+
+    def to_dict(self) -> dict:
+        d = dataclasses.asdict(self)
+        d["critic_cells"] = list(self.critic_cells)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "FormationBenchMARLConfig":
+        return cls(**d)
+
+    # ------------------------------------------------------------------ validation
+    def validate(self) -> None:
+        if self.algorithm not in FORMATION_ALGORITHMS:
+            _fail("algorithm", self.algorithm, f"must be one of {', '.join(FORMATION_ALGORITHMS)}")
+        _check_int("formation", self.formation, 3, 8)
+        if self.step not in (1, 2) or isinstance(self.step, bool):
+            _fail("step", self.step, "must be 1 (no obstacles) or 2 (density 0.03, the scenario of Steps 2 and 3)")
+        _check_int("seed", self.seed, 0, MAX_SEED)
+        _check_int("n_envs", self.n_envs, 1, MAX_ENVS)
+        _check_int("episodes_per_iteration", self.episodes_per_iteration, 1, 10_000)
+        _check_int("budget_frames", self.budget_frames, 1, MAX_FRAMES)
+        if self.budget_frames % self.frames_per_batch:
+            _fail(
+                "budget_frames",
+                self.budget_frames,
+                f"must be a multiple of the {self.frames_per_batch} frames of an iteration "
+                f"({self.n_envs} envs x {self.episodes_per_iteration} episodes x {self.episode_steps} steps)",
+            )
+        _check_real("reward_scale", self.reward_scale, 0.0, 1e6, low_open=True)
+        _check_real("gamma", self.gamma, 0.0, 1.0)
+        _check_real("lr", self.lr, 0.0, MAX_LR, low_open=True)
+        _check_int("updates", self.updates, 1, 1_000_000)
+        _check_int("batch_size", self.batch_size, 1, 1_000_000)
+        _check_int("memory_frames", self.memory_frames, 1, MAX_FRAMES)
+        _check_int("exploration_anneal_frames", self.exploration_anneal_frames, 1, MAX_FRAMES)
+        _check_int("epochs", self.epochs, 1, 10_000)
+        _check_int("minibatch_size", self.minibatch_size, 1, 1_000_000)
+        if self.on_policy and self.minibatch_size > self.frames_per_batch:
+            _fail(
+                "minibatch_size",
+                self.minibatch_size,
+                f"must be at most the {self.frames_per_batch} frames of an iteration",
+            )
+        _check_int("hidden", self.hidden, 1, 4096)
+        if (
+            not isinstance(self.critic_cells, tuple)
+            or not self.critic_cells
+            or not all(isinstance(c, int) and not isinstance(c, bool) and 1 <= c <= 4096 for c in self.critic_cells)
+        ):
+            _fail("critic_cells", self.critic_cells, "must be a non-empty tuple of widths in [1, 4096]")
+        _check_int("checkpoint_every", self.checkpoint_every, 1, 1_000_000)
+        _check_int("eval_episodes", self.eval_episodes, 0, 1000)
+        _check_int("threads", self.threads, 1, MAX_THREADS)
+
+
+FORMATION_FLAG_OF_FIELD = {
+    "algorithm": "--algorithm",
+    "formation": "--formation",
+    "step": "--step",
+    "seed": "--seed",
+    "budget_frames": "--budget",
+    "n_envs": "--envs",
+    "episodes_per_iteration": "--episodes-per-iteration",
+    "reward_scale": "--reward-scale",
+    "gamma": "--gamma",
+    "lr": "--lr",
+    "updates": "--updates",
+    "batch_size": "--batch-size",
+    "memory_frames": "--memory",
+    "exploration_anneal_frames": "--anneal-frames",
+    "epochs": "--epochs",
+    "minibatch_size": "--minibatch-size",
+    "checkpoint_every": "--checkpoint-every",
+    "eval_episodes": "--eval-episodes",
+    "threads": "--threads",
+}
+"""Config fields set by `cefc-train formation-benchmarl` flags (argparse dest = field)."""
+ALGORITHM_FIELDS = {
+    "updates": OFF_POLICY,
+    "batch_size": OFF_POLICY,
+    "memory_frames": OFF_POLICY,
+    "exploration_anneal_frames": ("maddpg",),
+    "epochs": ON_POLICY,
+    "minibatch_size": ON_POLICY,
+}
+"""The fields only some algorithms read: a flag given for another algorithm is an error, not ignored."""
+
+
+def formation_config_from_args(args, budget_frames: int) -> FormationBenchMARLConfig:
+    """The FormationBenchMARLConfig of `cefc-train formation-benchmarl` arguments (flags left out keep
+    the config's defaults); a bad value raises ConfigError naming the flag."""
+    from cefc_mj.train.config import flag_error
+
+    given = {
+        name: getattr(args, name)
+        for name in FORMATION_FLAG_OF_FIELD
+        if name != "budget_frames" and getattr(args, name, None) is not None
+    }
+    try:
+        algorithm = given.get("algorithm", FormationBenchMARLConfig.algorithm)
+        for name, algorithms in ALGORITHM_FIELDS.items():
+            if name in given and algorithm not in algorithms:
+                raise ConfigError(
+                    f"{FORMATION_FLAG_OF_FIELD[name]}: a setting of {', '.join(algorithms)}, not {algorithm}'s"
+                )
+        cfg = FormationBenchMARLConfig(budget_frames=budget_frames, **given)
+    except ConfigError as e:
+        raise flag_error(e, FORMATION_FLAG_OF_FIELD) from None
     return cfg

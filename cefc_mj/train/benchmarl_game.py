@@ -1,6 +1,6 @@
 """BenchMARL on the high-level game: MASAC (the stand-in for the paper's HASAC) and MAPPO (a cross-check of
 `cefc-train highlevel --variant mappo`), trained on our `HierarchicalCEFCEnv` and exported as our own
-high-level policy files, which Table V's evaluator flies unchanged (docs/baselines.md, "BenchMARL
+high-level policy files, which Table V's evaluator flies unchanged (docs/research/baselines.md, "BenchMARL
 baselines"). Needs the optional `benchmarl` extra (BenchMARL 1.5.2, torchrl 0.11).
 
 - `HighLevelGameEnv`: a torchrl `EnvBase` over the batched game (batch [B], one group "agents" of N):
@@ -26,60 +26,45 @@ baselines"). Needs the optional `benchmarl` extra (BenchMARL 1.5.2, torchrl 0.11
 
 from __future__ import annotations
 
-import csv
 import json
-import math
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
-from benchmarl.environments import TaskClass
-from benchmarl.experiment.callback import Callback
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
 from cefc_mj.errors import CheckpointError, ConfigError
-from cefc_mj.eval.highlevel import evaluate_highlevel, resolve_adversary, run_table5
+from cefc_mj.eval.highlevel import run_table5
 from cefc_mj.fileio import write_atomic
+from cefc_mj.game_protocol import evaluate_highlevel
 from cefc_mj.hierarchy import HierarchicalCEFCEnv, LowLevel, load_low_level
+from cefc_mj.nn.adversary_policy import resolve_adversary
 from cefc_mj.nn.consmac import LOCAL_PARTS
 from cefc_mj.nn.highlevel_policy import HighLevelPolicy, save_highlevel_policy
 from cefc_mj.seeds import GAME_VALIDATION_SEED
 from cefc_mj.task.config import TaskConfig
+from cefc_mj.train.benchmarl_common import (
+    GROUP,
+    CEFCTaskBase,
+    Progress,
+    benchmarl_versions,
+    done_spec,
+    experiment_config,
+    experiment_settings,
+    progress_bar,
+    reset_mask,
+)
 from cefc_mj.train.benchmarl_config import DECISION_INTERVAL, BenchMARLConfig
 from cefc_mj.train.mappo import iteration_seed
 from cefc_mj.train.model_card import display_path, display_paths, write_model_card
 
-GROUP = "agents"
 METHODS = {
     "masac": "BenchMARL MASAC (maximum-entropy MARL; the stand-in for the paper's HASAC), no communication",
     "mappo": "BenchMARL MAPPO, no communication (cross-check of cefc-train highlevel --variant mappo)",
 }
-PROGRESS_FIELDS = (
-    "iteration",
-    "frames",
-    "episodes",
-    "episode_return",
-    "wall_s",
-    "collection_s",
-    "training_s",
-    "s_per_episode",
-)
-
-
-def benchmarl_versions() -> dict[str, str]:
-    """Versions of BenchMARL and the libraries under it."""
-    from importlib.metadata import PackageNotFoundError, version
-
-    out = {}
-    for name in ("benchmarl", "torchrl", "tensordict", "hydra-core", "omegaconf", "torch"):
-        try:
-            out[name] = version(name)
-        except PackageNotFoundError:
-            out[name] = None
-    return out
 
 
 # ---------------------------------------------------------------------------- the game as a torchrl env
@@ -149,13 +134,7 @@ class HighLevelGameEnv(EnvBase):
             {GROUP: Composite({"reward": Unbounded((b, n, 1), dtype=torch.float32, device=device)}, shape=(b, n))},
             shape=(b,),
         )
-        self.full_done_spec = Composite(
-            {
-                key: Categorical(2, shape=(b, 1), dtype=torch.bool, device=device)
-                for key in ("done", "terminated", "truncated")
-            },
-            shape=(b,),
-        )
+        self.full_done_spec = done_spec(b, device)
 
     def _observation(self, obs: np.ndarray, done: np.ndarray | None = None) -> TensorDict:
         b, n = self.batch_size[0], self.task.n_agents
@@ -176,10 +155,8 @@ class HighLevelGameEnv(EnvBase):
         )
 
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
-        mask = None
-        if tensordict is not None and "_reset" in tensordict.keys():
-            mask = tensordict.get("_reset").reshape(-1).cpu().numpy().astype(bool)
-        if mask is None or mask.all():  # a new batch of episodes: the games of iteration_seed(seed, k)
+        mask = reset_mask(tensordict)
+        if mask is None:  # a new batch of episodes: the games of iteration_seed(seed, k)
             obs = self.game.reset(seed=iteration_seed(self.run_seed, self.resets))
             self.resets += 1
         else:
@@ -232,7 +209,7 @@ def make_game_env(cfg: BenchMARLConfig, n_envs: int | None = None, seed: int | N
     )
 
 
-class CEFCGameTask(TaskClass):
+class CEFCGameTask(CEFCTaskBase):
     """BenchMARL's task of the high-level game; `config` is a `BenchMARLConfig.to_dict()`."""
 
     def get_env_fun(self, num_envs: int, continuous_actions: bool, seed: int | None, device):
@@ -245,35 +222,8 @@ class CEFCGameTask(TaskClass):
     def supports_discrete_actions(self) -> bool:
         return True
 
-    def has_render(self, env: EnvBase) -> bool:
-        return False
-
     def max_steps(self, env: EnvBase) -> int:
         return BenchMARLConfig.from_dict(self.config).decision_steps
-
-    def group_map(self, env: EnvBase) -> dict[str, list[str]]:
-        return {GROUP: [f"uav_{i}" for i in range(self.config["n_agents"])]}
-
-    def observation_spec(self, env: EnvBase) -> Composite:
-        spec = env.full_observation_spec_unbatched.clone()
-        del spec["state"]
-        return spec
-
-    def info_spec(self, env: EnvBase):
-        return None
-
-    def state_spec(self, env: EnvBase) -> Composite:
-        return Composite({"state": env.full_observation_spec_unbatched["state"].clone()})
-
-    def action_spec(self, env: EnvBase) -> Composite:
-        return env.full_action_spec_unbatched.clone()
-
-    def action_mask_spec(self, env: EnvBase):
-        return None
-
-    @staticmethod
-    def env_name() -> str:
-        return "cefc"
 
 
 def make_task(cfg: BenchMARLConfig) -> CEFCGameTask:
@@ -281,90 +231,22 @@ def make_task(cfg: BenchMARLConfig) -> CEFCGameTask:
 
 
 # ---------------------------------------------------------------------------- the experiment
-class _Progress(Callback):
-    """Writes <run_dir>/progress.csv: per iteration the frames, episodes, mean episode return (R_H
-    summed over the episode, unscaled) and the wall-clock of collection and training."""
-
-    def __init__(self, path: Path, reward_scale: float = 1.0):
-        super().__init__()
-        self.path, self.reward_scale = Path(path), reward_scale
-        self.rows: list[dict] = []
-        self.start = self.collected = self.trained = None
-
-    def on_setup(self):
-        self.start = self.collected = time.perf_counter()
-        with self.path.open("w", newline="") as f:
-            csv.DictWriter(f, PROGRESS_FIELDS).writeheader()
-
-    def on_batch_collected(self, batch: TensorDictBase):
-        now = time.perf_counter()
-        done = batch.get(("next", "done")).reshape(-1)
-        returns = batch.get(("next", GROUP, "episode_reward"))[..., 0, 0].reshape(-1)[done]
-        self.pending = {
-            "episodes": int(done.sum()),
-            "episode_return": float(returns.mean()) / self.reward_scale if len(returns) else math.nan,
-            "collection_s": now - (self.trained or self.start),
-            "frames": int(batch.numel()),
-        }
-        self.collected = now
-
-    def on_train_end(self, training_td: TensorDictBase, group: str):
-        now = time.perf_counter()
-        self.trained = now
-        previous = self.rows[-1] if self.rows else {"frames": 0, "episodes": 0}
-        row = {
-            "iteration": len(self.rows) + 1,
-            "frames": previous["frames"] + self.pending["frames"],
-            "episodes": previous["episodes"] + self.pending["episodes"],
-            "episode_return": self.pending["episode_return"],
-            "wall_s": now - self.start,
-            "collection_s": self.pending["collection_s"],
-            "training_s": now - self.collected,
-        }
-        row["s_per_episode"] = (row["collection_s"] + row["training_s"]) / max(1, self.pending["episodes"])
-        self.rows.append(row)
-        with self.path.open("a", newline="") as f:
-            csv.DictWriter(f, PROGRESS_FIELDS).writerow(row)
-
-
 def build_experiment(cfg: BenchMARLConfig, run_dir: Path, callbacks=()):
     """The BenchMARL Experiment of `cfg`, writing under run_dir (which must exist)."""
     from benchmarl.algorithms import MappoConfig, MasacConfig
-    from benchmarl.experiment import Experiment, ExperimentConfig
+    from benchmarl.experiment import Experiment
     from benchmarl.models.mlp import MlpConfig
 
-    exp = ExperimentConfig.get_from_yaml()
     frames = cfg.frames_per_batch
     settings = {
-        "sampling_device": "cpu",
-        "train_device": "cpu",
-        "buffer_device": "cpu",
-        "share_policy_params": True,
-        "parallel_collection": False,
-        "gamma": cfg.gamma,
-        "lr": cfg.lr,
-        "max_n_iters": None,
-        "max_n_frames": cfg.max_frames,
-        "on_policy_collected_frames_per_batch": frames,
-        "on_policy_n_envs_per_worker": cfg.n_envs,
+        **experiment_settings(run_dir, cfg.gamma, cfg.lr, cfg.max_frames, frames, cfg.n_envs),
         "on_policy_n_minibatch_iters": cfg.mappo_epochs,
         "on_policy_minibatch_size": cfg.mappo_minibatch,
-        "off_policy_collected_frames_per_batch": frames,
-        "off_policy_n_envs_per_worker": cfg.n_envs,
         "off_policy_n_optimizer_steps": cfg.masac_updates,
         "off_policy_train_batch_size": cfg.masac_batch,
         "off_policy_memory_size": max(cfg.max_frames, frames),
-        "evaluation": False,  # the model card evaluates the exported policy with our own evaluator
-        "render": False,
-        "evaluation_episodes": 1,  # BenchMARL builds its test env (used for specs only) with this many envs
-        "loggers": ["csv"],
-        "create_json": False,
-        "save_folder": str(run_dir),
-        "checkpoint_interval": 0,
-        "checkpoint_at_end": False,
     }
-    for key, value in settings.items():
-        setattr(exp, key, value)
+    exp = experiment_config(settings)
     algorithm = (MasacConfig if cfg.algorithm == "masac" else MappoConfig).get_from_yaml()
     actor = MlpConfig(num_cells=[cfg.hidden] * 3, layer_class=torch.nn.Linear, activation_class=torch.nn.Tanh)
     critic = MlpConfig(num_cells=list(cfg.critic_cells), layer_class=torch.nn.Linear, activation_class=torch.nn.Tanh)
@@ -438,19 +320,6 @@ def export_actor(experiment, cfg: BenchMARLConfig, task: TaskConfig) -> HighLeve
     return policy
 
 
-def _progress_bar(show: bool):
-    """A context in which BenchMARL's iteration bar is shown, or not (it reads no flag of its own)."""
-    import contextlib
-    import functools
-    from unittest import mock
-
-    from benchmarl.experiment import experiment as module
-
-    if show:
-        return contextlib.nullcontext()
-    return mock.patch.object(module, "tqdm", functools.partial(module.tqdm, disable=True))
-
-
 def train_benchmarl(
     cfg: BenchMARLConfig,
     out_dir: Path,
@@ -487,13 +356,13 @@ def train_benchmarl(
         )
         + "\n",
     )
-    progress = _Progress(run_dir / "progress.csv", cfg.reward_scale)
+    progress = Progress(run_dir / "progress.csv", cfg.reward_scale)
     threads = torch.get_num_threads()
     torch.set_num_threads(cfg.threads)
     try:
         experiment, settings = build_experiment(cfg, run_dir, callbacks=[progress])
         start = time.perf_counter()
-        with _progress_bar(show_progress):
+        with progress_bar(show_progress):
             experiment.run()
         wall = time.perf_counter() - start
     finally:

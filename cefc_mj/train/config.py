@@ -328,12 +328,12 @@ class LowLevelConfig(BudgetPPODict):
     collision_margin: float = 0.0
     """Added (m) to both distances of the collision reward (delta_s and delta_a,c, RewardConfig) during
     training, so the policy keeps that much more clearance than the paper's reward asks; 0 is the paper's.
-    A quadrotor's tracking lag turns the particle world's near misses into touches (docs/decisions.md)."""
+    A quadrotor's tracking lag turns the particle world's near misses into touches (docs/research/decisions.md)."""
     navigation_weight: float | None = None
     """omega_n of R_L during training (RewardConfig.navigation_weight_low); None keeps the paper's 4.
     Only for Step 3 fine-tunes (not Safe). On an otherwise plain Step 3 fine-tune this is AT-M-Nav
     (this project's), named atm_c{c}_nav: the Step 3 policy fine-tuned to weigh reaching the anchor
-    more, as a quadrotor keeps less of the particle world's N (docs/decisions.md)."""
+    more, as a quadrotor keeps less of the particle world's N (docs/research/decisions.md)."""
     anchor_periods: int = 1
     """Anchor periods per training episode: the episode lasts this many times the paper's 100 steps and
     the anchor is redrawn at the start of each period, as Table VIII's protocol redraws it every 250
@@ -348,7 +348,7 @@ class LowLevelConfig(BudgetPPODict):
     """Whether the LiDAR beams hit the other UAVs as well as the obstacles (TaskConfig.lidar_sees_agents).
     False names the stage <name>_obstacle_lidar (e.g. atm_c6_step1_obstacle_lidar): AT-M Step 1 trained
     so is the paper's Step 1 of Table III, which collides once obstacles appear because its LiDAR never
-    read anything while training (docs/layouts.md). The choice is saved in the policy file, and the
+    read anything while training (docs/research/layouts.md). The choice is saved in the policy file, and the
     evaluators fly every policy with the LiDAR it was trained with."""
     hidden: int = 128
     """Hidden width of the AT-M modules."""

@@ -31,6 +31,7 @@ from cefc_mj.nn.atm import ATMActor, ATMConfig
 from cefc_mj.nn.policy_io import (
     Policy,
     atomic_torch_save,
+    checkpoint_errors,
     load_policy,
     resolve_policy_path,
     safe_torch_load,
@@ -152,7 +153,8 @@ def train_student(
 
     if replay_path.exists():
         saved = safe_torch_load(replay_path)
-        replay = {int(c): r for c, r in saved["replay"].items()}
+        with checkpoint_errors(replay_path, "not a distillation replay"):
+            replay = {int(c): r for c, r in saved["replay"].items()}
         if saved.get("config") != cfg.to_dict() or sorted(replay) != sorted(cfg.formations):
             raise ConfigError(f"{replay_path} was collected with other settings; use another --out")
     else:
@@ -198,12 +200,13 @@ def train_student(
     step, elapsed = 0, 0.0
     if state_path.exists():
         state = safe_torch_load(state_path)
-        if state.get("format") != STATE_FORMAT or state.get("config", {}).get("formations") != list(cfg.formations):
-            raise CheckpointError(f"{state_path}: not a distillation state of this run")
-        student.load_state_dict(state["student"])
-        optimizer.load_state_dict(state["optimizer"])
-        generator.set_state(state["generator"])
-        step, elapsed = int(state["step"]), float(state["elapsed"])
+        with checkpoint_errors(state_path, "not a distillation state of this run"):
+            if state.get("format") != STATE_FORMAT or state.get("config", {}).get("formations") != list(cfg.formations):
+                raise CheckpointError(f"{state_path}: not a distillation state of this run")
+            student.load_state_dict(state["student"])
+            optimizer.load_state_dict(state["optimizer"])
+            generator.set_state(state["generator"])
+            step, elapsed = int(state["step"]), float(state["elapsed"])
 
     def checkpoint() -> None:
         atomic_torch_save(

@@ -40,7 +40,7 @@ from cefc_mj.env import BatchedCEFCEnv
 from cefc_mj.errors import CheckpointError, ConfigError
 from cefc_mj.fileio import write_atomic
 from cefc_mj.nn.atm import ATMActor, ATMConfig, Critic, merge_step3
-from cefc_mj.nn.policy_io import atomic_torch_save, load_actor, resolve_policy_path, save_policy
+from cefc_mj.nn.policy_io import atomic_torch_save, checkpoint_errors, load_actor, resolve_policy_path, save_policy
 from cefc_mj.nn.registry import lowlevel_name
 from cefc_mj.provenance import file_sha256
 from cefc_mj.sim.mujoco_world import MujocoWorldConfig, make_mujoco_world
@@ -174,13 +174,11 @@ def _source_state(out: Path, name: str, cfg: LowLevelConfig) -> tuple[dict, ATMA
             f"or start from a trained policy with --init-from {stage_name(cfg.formation, 3)}"
         )
     payload = read_state(path)
-    src_cfg = LowLevelConfig.from_dict(payload["config"])
-    src_task = task_config_for(src_cfg)
-    actor = ATMActor(ATMConfig.from_task(src_task, hidden=src_cfg.hidden, safe=src_cfg.safe))
-    try:
+    with checkpoint_errors(path, "actor does not fit"):
+        src_cfg = LowLevelConfig.from_dict(payload["config"])
+        src_task = task_config_for(src_cfg)
+        actor = ATMActor(ATMConfig.from_task(src_task, hidden=src_cfg.hidden, safe=src_cfg.safe))
         actor.load_state_dict(payload["trainer"]["actor"])
-    except RuntimeError as e:
-        raise CheckpointError(f"{path}: actor does not fit ({str(e).splitlines()[0][:160]})") from None
     return payload, actor
 
 
@@ -338,7 +336,7 @@ def train_lowlevel(
         trainer.critic_warmup = cfg.mujoco.critic_warmup
     try:
         if saved is not None:
-            trainer.load_state_dict(saved["trainer"])
+            run_state.restore_trainer(trainer, saved, state_path)
         # CL-M: the phase trained last and the iterations of each phase (restored on resume).
         curriculum = None
         if cfg.curriculum is not None:

@@ -16,14 +16,16 @@ from cefc_mj.provenance import display_path, git_commit, library_versions
 from cefc_mj.table3_protocol import TABLE3_DENSITY, TABLE3_EPISODES, TABLE3_STEPS
 
 
-def table3_figures(policy_path: Path, formation: int, method: str | None, seed: int = 0) -> dict:
+def table3_figures(
+    policy_path: Path, formation: int, method: str | None, seed: int = 0, episodes: int = TABLE3_EPISODES
+) -> dict:
     """The policy's Table III-protocol row for formation c, with the paper's row beside it."""
-    row = evaluate_lowlevel(load_policy(policy_path), formation, seed=seed)
+    row = evaluate_lowlevel(load_policy(policy_path), formation, episodes=episodes, seed=seed)
     return {
         "protocol": {
             "backend": "particle",
             "density": TABLE3_DENSITY,
-            "episodes": TABLE3_EPISODES,
+            "episodes": episodes,
             "steps": TABLE3_STEPS,
             "seed": seed,
             "formation": formation,

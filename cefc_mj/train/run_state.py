@@ -6,7 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from cefc_mj.errors import CheckpointError, ConfigError
-from cefc_mj.nn.policy_io import safe_torch_load
+from cefc_mj.nn.policy_io import checkpoint_errors, safe_torch_load
 
 STATE_FILE = "state.pt"
 
@@ -27,7 +27,16 @@ def read_state(path: Path, state_format: str, what: str) -> dict:
     payload = safe_torch_load(path)
     if payload.get("format") != state_format or "trainer" not in payload or "config" not in payload:
         raise CheckpointError(f"{path}: not a cefc-mj {what}")
+    if not isinstance(payload["trainer"], dict) or not isinstance(payload["config"], dict):
+        raise CheckpointError(f"{path}: a {what} without its trainer state and config")
     return payload
+
+
+def restore_trainer(trainer, saved: dict, path: Path) -> None:
+    """`trainer.load_state_dict(saved["trainer"])`, a state that does not fit the trainer (another
+    network, a damaged entry) raising CheckpointError with one line naming `path`."""
+    with checkpoint_errors(path, "the saved training state does not fit this run"):
+        trainer.load_state_dict(saved["trainer"])
 
 
 def train_under_budget(
@@ -63,7 +72,9 @@ def check_same_run(saved: dict, cfg, path: Path, free: tuple[str, ...]) -> None:
             d["ppo"] = {k: v for k, v in d["ppo"].items() if k not in ("rollout_threads", "update_threads")}
         return d
 
-    mine, theirs = comparable(cfg), comparable(type(cfg).from_dict(saved))
+    mine = comparable(cfg)
+    with checkpoint_errors(path, "the saved run's settings cannot be read"):
+        theirs = comparable(type(cfg).from_dict(saved))
     diffs = [k for k in mine if theirs.get(k) != mine[k]]
     if diffs:
         raise ConfigError(f"--resume: {path} was made with different settings ({', '.join(diffs)}); use another --out")

@@ -16,7 +16,7 @@ Rows of the per-step arrays are states: row s is the state after s low-level ste
 state, row T the end), so decision k is taken at row k * decision_interval, from the state shown
 there. Reward arrays have one entry per low-level step: entry s - 1 is the reward of step s.
 
->>> from cefc_mj.eval.highlevel import game_task
+>>> from cefc_mj.game_protocol import game_task
 >>> from cefc_mj.hierarchy import load_low_level
 >>> from cefc_mj.nn.highlevel_policy import load_highlevel_policy
 >>> policy, meta = load_highlevel_policy("policies/cihrl_consmac_a.pt")       # doctest: +SKIP
@@ -38,9 +38,9 @@ import rerun.blueprint as rrb
 import torch
 
 from cefc_mj.errors import ConfigError
-from cefc_mj.eval.highlevel import play_highlevel
 from cefc_mj.eval.record import code_provenance
 from cefc_mj.fileio import atomic_write
+from cefc_mj.game_protocol import play_highlevel
 from cefc_mj.hierarchy import DECISION_INTERVAL, HierarchicalCEFCEnv, LowLevel
 from cefc_mj.nn.highlevel_policy import HighLevelPolicy
 from cefc_mj.sim.particle import ParticleWorld
