@@ -25,7 +25,7 @@ COMMANDS = [
     ("cefc-eval --wind 8 --deviation 0.5", "--formation 5 --steps 20"),
     ("cefc-eval --protocol table8 --workers 2", "--formation 5 --episodes 1 --steps 5"),
     ("cefc-eval --backend particle --protocol table3", "--formation 6 --episodes 2"),
-    ("cefc-eval --formation 6 --rrd run.rrd --png plots/", "--steps 5"),
+    ("cefc-eval --formation 6 --episodes 1 --rrd run.rrd --png plots/", "--steps 5"),
     ("cefc-train lowlevel --formation 6 --step 3 --init-from atm_c6_step3", "--budget 1it --envs 4 --threads 1"),
     (
         "cefc-train lowlevel --formation 6 --step 1 --budget 150it --out runs/mine --policies-dir my_policies",
