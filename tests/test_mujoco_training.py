@@ -169,6 +169,39 @@ def test_fine_tune_in_mujoco_resumes_bit_for_bit_and_records_itself(tmp_path):
     assert 0 < moved < 0.1
 
 
+def test_no_reset_after_the_last_step_and_the_same_training_bit_for_bit():
+    """A shard no longer resets its envs after their last step (the next shard starts them afresh
+    from its seed): two MuJoCo iterations in wind give the same rollouts and the same losses as the
+    earlier path, which reset every env once more after each shard."""
+    cfg = tiny(1)
+    task = task_config_for(cfg)
+    make_env = partial(mujoco_training_env, training=cfg.mujoco)
+    rows, resets = {}, {}
+    for path in ("now", "earlier"):
+        torch.manual_seed(0)  # the critic's initial weights
+        actor, critic = actor_of("atm_c3_nav"), Critic(critic_input_size(cfg, task))
+        trainer = MAPPO(task, cfg.ppo, actor, critic, seed=7, make_env=make_env)
+        calls = []
+        reset = trainer.env.reset
+        trainer.env.reset = lambda *a, _reset=reset, _calls=calls, **k: (_calls.append(k), _reset(*a, **k))[1]
+        rows[path] = []
+        for _ in range(2):
+            rows[path].append(trainer.iterate())
+            if path == "earlier":  # the reset the shard used to do after its last step
+                trainer.env.reset(mask=np.ones(trainer.env.n_envs, bool))
+        resets[path] = len(calls)
+        rows[path].append({k: v.clone() for k, v in actor.state_dict().items()})
+    assert resets == {"now": 2, "earlier": 4}  # one seeded reset per iteration, no other
+    timing = {"wall_s", "env_sps", "update_sps", "sps"}
+    for now, earlier in zip(rows["now"][:2], rows["earlier"][:2]):
+        assert {k: v for k, v in now.items() if k not in timing} == {
+            k: v for k, v in earlier.items() if k not in timing
+        }
+        assert now["episodes"] == 2 and math.isfinite(now["episode_return"])
+    for k, v in rows["now"][2].items():
+        assert torch.equal(v, rows["earlier"][2][k]), k
+
+
 def test_rollout_workers_collect_the_iteration_and_report_a_dead_worker(tmp_path):
     cfg = tiny(1, rollout_workers=2)
     actor = actor_of("atm_c3_nav")
