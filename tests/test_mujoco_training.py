@@ -112,35 +112,51 @@ def test_the_training_critic_sees_the_wind_and_the_agents_do_not():
 
 
 # ---------------------------------------------------------------------------- physics bounds the target
-def downwind_drift(speed: float, direction_deg: float, seconds: float = 20.0) -> float:
-    """Metres a hovering Iris moves downwind in `seconds` of a steady `speed` m/s wind while it commands
-    the whole per-axis acceleration bound (2 m/s^2 on each axis) against it, through the paper's
-    acceleration interface: the best any policy can do to hold its place."""
-    th = math.radians(direction_deg)
+def steady_wind_world(speed: float, direction: float, accel_max: float = 2.0) -> MujocoWorld:
+    """One Iris after PX4's hold in a steady `speed` m/s wind (no redraws), flown through the paper's
+    acceleration interface (PX4's semantics) with action bound `accel_max` per axis."""
     world = MujocoWorld(
         MujocoWorldConfig(offboard="acceleration"),
         n_envs=1,
         n_agents=1,
         n_obstacles=0,
-        wind=WindConfig(mean_speed=speed, speed_sigma=0.0, direction=th),
+        wind=WindConfig(mean_speed=speed, speed_sigma=0.0, direction=direction),
         with_adversary=False,
+        accel_max=accel_max,
     )
     world.reset(np.ones(1, bool), np.zeros((1, 1, 2)), np.zeros((1, 2)), np.zeros((1, 0, 2)))
+    return world
+
+
+def downwind_drift(speed: float, direction_deg: float, seconds: float = 20.0, accel_max: float = 2.0) -> float:
+    """Metres a hovering Iris moves downwind in `seconds` of a steady `speed` m/s wind while it commands
+    the whole per-axis action bound `accel_max` against it, through the paper's acceleration interface:
+    the best any policy within that bound can do to hold its place."""
+    th = math.radians(direction_deg)
+    world = steady_wind_world(speed, th, accel_max)
     start = world.agent_pos[0, 0].copy()
-    against = -2.0 * np.sign(np.round([math.cos(th), math.sin(th)], 9))
+    against = -accel_max * np.sign(np.round([math.cos(th), math.sin(th)], 9))
     for _ in range(round(seconds / world.dt)):
         world.step(against[None, None], np.zeros((1, 2)))
     return float((world.agent_pos[0, 0] - start) @ np.array([math.cos(th), math.sin(th)]))
 
 
 def test_wind_8_pushes_harder_than_the_action_bound_can_hold():
-    """Rotor drag pushes the Iris with about 0.37 m/s^2 per m/s of wind: 3 m/s^2 at 8 m/s, more than
-    the 2 m/s^2 per axis (2.83 diagonally) a setpoint may ask. So through the acceleration interface
-    no policy holds a place in Wind-8, whatever it learns; at 5 m/s the bound wins."""
-    assert downwind_drift(8.0, 0.0) > 15.0  # along an axis: drifts near the 1 m/s speed limit
+    """Rotor drag pushes the Iris holding in a steady wind (at its hold attitude, rotors at their hold
+    speeds) with 1.10, 1.81 and 2.78 m/s^2 at 3, 5 and 8 m/s: at 8 m/s more than the 2 m/s^2 per axis
+    (2.83 diagonally) the action bound lets a setpoint ask. The bound is our choice (TaskConfig.accel_max;
+    the paper states none): within 2 m/s^2 no policy holds a place in Wind-8 through the acceleration
+    interface, whatever it learns; at 5 m/s the bound wins, and a bound of 3.5 m/s^2 wins at 8 m/s."""
+    pushes = []
+    for speed in (3.0, 5.0, 8.0):
+        world = steady_wind_world(speed, 0.0)
+        pushes.append(world.cascade.drag_wrenches(0)[0, 0] / world.airframe.mass)
+    np.testing.assert_allclose(pushes, [1.10, 1.81, 2.78], atol=0.01)
+    assert downwind_drift(8.0, 0.0) > 15.0  # along an axis: drifts downwind, nothing limits the speed
     assert downwind_drift(8.0, 45.0) > 5.0  # even with the whole diagonal bound
     assert downwind_drift(5.0, 0.0) < -5.0  # Wind-5: the bound beats the push, the drone moves upwind
     assert downwind_drift(5.0, 45.0) < -5.0
+    assert downwind_drift(8.0, 0.0, accel_max=3.5) < -5.0  # a larger bound holds Wind-8 and gains upwind
 
 
 # ---------------------------------------------------------------------------- training

@@ -215,11 +215,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--offboard",
-        choices=("velocity", "acceleration"),
+        choices=("velocity", "acceleration", "acceleration-assisted"),
         default=None,
         help="MuJoCo: what the PX4-like offboard interface makes of the policy's acceleration setpoint: "
-        "velocity (default; integrated into a velocity setpoint) or acceleration (sent as PX4 "
-        "acceleration setpoints, as the paper does); single and table8, not with --sitl-m or --drop",
+        "velocity (default; integrated into a velocity setpoint), acceleration (PX4's acceleration "
+        "setpoints, as the paper sends them) or acceleration-assisted (not PX4's: the interface "
+        "'acceleration' named before, with a speed limiter and a drag feed-forward; docs/px4_interface.md); "
+        "single and table8, not with --sitl-m or --drop",
     )
     p.add_argument(
         "--rotor-actuation",

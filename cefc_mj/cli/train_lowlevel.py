@@ -231,7 +231,7 @@ def _lowlevel_parser(sub) -> None:
     )
     p.add_argument(
         "--offboard",
-        choices=("acceleration", "velocity"),
+        choices=("acceleration", "acceleration-assisted", "velocity"),
         default=None,
         help=f"--backend mujoco: the offboard interface flown while training (default {m.offboard}, the paper's)",
     )

@@ -238,7 +238,8 @@ class Flight:
     """--airframe: MuJoCo airframe, a shipped name ("iris", "crazyflie") or an MJCF path."""
     offboard: str = "velocity"
     """--offboard: what the PX4-like interface makes of the acceleration setpoint, "velocity" (integrated
-    into a velocity setpoint) or "acceleration" (sent as PX4 acceleration setpoints, as the paper does)."""
+    into a velocity setpoint), "acceleration" (PX4's acceleration setpoints, as the paper sends them) or
+    "acceleration-assisted" (not PX4's; docs/px4_interface.md)."""
     rotor_actuation: str = "auto"
     """--rotor-actuation: how the rotor thrusts reach the physics, "auto", "actuators" or "external"."""
 

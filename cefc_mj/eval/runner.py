@@ -106,8 +106,9 @@ class EpisodeSpec:
     particle backend ignores it."""
     offboard: str = "velocity"
     """MuJoCo's offboard interface (docs/mujoco_world.md): "velocity" (the setpoint is integrated
-    into a velocity setpoint, the default) or "acceleration" (sent as PX4 acceleration setpoints, as
-    the paper does); the particle backend ignores it."""
+    into a velocity setpoint, the default), "acceleration" (PX4's acceleration setpoints, as the paper
+    sends them) or "acceleration-assisted" (not PX4's; docs/px4_interface.md); the particle backend
+    ignores it."""
 
     @property
     def mujoco_airframe(self) -> str | None:

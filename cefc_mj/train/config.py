@@ -243,7 +243,7 @@ class BudgetPPODict:
         return cls(**d)
 
 
-OFFBOARD_MODES = ("acceleration", "velocity")
+OFFBOARD_MODES = ("acceleration", "acceleration-assisted", "velocity")
 """What the MuJoCo world's offboard interface makes of a setpoint (MujocoWorldConfig.offboard)."""
 MAX_TRAINING_WIND = 15.0
 """Largest mean wind (m/s) a MuJoCo fine-tune draws from."""
@@ -258,8 +258,11 @@ class MujocoTraining:
     direction, a gust) and, with the stage's deviation_sampling "uniform", its own sensing deviation."""
 
     offboard: str = "acceleration"
-    """The offboard interface the policy flies through: "acceleration" (the paper's: setpoints passed
-    open loop, no velocity integral) or "velocity" (the evaluators' default)."""
+    """The offboard interface the policy flies through (docs/px4_interface.md): "acceleration" (the
+    paper's, with PX4's semantics: the setpoint straight to tilt and thrust, no velocity loop),
+    "acceleration-assisted" (not PX4's: the earlier interface with a speed limiter and a drag
+    feed-forward, with which the shipped atm_c<C>_mujoco were trained) or "velocity" (the evaluators'
+    default)."""
     wind_max: float = 8.0
     """Each episode's mean wind speed is drawn uniformly from [0, wind_max] m/s, its direction
     uniformly; speeds are redrawn every 0.5 s around that mean (Gazebo wind-plugin semantics)."""
