@@ -224,6 +224,15 @@ def build_parser() -> argparse.ArgumentParser:
         "single and table8, not with --sitl-m or --drop",
     )
     p.add_argument(
+        "--accel-max",
+        type=float,
+        default=None,
+        metavar="MPS2",
+        help="the action bound (m/s^2 per axis) the agents fly at, the env's clip and the policy's "
+        "(default: the bound each policy was trained at, 2 for the shipped ones; our choice, the paper "
+        "states none; docs/px4_interface.md); single and table8, not with --sitl-m or --drop",
+    )
+    p.add_argument(
         "--rotor-actuation",
         choices=("auto", "actuators", "external"),
         default=None,
@@ -369,6 +378,7 @@ def refuse_flags(args: argparse.Namespace) -> None:
                 ("--airframe", args.airframe is not None),
                 ("--estimator", args.estimator is not None),
                 ("--offboard", args.offboard is not None),
+                ("--accel-max", args.accel_max is not None),
                 ("--guard", args.guard is not None),
                 ("--fresh", args.fresh),
             )
@@ -396,6 +406,14 @@ def refuse_flags(args: argparse.Namespace) -> None:
         ):
             if on:
                 raise ConfigError(f"--offboard: not available with {flag} (single and table8 in one process only)")
+    if args.accel_max is not None:
+        for flag, on in (
+            ("--sitl-m", args.sitl_m),
+            ("--drop", args.drop is not None),
+            ("--protocol table3", proto == "table3"),
+        ):
+            if on:
+                raise ConfigError(f"--accel-max: not available with {flag} (single and table8 in one process only)")
     if args.rotor_actuation is not None:
         if particle:
             raise ConfigError("--rotor-actuation: the particle backend has no rotors; use --backend mujoco")
@@ -490,6 +508,7 @@ def to_request(args: argparse.Namespace) -> SingleRequest | Table8Request | Tabl
             airframe=args.airframe,
             offboard=args.offboard,
             rotor_actuation=args.rotor_actuation,
+            accel_max=args.accel_max,
         )
     )
     if proto == "table8":
