@@ -76,12 +76,20 @@ def reference_tick(tick, qpos, qvel, s, sp, wind, p, k, mix, eff, rotors):
     if tick % int(k[C.K_POS_DIV]) == 0:
         dt = dt_phys * k[C.K_POS_DIV]
         drag_gain = k[C.K_CRD] * np.abs(omega).sum() / m
-        velocity_mode = k[C.K_OFFBOARD] == C.OFFBOARD_VELOCITY
+        mode = k[C.K_OFFBOARD]
+        velocity_mode = mode in (C.OFFBOARD_VELOCITY, C.OFFBOARD_HOLD)
         measured = (v[:2] - s[C.S_VXY_PREV : C.S_VXY_PREV + 2]) / dt
         s[C.S_VXY_PREV : C.S_VXY_PREV + 2] = v[:2]
         if velocity_mode:  # PX4 _velocityControl on the ramped setpoint, feed-forward = ramp slope
-            ff = sp[C.SP_AX : C.SP_AX + 2]
-            s[C.S_VSP : C.S_VSP + 2] += ff * dt
+            if mode == C.OFFBOARD_HOLD:  # PX4 _positionControl: v_sp = MPC_XY_P x position error, capped
+                v_sp = k[C.K_HOLD_P] * (s[C.S_HOLD : C.S_HOLD + 2] - pos[:2])
+                if np.linalg.norm(v_sp) > sp[C.SP_VMAX]:
+                    v_sp = v_sp / np.linalg.norm(v_sp) * sp[C.SP_VMAX]
+                s[C.S_VSP : C.S_VSP + 2] = v_sp
+                ff = np.zeros(2)
+            else:
+                ff = sp[C.SP_AX : C.SP_AX + 2]
+                s[C.S_VSP : C.S_VSP + 2] += ff * dt
             s[C.S_VEL_DOT : C.S_VEL_DOT + 2] += lowpass_alpha(p["MPC_VELD_LP"], dt) * (
                 measured - s[C.S_VEL_DOT : C.S_VEL_DOT + 2]
             )
@@ -92,7 +100,9 @@ def reference_tick(tick, qpos, qvel, s, sp, wind, p, k, mix, eff, rotors):
                 + s[C.S_VEL_INT : C.S_VEL_INT + 2]
                 - p["MPC_XY_VEL_D_ACC"] * s[C.S_VEL_DOT : C.S_VEL_DOT + 2]
             )
-        else:
+        elif mode == C.OFFBOARD_ACCELERATION:  # PX4: the setpoint itself
+            acc = sp[C.SP_AX : C.SP_AX + 2].copy()
+        else:  # "acceleration-assisted"
             explained = s[C.S_THRUST_N : C.S_THRUST_N + 4].sum() / m * R[:2, 2] - drag_gain * v[:2]
             beta = dt / (dt + k[C.K_DIST_TAU])
             s[C.S_DIST : C.S_DIST + 2] += beta * (measured - explained - s[C.S_DIST : C.S_DIST + 2])
@@ -102,7 +112,8 @@ def reference_tick(tick, qpos, qvel, s, sp, wind, p, k, mix, eff, rotors):
             predicted = v[:2] + (acc + push) * tau
             if np.linalg.norm(predicted) > vmax:
                 acc = (predicted / np.linalg.norm(predicted) * vmax - v[:2]) / tau - push
-        acc = acc + drag_gain * v[:2]
+        if mode in (C.OFFBOARD_VELOCITY, C.OFFBOARD_ACCELERATION_ASSISTED):
+            acc = acc + drag_gain * v[:2]
         s[C.S_ACC_CMD : C.S_ACC_CMD + 2] = acc
 
         vz_sp = np.clip(p["MPC_Z_P"] * (sp[C.SP_Z] - pos[2]), -p["MPC_Z_VEL_MAX_DN"], p["MPC_Z_VEL_MAX_UP"])
@@ -244,8 +255,9 @@ def random_case(rng, cascade, n_drones):
         (C.S_VSP, 1.0),
         (C.S_VEL_INT, 1.0),
         (C.S_VEL_DOT, 2.0),
+        (C.S_HOLD, 3.0),
     ):
-        width = 2 if col in (C.S_DIST, C.S_VXY_PREV, C.S_VSP, C.S_VEL_INT, C.S_VEL_DOT) else 3
+        width = 2 if col in (C.S_DIST, C.S_VXY_PREV, C.S_VSP, C.S_VEL_INT, C.S_VEL_DOT, C.S_HOLD) else 3
         s[:, col : col + width] = rng.normal(0, scale, (n_drones, width))
     s[:, C.S_YAW_TQ] = rng.normal(0, 0.05, n_drones)
     s[:, C.S_Z_INT] = rng.normal(0, 0.5, n_drones)
@@ -255,16 +267,19 @@ def random_case(rng, cascade, n_drones):
     return qpos, qvel, s, sp, wind
 
 
-@pytest.fixture(scope="module", params=["velocity", "acceleration"])
+@pytest.fixture(scope="module", params=["velocity", "acceleration", "acceleration-assisted", "hold"])
 def cascade(request):
-    return C.Px4Cascade(
+    cascade = C.Px4Cascade(
         load_airframe("iris"),
         load_params("iris"),
         C.CascadeTiming(0.002, 2, 5),
         n_envs=1,
         n_drones=6,
-        offboard=request.param,
+        offboard="velocity" if request.param == "hold" else request.param,
     )
+    if request.param == "hold":  # the position hold before an episode (Px4Cascade.holding)
+        cascade.k[C.K_OFFBOARD] = C.OFFBOARD_HOLD
+    return cascade
 
 
 @pytest.mark.parametrize("tick", [0, 1, 2, 5])  # all loops / motors only / + rate loop / + position loop
@@ -299,6 +314,106 @@ def test_compiled_cascade_matches_numpy_reference(cascade, tick):
             # the rotor speed follows sqrt(command) (rad/s of order 1e3 elsewhere)
             np.testing.assert_allclose(s_fast[d], s_ref, rtol=1e-9, atol=1e-6)
             np.testing.assert_allclose(xfrc_fast[d], xfrc_ref, rtol=1e-7, atol=1e-9)
+
+
+def px4_thrust_setpoint(acc_sp_ned, p, g=9.81):
+    """PX4's thrust setpoint (normalised, NED) for a horizontal acceleration setpoint with the horizontal
+    position and velocity setpoints NaN, transcribed from PX4-Autopilot
+    src/modules/mc_pos_control/PositionControl/PositionControl.cpp: `_accelerationControl` (body_z =
+    normalize(-a_x, -a_y, g), ControlMath::limitTilt to MPC_TILTMAX_AIR, collective thrust =
+    (a_z T_h / g - T_h) / cos(tilt), at most -MPC_THR_MIN), then `_velocityControl`'s saturation (the
+    vertical axis first, keeping MPC_THR_XY_MARG, then the horizontal). `_velocityControl` adds nothing
+    to the horizontal setpoint here: its P + I + D term is NaN for a NaN velocity setpoint
+    (ControlMath::addIfNotNanVector3f)."""
+    acc = np.asarray(acc_sp_ned, dtype=np.float64)
+    hover = p["MPC_THR_HOVER"]
+    body_z = np.array([-acc[0], -acc[1], g]) / np.linalg.norm([-acc[0], -acc[1], g])
+    # ControlMath::limitTilt(body_z, (0, 0, 1), MPC_TILTMAX_AIR)
+    world_z = np.array([0.0, 0.0, 1.0])
+    dot = body_z @ world_z
+    angle = min(math.acos(dot), math.radians(p["MPC_TILTMAX_AIR"]))
+    rejection = body_z - dot * world_z
+    if rejection @ rejection < np.finfo(np.float32).eps:
+        rejection = np.array([1.0, 0.0, 0.0])
+    body_z = math.cos(angle) * world_z + math.sin(angle) * rejection / np.linalg.norm(rejection)
+    collective = (acc[2] * hover / g - hover) / (world_z @ body_z)
+    thr = body_z * min(collective, -p["MPC_THR_MIN"])
+    # _velocityControl: vertical priority with a horizontal margin, then the horizontal limit
+    thr_max = p["MPC_THR_MAX"]
+    xy = np.linalg.norm(thr[:2])
+    thr[2] = max(thr[2], -math.sqrt(thr_max**2 - min(xy, p["MPC_THR_XY_MARG"]) ** 2))
+    xy_max = math.sqrt(max(thr_max**2 - thr[2] ** 2, 0.0))
+    if xy > xy_max:
+        thr[:2] *= xy_max / xy
+    return thr
+
+
+# (acceleration setpoint ENU m/s^2, velocity m/s, altitude below the setpoint m): level, against a
+# fast motion (no speed limit, no drag feed-forward), beyond the tilt limit, and a climb that saturates
+PX4_WORKED_CASES = [
+    ((2.0, 0.0), (0.0, 0.0), 0.0),
+    ((-1.5, 1.0), (5.0, -3.0), 0.0),
+    ((12.0, 0.0), (0.0, 0.0), 0.0),
+    ((0.0, -3.0), (0.0, 4.0), 0.3),
+    ((8.0, 8.0), (1.0, 1.0), 3.0),
+]
+
+
+def test_acceleration_interface_flies_px4s_position_control_mapping():
+    """offboard = "acceleration" is PX4's: the attitude and collective thrust setpoints the cascade
+    makes of an acceleration setpoint are those of PX4's PositionControl (px4_thrust_setpoint) for the
+    same setpoint and the vertical acceleration its altitude loop asks, case by case: tilt, thrust
+    direction, collective thrust, tilt limit and saturation; the velocity integral neither acts nor
+    moves, and a fast motion is not braked."""
+    params = load_params("iris")
+    cascade = C.Px4Cascade(
+        load_airframe("iris"),
+        params,
+        C.CascadeTiming(0.002, 2, 5),
+        n_envs=1,
+        n_drones=len(PX4_WORKED_CASES),
+        offboard="acceleration",
+    )
+    cascade.reset(0)
+    n = len(PX4_WORKED_CASES)
+    qpos, qvel = np.zeros((n, 7)), np.zeros((n, 6))
+    qpos[:, 3] = 1.0
+    qpos[:, 2] = 2.0 - np.array([case[2] for case in PX4_WORKED_CASES])
+    qvel[:, :2] = [case[1] for case in PX4_WORKED_CASES]
+    cascade.setpoint[0, :, C.SP_Z] = 2.0
+    cascade.setpoint[0, :, C.SP_VMAX] = 1.0
+    cascade.state[0, :, C.S_VEL_INT : C.S_VEL_INT + 2] = (3.0, -2.0)  # left from a hold: must not act
+    cascade.command(np.array([[case[0] for case in PX4_WORKED_CASES]]), 0.1)
+    s = cascade.state[0]
+    assert (
+        C.cascade_step(0, qpos, qvel, np.zeros((n, 6)), s, cascade.setpoint[0], np.zeros(3), *_kernel_args(cascade))
+        == -1
+    )
+    g = cascade.gravity
+    for d, (acc, _, below) in enumerate(PX4_WORKED_CASES):
+        # PX4's altitude loop at this state: v_z = MPC_Z_P x error (capped), a_z = MPC_Z_VEL_P_ACC x v_z (up)
+        vz_sp = min(params["MPC_Z_P"] * below, params["MPC_Z_VEL_MAX_UP"])
+        a_up = params["MPC_Z_VEL_P_ACC"] * vz_sp
+        thr_ned = px4_thrust_setpoint((acc[0], acc[1], -a_up), params, g)
+        thr_px4 = np.array([thr_ned[0], thr_ned[1], -thr_ned[2]])  # the cascade's frame: PX4's with z up
+        body_z = rot(s[d, C.S_QSP : C.S_QSP + 4])[:, 2]
+        collective = s[d, C.S_THRUST]
+        np.testing.assert_allclose(collective, np.linalg.norm(thr_px4), rtol=1e-9)
+        np.testing.assert_allclose(body_z, thr_px4 / np.linalg.norm(thr_px4), atol=1e-9)
+        tilt = math.degrees(math.acos(body_z[2]))
+        assert tilt <= params["MPC_TILTMAX_AIR"] + 1e-9
+        np.testing.assert_allclose(s[d, C.S_ACC_CMD : C.S_ACC_CMD + 2], acc, rtol=0, atol=0)  # passed as is
+    # worked numbers: 2 m/s^2 tilts atan(2 / g) = 11.52 deg at T_h / cos(tilt); 12 m/s^2 hits 45 deg
+    body_z = [rot(s[d, C.S_QSP : C.S_QSP + 4])[:, 2] for d in range(n)]
+    assert math.degrees(math.acos(body_z[0][2])) == pytest.approx(math.degrees(math.atan2(2.0, g)), abs=1e-9)
+    assert s[0, C.S_THRUST] == pytest.approx(params["MPC_THR_HOVER"] / math.cos(math.atan2(2.0, g)), rel=1e-12)
+    assert math.degrees(math.acos(body_z[2][2])) == pytest.approx(45.0, abs=1e-9)
+    assert s[4, C.S_THRUST] == pytest.approx(params["MPC_THR_MAX"], rel=1e-12)  # the climb saturates
+    np.testing.assert_array_equal(s[:, C.S_VEL_INT : C.S_VEL_INT + 2], np.tile([3.0, -2.0], (n, 1)))
+
+
+def _kernel_args(cascade):
+    return cascade.prm, cascade.k, cascade.mix, cascade.eff, cascade.rotors
 
 
 def test_kernel_writes_rotor_thrusts_to_actuator_controls(cascade):

@@ -1,10 +1,12 @@
 """cefc-eval: bad input ends in one clear line with exit code 2 before anything is flown or written;
 a small particle run writes its JSON, PNGs and Rerun recording, creating their folders."""
 
+import dataclasses
 import json
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 import torch
 
@@ -12,8 +14,9 @@ import cefc_mj.eval.table8 as table8
 from cefc_mj.cli.eval import main
 from cefc_mj.errors import ConfigError
 from cefc_mj.eval import DEFAULT_POLICY
+from cefc_mj.eval.runner import EpisodeSpec, episode_env
 from cefc_mj.nn.atm import ATMActor, ATMConfig
-from cefc_mj.nn.policy_io import save_policy
+from cefc_mj.nn.policy_io import load_policy, save_policy
 from cefc_mj.task.config import TaskConfig
 
 
@@ -89,6 +92,11 @@ BAD_INPUTS = [
     (["--protocol", "table8", "--report-dir", "{file}"], "is a file, not a folder"),
     (["--protocol", "table8", "--report-dir", "/nonexistent/reports"], "will not create /nonexistent"),
     (["--protocol", "table3"], "--backend particle"),
+    (["--accel-max", "0"], "--accel-max 0: must be a number in (0, 9.81]"),
+    (["--accel-max", "12"], "--accel-max 12"),
+    (["--accel-max", "nan"], "--accel-max nan"),
+    (["--accel-max", "3", "--sitl-m"], "--accel-max: not available with --sitl-m"),
+    (["--protocol", "table5", "--backend", "particle", "--accel-max", "3"], "--accel-max: --protocol table5"),
     (["--protocol", "table3", "--backend", "particle", "--deviation", "0.3"], "exact sensing"),
     (["--protocol", "table3", "--backend", "particle", "--workers", "2"], "one batch"),
     (
@@ -115,6 +123,24 @@ def test_bad_input_one_line_exit_2_nothing_flown_or_written(argv, needle, capsys
     assert lines[0].startswith("cefc-eval: error: ")
     assert out == "" and not flown
     assert tree(tmp_path) == before
+
+
+def test_a_policy_flies_at_its_own_bound_or_at_accel_max(random_policy):
+    """The action bound is the policy's unless --accel-max says another: the env's clip and the
+    policy's own (in torch and in the compiled kernel the evaluators fly) follow it."""
+    policy = load_policy(random_policy)
+    spec = EpisodeSpec(formation=5, seed=0, backend="particle", steps=5, policy=str(random_policy))
+    env, _ = episode_env(spec, policy)
+    assert policy.accel_max == 2.0 and env.config.accel_max == 2.0
+    obs = np.random.default_rng(0).normal(0.0, 3.0, (64, 5, policy.obs_dim)).astype(np.float32)
+    wide = policy.with_action_bound(3.5)
+    env, _ = episode_env(dataclasses.replace(spec, accel_max=3.5), policy)
+    assert env.config.accel_max == 3.5 and wide.accel_max == 3.5 and policy.accel_max == 2.0
+    for p, bound in ((policy, 2.0), (wide, 3.5)):
+        for actions in (p.act(obs), p.actor.inference_weights().actions(obs)):
+            assert np.abs(actions).max() == pytest.approx(bound)
+    inside = np.abs(policy.act(obs)) < 2.0 - 1e-6
+    np.testing.assert_allclose(wide.act(obs)[inside], policy.act(obs)[inside], rtol=1e-6)  # the same network
 
 
 def test_checkpoint_for_another_observation_size(wrong_shape_policy, capsys):

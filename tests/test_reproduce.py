@@ -4,12 +4,21 @@ changed number or a changed policy file is reported, never passed."""
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
-from cefc_mj.cli.reproduce import compare, main, redirected
+from cefc_mj.cli.reproduce import (
+    compare,
+    flew_legacy_acceleration,
+    legacy_command,
+    legacy_names,
+    main,
+    redirected,
+)
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
+ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
@@ -71,3 +80,23 @@ def test_outputs_are_redirected_and_timing_is_not_compared(tmp_path):
     assert compare(table8_old, table8_new) == (1, [])
     table8_new["rows"]["5"]["SITL-S"]["F"] = 1.25
     assert compare(table8_old, table8_new)[1] == ["/rows/5/SITL-S/F: 1.0 != 1.25"]
+
+
+def test_a_report_of_the_earlier_acceleration_interface_is_re_flown_under_its_new_name(tmp_path):
+    """Reports written before `--offboard acceleration` became PX4's (no "accel_max" recorded) flew
+    what is now "acceleration-assisted"; later reports (with "accel_max", even None) are PX4's."""
+    shipped = json.loads((ROOT / "eval/reports/mujoco_ft/acceleration_nav/table8.json").read_text())
+    assert flew_legacy_acceleration(shipped)
+    assert not flew_legacy_acceleration({**shipped, "accel_max": None})
+    assert not flew_legacy_acceleration(json.loads((ROOT / "eval/reports/table8.json").read_text()))  # velocity
+    args = ["--protocol", "table8", "--offboard", "acceleration", "--guard", "off"]
+    assert legacy_command(args) == ["--protocol", "table8", "--offboard", "acceleration-assisted", "--guard", "off"]
+    assert legacy_command(["--offboard=acceleration"]) == ["--offboard=acceleration-assisted"]
+    new = {
+        "offboard": "acceleration-assisted",
+        "accel_max": None,
+        "cells": [{"spec": {"offboard": "acceleration-assisted"}}],
+    }
+    old = {"offboard": "acceleration", "cells": [{"spec": {"offboard": "acceleration"}}]}
+    assert compare(old, legacy_names(new)) == (0, [])  # renamed back; the added None setting is no difference
+    assert compare(old, {**legacy_names(new), "accel_max": 3.5})[1] == ["/accel_max: only in the new report"]

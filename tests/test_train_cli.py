@@ -165,6 +165,29 @@ def test_bad_init_from(tmp_path, capsys):
     assert files_under(tmp_path) == ["junk.pt", "wide.pt"]
 
 
+def test_init_from_across_action_bounds_records_the_bound(tmp_path, capsys):
+    """The action bound is a stated parameter: a stage trains at --accel-max (validated before any
+    work), starts from a policy trained at another bound when the network is the same, and its card
+    and policy file record the bound."""
+    for bad in ("0", "-1", "12", "nan"):
+        assert "--accel-max" in usage_error(ROBUST + ["--deviation", "0.5", "--accel-max", bad] + TINY, capsys)
+    assert files_under(tmp_path) == []
+    shipped, _ = load_actor(paths.POLICIES_DIR / "atm_c3_step3.pt")
+    assert shipped.cfg.accel_max == 2.0
+    assert main(ROBUST + ["--deviation", "0.5", "--accel-max", "3.5"] + TINY) == 0
+    out = tmp_path / "runs" / "lowlevel" / "policies"
+    card = json.loads((out / "atm_c3_robust.json").read_text())
+    assert card["config"]["accel_max"] == 3.5 and card["task"]["accel_max"] == 3.5
+    assert card["init_from"]["name"] == "atm_c3_step3" and "--accel-max 3.5" in card["command"]
+    tuned, _ = load_actor(out / "atm_c3_robust.pt")
+    assert tuned.cfg.accel_max == 3.5
+    moved = max((p - q).abs().max().item() for p, q in zip(tuned.parameters(), shipped.parameters()))
+    assert 0 < moved < 0.05, moved  # fine-tuned from the 2 m/s^2 weights, not re-initialised
+    obs = torch.zeros(1, shipped.cfg.obs_dim)
+    big = torch.full((1, 2), 10.0)
+    assert tuned.to_acceleration(big, obs).max().item() == 3.5 and shipped.to_acceleration(big, obs).max().item() == 2.0
+
+
 def test_resume_without_a_run_names_the_folder(tmp_path, capsys):
     for argv, folder in (
         (LOW + ["--resume"], "runs/lowlevel/atm_c3_step1"),

@@ -225,11 +225,22 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--offboard",
-        choices=("velocity", "acceleration"),
+        choices=("velocity", "acceleration", "acceleration-assisted"),
         default=None,
         help="MuJoCo: what the PX4-like offboard interface makes of the policy's acceleration setpoint: "
-        "velocity (default; integrated into a velocity setpoint) or acceleration (sent as PX4 "
-        "acceleration setpoints, as the paper does); single and table8, not with --sitl-m or --drop",
+        "velocity (default; integrated into a velocity setpoint), acceleration (PX4's acceleration "
+        "setpoints, as the paper sends them) or acceleration-assisted (not PX4's: the interface "
+        "'acceleration' named before, with a speed limiter and a drag feed-forward; docs/px4_interface.md); "
+        "single and table8, not with --sitl-m or --drop",
+    )
+    p.add_argument(
+        "--accel-max",
+        type=float,
+        default=None,
+        metavar="MPS2",
+        help="the action bound (m/s^2 per axis) the agents fly at, the env's clip and the policy's "
+        "(default: the bound each policy was trained at, 2 for the shipped ones; our choice, the paper "
+        "states none; docs/px4_interface.md); single and table8, not with --sitl-m or --drop",
     )
     p.add_argument(
         "--rotor-actuation",
@@ -378,6 +389,7 @@ def refuse_flags(args: argparse.Namespace) -> None:
                 ("--airframe", args.airframe is not None),
                 ("--estimator", args.estimator is not None),
                 ("--offboard", args.offboard is not None),
+                ("--accel-max", args.accel_max is not None),
                 ("--guard", args.guard is not None),
                 ("--fresh", args.fresh),
             )
@@ -405,6 +417,14 @@ def refuse_flags(args: argparse.Namespace) -> None:
         ):
             if on:
                 raise ConfigError(f"--offboard: not available with {flag} (single and table8 in one process only)")
+    if args.accel_max is not None:
+        for flag, on in (
+            ("--sitl-m", args.sitl_m),
+            ("--drop", args.drop is not None),
+            ("--protocol table3", proto == "table3"),
+        ):
+            if on:
+                raise ConfigError(f"--accel-max: not available with {flag} (single and table8 in one process only)")
     if args.rotor_actuation is not None:
         if particle:
             raise ConfigError("--rotor-actuation: the particle backend has no rotors; use --backend mujoco")
@@ -499,6 +519,7 @@ def to_request(args: argparse.Namespace) -> SingleRequest | Table8Request | Tabl
             airframe=args.airframe,
             offboard=args.offboard,
             rotor_actuation=args.rotor_actuation,
+            accel_max=args.accel_max,
         )
     )
     if proto == "table8":

@@ -77,6 +77,7 @@ def run(request: SingleRequest, prov: dict, command: str) -> int:
             guard=flight.guard,
             wind_direction=where.wind_direction if wind else None,
             rotor_actuation=flight.rotor_actuation,
+            accel_max=flight.accel_max,
         )
         for wind, dev in conditions
         for c in formations
@@ -155,6 +156,7 @@ def run(request: SingleRequest, prov: dict, command: str) -> int:
         "policy": request.policy,
         "estimator": flight.estimator,
         "offboard": flight.offboard,
+        "accel_max": flight.accel_max,
         "guard": flight.guard,
         "airframe": flight.airframe,
         "rotor_actuation": flight.rotor_actuation,

@@ -60,6 +60,7 @@ def run(request: Table8Request, prov: dict, command: str) -> int:
         flight.guard,
         request.wind_direction,
         flight.rotor_actuation,
+        flight.accel_max,
     )
     policy_sha256 = {c: prov["policies"][str(c)]["sha256"] for c in formations}
     cells = table8.plan_cells(specs, policy_sha256, prov["code_version"])
@@ -122,6 +123,7 @@ def run(request: Table8Request, prov: dict, command: str) -> int:
         "policy": request.policy,
         "estimator": flight.estimator,
         "offboard": flight.offboard,
+        "accel_max": flight.accel_max,
         "guard": flight.guard,
         "airframe": flight.airframe,
         "wind_direction": request.wind_direction,

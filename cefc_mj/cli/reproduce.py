@@ -12,6 +12,11 @@ report whose policy files changed since it was flown (their SHA-256 in the repor
 now) cannot be reproduced, and the tool says so instead of comparing. Closed-loop figures repeat bit
 for bit on one machine and library build, not across CPUs: run it where the report was made.
 
+A MuJoCo report written before `--offboard acceleration` became PX4's own interface (it records the
+offboard "acceleration" and has no "accel_max" setting, which every later report writes) flew what is
+now called "acceleration-assisted": it is re-flown under that name (docs/px4_interface.md). A setting
+that a later version added and the re-flown report holds at None, its default, is not a difference.
+
 Exit codes: 0 identical, 1 a number differs or the report cannot be reproduced, 2 bad input.
 """
 
@@ -49,6 +54,40 @@ SKIPPED_KEYS = frozenset(
 """Keys whose values a second run cannot repeat (or that only say where and when it ran)."""
 OUTPUT_FLAGS = ("--report-dir", "--json", "--rrd", "--png")
 """Flags whose value is an output path: redirected into the temporary folder."""
+
+
+LEGACY_ACCELERATION = "acceleration-assisted"
+"""What a report's offboard "acceleration" meant before it became PX4's own interface."""
+
+
+def flew_legacy_acceleration(report: dict) -> bool:
+    """Whether `report` was flown with the offboard interface now named "acceleration-assisted": it
+    records "acceleration" and predates the "accel_max" setting that every later report records."""
+    return report.get("offboard") == "acceleration" and "accel_max" not in report
+
+
+def legacy_command(args: list[str]) -> list[str]:
+    """`args` with `--offboard acceleration` renamed to the interface it meant then."""
+    out = list(args)
+    for i, arg in enumerate(out):
+        if arg == "--offboard" and i + 1 < len(out) and out[i + 1] == "acceleration":
+            out[i + 1] = LEGACY_ACCELERATION
+        elif arg == "--offboard=acceleration":
+            out[i] = f"--offboard={LEGACY_ACCELERATION}"
+    return out
+
+
+def legacy_names(node):
+    """`node` (a re-flown report) with the offboard "acceleration-assisted" named "acceleration" again,
+    as the report it is compared with names it."""
+    if isinstance(node, dict):
+        return {
+            k: "acceleration" if k == "offboard" and v == LEGACY_ACCELERATION else legacy_names(v)
+            for k, v in node.items()
+        }
+    if isinstance(node, list):
+        return [legacy_names(v) for v in node]
+    return node
 
 
 def recorded_command(report: dict) -> list[str]:
@@ -120,6 +159,8 @@ def compare(old, new, path: str = "") -> tuple[int, list[str]]:
         for key in sorted(set(old) | set(new)):
             if key in SKIPPED_KEYS or key == SITL_M:
                 continue
+            if key not in old and new[key] is None:  # a setting added later, at its default
+                continue
             if key not in old or key not in new:
                 diffs.append(f"{path}/{key}: only in the {'shipped' if key in old else 'new'} report")
                 continue
@@ -168,6 +209,10 @@ def main(argv: list[str] | None = None) -> int:
     if changed:
         print(f"cannot reproduce {args.report}: changed since it was flown: {', '.join(changed)}")
         return 1
+    legacy = flew_legacy_acceleration(report)
+    if legacy:
+        command = legacy_command(command)
+        print(f"{args.report} predates PX4's acceleration interface: re-flown with --offboard {LEGACY_ACCELERATION}")
     with tempfile.TemporaryDirectory() as tmp:
         folder = args.keep or Path(tmp)
         folder.mkdir(parents=True, exist_ok=True)
@@ -178,6 +223,8 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{PROG}: the re-flown command exited {done.returncode}", file=sys.stderr)
             return 1
         new = json.loads(_new_report(args.report, folder).read_text())
+    if legacy:
+        new = legacy_names(new)
     count, diffs = compare(report, new)
     if diffs:
         print(f"{len(diffs)} of the numbers differ from {args.report}:")

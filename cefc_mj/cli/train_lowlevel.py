@@ -45,6 +45,7 @@ FLAG_OF_FIELD = {
     "deviation_sampling": "--deviation-sampling",
     "response_time": "--response-time",
     "velocity_noise": "--velocity-noise",
+    "accel_max": "--accel-max",
     "collision_margin": "--collision-margin",
     "navigation_weight": "--navigation-weight",
     "anchor_periods": "--anchor-periods",
@@ -184,6 +185,15 @@ def _lowlevel_parser(sub) -> None:
         f"error; about 0.1 matches the MuJoCo quadrotor (default {_low('velocity_noise'):g})",
     )
     p.add_argument(
+        "--accel-max",
+        type=float,
+        default=_low("accel_max"),
+        metavar="MPS2",
+        help="the action bound (m/s^2 per axis) the stage trains at, recorded in its model card; our "
+        f"choice, the paper states none (default {_low('accel_max'):g}; docs/px4_interface.md). "
+        "--init-from may start from a policy trained at another bound",
+    )
+    p.add_argument(
         "--collision-margin",
         type=float,
         default=_low("collision_margin"),
@@ -241,7 +251,7 @@ def _lowlevel_parser(sub) -> None:
     )
     p.add_argument(
         "--offboard",
-        choices=("acceleration", "velocity"),
+        choices=("acceleration", "acceleration-assisted", "velocity"),
         default=None,
         help=f"--backend mujoco: the offboard interface flown while training (default {m.offboard}, the paper's)",
     )
@@ -514,6 +524,7 @@ def _run_lowlevel(args, budget: Budget, command: str | None) -> tuple[list[dict]
         deviation_sampling=args.deviation_sampling,
         response_time=args.response_time,
         velocity_noise=args.velocity_noise,
+        accel_max=args.accel_max,
         collision_margin=args.collision_margin,
         navigation_weight=args.navigation_weight,
         anchor_periods=args.anchor_periods,

@@ -11,9 +11,15 @@ of physics steps (cascade + `mj_step`) in one compiled call:
         norm-clipped to the speed limit, as the particle world integrates velocity) + its derivative
         as acceleration feed-forward -> PX4's horizontal velocity PID (integral with PX4's tracking
         anti-windup, D on the low-passed velocity derivative)
-        "acceleration": the acceleration setpoint open loop -> speed limiter (with an
-        external-push estimate)
-        either way + calm-air rotor-drag feed-forward
+        "acceleration": PX4's own semantics (PositionControl with the horizontal position and
+        velocity setpoints NaN): the acceleration setpoint goes straight to the tilt, no feedback,
+        no integral, no speed limit, no drag compensation
+        "acceleration-assisted": not PX4's; the earlier interface, kept to reproduce results made
+        with it: the acceleration setpoint open loop -> speed limiter (with an external-push
+        estimate) -> calm-air rotor-drag feed-forward
+        "velocity" adds the calm-air rotor-drag feed-forward too
+    hold (internal, before an episode): PX4's Position-mode hold, v_sp = MPC_XY_P x position error
+        (norm-limited to the speed limit) -> the same horizontal velocity PID, no feed-forward
     PositionControl (same rate): altitude P -> climb-rate PID (integral, anti-windup) ->
         thrust vector: body_z = normalize(a_x, a_y, g), tilt <= MPC_TILTMAX_AIR, collective =
         hover-scaled vertical thrust / cos(tilt) >= MPC_THR_MIN, vertical-priority saturation ->
@@ -45,6 +51,7 @@ the slow numpy reference that it is checked against.
 from __future__ import annotations
 
 import math
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
@@ -123,13 +130,22 @@ assert PARAM_NAMES[IMU_DGYRO_CUTOFF] == "IMU_DGYRO_CUTOFF"
     K_DIST_TAU,
     K_KM,
     K_OFFBOARD,
-) = range(16)
-N_CONSTS = 16
+    K_HOLD_P,
+) = range(17)
+N_CONSTS = 17
 
 # offboard interfaces (k[K_OFFBOARD])
 OFFBOARD_ACCELERATION = 0
 OFFBOARD_VELOCITY = 1
-OFFBOARD_MODES = {"velocity": OFFBOARD_VELOCITY, "acceleration": OFFBOARD_ACCELERATION}
+OFFBOARD_ACCELERATION_ASSISTED = 2
+OFFBOARD_HOLD = 3  # not an interface: the position hold flown before an episode (Px4Cascade.holding)
+OFFBOARD_MODES = {
+    "velocity": OFFBOARD_VELOCITY,
+    "acceleration": OFFBOARD_ACCELERATION,
+    "acceleration-assisted": OFFBOARD_ACCELERATION_ASSISTED,
+}
+HOLD_POSITION_GAIN = 0.95
+"""Position gain (1/s) of the hold before an episode: PX4's MPC_XY_P default."""
 
 # per-drone state columns `s`
 S_OMEGA = 0  # 4 rotor speeds (rad/s)
@@ -152,7 +168,8 @@ S_VSP = 41  # 2 horizontal velocity setpoint (offboard "velocity")
 S_VEL_INT = 43  # 2 horizontal velocity integrator (m/s^2)
 S_VEL_DOT = 45  # 2 low-passed horizontal velocity derivative (D term)
 S_DRAG = 47  # 6 rotor drag + rolling moment (world force N, torque N m about the CoM), last physics step
-N_STATE = 53
+S_HOLD = 53  # 2 horizontal position the hold before an episode keeps (m)
+N_STATE = 55
 
 # per-drone setpoint columns `sp`: SP_AX, SP_AY = the acceleration setpoint ("acceleration") or the
 # feed-forward, i.e. the slope of the velocity-setpoint ramp ("velocity"; see Px4Cascade.command)
@@ -237,14 +254,26 @@ def _position_loop(d, qpos, qvel, s, sp, prm, k):
     for i in range(4):
         om_sum += abs(s[d, S_OMEGA + i])
     drag_gain = k[K_CRD] * om_sum / k[K_MASS]
-    velocity_mode = k[K_OFFBOARD] == OFFBOARD_VELOCITY
+    mode = k[K_OFFBOARD]
+    velocity_mode = mode == OFFBOARD_VELOCITY or mode == OFFBOARD_HOLD
 
     if velocity_mode:
-        # the velocity setpoint ramps with the feed-forward slope (Px4Cascade.command makes it land on
-        # the particle world's velocity at the end of the decision step); PX4 _velocityControl with
-        # the derivative of the measured velocity low-passed at MPC_VELD_LP
-        s[d, S_VSP] += sp[d, SP_AX] * dt
-        s[d, S_VSP + 1] += sp[d, SP_AY] * dt
+        if mode == OFFBOARD_HOLD:
+            # PX4 _positionControl: v_sp = MPC_XY_P (p_sp - p), its norm limited; no feed-forward
+            hx = k[K_HOLD_P] * (s[d, S_HOLD] - qpos[d, 0])
+            hy = k[K_HOLD_P] * (s[d, S_HOLD + 1] - qpos[d, 1])
+            hn = math.sqrt(hx * hx + hy * hy)
+            if hn > sp[d, SP_VMAX]:
+                hx, hy = hx * sp[d, SP_VMAX] / hn, hy * sp[d, SP_VMAX] / hn
+            s[d, S_VSP], s[d, S_VSP + 1] = hx, hy
+            ff_x = ff_y = 0.0
+        else:
+            # the velocity setpoint ramps with the feed-forward slope (Px4Cascade.command makes it land
+            # on the particle world's velocity at the end of the decision step)
+            ff_x, ff_y = sp[d, SP_AX], sp[d, SP_AY]
+            s[d, S_VSP] += ff_x * dt
+            s[d, S_VSP + 1] += ff_y * dt
+        # PX4 _velocityControl with the derivative of the measured velocity low-passed at MPC_VELD_LP
         a_vd = _lowpass_alpha(prm[MPC_VELD_LP], dt)
         s[d, S_VEL_DOT] += a_vd * ((vx - s[d, S_VXY_PREV]) / dt - s[d, S_VEL_DOT])
         s[d, S_VEL_DOT + 1] += a_vd * ((vy - s[d, S_VXY_PREV + 1]) / dt - s[d, S_VEL_DOT + 1])
@@ -252,15 +281,18 @@ def _position_loop(d, qpos, qvel, s, sp, prm, k):
         s[d, S_VXY_PREV + 1] = vy
         err_x = s[d, S_VSP] - vx
         err_y = s[d, S_VSP + 1] - vy
-        ax = sp[d, SP_AX] + prm[MPC_XY_VEL_P_ACC] * err_x + s[d, S_VEL_INT] - prm[MPC_XY_VEL_D_ACC] * s[d, S_VEL_DOT]
-        ay = (
-            sp[d, SP_AY]
-            + prm[MPC_XY_VEL_P_ACC] * err_y
-            + s[d, S_VEL_INT + 1]
-            - prm[MPC_XY_VEL_D_ACC] * s[d, S_VEL_DOT + 1]
-        )
+        ax = ff_x + prm[MPC_XY_VEL_P_ACC] * err_x + s[d, S_VEL_INT] - prm[MPC_XY_VEL_D_ACC] * s[d, S_VEL_DOT]
+        ay = ff_y + prm[MPC_XY_VEL_P_ACC] * err_y + s[d, S_VEL_INT + 1] - prm[MPC_XY_VEL_D_ACC] * s[d, S_VEL_DOT + 1]
+    elif mode == OFFBOARD_ACCELERATION:
+        # PX4 PositionControl with the horizontal position and velocity setpoints NaN: _velocityControl
+        # adds nothing (and leaves its integral alone), the setpoint goes to _accelerationControl as is
+        s[d, S_VXY_PREV] = vx
+        s[d, S_VXY_PREV + 1] = vy
+        ax, ay = sp[d, SP_AX], sp[d, SP_AY]
+        err_x = err_y = 0.0
     else:
-        # external horizontal acceleration the vehicle does not command (wind): measured acceleration
+        # "acceleration-assisted" (not PX4's). External horizontal acceleration the vehicle does not
+        # command (wind): measured acceleration
         # minus what the thrust vector and the modelled calm-air rotor drag explain, low-passed
         w, x, y, z = qpos[d, 3], qpos[d, 4], qpos[d, 5], qpos[d, 6]
         thrust_n = 0.0
@@ -288,9 +320,10 @@ def _position_loop(d, qpos, qvel, s, sp, prm, k):
             ax = (px * vmax / pn - vx) / tau - ex
             ay = (py * vmax / pn - vy) / tau - ey
         err_x = err_y = 0.0
-    # calm-air rotor-drag feed-forward (the vehicle knows its rotor speeds, not the wind)
-    ax += drag_gain * vx
-    ay += drag_gain * vy
+    if mode == OFFBOARD_VELOCITY or mode == OFFBOARD_ACCELERATION_ASSISTED:
+        # calm-air rotor-drag feed-forward (the vehicle knows its rotor speeds, not the wind)
+        ax += drag_gain * vx
+        ay += drag_gain * vy
     s[d, S_ACC_CMD] = ax
     s[d, S_ACC_CMD + 1] = ay
 
@@ -700,7 +733,7 @@ class Px4Cascade:
     >>> from cefc_mj.control.params import load_params
     >>> c = Px4Cascade(load_airframe("iris"), load_params("iris"), CascadeTiming(0.002, 2, 5), n_envs=1, n_drones=3)
     >>> c.state.shape
-    (1, 3, 53)
+    (1, 3, 55)
     """
 
     def __init__(
@@ -741,6 +774,7 @@ class Px4Cascade:
         k[K_DIST_TAU] = disturbance_tau
         k[K_KM] = airframe.moment_constant
         k[K_OFFBOARD] = OFFBOARD_MODES[offboard]
+        k[K_HOLD_P] = HOLD_POSITION_GAIN
         self.k = k
         self.rotors = np.concatenate([airframe.rotor_pos, airframe.spin[:, None]], axis=1)
         self.gravity = gravity
@@ -769,12 +803,39 @@ class Px4Cascade:
         is a unless the speed limit clips, and the position loop adds slope x its period to v_sp at
         each of its ticks (decision_dt must be a whole number of position-loop periods).
         """
-        if self.offboard == "acceleration":
+        if self.offboard != "velocity":
             self.setpoint[envs, :, SP_AX : SP_AY + 1] = accel
             return
         _velocity_command(
             np.ascontiguousarray(accel, dtype=np.float64), float(decision_dt), self.state[envs], self.setpoint[envs]
         )
+
+    @contextmanager
+    def holding(self, env: int, position: np.ndarray, wind: np.ndarray | None = None):
+        """Within the block the cascade flies PX4's position hold at `position` [D, 2] (m) instead of
+        the offboard interface: the velocity setpoint is MPC_XY_P x the position error (norm-limited to
+        the speed limit) and PX4's horizontal velocity PID, integral included, flies it, as a PX4
+        vehicle holds in Position mode before offboard starts. Only env's drones should be advanced
+        inside it (the mode is the cascade's, shared by its envs). On leaving, env's velocity setpoints
+        are zeroed (an episode's first setpoint starts from rest); the integrals stay.
+
+        wind [3] (m/s): the velocity integrals start where a long hold in this steady wind takes them,
+        against the rotor drag at hover (a vehicle that took off into its wind a while ago), so that a
+        short hold settles; without it they start empty (PX4's integral, I = MPC_XY_VEL_I_ACC, takes
+        tens of seconds to build up a Wind-8 push)."""
+        mode = self.k[K_OFFBOARD]
+        self.state[env, :, S_HOLD : S_HOLD + 2] = position
+        if wind is not None:
+            hover_omega = self.airframe.max_rot_velocity * math.sqrt(self.airframe.hover_thrust(self.gravity))
+            drag_gain = self.airframe.rotor_drag_coefficient * 4.0 * hover_omega / self.airframe.mass
+            self.state[env, :, S_VEL_INT : S_VEL_INT + 2] = -drag_gain * np.asarray(wind, dtype=np.float64)[:2]
+        self.setpoint[env, :, SP_AX : SP_AY + 1] = 0.0
+        self.k[K_OFFBOARD] = OFFBOARD_HOLD
+        try:
+            yield
+        finally:
+            self.k[K_OFFBOARD] = mode
+            self.state[env, :, S_VSP : S_VSP + 2] = 0.0
 
     # read-only views for tests and visualisation
     def motor_speeds(self, env: int) -> np.ndarray:

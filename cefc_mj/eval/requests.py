@@ -34,6 +34,7 @@ from cefc_mj.fileio import can_write_in
 from cefc_mj.game_protocol import EPISODES as GAME_EPISODES
 from cefc_mj.nn.registry import GAME_ADVERSARY, WITHDRAWN
 from cefc_mj.table3_protocol import TABLE3_EPISODES, TABLE3_STEPS
+from cefc_mj.task.config import MAX_ACCEL
 from cefc_mj.task.estimator import POSITION_ESTIMATORS
 
 MAX_EPISODES = 10_000
@@ -247,11 +248,19 @@ class Flight:
     """--airframe: MuJoCo airframe, a shipped name ("iris", "crazyflie") or an MJCF path."""
     offboard: str = "velocity"
     """--offboard: what the PX4-like interface makes of the acceleration setpoint, "velocity" (integrated
-    into a velocity setpoint) or "acceleration" (sent as PX4 acceleration setpoints, as the paper does)."""
+    into a velocity setpoint), "acceleration" (PX4's acceleration setpoints, as the paper sends them) or
+    "acceleration-assisted" (not PX4's; docs/px4_interface.md)."""
     rotor_actuation: str = "auto"
     """--rotor-actuation: how the rotor thrusts reach the physics, "auto", "actuators" or "external"."""
+    accel_max: float | None = None
+    """--accel-max: the action bound (m/s^2 per axis) the agents fly at, in (0, MAX_ACCEL]; None: the
+    bound each policy was trained at (its policy file's)."""
 
     def __post_init__(self) -> None:
+        if self.accel_max is not None and not (is_number_in(self.accel_max, 0.0, MAX_ACCEL) and self.accel_max > 0):
+            raise ConfigError(
+                f"--accel-max {number_text(self.accel_max)}: must be a number in (0, {MAX_ACCEL:g}] m/s^2"
+            )
         if self.estimator not in POSITION_ESTIMATORS:
             raise ConfigError(f"--estimator {self.estimator}: must be one of {', '.join(POSITION_ESTIMATORS)}")
         if not isinstance(self.guard, bool):

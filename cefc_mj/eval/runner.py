@@ -106,8 +106,13 @@ class EpisodeSpec:
     particle backend ignores it."""
     offboard: str = "velocity"
     """MuJoCo's offboard interface (docs/research/mujoco_world.md): "velocity" (the setpoint is integrated
-    into a velocity setpoint, the default) or "acceleration" (sent as PX4 acceleration setpoints, as
-    the paper does); the particle backend ignores it."""
+    into a velocity setpoint, the default), "acceleration" (PX4's acceleration setpoints, as the paper
+    sends them) or "acceleration-assisted" (not PX4's; docs/px4_interface.md); the particle backend
+    ignores it."""
+
+    accel_max: float | None = None
+    """The action bound (m/s^2 per axis) the agents fly at (the env's clip and the policy's); None:
+    the bound the policy was trained at (its policy file's ATMConfig.accel_max)."""
 
     @property
     def mujoco_airframe(self) -> str | None:
@@ -221,6 +226,8 @@ def episode_env(spec: EpisodeSpec, policy: Policy | None = None) -> tuple[Batche
     torch.set_num_threads(1)
     if policy is None:
         policy = load_policy_for(spec.policy, spec.formation)
+    if spec.accel_max is not None:
+        policy = policy.with_action_bound(spec.accel_max)
     config = policy.task_for(spec.task_config())
     world = make_world(
         spec.backend,

@@ -22,6 +22,7 @@ Example (the name is resolved in POLICIES_DIR):
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import struct
 import warnings
@@ -330,11 +331,30 @@ class Policy:
         """Whether the LiDAR this policy was trained with also sees the other UAVs."""
         return self.actor.cfg.lidar_sees_agents
 
+    @property
+    def accel_max(self) -> float:
+        """The action bound (m/s^2 per axis) the policy clips its actions to: the one it was trained at,
+        unless `with_action_bound` set another."""
+        return self.actor.cfg.accel_max
+
     def task_for(self, task):
-        """`task` (a TaskConfig) with the LiDAR this policy was trained with: every evaluator flies a
-        policy with the sensing it learned on (an `_obstacle_lidar` stage's LiDAR sees obstacles only)."""
-        sees = self.lidar_sees_agents
-        return task if task.lidar_sees_agents == sees else dataclasses.replace(task, lidar_sees_agents=sees)
+        """`task` (a TaskConfig) with the LiDAR and the action bound this policy was trained with: every
+        evaluator flies a policy with the sensing it learned on (an `_obstacle_lidar` stage's LiDAR sees
+        obstacles only) and clips the env's actions where the policy clips its own."""
+        sees, bound = self.lidar_sees_agents, self.accel_max
+        if (task.lidar_sees_agents, task.accel_max) == (sees, bound):
+            return task
+        return dataclasses.replace(task, lidar_sees_agents=sees, accel_max=bound)
+
+    def with_action_bound(self, accel_max: float) -> "Policy":
+        """This policy flown at another action bound (m/s^2 per axis): the same weights, the network's
+        output clipped to `accel_max` instead of the bound it was trained at."""
+        if accel_max == self.accel_max:
+            return self
+        actor = copy.deepcopy(self.actor)
+        actor.__dict__.pop("_inference_plan", None)  # the compiled kernel's copy names the old bound
+        actor.cfg = dataclasses.replace(actor.cfg, accel_max=float(accel_max))
+        return Policy(actor, self.meta, self.name)
 
     def act(self, obs: np.ndarray | Mapping[str, np.ndarray]) -> np.ndarray | dict[str, np.ndarray]:
         """Actions for `[B, N, D]` or `[N, D]` observations (same leading shape, last axis 2), or

@@ -22,10 +22,10 @@ def make_world(
 ):
     """The physics world for `backend` ("particle" or "mujoco"); wind (m/s mean speed), wind_direction
     (degrees the air moves towards, ENU: 0 = +x, 90 = +y; None = drawn per episode from the seed),
-    airframe (a shipped name such as "iris" or "crazyflie", or an MJCF path; docs/airframes.md) and
-    offboard (what the PX4-like interface makes of a setpoint: "velocity", the default, or
-    "acceleration") and rotor_actuation ("auto", the default, "actuators" or "external":
-    docs/research/mujoco_world.md) are MuJoCo's."""
+    airframe (a shipped name such as "iris" or "crazyflie", or an MJCF path; docs/research/mujoco_world.md) and
+    offboard (what the PX4-like interface makes of a setpoint: "velocity", the default,
+    "acceleration" or "acceleration-assisted"; docs/px4_interface.md) and rotor_actuation ("auto", the
+    default, "actuators" or "external": docs/research/mujoco_world.md) are MuJoCo's."""
     if backend not in BACKENDS:
         raise ConfigError(f"backend={backend!r}: must be one of {', '.join(BACKENDS)}")
     if not isinstance(wind, (int, float)) or not wind == wind or wind < 0:

@@ -14,7 +14,8 @@ would make the cost quadratic in the swarm; `world.rotor_actuation_used` says wh
 at reset by writing the env's `model.body_pos` (no recompile). Moving geoms inside one body instead
 (`model.geom_pos`) would leave the bounding-volume trees MuJoCo compiled for the body stale: its
 collision midphase and its rays would then miss the moved obstacles. One decision step (0.1 s)
-hands the setpoints to the offboard interface (`offboard`: "velocity" or "acceleration") and runs
+hands the setpoints to the offboard interface (`offboard`: "velocity", "acceleration" or
+"acceleration-assisted"; docs/px4_interface.md) and runs
 `decision_dt / physics_dt` physics steps; each physics step runs the compiled cascade
 (cefc_mj.control.cascade), then `mj_step`, all in one compiled call up to the next wind redraw
 (`physics_loop = "compiled"`) or from Python (`"python"`, the same arithmetic).
@@ -56,7 +57,16 @@ import mujoco
 import numpy as np
 
 from cefc_mj.control.airframe import Airframe, load_airframe
-from cefc_mj.control.cascade import OFFBOARD_MODES, SP_VMAX, SP_Z, CascadeTiming, Px4Cascade, cascade_step, run_physics
+from cefc_mj.control.cascade import (
+    HOLD_POSITION_GAIN,
+    OFFBOARD_MODES,
+    SP_VMAX,
+    SP_Z,
+    CascadeTiming,
+    Px4Cascade,
+    cascade_step,
+    run_physics,
+)
 from cefc_mj.control.params import load_params, params_for_airframe, params_path
 from cefc_mj.errors import ConfigError, SimulationDiverged
 from cefc_mj.paths import MJCF_DIR
@@ -100,8 +110,8 @@ def _mj_step_address() -> int | None:
 _MJ_STEP = _mj_step_address()
 
 
-SETTLE_POSITION_GAIN = 0.95
-"""Position-hold gain (1/s) while a drone settles in the wind: PX4's MPC_XY_P default."""
+SETTLE_POSITION_GAIN = HOLD_POSITION_GAIN
+"""Position gain (1/s) of the "acceleration-assisted" interface's own settle: PX4's MPC_XY_P default."""
 
 
 @dataclass(frozen=True)
@@ -133,25 +143,31 @@ class MujocoWorldConfig:
     flight_altitude: float = 2.0
     """Altitude the drones hold and the LiDAR casts at (m)."""
     offboard: str = "velocity"
-    """What the offboard interface makes of the policy's acceleration setpoint (docs/research/mujoco_world.md):
+    """What the offboard interface makes of the policy's acceleration setpoint (docs/px4_interface.md):
     "velocity" integrates it into a velocity setpoint as the particle world integrates velocity and
     flies that with PX4's velocity PID (acceleration feed-forward; the integral rejects wind);
-    "acceleration" passes it open loop to PX4's acceleration -> thrust path (docs/design.md §8 literally;
-    wind then degrades tracking, and Wind-8 outpushes the 2 m/s^2 action bound)."""
+    "acceleration" is PX4's own: the setpoint goes straight to tilt and collective thrust (PositionControl
+    with NaN position and velocity setpoints: tilt limit MPC_TILTMAX_AIR, no feedback, no integral, no
+    speed limit, no drag compensation); "acceleration-assisted" is not PX4's: the earlier acceleration
+    interface (a speed limiter that cancels an estimate of the wind's push, a calm-air rotor-drag
+    feed-forward, and its own settle), kept to reproduce results made with it."""
     speed_limit_tau: float = 0.35
-    """offboard = "acceleration": time constant (s) with which the interface pulls a speed that would
+    """offboard = "acceleration-assisted": time constant (s) with which the interface pulls a speed that would
     exceed the limit back onto it (a velocity loop of gain 1/tau, active only at the limit)."""
     disturbance_tau: float = 0.1
-    """offboard = "acceleration": low-pass time constant (s) of the external-push (wind) estimate the
+    """offboard = "acceleration-assisted": low-pass time constant (s) of the external-push (wind) estimate the
     speed limiter cancels."""
     flip_tilt_deg: float = 90.0
     """A drone tilted past this angle counts as flipped: SimulationDiverged."""
     wind_settle_s: float = 5.0
-    """In wind, every drone first holds its start position for this long (PX4's position hold,
-    velocity setpoint MPC_XY_P x position error) before the episode begins at its sampled position
-    with the attitude, rotor speeds and controller integrals it settled into, as a PX4 vehicle
-    hovers in its wind after take-off before the offboard mission starts; 0 starts from a level
-    hover with empty integrators in full wind. Without wind nothing is flown."""
+    """In wind, every drone first holds its start position for this long with PX4's position hold
+    (velocity setpoint MPC_XY_P x position error, PX4's velocity PID with its integral, started where a
+    long hold in the episode's first wind draw takes it; the wind is held at that draw meanwhile), for
+    every interface, before the episode begins at its sampled position with the attitude, rotor
+    speeds, velocity and integrals it settled into, as a PX4 vehicle holds in Position mode before
+    offboard starts ("acceleration-assisted": its own earlier settle). 0 starts from a level hover
+    with empty integrators in full wind. In calm air the level hover at rest is the hold's end state
+    and nothing is flown."""
     obstacle_height: float = 4.0
     """Height of the cylinder obstacles (m), from the floor."""
     gravity: float = 9.81
@@ -535,6 +551,9 @@ class MujocoWorld:
             )
         self._tick = np.zeros(self.n_envs, dtype=np.int64)
         self._collided = np.zeros((self.n_envs, self.n_agents), dtype=bool)
+        self.start_offset = np.zeros((self.n_envs, self.n_drones))
+        """[B, D] how far (m) the hold before the last episode left each drone from its start position,
+        before the episode began there (0 without a hold)."""
         self._accel = np.zeros((self.n_envs, self.n_drones, 2))
         self.obstacles = np.full((self.n_envs, self.n_obstacles, 2), _PARKED)
         angles = 2.0 * np.pi * np.arange(self.n_lidar_rays) / self.n_lidar_rays
@@ -588,28 +607,49 @@ class MujocoWorld:
             self._tick[e] = 0
             self._collided[e] = False
             self.wind.reset(e)
+            self.start_offset[e] = 0.0
             mujoco.mj_forward(model, data)
             if self.wind.mean_speed[e] > 0 and self.config.wind_settle_s > 0:
                 self._settle(e)
 
     def _settle(self, e: int) -> None:
-        """Env e's drones hold their start positions in the wind for `wind_settle_s` (see there), then
-        the episode's clock starts at 0 with them back at the start positions, in the state they settled
-        into (attitude, rotor speeds, integrators, the wind's own state)."""
-        qpos, qvel = self._views[e][0], self._views[e][1]
+        """Env e's drones hold their start positions in the wind for `wind_settle_s` with PX4's
+        position hold (Px4Cascade.holding: velocity PID with its integral), whatever the interface;
+        then the episode's clock starts at 0 with them back at the start positions (`start_offset`
+        says how far each was moved), in the state they settled into (attitude, rotor speeds,
+        integrators, velocity, the wind's own state). "acceleration-assisted" keeps its own earlier
+        settle (`_settle_assisted`), to reproduce results made with it."""
+        if self.cascade.offboard == "acceleration-assisted":
+            self._settle_assisted(e)
+            return
+        qpos = self._views[e][0]
         start = qpos[:, :2].copy()
-        velocity_interface = self.cascade.offboard == "velocity"
-        for _ in range(_ratio(self.config.wind_settle_s + self.dt, self.dt) - 1):
-            target = SETTLE_POSITION_GAIN * (start - qpos[:, :2])
-            now = self.cascade.velocity_setpoints(e) if velocity_interface else qvel[:, :2]
-            self.cascade.command(
-                np.clip((target - now) / self.dt, -self.accel_max, self.accel_max)[None], self.dt, envs=slice(e, e + 1)
-            )
-            self._advance(e, self.n_substeps)
+        with self.cascade.holding(e, start, self.wind.vector[e]):
+            steps = self.n_substeps * (_ratio(self.config.wind_settle_s + self.dt, self.dt) - 1)
+            self._advance(e, steps, redraw_wind=False)
+        self._restart_at(e, start)
+
+    def _restart_at(self, e: int, start: np.ndarray) -> None:
+        """Env e's episode clock to 0 with its drones moved back onto `start` [D, 2]."""
+        qpos = self._views[e][0]
+        self.start_offset[e] = np.linalg.norm(qpos[:, :2] - start, axis=-1)
         qpos[:, :2] = start
         self._tick[e] = 0
         self._collided[e] = False
         mujoco.mj_forward(self.models[e], self.datas[e])
+
+    def _settle_assisted(self, e: int) -> None:
+        """The settle before an "acceleration-assisted" episode, as it was before the PX4 hold: each
+        decision step a setpoint towards MPC_XY_P x the position error, clipped to the action bound,
+        through the interface itself (no integral)."""
+        qpos, qvel = self._views[e][0], self._views[e][1]
+        start = qpos[:, :2].copy()
+        for _ in range(_ratio(self.config.wind_settle_s + self.dt, self.dt) - 1):
+            target = SETTLE_POSITION_GAIN * (start - qpos[:, :2])
+            accel = np.clip((target - qvel[:, :2]) / self.dt, -self.accel_max, self.accel_max)
+            self.cascade.command(accel[None], self.dt, envs=slice(e, e + 1))
+            self._advance(e, self.n_substeps)
+        self._restart_at(e, start)
 
     def step(self, agent_accel: np.ndarray, adversary_accel: np.ndarray) -> None:
         """One decision step: hand the (per-axis clipped) setpoints to the offboard interface and run
@@ -632,13 +672,14 @@ class MujocoWorld:
                         f"before t = {self.sim_time[e]:.3f} s"
                     )
 
-    def _advance(self, e: int, n_steps: int) -> None:
-        """n_steps physics steps of env e, redrawing its wind on the plugin's schedule."""
+    def _advance(self, e: int, n_steps: int, redraw_wind: bool = True) -> None:
+        """n_steps physics steps of env e, redrawing its wind on the plugin's schedule (or, with
+        redraw_wind False, holding it)."""
         c = self.cascade
         model, data = self.models[e], self.datas[e]
         qpos, qvel, xfrc, ctrl, contacts = self._views[e]
         s_e, sp_e, wind_e, collided = c.state[e], c.setpoint[e], self.wind.vector[e], self._collided[e]
-        period = self._wind_period
+        period = self._wind_period if redraw_wind else n_steps + int(self._tick[e]) + 1
         tick = int(self._tick[e])
         end = tick + n_steps
         while tick < end:

@@ -28,6 +28,9 @@ AdversaryRule = Literal[
 ]
 ObstacleLayout = Literal["clear-start", "paper"]
 
+MAX_ACCEL = 9.81
+"""Largest action bound (TaskConfig.accel_max, m/s^2 per axis) the trainers and evaluators take: about
+what PX4's 45 deg tilt limit (MPC_TILTMAX_AIR) lets a hovering quadrotor produce horizontally."""
 FORMATION_EPISODE_STEPS = 100
 """Decision steps of a low-level ("formation") episode, the paper's."""
 CEFC_EPISODE_STEPS = 400
@@ -145,7 +148,10 @@ class TaskConfig:
     adversary_speed_max: float = 0.75
     """Adversary speed limit (m/s)."""
     accel_max: float = 2.0
-    """Per-axis clip of the acceleration setpoints (m/s^2)."""
+    """Per-axis clip of every drone's acceleration setpoint (m/s^2): the policy's action bound. Our
+    choice: the paper states no action bound (it limits speed to 1 m/s and sends acceleration
+    setpoints to PX4); within 2 m/s^2 no policy can hold Iris against Wind-8's rotor-drag push
+    (docs/px4_interface.md)."""
     uav_radius: float = 0.25
     """UAV collision footprint radius (m), the same in both backends (Iris-class frame)."""
     n_lidar_rays: int = 24

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 
 from cefc_mj.errors import ConfigError
 from cefc_mj.nn.registry import DISTILL_TEACHER, clm_name, lowlevel_name
-from cefc_mj.task.config import FORMATION_EPISODE_STEPS, STRAGGLER_MAX_DISTANCE, STRAGGLER_MIN_DISTANCE
+from cefc_mj.task.config import FORMATION_EPISODE_STEPS, MAX_ACCEL, STRAGGLER_MAX_DISTANCE, STRAGGLER_MIN_DISTANCE
 
 FORMATIONS = (3, 4, 5, 6, 7, 8)
 """The paper's formation sizes c (Fig. 3)."""
@@ -243,7 +243,7 @@ class BudgetPPODict:
         return cls(**d)
 
 
-OFFBOARD_MODES = ("acceleration", "velocity")
+OFFBOARD_MODES = ("acceleration", "acceleration-assisted", "velocity")
 """What the MuJoCo world's offboard interface makes of a setpoint (MujocoWorldConfig.offboard)."""
 MAX_TRAINING_WIND = 15.0
 """Largest mean wind (m/s) a MuJoCo fine-tune draws from."""
@@ -258,8 +258,11 @@ class MujocoTraining:
     direction, a gust) and, with the stage's deviation_sampling "uniform", its own sensing deviation."""
 
     offboard: str = "acceleration"
-    """The offboard interface the policy flies through: "acceleration" (the paper's: setpoints passed
-    open loop, no velocity integral) or "velocity" (the evaluators' default)."""
+    """The offboard interface the policy flies through (docs/px4_interface.md): "acceleration" (the
+    paper's, with PX4's semantics: the setpoint straight to tilt and thrust, no velocity loop),
+    "acceleration-assisted" (not PX4's: the earlier interface with a speed limiter and a drag
+    feed-forward, with which the shipped atm_c<C>_mujoco were trained) or "velocity" (the evaluators'
+    default)."""
     wind_max: float = 8.0
     """Each episode's mean wind speed is drawn uniformly from [0, wind_max] m/s, its direction
     uniformly; speeds are redrawn every 0.5 s around that mean (Gazebo wind-plugin semantics)."""
@@ -325,6 +328,10 @@ class LowLevelConfig(BudgetPPODict):
     velocity_noise: float = 0.0
     """Std (m/s) of the particle world's per-step velocity kicks during training
     (TaskConfig.velocity_noise); 0 is the paper's MPE."""
+    accel_max: float = 2.0
+    """The action bound (m/s^2 per axis) the stage trains at (TaskConfig.accel_max): our choice, the
+    paper states none. A policy file records it; `--init-from` may start from one trained at another
+    bound (the bound clips the network's output, the weights keep their meaning)."""
     collision_margin: float = 0.0
     """Added (m) to both distances of the collision reward (delta_s and delta_a,c, RewardConfig) during
     training, so the policy keeps that much more clearance than the paper's reward asks; 0 is the paper's.
@@ -574,6 +581,12 @@ class LowLevelConfig(BudgetPPODict):
                 (self.response_time, self.velocity_noise),
                 "quadrotor-like dynamics fine-tune the Step 3 policy: use them with step 3 and without --safe",
             )
+        if (
+            isinstance(self.accel_max, bool)
+            or not isinstance(self.accel_max, (int, float))
+            or not 0 < self.accel_max <= MAX_ACCEL
+        ):
+            _fail("accel_max", self.accel_max, f"must be in (0, {MAX_ACCEL:g}] m/s^2")
         if self.obstacle_density is not None and (
             not isinstance(self.obstacle_density, (int, float)) or not 0 <= self.obstacle_density <= MAX_DENSITY
         ):

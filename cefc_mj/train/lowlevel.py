@@ -79,6 +79,7 @@ def task_config_for(cfg: LowLevelConfig, density: float | None = None) -> TaskCo
         deviation_sampling=cfg.deviation_sampling,
         response_time=cfg.response_time,
         velocity_noise=cfg.velocity_noise,
+        accel_max=float(cfg.accel_max),
         rewards=rewards,
         lidar_sees_agents=cfg.lidar_sees_uavs,
         straggler_fraction=float(cfg.straggler_fraction),
@@ -182,9 +183,10 @@ def _source_state(out: Path, name: str, cfg: LowLevelConfig) -> tuple[dict, ATMA
     return payload, actor
 
 
-# The actor-shape fields a policy file must share with the stage it initialises (safe and
-# log_std_init may differ: the Safe transform is an input transform, the log-std is a loaded weight).
-_INIT_SHAPE_FIELDS = ("layout", "lidar_range", "accel_max", "hidden", "act_dim", "action", "velocity_gain")
+# The actor-shape fields a policy file must share with the stage it initialises (safe, log_std_init and
+# accel_max may differ: the Safe transform is an input transform, the log-std is a loaded weight, and
+# the action bound clips the network's output, whose weights mean the same under either bound).
+_INIT_SHAPE_FIELDS = ("layout", "lidar_range", "hidden", "act_dim", "action", "velocity_gain")
 
 
 def load_init_policy(path_or_name: str | Path, cfg: LowLevelConfig) -> tuple[ATMActor, dict]:

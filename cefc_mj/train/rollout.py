@@ -62,7 +62,11 @@ def collect_shard(
     env: BatchedCEFCEnv, actor: ATMActor, generator: torch.Generator, steps: int, credit: str, env_seed: int
 ) -> Shard:
     """`steps` steps of every env of `env` (whole episodes), actions sampled from `actor` with
-    `generator`; the episodes are seeded by `env_seed` (the world's own draws too, such as wind)."""
+    `generator`; the episodes are seeded by `env_seed` (the world's own draws too, such as wind).
+
+    An env whose episode ends at the last step is not reset here: the next shard starts every env
+    afresh with `env.reset(seed=...)` (which reseeds all its draws), so that reset, a whole MuJoCo
+    settle in wind, would be thrown away."""
     reseed_world = getattr(env.world, "reseed", None)
     if reseed_world is not None:
         reseed_world((env_seed, 1))
@@ -74,7 +78,7 @@ def collect_shard(
     term_sums: dict[str, float] = {}
     returns, metrics = [], {}
     std = actor.log_std.exp()
-    for _ in range(steps):
+    for t in range(steps):
         obs_t = torch.from_numpy(obs)
         mean = actor(obs_t)
         action = mean + std * torch.randn(mean.shape, generator=generator)
@@ -102,8 +106,9 @@ def collect_shard(
             episode_return[done] = 0.0
             for name, value in info["metrics"].items():
                 metrics.setdefault(name, []).extend(value[done].tolist())
-            obs = env.reset(mask=done).copy()
-            state = env.global_state()
+            if t < steps - 1:
+                obs = env.reset(mask=done).copy()
+                state = env.global_state()
     return Shard({k: torch.stack(v) for k, v in buf.items()}, returns, metrics, term_sums)
 
 
