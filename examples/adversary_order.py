@@ -227,7 +227,7 @@ def build_report(doc: dict) -> dict:
     and R_H (x dt, the paper's scale), their mean with the 95 % CI over training seeds, and the
     difference OTHER - REFERENCE with its Welch CI and p (`cefc_mj.eval.stats`). Only training
     seeds flown against that adversary count; a method with fewer than 2 has no CI."""
-    from cefc_mj.eval.stats import seed_interval, welch_difference, welch_p
+    from cefc_mj.eval.stats import holm_adjusted, seed_interval, welch_difference, welch_p
     from cefc_mj.game_protocol import DT
 
     flights = doc["flights"].values()
@@ -264,10 +264,34 @@ def build_report(doc: dict) -> dict:
                 "df": None if d is None else d.df,
                 "p": welch_p(a, b),
             }
+        entry["E_vs_game_adversary"] = _strength(flights, adversary)
         entry["lower_E"] = _lower(entry, "E", higher_is_better=False)
         entry["higher_R_H"] = _lower(entry, "R_H", higher_is_better=True)
         report["adversaries"].append(entry)
+    # Exploratory: many looks (adversaries x metrics), so each p also Holm-adjusted over all of them.
+    family = [e["difference"][m] for e in report["adversaries"] for m in REPORTED]
+    for d, adjusted in zip(family, holm_adjusted([d["p"] for d in family])):
+        d["p_holm"] = adjusted
+    report["p_holm_family"] = f"the {len(family)} differences of this report (adversaries x {', '.join(REPORTED)})"
     return report
+
+
+def _strength(flights, adversary: str) -> dict:
+    """Per method, how dangerous `adversary` is beside the game's: the ratio of the mean E against
+    it to the mean E against the game's adversary, over the training seeds flown against both, and
+    the one-sided paired t-test over those seeds that it is weaker (`eval.stats.weaker_p`)."""
+    from cefc_mj.eval.stats import weaker_p
+
+    game = ADVERSARIES[0][1]
+    out = {}
+    for method, _ in METHODS:
+        against = {f["training_seed"]: f["E"] for f in flights if f["method"] == method and f["adversary"] == adversary}
+        base = {f["training_seed"]: f["E"] for f in flights if f["method"] == method and f["adversary"] == game}
+        seeds = sorted(set(against) & set(base))
+        a, b = [against[k] for k in seeds], [base[k] for k in seeds]
+        ratio = sum(a) / sum(b) if seeds and sum(b) > 0 else None
+        out[method] = {"seeds": len(seeds), "ratio": ratio, "p_weaker": None if adversary == game else weaker_p(a, b)}
+    return out
 
 
 def _lower(entry: dict, metric: str, higher_is_better: bool) -> str | None:
@@ -294,8 +318,14 @@ def _cell(block: dict, digits: int) -> str:
 def _diff_cell(d: dict, digits: int) -> str:
     if d["difference"] is None:
         return "-"
-    p = "-" if d["p"] is None else (f"{d['p']:.2g}" if d["p"] >= 0.001 else "<0.001")
-    return f"{d['difference']:+.{digits}f} [{d['ci_low']:+.{digits}f}, {d['ci_high']:+.{digits}f}], p {p}"
+    return (
+        f"{d['difference']:+.{digits}f} [{d['ci_low']:+.{digits}f}, {d['ci_high']:+.{digits}f}], "
+        f"p {_p(d['p'])} (Holm {_p(d.get('p_holm'))})"
+    )
+
+
+def _p(p) -> str:
+    return "-" if p is None else (f"{p:.2g}" if p >= 0.001 else "<0.001")
 
 
 def format_report(report: dict) -> str:
@@ -310,7 +340,8 @@ def format_report(report: dict) -> str:
         f"{proto['backend']} backend, N = {proto['n_agents']}, {proto['steps']} steps; policies: "
         f"{proto['policies_dir']}. Each cell: the mean over training seeds of the per-seed episode means, "
         "[95 % CI over seeds]; the difference is "
-        f"{report['difference']} with its Welch 95 % CI and two-sided Welch p (unadjusted). "
+        f"{report['difference']} with its Welch 95 % CI and two-sided Welch p, unadjusted and Holm-adjusted "
+        f"over {report['p_holm_family']}. "
         f"Units: {report['units']}. The paper's E: {REFERENCE} {PAPER_E[REFERENCE]} s, {OTHER} {PAPER_E[OTHER]} s.",
         "",
     ]
@@ -330,6 +361,22 @@ def format_report(report: dict) -> str:
             diff = _diff_cell(entry["difference"][metric], digits)
             lines.append(f"| {entry['label']} | {seeds} | {cells[0]} | {cells[1]} | {diff} | {entry[ahead] or '-'} |")
         lines.append("")
+    lines += [
+        "## How dangerous each adversary is beside the game's",
+        "",
+        "E against the adversary / E against the game's PPO adversary (the same training seeds and games), "
+        "with the one-sided paired t-test over seeds that it is weaker.",
+        "",
+        f"| adversary | {REFERENCE} | {OTHER} |",
+        "|---|---|---|",
+    ]
+    for entry in report["adversaries"]:
+        cells = []
+        for method, _ in METHODS:
+            s = entry["E_vs_game_adversary"][method]
+            cells.append(f"{_num(s['ratio'], 2)}, p {_p(s['p_weaker'])}")
+        lines.append(f"| {entry['label']} | {cells[0]} | {cells[1]} |")
+    lines.append("")
     return "\n".join(lines)
 
 

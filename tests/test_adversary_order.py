@@ -65,7 +65,12 @@ def test_report_means_cis_and_welch_difference_match_scipy():
         ci = stats.ttest_ind(mappo, cihrl, equal_var=False).confidence_interval(0.95)
         assert math.isclose(d["ci_low"], ci.low) and math.isclose(d["ci_high"], ci.high)
         assert math.isclose(entry["difference"]["R_H"]["difference"], -10.0 * d["difference"])
+    ps = [a["difference"][m]["p"] for a in report["adversaries"] for m in ("E", "R_H")]
+    holm = [a["difference"][m]["p_holm"] for a in report["adversaries"] for m in ("E", "R_H")]
+    assert math.isclose(min(holm), min(1.0, 4 * min(ps))) and all(h >= p for h, p in zip(holm, ps))
     by = {a["adversary"]: a for a in report["adversaries"]}
+    # Neither adversary is the game's: no seed flown against both, so no ratio.
+    assert by["r_largest"]["E_vs_game_adversary"]["CI-HRL"] == {"seeds": 0, "ratio": None, "p_weaker": None}
     assert by["r_largest"]["lower_E"] == "MAPPO+AT-M" and by["r_largest"]["higher_R_H"] == "MAPPO+AT-M"
     assert by["nearest_group"]["lower_E"] == "CI-HRL" and by["nearest_group"]["higher_R_H"] == "CI-HRL"
 
@@ -73,9 +78,15 @@ def test_report_means_cis_and_welch_difference_match_scipy():
 def test_report_markdown_and_figure(tmp_path):
     module = load_script()
     doc = synthetic_doc(module)
+    game = module.ADVERSARIES[0][1]
+    for key, flight in list(doc["flights"].items()):  # the game's adversary twice as dangerous as R-Largest
+        if flight["adversary"] == "r_largest":
+            doc["flights"][key.replace("r_largest", game)] = {**flight, "adversary": game, "E": 2 * flight["E"]}
     report = module.write_report(doc, tmp_path)
+    assert report["adversaries"][1]["E_vs_game_adversary"]["MAPPO+AT-M"]["ratio"] == 0.5
     text = (tmp_path / "report.md").read_text()
     assert "EXPLORATORY" in text and "| R-Largest | 3/3 | 11.00 [" in text and "| Nearest-group rule | 3/3 |" in text
+    assert "| R-Largest | 0.50, p 0.0014 | 0.50, p 0.0035 |" in text  # one-sided paired t over 3 seeds
     assert json.loads((tmp_path / "report.json").read_text()) == json.loads(json.dumps(report))
     assert (tmp_path / "adversary_order.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
