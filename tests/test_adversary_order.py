@@ -9,6 +9,7 @@ import math
 from pathlib import Path
 
 import numpy as np
+import pytest
 from scipy import stats
 
 SCRIPT = Path(__file__).resolve().parents[1] / "examples" / "adversary_order.py"
@@ -105,3 +106,20 @@ def test_flights_of_another_protocol_are_not_resumed(tmp_path, capsys):
     assert module.main(["--list", "--out", str(tmp_path)]) == 2
     assert "flown with another protocol (7 games of batch seed 200" in capsys.readouterr().err
     assert module.main(["--list", "--episodes", "7", "--out", str(tmp_path)]) == 0
+
+
+@pytest.mark.slow
+def test_smoke_flies_real_files_and_resumes(tmp_path, capsys):
+    """--smoke: 8 real flights of the shipped pre-registered files; a rerun flies none and rebuilds the report."""
+    module = load_script()
+    assert module.main(["--smoke", "--workers", "1", "--out", str(tmp_path)]) == 0
+    flights = json.loads((tmp_path / "flights.json").read_text())["flights"]
+    assert len(flights) == 8 and {f["adversary"] for f in flights.values()} == {"adversary_ddpg", "r_largest"}
+    assert all(
+        len(f["per_episode"]["E"]) == 4 and math.isclose(f["E"], np.mean(f["per_episode"]["E"]))
+        for f in flights.values()
+    )
+    capsys.readouterr()
+    assert module.main(["--smoke", "--out", str(tmp_path)]) == 0
+    assert "8 of 8 flights done; flying 0" in capsys.readouterr().out
+    assert json.loads((tmp_path / "flights.json").read_text())["flights"] == flights
