@@ -242,3 +242,17 @@ def _table5_markdown(report: str) -> str:
     start = next(i for i, line in enumerate(lines) if line.startswith("| method"))
     end = next(i for i in range(start, len(lines)) if not lines[i].startswith("|"))
     return "\n".join(lines[start:end])
+
+
+def test_results_adversary_order_row_is_the_report():
+    """The exploratory adversary-order row quotes its report: who has the lower E against every
+    adversary, the range of the E differences and that none survives Holm."""
+    report = json.loads(_text(REPORTS / "exploratory" / "adversary_order" / "report.json"))
+    row = next(line for line in _text(DOCS / "results.md").splitlines() if "adversary_order/report.md" in line)
+    adversaries = report["adversaries"]
+    assert len(adversaries) == 5 and "against all five" in row
+    assert {a["lower_E"] for a in adversaries} == {"MAPPO+AT-M"} and "MAPPO+AT-M has the lower E" in row
+    gaps = sorted(-a["difference"]["E"]["difference"] for a in adversaries)
+    assert f"({gaps[0]:.2f}-{gaps[-1]:.2f} s)" in row
+    holm = [a["difference"][m]["p_holm"] for a in adversaries for m in ("E", "R_H")]
+    assert len(holm) == 10 and min(holm) >= 0.05 and "no difference survives Holm over the ten" in row
