@@ -1,7 +1,7 @@
 """What the BenchMARL tasks of this project share (the high-level game, `cefc_mj.train.benchmarl_game`,
 and the formation task, `cefc_mj.train.benchmarl_formation`). Needs the optional `benchmarl` extra.
 
-- `GROUP`, `done_spec`, `reward_spec`, `done_entries`, `reset_mask`, `SeededBatchEnv`: the pieces of a
+- `GROUP`, `group_spec`, `done_spec`, `reward_spec`, `env_output`, `reset_mask`, `SeededBatchEnv`: the pieces of a
   batched torchrl env over one of our batched envs (one group "agents", an episode's end as `done` =
   `terminated`, the k-th full reset playing the episodes of `iteration_seed(seed, k)`).
 - `CEFCTaskBase`: the BenchMARL `TaskClass` methods both tasks answer alike (one group, the global
@@ -27,7 +27,7 @@ import numpy as np
 import torch
 from benchmarl.environments import TaskClass
 from benchmarl.experiment.callback import Callback
-from tensordict import TensorDictBase
+from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
@@ -83,27 +83,35 @@ def reset_mask(tensordict: TensorDictBase | None):
     return None if mask.all() else mask
 
 
+def group_spec(n_envs: int, n_agents: int, key: str, leaf, **root) -> Composite:
+    """A spec [n_envs] holding `leaf` [n_envs, n_agents, ...] as (GROUP, key), beside the `root` entries."""
+    return Composite({GROUP: Composite({key: leaf}, shape=(n_envs, n_agents)), **root}, shape=(n_envs,))
+
+
 def reward_spec(n_envs: int, n_agents: int, device) -> Composite:
     """reward [n_envs, n_agents, 1] float32: each agent's reward in the group."""
-    return Composite(
-        {
-            GROUP: Composite(
-                {"reward": Unbounded((n_envs, n_agents, 1), dtype=torch.float32, device=device)},
-                shape=(n_envs, n_agents),
-            )
-        },
-        shape=(n_envs,),
-    )
+    return group_spec(n_envs, n_agents, "reward", Unbounded((n_envs, n_agents, 1), dtype=torch.float32, device=device))
 
 
-def done_entries(done: np.ndarray | None, n_envs: int) -> dict[str, torch.Tensor]:
-    """done, terminated ([n_envs, 1], the env's `done`; all False after a reset) and truncated (never)."""
+def env_output(
+    observation: torch.Tensor, state: torch.Tensor, done: np.ndarray | None, n_envs: int, n_agents: int, device, **root
+) -> TensorDict:
+    """What a reset or step returns: the agents' observations [n_envs, n_agents, ...], the global state,
+    the `root` entries, done and terminated (the env's `done` [n_envs]; all False after a reset) and
+    truncated (never)."""
     done_t = torch.zeros((n_envs, 1), dtype=torch.bool) if done is None else torch.as_tensor(done).reshape(n_envs, 1)
-    return {
-        "done": done_t.clone(),
-        "terminated": done_t.clone(),
-        "truncated": torch.zeros((n_envs, 1), dtype=torch.bool),
-    }
+    return TensorDict(
+        {
+            GROUP: TensorDict({"observation": observation}, batch_size=(n_envs, n_agents)),
+            "state": state,
+            **root,
+            "done": done_t.clone(),
+            "terminated": done_t.clone(),
+            "truncated": torch.zeros((n_envs, 1), dtype=torch.bool),
+        },
+        batch_size=(n_envs,),
+        device=device,
+    )
 
 
 class SeededBatchEnv(EnvBase):

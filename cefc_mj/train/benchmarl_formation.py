@@ -35,7 +35,7 @@ import torch
 from benchmarl.experiment.callback import Callback
 from benchmarl.models.common import Model, ModelConfig
 from tensordict import TensorDict, TensorDictBase
-from torchrl.data import Bounded, Composite, Unbounded
+from torchrl.data import Bounded, Unbounded
 from torchrl.envs import EnvBase
 
 from cefc_mj.env import BatchedCEFCEnv
@@ -53,10 +53,11 @@ from cefc_mj.train.benchmarl_common import (
     SeededBatchEnv,
     benchmarl_versions,
     card_tail,
-    done_entries,
     done_spec,
+    env_output,
     experiment_config,
     experiment_settings,
+    group_spec,
     reward_spec,
     run_experiment,
     run_folders,
@@ -103,26 +104,17 @@ class FormationEnv(SeededBatchEnv):
         self.task, self.reward_scale, self.collision_credit = task, float(reward_scale), collision_credit
         self.run_seed, self.resets = int(seed), 0
         b, n = n_envs, task.n_agents
-        self.full_observation_spec = Composite(
-            {
-                GROUP: Composite(
-                    {"observation": Unbounded((b, n, self.env.layout.size), dtype=torch.float32, device=device)},
-                    shape=(b, n),
-                ),
-                "state": Unbounded((b, self.env.state_size), dtype=torch.float32, device=device),
-                **{m: Unbounded((b, 1), dtype=torch.float32, device=device) for m in METRICS},
-            },
-            shape=(b,),
+        self.full_observation_spec = group_spec(
+            b,
+            n,
+            "observation",
+            Unbounded((b, n, self.env.layout.size), dtype=torch.float32, device=device),
+            state=Unbounded((b, self.env.state_size), dtype=torch.float32, device=device),
+            **{m: Unbounded((b, 1), dtype=torch.float32, device=device) for m in METRICS},
         )
         limit = float(task.accel_max)
-        self.full_action_spec = Composite(
-            {
-                GROUP: Composite(
-                    {"action": Bounded(-limit, limit, shape=(b, n, 2), dtype=torch.float32, device=device)},
-                    shape=(b, n),
-                )
-            },
-            shape=(b,),
+        self.full_action_spec = group_spec(
+            b, n, "action", Bounded(-limit, limit, shape=(b, n, 2), dtype=torch.float32, device=device)
         )
         self.full_reward_spec = reward_spec(b, n, device)
         self.full_done_spec = done_spec(b, device)
@@ -133,15 +125,14 @@ class FormationEnv(SeededBatchEnv):
     def _observation(self, obs: np.ndarray, done: np.ndarray | None = None) -> TensorDict:
         b, n = self.batch_size[0], self.task.n_agents
         metrics = self.env.episode_metrics()
-        return TensorDict(
-            {
-                GROUP: TensorDict({"observation": torch.from_numpy(obs.copy())}, batch_size=(b, n)),
-                "state": torch.from_numpy(self.env.global_state()),
-                **{m: torch.as_tensor(metrics[m], dtype=torch.float32).reshape(b, 1) for m in METRICS},
-                **done_entries(done, b),
-            },
-            batch_size=(b,),
-            device=self.device,
+        return env_output(
+            torch.from_numpy(obs.copy()),
+            torch.from_numpy(self.env.global_state()),
+            done,
+            b,
+            n,
+            self.device,
+            **{m: torch.as_tensor(metrics[m], dtype=torch.float32).reshape(b, 1) for m in METRICS},
         )
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:

@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase
-from torchrl.data import Categorical, Composite, Unbounded
+from torchrl.data import Categorical, Unbounded
 from torchrl.envs import EnvBase
 
 from cefc_mj.errors import CheckpointError, ConfigError
@@ -52,10 +52,11 @@ from cefc_mj.train.benchmarl_common import (
     SeededBatchEnv,
     benchmarl_versions,
     card_tail,
-    done_entries,
     done_spec,
+    env_output,
     experiment_config,
     experiment_settings,
+    group_spec,
     reward_spec,
     run_experiment,
     run_folders,
@@ -114,24 +115,15 @@ class HighLevelGameEnv(SeededBatchEnv):
             raise ConfigError("the CEFC layout does not start with the selector's parts; o_i is not a prefix")
         b, n = n_envs, task.n_agents
         self.obs_dim, self.n_anchors = s_cfg.obs_dim, self.game.n_anchors
-        self.full_observation_spec = Composite(
-            {
-                GROUP: Composite(
-                    {"observation": Unbounded((b, n, self.obs_dim), dtype=torch.float32, device=device)},
-                    shape=(b, n),
-                ),
-                "state": Unbounded((b, self.game.state_size), dtype=torch.float32, device=device),
-            },
-            shape=(b,),
+        self.full_observation_spec = group_spec(
+            b,
+            n,
+            "observation",
+            Unbounded((b, n, self.obs_dim), dtype=torch.float32, device=device),
+            state=Unbounded((b, self.game.state_size), dtype=torch.float32, device=device),
         )
-        self.full_action_spec = Composite(
-            {
-                GROUP: Composite(
-                    {"action": Categorical(self.n_anchors, shape=(b, n), dtype=torch.int64, device=device)},
-                    shape=(b, n),
-                )
-            },
-            shape=(b,),
+        self.full_action_spec = group_spec(
+            b, n, "action", Categorical(self.n_anchors, shape=(b, n), dtype=torch.int64, device=device)
         )
         self.full_reward_spec = reward_spec(b, n, device)
         self.full_done_spec = done_spec(b, device)
@@ -141,17 +133,13 @@ class HighLevelGameEnv(SeededBatchEnv):
 
     def _observation(self, obs: np.ndarray, done: np.ndarray | None = None) -> TensorDict:
         b, n = self.batch_size[0], self.task.n_agents
-        return TensorDict(
-            {
-                GROUP: TensorDict(
-                    {"observation": torch.from_numpy(selector_observation(obs, self.task, self.obs_scale))},
-                    batch_size=(b, n),
-                ),
-                "state": torch.as_tensor(self.game.global_state(), dtype=torch.float32),
-                **done_entries(done, b),
-            },
-            batch_size=(b,),
-            device=self.device,
+        return env_output(
+            torch.from_numpy(selector_observation(obs, self.task, self.obs_scale)),
+            torch.as_tensor(self.game.global_state(), dtype=torch.float32),
+            done,
+            b,
+            n,
+            self.device,
         )
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
