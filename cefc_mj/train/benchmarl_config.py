@@ -277,16 +277,22 @@ FLAG_OF_FIELD = {
 the flag the user typed."""
 
 
+def _given_flags(args, flag_of_field: dict[str, str], budget_field: str) -> dict:
+    """The config fields of the flags given (argparse dest = field; None: left out), but the budget,
+    which the caller parses."""
+    return {
+        name: getattr(args, name)
+        for name in flag_of_field
+        if name != budget_field and getattr(args, name, None) is not None
+    }
+
+
 def config_from_args(args, budget_episodes: int) -> BenchMARLConfig:
     """The BenchMARLConfig of `cefc-train highlevel-benchmarl` arguments (flags left out keep the config's
     defaults), its game checked as HighLevelConfig checks it; a bad value raises ConfigError naming the flag."""
     from cefc_mj.train.config import flag_error
 
-    given = {
-        name: getattr(args, name)
-        for name in FLAG_OF_FIELD
-        if name != "budget_episodes" and getattr(args, name, None) is not None
-    }
+    given = _given_flags(args, FLAG_OF_FIELD, "budget_episodes")
     try:
         algorithm = given.get("algorithm", BenchMARLConfig.algorithm)
         for name in given:
@@ -522,11 +528,7 @@ def formation_config_from_args(args, budget_frames: int) -> FormationBenchMARLCo
     the config's defaults); a bad value raises ConfigError naming the flag."""
     from cefc_mj.train.config import flag_error
 
-    given = {
-        name: getattr(args, name)
-        for name in FORMATION_FLAG_OF_FIELD
-        if name != "budget_frames" and getattr(args, name, None) is not None
-    }
+    given = _given_flags(args, FORMATION_FLAG_OF_FIELD, "budget_frames")
     try:
         algorithm = given.get("algorithm", FormationBenchMARLConfig.algorithm)
         for name, algorithms in ALGORITHM_FIELDS.items():
