@@ -10,7 +10,7 @@ and the formation task, `cefc_mj.train.benchmarl_formation`). Needs the optional
   BenchMARL evaluation, csv logs), the rest left at BenchMARL 1.5.2's defaults.
 - `Progress`: a callback writing progress.csv (frames, episodes, mean return, wall-clock, and any
   per-episode metrics the env reports at an episode's end).
-- `run_folders`, `torch_threads`, `run_experiment`, `trained_weights`, `tanh_mlp`, `card_tail`: the
+- `build`, `run_folders`, `torch_threads`, `run_experiment`, `trained_weights`, `tanh_mlp`, `card_tail`: the
   steps of a training run both tasks take alike.
 - `progress_bar`, `benchmarl_versions`.
 """
@@ -220,6 +220,26 @@ def experiment_config(settings: dict):
     for key, value in settings.items():
         setattr(exp, key, value)
     return exp
+
+
+def build(task, algorithm, actor, critic_cells, seed: int, settings: dict, callbacks) -> tuple[object, dict]:
+    """BenchMARL's Experiment of `task` with the `algorithm` and `actor` model configs, a tanh MLP
+    critic of `critic_cells`, the ExperimentConfig `settings` and `callbacks`; returns (the experiment,
+    the record of its settings for the model card: the ExperimentConfig values but restore_file, and
+    the algorithm's)."""
+    from benchmarl.experiment import Experiment
+
+    experiment = Experiment(
+        task=task,
+        algorithm_config=algorithm,
+        model_config=actor,
+        critic_model_config=tanh_mlp(critic_cells),
+        seed=seed,
+        config=experiment_config(settings),
+        callbacks=list(callbacks),
+    )
+    recorded = {k: v for k, v in settings.items() if k != "restore_file"}
+    return experiment, {"experiment": recorded, "algorithm": dict(algorithm.__dict__)}
 
 
 class Progress(Callback):

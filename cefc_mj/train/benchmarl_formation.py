@@ -52,16 +52,15 @@ from cefc_mj.train.benchmarl_common import (
     Progress,
     SeededBatchEnv,
     benchmarl_versions,
+    build,
     card_tail,
     done_spec,
     env_output,
-    experiment_config,
     experiment_settings,
     group_spec,
     reward_spec,
     run_experiment,
     run_folders,
-    tanh_mlp,
     torch_threads,
     trained_weights,
 )
@@ -275,8 +274,6 @@ class _EnvState(Callback):
 def build_experiment(cfg: FormationBenchMARLConfig, run_dir: Path, callbacks=(), restore_file: Path | None = None):
     """The BenchMARL Experiment of `cfg`, writing under run_dir (which must exist); `restore_file`: a
     checkpoint it continues."""
-    from benchmarl.experiment import Experiment
-
     task = cfg.task()
     frames = cfg.frames_per_batch
     settings = {
@@ -295,18 +292,7 @@ def build_experiment(cfg: FormationBenchMARLConfig, run_dir: Path, callbacks=(),
     }
     algorithm = algorithm_config(cfg)
     actor = ATMModelConfig(atm=actor_config(cfg, task).to_dict())
-    critic = tanh_mlp(cfg.critic_cells)
-    experiment = Experiment(
-        task=make_task(cfg),
-        algorithm_config=algorithm,
-        model_config=actor,
-        critic_model_config=critic,
-        seed=cfg.seed,
-        config=experiment_config(settings),
-        callbacks=[*callbacks, _EnvState()],
-    )
-    recorded = {k: v for k, v in settings.items() if k != "restore_file"}
-    return experiment, {"experiment": recorded, "algorithm": dict(algorithm.__dict__)}
+    return build(make_task(cfg), algorithm, actor, cfg.critic_cells, cfg.seed, settings, [*callbacks, _EnvState()])
 
 
 def trained_model(experiment) -> tuple[object, ATMModel]:

@@ -51,10 +51,10 @@ from cefc_mj.train.benchmarl_common import (
     Progress,
     SeededBatchEnv,
     benchmarl_versions,
+    build,
     card_tail,
     done_spec,
     env_output,
-    experiment_config,
     experiment_settings,
     group_spec,
     reward_spec,
@@ -209,7 +209,6 @@ def make_task(cfg: BenchMARLConfig) -> CEFCGameTask:
 def build_experiment(cfg: BenchMARLConfig, run_dir: Path, callbacks=()):
     """The BenchMARL Experiment of `cfg`, writing under run_dir (which must exist)."""
     from benchmarl.algorithms import MappoConfig, MasacConfig
-    from benchmarl.experiment import Experiment
 
     frames = cfg.frames_per_batch
     settings = {
@@ -220,20 +219,9 @@ def build_experiment(cfg: BenchMARLConfig, run_dir: Path, callbacks=()):
         "off_policy_train_batch_size": cfg.masac_batch,
         "off_policy_memory_size": max(cfg.max_frames, frames),
     }
-    exp = experiment_config(settings)
     algorithm = (MasacConfig if cfg.algorithm == "masac" else MappoConfig).get_from_yaml()
     actor = tanh_mlp([cfg.hidden] * 3)
-    critic = tanh_mlp(cfg.critic_cells)
-    experiment = Experiment(
-        task=make_task(cfg),
-        algorithm_config=algorithm,
-        model_config=actor,
-        critic_model_config=critic,
-        seed=cfg.seed,
-        config=exp,
-        callbacks=list(callbacks),
-    )
-    return experiment, {"experiment": settings, "algorithm": dict(algorithm.__dict__)}
+    return build(make_task(cfg), algorithm, actor, cfg.critic_cells, cfg.seed, settings, callbacks)
 
 
 def _trained_actor(experiment):
