@@ -1,17 +1,17 @@
 """What the BenchMARL tasks of this project share (the high-level game, `cefc_mj.train.benchmarl_game`,
 and the formation task, `cefc_mj.train.benchmarl_formation`). Needs the optional `benchmarl` extra.
 
-- `GROUP`, `group_spec`, `done_spec`, `reward_spec`, `env_output`, `reset_mask`, `SeededBatchEnv`: the pieces of a
-  batched torchrl env over one of our batched envs (one group "agents", an episode's end as `done` =
-  `terminated`, the k-th full reset playing the episodes of `iteration_seed(seed, k)`).
+- `GROUP`, `group_spec`, `done_spec`, `reward_spec`, `env_output`, `reset_mask`, `SeededBatchEnv`: the
+  pieces of a batched torchrl env over one of our batched envs (one group "agents", an episode's end
+  as `done` = `terminated`, the k-th full reset playing the episodes of `iteration_seed(seed, k)`).
 - `CEFCTaskBase`: the BenchMARL `TaskClass` methods both tasks answer alike (one group, the global
   state for centralised critics, no render, no info or action mask).
 - `experiment_settings`: the `ExperimentConfig` values both tasks set (CPU, shared actor, no
   BenchMARL evaluation, csv logs), the rest left at BenchMARL 1.5.2's defaults.
 - `Progress`: a callback writing progress.csv (frames, episodes, mean return, wall-clock, and any
   per-episode metrics the env reports at an episode's end).
-- `build`, `run_folders`, `torch_threads`, `run_experiment`, `trained_weights`, `tanh_mlp`, `card_tail`: the
-  steps of a training run both tasks take alike.
+- `build`, `run_folders`, `torch_threads`, `run_experiment`, `trained_weights`, `tanh_mlp`,
+  `card_tail`: the steps of a training run both tasks take alike.
 - `progress_bar`, `benchmarl_versions`.
 """
 
