@@ -48,6 +48,56 @@ def has_benchmarl() -> bool:
         return False
 
 
+def add_output_args(p: argparse.ArgumentParser, command: str, benchmarl_folder: str, resume: str | None = None) -> None:
+    """--out, --policies-dir, --install, --resume (where `resume`, its help, is given) and --no-progress
+    of a BenchMARL subcommand; `benchmarl_folder`: what the --out help says of BenchMARL's folder."""
+    p.add_argument(
+        "--out",
+        type=Path,
+        default=Path("runs") / command,
+        help=f"where the run writes: <out>/<name>/ (config, progress.csv, {benchmarl_folder}) and, in "
+        f"<out>/policies/, the exported policy and its model card (default runs/{command})",
+    )
+    p.add_argument(
+        "--policies-dir",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="where the exported policy and model card go instead of <out>/policies/",
+    )
+    p.add_argument(
+        "--install",
+        action="store_true",
+        help=f"after a successful run, copy the exported policy and card into the shipped {paths.POLICIES_DIR}",
+    )
+    if resume is not None:
+        p.add_argument("--resume", action="store_true", help=resume)
+    p.add_argument("--no-progress", action="store_true", help="no progress bar (for log files)")
+
+
+def add_threads_arg(p: argparse.ArgumentParser, default: int) -> None:
+    """--threads, the torch threads of a BenchMARL run (None: the config's `default`)."""
+    p.add_argument(
+        "--threads", type=int, default=None, metavar="N", help=f"torch threads of the run (default {default})"
+    )
+
+
+def require_extra(installed: bool, line: str) -> None:
+    """Without the `benchmarl` extra (`installed` False): print `line` (one line) and exit 2."""
+    if not installed:
+        print(line, file=sys.stderr)
+        raise SystemExit(EXIT_USAGE)
+
+
+def finish(card: dict, policies_dir: Path, summary_lines, install_policy: bool, load=None) -> list[dict]:
+    """Print the run's summary (`summary_lines(card, policies_dir)`) and, with --install, install the
+    exported policy (read back with `load`); returns [card]."""
+    print("\n".join(summary_lines(card, policies_dir)))
+    if install_policy:
+        install([card["name"]], policies_dir, load=load)
+    return [card]
+
+
 def add_parser(sub) -> None:
     """`cefc-train highlevel-benchmarl`; flags left out keep BenchMARLConfig's defaults."""
 
@@ -80,26 +130,7 @@ def add_parser(sub) -> None:
         help=f"training episodes ('1500ep' or '1500'), a multiple of --envs (default {default('budget_episodes')} "
         "episodes, the paper's 1000 + 500)",
     )
-    p.add_argument(
-        "--out",
-        type=Path,
-        default=Path("runs") / COMMAND,
-        help=f"where the run writes: <out>/<name>/ (config, progress.csv, BenchMARL's folder) and, in "
-        f"<out>/policies/, the exported policy and its model card (default runs/{COMMAND})",
-    )
-    p.add_argument(
-        "--policies-dir",
-        type=Path,
-        default=None,
-        metavar="DIR",
-        help="where the exported policy and model card go instead of <out>/policies/",
-    )
-    p.add_argument(
-        "--install",
-        action="store_true",
-        help=f"after a successful run, copy the exported policy and card into the shipped {paths.POLICIES_DIR}",
-    )
-    p.add_argument("--no-progress", action="store_true", help="no progress bar (for log files)")
+    add_output_args(p, COMMAND, "BenchMARL's folder")
     p.add_argument(
         "--envs",
         type=int,
@@ -193,28 +224,17 @@ def add_parser(sub) -> None:
         metavar="N",
         help=f"validation episodes evaluated for the model card (default {default('eval_episodes')}; 0 skips)",
     )
-    p.add_argument(
-        "--threads",
-        type=int,
-        default=None,
-        metavar="N",
-        help=f"torch threads of the run (default {default('threads')})",
-    )
+    add_threads_arg(p, default("threads"))
 
 
 def run(args: argparse.Namespace, budget_episodes: int, command: str | None = None) -> list[dict]:
     """Check the flags, the extra and the folders, train, export and, with --install, install; returns
     the model card."""
     cfg = config_from_args(args, budget_episodes)
-    if not has_benchmarl():
-        print(BENCHMARL_EXTRA, file=sys.stderr)
-        raise SystemExit(EXIT_USAGE)
+    require_extra(has_benchmarl(), BENCHMARL_EXTRA)
     policies_dir = check_destinations(args)
     from cefc_mj.nn.highlevel_policy import load_highlevel_policy
     from cefc_mj.train.benchmarl_game import summary_lines, train_benchmarl
 
     card = train_benchmarl(cfg, args.out, policies_dir, show_progress=not args.no_progress, command=command)
-    print("\n".join(summary_lines(card, policies_dir)))
-    if args.install:
-        install([card["name"]], policies_dir, load=load_highlevel_policy)
-    return [card]
+    return finish(card, policies_dir, summary_lines, args.install, load=load_highlevel_policy)

@@ -8,12 +8,9 @@ Without the `benchmarl` extra the subcommand prints one line and exits 2."""
 from __future__ import annotations
 
 import argparse
-import sys
-from pathlib import Path
 
-from cefc_mj import paths
-from cefc_mj.cli.train_benchmarl import has_benchmarl
-from cefc_mj.cli.train_common import EXIT_USAGE, check_destinations, field_default, install, subcommand_help
+from cefc_mj.cli.train_benchmarl import add_output_args, add_threads_arg, finish, has_benchmarl, require_extra
+from cefc_mj.cli.train_common import check_destinations, field_default, subcommand_help
 from cefc_mj.train.benchmarl_config import (
     FORMATION_ALGORITHMS,
     FORMATION_COMMAND,
@@ -84,31 +81,12 @@ def add_parser(sub) -> None:
         help="training frames (env-steps; one frame is c agent-steps): '300000', '300kf' or '3mf', a "
         f"multiple of the frames of an iteration (default {default('budget_frames')})",
     )
-    p.add_argument(
-        "--out",
-        type=Path,
-        default=Path("runs") / COMMAND,
-        help=f"where the run writes: <out>/<name>/ (config, progress.csv, BenchMARL's folder with its "
-        f"checkpoints) and, in <out>/policies/, the exported policy and its model card (default runs/{COMMAND})",
+    add_output_args(
+        p,
+        COMMAND,
+        "BenchMARL's folder with its checkpoints",
+        resume="continue the run in <out>/<name>/ from its newest checkpoint (a larger --budget trains further)",
     )
-    p.add_argument(
-        "--policies-dir",
-        type=Path,
-        default=None,
-        metavar="DIR",
-        help="where the exported policy and model card go instead of <out>/policies/",
-    )
-    p.add_argument(
-        "--install",
-        action="store_true",
-        help=f"after a successful run, copy the exported policy and card into the shipped {paths.POLICIES_DIR}",
-    )
-    p.add_argument(
-        "--resume",
-        action="store_true",
-        help="continue the run in <out>/<name>/ from its newest checkpoint (a larger --budget trains further)",
-    )
-    p.add_argument("--no-progress", action="store_true", help="no progress bar (for log files)")
     p.add_argument(
         "--envs",
         type=int,
@@ -200,29 +178,18 @@ def add_parser(sub) -> None:
         help="validation episodes of Table III's protocol flown for the model card "
         f"(default {default('eval_episodes')}; 0 skips)",
     )
-    p.add_argument(
-        "--threads",
-        type=int,
-        default=None,
-        metavar="N",
-        help=f"torch threads of the run (default {default('threads')})",
-    )
+    add_threads_arg(p, default("threads"))
 
 
 def run(args: argparse.Namespace, budget_frames: int, command: str | None = None) -> list[dict]:
     """Check the flags, the extra and the folders, train (or resume), export and, with --install,
     install; returns the model card."""
     cfg = formation_config_from_args(args, budget_frames)
-    if not has_benchmarl():
-        print(FORMATION_EXTRA, file=sys.stderr)
-        raise SystemExit(EXIT_USAGE)
+    require_extra(has_benchmarl(), FORMATION_EXTRA)
     policies_dir = check_destinations(args)
     from cefc_mj.train.benchmarl_formation import summary_lines, train_formation
 
     card = train_formation(
         cfg, args.out, policies_dir, resume=args.resume, show_progress=not args.no_progress, command=command
     )
-    print("\n".join(summary_lines(card, policies_dir)))
-    if args.install:
-        install([card["name"]], policies_dir)
-    return [card]
+    return finish(card, policies_dir, summary_lines, args.install)

@@ -462,33 +462,9 @@ def aggregate_lines(result: dict) -> list[str]:
     ]
 
 
-def _fdr_lines(rows: dict) -> list[str]:
-    """Which differences from CI-HRL hold once p is adjusted over every row compared (per metric)."""
-    from cefc_mj.eval.stats import ALPHA
-
-    compared = {method: row["vs_reference"] for method, row in rows.items() if "vs_reference" in row}
-    if not compared:
-        return []
-
-    def held(m: str) -> str:
-        found = [
-            f"{method} ({vs[m]['verdict']}, adjusted p {vs[m]['p_fdr']:.3f})"
-            for method, vs in compared.items()
-            if vs[m].get("p_fdr") is not None and vs[m]["p_fdr"] < ALPHA
-        ]
-        return "; ".join(found) or "none"
-
-    return [
-        "",
-        f"Adjusted for the {len(compared)} comparisons per metric (Benjamini-Hochberg over the rows, "
-        f"scipy.stats.false_discovery_control), the differences from CI-HRL with adjusted p < {ALPHA}:",
-        *(f"  {m}: {held(m)}" for m in SEED_METRICS),
-    ]
-
-
-def _unadjusted_lines(rows: dict) -> list[str]:
-    """Every difference from CI-HRL with unadjusted Welch p < ALPHA, on every compared metric (before
-    any adjustment: the full list, of which `_fdr_lines` keeps those that survive it)."""
+def _below_alpha_lines(rows: dict, key: str, label: str, header: str) -> list[str]:
+    """Per metric of SEED_METRICS, the rows whose difference from CI-HRL has `key` (a p value of their
+    vs_reference, shown as `label`) below ALPHA, after `header`; [] when no row is compared."""
     from cefc_mj.eval.stats import ALPHA
 
     compared = {method: row["vs_reference"] for method, row in rows.items() if "vs_reference" in row}
@@ -497,18 +473,36 @@ def _unadjusted_lines(rows: dict) -> list[str]:
 
     def below(m: str) -> str:
         found = [
-            f"{method} ({vs[m]['verdict']}, p {vs[m]['p']:.3f})"
+            f"{method} ({vs[m]['verdict']}, {label} {vs[m][key]:.3f})"
             for method, vs in compared.items()
-            if vs[m].get("p") is not None and vs[m]["p"] < ALPHA
+            if vs[m].get(key) is not None and vs[m][key] < ALPHA
         ]
         return "; ".join(found) or "none"
 
-    return [
-        "",
-        f"Unadjusted (Welch's p over training seeds, before any adjustment), every difference from CI-HRL "
-        f"with p < {ALPHA}, per metric (E_agents: agent-steps within 2 m):",
-        *(f"  {m}: {below(m)}" for m in SEED_METRICS),
-    ]
+    return ["", header.format(n=len(compared), alpha=ALPHA), *(f"  {m}: {below(m)}" for m in SEED_METRICS)]
+
+
+def _fdr_lines(rows: dict) -> list[str]:
+    """Which differences from CI-HRL hold once p is adjusted over every row compared (per metric)."""
+    return _below_alpha_lines(
+        rows,
+        "p_fdr",
+        "adjusted p",
+        "Adjusted for the {n} comparisons per metric (Benjamini-Hochberg over the rows, "
+        "scipy.stats.false_discovery_control), the differences from CI-HRL with adjusted p < {alpha}:",
+    )
+
+
+def _unadjusted_lines(rows: dict) -> list[str]:
+    """Every difference from CI-HRL with unadjusted Welch p < ALPHA, on every compared metric (before
+    any adjustment: the full list, of which `_fdr_lines` keeps those that survive it)."""
+    return _below_alpha_lines(
+        rows,
+        "p",
+        "p",
+        "Unadjusted (Welch's p over training seeds, before any adjustment), every difference from CI-HRL "
+        "with p < {alpha}, per metric (E_agents: agent-steps within 2 m):",
+    )
 
 
 def paired_lines(result: dict) -> list[str]:

@@ -1,30 +1,38 @@
 """What the BenchMARL tasks of this project share (the high-level game, `cefc_mj.train.benchmarl_game`,
 and the formation task, `cefc_mj.train.benchmarl_formation`). Needs the optional `benchmarl` extra.
 
-- `GROUP`, `done_spec`, `reset_mask`: the pieces of a batched torchrl env over one of our batched
-  envs (one group "agents", an episode's end as `done` = `terminated`).
+- `GROUP`, `group_spec`, `done_spec`, `reward_spec`, `env_output`, `reset_mask`, `SeededBatchEnv`: the
+  pieces of a batched torchrl env over one of our batched envs (one group "agents", an episode's end
+  as `done` = `terminated`, the k-th full reset playing the episodes of `iteration_seed(seed, k)`).
 - `CEFCTaskBase`: the BenchMARL `TaskClass` methods both tasks answer alike (one group, the global
   state for centralised critics, no render, no info or action mask).
 - `experiment_settings`: the `ExperimentConfig` values both tasks set (CPU, shared actor, no
   BenchMARL evaluation, csv logs), the rest left at BenchMARL 1.5.2's defaults.
 - `Progress`: a callback writing progress.csv (frames, episodes, mean return, wall-clock, and any
   per-episode metrics the env reports at an episode's end).
+- `build`, `run_folders`, `torch_threads`, `run_experiment`, `trained_weights`, `tanh_mlp`,
+  `card_tail`: the steps of a training run both tasks take alike.
 - `progress_bar`, `benchmarl_versions`.
 """
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import math
 import time
 from pathlib import Path
 
+import numpy as np
 import torch
 from benchmarl.environments import TaskClass
 from benchmarl.experiment.callback import Callback
-from tensordict import TensorDictBase
-from torchrl.data import Categorical, Composite
+from tensordict import TensorDict, TensorDictBase
+from torchrl.data import Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
+
+from cefc_mj.provenance import display_path
+from cefc_mj.train.rollout import iteration_seed
 
 GROUP = "agents"
 """The one agent group of every task (BenchMARL's group name)."""
@@ -73,6 +81,62 @@ def reset_mask(tensordict: TensorDictBase | None):
         return None
     mask = tensordict.get("_reset").reshape(-1).cpu().numpy().astype(bool)
     return None if mask.all() else mask
+
+
+def group_spec(n_envs: int, n_agents: int, key: str, leaf, **root) -> Composite:
+    """A spec [n_envs] holding `leaf` [n_envs, n_agents, ...] as (GROUP, key), beside the `root` entries."""
+    return Composite({GROUP: Composite({key: leaf}, shape=(n_envs, n_agents)), **root}, shape=(n_envs,))
+
+
+def reward_spec(n_envs: int, n_agents: int, device) -> Composite:
+    """reward [n_envs, n_agents, 1] float32: each agent's reward in the group."""
+    return group_spec(n_envs, n_agents, "reward", Unbounded((n_envs, n_agents, 1), dtype=torch.float32, device=device))
+
+
+def env_output(
+    observation: torch.Tensor, state: torch.Tensor, done: np.ndarray | None, n_envs: int, n_agents: int, device, **root
+) -> TensorDict:
+    """What a reset or step returns: the agents' observations [n_envs, n_agents, ...], the global state,
+    the `root` entries, done and terminated (the env's `done` [n_envs]; all False after a reset) and
+    truncated (never)."""
+    done_t = torch.zeros((n_envs, 1), dtype=torch.bool) if done is None else torch.as_tensor(done).reshape(n_envs, 1)
+    return TensorDict(
+        {
+            GROUP: TensorDict({"observation": observation}, batch_size=(n_envs, n_agents)),
+            "state": state,
+            **root,
+            "done": done_t.clone(),
+            "terminated": done_t.clone(),
+            "truncated": torch.zeros((n_envs, 1), dtype=torch.bool),
+        },
+        batch_size=(n_envs,),
+        device=device,
+    )
+
+
+class SeededBatchEnv(EnvBase):
+    """A torchrl env over one of our batched envs (`batched_env()`, with `reset(seed=)` and
+    `reset(mask)`): the k-th full reset plays the episodes of `iteration_seed(run_seed, k)`, the
+    episodes our trainers play at iteration k; a partial reset restarts the masked envs. Subclasses set
+    `run_seed` and `resets` (0) and give `batched_env` and `_observation(obs)`."""
+
+    batch_locked = True
+
+    def batched_env(self):
+        raise NotImplementedError
+
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
+        mask = reset_mask(tensordict)
+        if mask is None:  # a new batch of episodes: those of iteration_seed(seed, k)
+            obs = self.batched_env().reset(seed=iteration_seed(self.run_seed, self.resets))
+            self.resets += 1
+        else:
+            obs = self.batched_env().reset(mask)
+        return self._observation(obs)
+
+    def _set_seed(self, seed: int | None) -> None:
+        """Restart the episodes from iteration_seed(seed, 0) at the next full reset."""
+        self.run_seed, self.resets = (0 if seed is None else int(seed)), 0
 
 
 class CEFCTaskBase(TaskClass):
@@ -141,6 +205,13 @@ def experiment_settings(run_dir: Path, gamma: float, lr: float, max_frames: int,
     }
 
 
+def tanh_mlp(cells) -> object:
+    """BenchMARL's MLP model config with hidden layers `cells`, linear layers and tanh."""
+    from benchmarl.models.mlp import MlpConfig
+
+    return MlpConfig(num_cells=list(cells), layer_class=torch.nn.Linear, activation_class=torch.nn.Tanh)
+
+
 def experiment_config(settings: dict):
     """BenchMARL's ExperimentConfig (its yaml defaults) with `settings` set."""
     from benchmarl.experiment import ExperimentConfig
@@ -149,6 +220,26 @@ def experiment_config(settings: dict):
     for key, value in settings.items():
         setattr(exp, key, value)
     return exp
+
+
+def build(task, algorithm, actor, critic_cells, seed: int, settings: dict, callbacks) -> tuple[object, dict]:
+    """BenchMARL's Experiment of `task` with the `algorithm` and `actor` model configs, a tanh MLP
+    critic of `critic_cells`, the ExperimentConfig `settings` and `callbacks`; returns (the experiment,
+    the record of its settings for the model card: the ExperimentConfig values but restore_file, and
+    the algorithm's)."""
+    from benchmarl.experiment import Experiment
+
+    experiment = Experiment(
+        task=task,
+        algorithm_config=algorithm,
+        model_config=actor,
+        critic_model_config=tanh_mlp(critic_cells),
+        seed=seed,
+        config=experiment_config(settings),
+        callbacks=list(callbacks),
+    )
+    recorded = {k: v for k, v in settings.items() if k != "restore_file"}
+    return experiment, {"experiment": recorded, "algorithm": dict(algorithm.__dict__)}
 
 
 class Progress(Callback):
@@ -218,3 +309,48 @@ def progress_bar(show: bool):
     if show:
         return contextlib.nullcontext()
     return mock.patch.object(module, "tqdm", functools.partial(module.tqdm, disable=True))
+
+
+# ---------------------------------------------------------------------------- a training run
+def run_folders(out_dir: Path, policies_dir: Path | None, name: str) -> tuple[Path, Path, Path]:
+    """(out_dir, policies_dir (default <out_dir>/policies), the run folder <out_dir>/<name>) as Paths."""
+    out_dir = Path(out_dir)
+    policies_dir = Path(policies_dir) if policies_dir is not None else out_dir / "policies"
+    return out_dir, policies_dir, out_dir / name
+
+
+@contextlib.contextmanager
+def torch_threads(threads: int):
+    """A context in which torch uses `threads` threads (the number before is restored after)."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+
+
+def run_experiment(experiment, show_progress: bool) -> float:
+    """Run a BenchMARL Experiment to its budget (its bar shown or not); returns the wall-clock in s."""
+    start = time.perf_counter()
+    with progress_bar(show_progress):
+        experiment.run()
+    return time.perf_counter() - start
+
+
+def trained_weights(experiment):
+    """A context that loads the trained actor weights into the group's actor network: the weights the
+    optimizers update are the loss module's actor parameters."""
+    loss = experiment.losses[GROUP]
+    return loss.actor_network_params.to_module(loss.actor_network)
+
+
+def card_tail(experiment, run_dir: Path, versions: dict, command: str | None, progress: Progress) -> dict:
+    """The model card's last entries, alike for both tasks: versions, folders, command, last iteration."""
+    return {
+        "benchmarl_versions": versions,
+        "benchmarl_folder": display_path(Path(experiment.folder_name)),
+        "run_dir": display_path(run_dir),
+        "command": command,
+        "last_iteration": progress.rows[-1] if progress.rows else {},
+    }

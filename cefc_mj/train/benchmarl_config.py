@@ -57,8 +57,51 @@ def parse_episode_budget(text: str) -> int:
     return episodes
 
 
+class _BenchMARLRunConfig:
+    """What both BenchMARL run configs (the game's and the formation task's) do alike: their list
+    fields read back as tuples, integer reals as floats, the dict form, and the checks of the
+    settings they share (reward scale, optimiser, networks, evaluation, threads)."""
+
+    def _normalise(self, real_fields: tuple[str, ...]) -> None:
+        """critic_cells as a tuple and the `real_fields` given as integers as floats (a frozen dataclass's
+        __post_init__)."""
+        if isinstance(self.critic_cells, list):
+            object.__setattr__(self, "critic_cells", tuple(self.critic_cells))
+        for name in real_fields:
+            value = getattr(self, name)
+            if isinstance(value, int) and not isinstance(value, bool):
+                object.__setattr__(self, name, float(value))
+
+    def to_dict(self) -> dict:
+        d = dataclasses.asdict(self)
+        d["critic_cells"] = list(self.critic_cells)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict):
+        return cls(**d)
+
+    def _check_optimisation(self) -> None:
+        _check_real("reward_scale", self.reward_scale, 0.0, 1e6, low_open=True)
+        _check_real("gamma", self.gamma, 0.0, 1.0)
+        _check_real("lr", self.lr, 0.0, MAX_LR, low_open=True)
+
+    def _check_networks(self) -> None:
+        _check_int("hidden", self.hidden, 1, 4096)
+        if (
+            not isinstance(self.critic_cells, tuple)
+            or not self.critic_cells
+            or not all(isinstance(c, int) and not isinstance(c, bool) and 1 <= c <= 4096 for c in self.critic_cells)
+        ):
+            _fail("critic_cells", self.critic_cells, "must be a non-empty tuple of widths in [1, 4096]")
+
+    def _check_run(self) -> None:
+        _check_int("eval_episodes", self.eval_episodes, 0, 1000)
+        _check_int("threads", self.threads, 1, MAX_THREADS)
+
+
 @dataclass(frozen=True)
-class BenchMARLConfig:
+class BenchMARLConfig(_BenchMARLRunConfig):
     """One BenchMARL run (MASAC or MAPPO) on the high-level game of `cefc-train highlevel`.
 
     The game fields (n_agents, obstacle_density, adversary, episode_steps, low_level) are
@@ -122,12 +165,7 @@ class BenchMARLConfig:
     """torch threads of the whole run (collection and updates)."""
 
     def __post_init__(self) -> None:
-        if isinstance(self.critic_cells, list):
-            object.__setattr__(self, "critic_cells", tuple(self.critic_cells))
-        for name in ("obstacle_density", "reward_scale", "gamma", "lr"):
-            value = getattr(self, name)
-            if isinstance(value, int) and not isinstance(value, bool):
-                object.__setattr__(self, name, float(value))
+        self._normalise(("obstacle_density", "reward_scale", "gamma", "lr"))
         self.validate()
 
     # ------------------------------------------------------------------ derived
@@ -178,15 +216,6 @@ class BenchMARLConfig:
             eval_episodes=0,
         )
 
-    def to_dict(self) -> dict:
-        d = dataclasses.asdict(self)
-        d["critic_cells"] = list(self.critic_cells)
-        return d
-
-    @classmethod
-    def from_dict(cls, d: dict) -> "BenchMARLConfig":
-        return cls(**d)
-
     # ------------------------------------------------------------------ validation
     def validate(self) -> None:
         if self.algorithm not in ALGORITHMS:
@@ -209,9 +238,7 @@ class BenchMARLConfig:
             _fail("episode_steps", self.episode_steps, f"must be a multiple of {DECISION_INTERVAL}")
         if not isinstance(self.low_level, str) or not self.low_level:
             _fail("low_level", self.low_level, "must be a policy name or file, or 'per-group'")
-        _check_real("reward_scale", self.reward_scale, 0.0, 1e6, low_open=True)
-        _check_real("gamma", self.gamma, 0.0, 1.0)
-        _check_real("lr", self.lr, 0.0, MAX_LR, low_open=True)
+        self._check_optimisation()
         _check_int("masac_updates", self.masac_updates, 1, 1_000_000)
         _check_int("masac_batch", self.masac_batch, 1, 1_000_000)
         _check_int("mappo_epochs", self.mappo_epochs, 1, 10_000)
@@ -222,15 +249,8 @@ class BenchMARLConfig:
                 self.mappo_minibatch,
                 f"must be at most the {self.frames_per_batch} frames of an iteration (n_envs x decisions)",
             )
-        _check_int("hidden", self.hidden, 1, 4096)
-        if (
-            not isinstance(self.critic_cells, tuple)
-            or not self.critic_cells
-            or not all(isinstance(c, int) and not isinstance(c, bool) and 1 <= c <= 4096 for c in self.critic_cells)
-        ):
-            _fail("critic_cells", self.critic_cells, "must be a non-empty tuple of widths in [1, 4096]")
-        _check_int("eval_episodes", self.eval_episodes, 0, 1000)
-        _check_int("threads", self.threads, 1, MAX_THREADS)
+        self._check_networks()
+        self._check_run()
 
 
 # ---------------------------------------------------------------------------- command line
@@ -257,16 +277,22 @@ FLAG_OF_FIELD = {
 the flag the user typed."""
 
 
+def _given_flags(args, flag_of_field: dict[str, str], budget_field: str) -> dict:
+    """The config fields of the flags given (argparse dest = field; None: left out), but the budget,
+    which the caller parses."""
+    return {
+        name: getattr(args, name)
+        for name in flag_of_field
+        if name != budget_field and getattr(args, name, None) is not None
+    }
+
+
 def config_from_args(args, budget_episodes: int) -> BenchMARLConfig:
     """The BenchMARLConfig of `cefc-train highlevel-benchmarl` arguments (flags left out keep the config's
     defaults), its game checked as HighLevelConfig checks it; a bad value raises ConfigError naming the flag."""
     from cefc_mj.train.config import flag_error
 
-    given = {
-        name: getattr(args, name)
-        for name in FLAG_OF_FIELD
-        if name != "budget_episodes" and getattr(args, name, None) is not None
-    }
+    given = _given_flags(args, FLAG_OF_FIELD, "budget_episodes")
     try:
         algorithm = given.get("algorithm", BenchMARLConfig.algorithm)
         for name in given:
@@ -305,7 +331,7 @@ def parse_frame_budget(text: str) -> int:
 
 
 @dataclass(frozen=True)
-class FormationBenchMARLConfig:
+class FormationBenchMARLConfig(_BenchMARLRunConfig):
     """One BenchMARL run (MADDPG, IPPO, MAPPO or MASAC) on the formation task of AT-M's stages.
 
     The task is `cefc_mj.train.lowlevel.task_config_for` of the AT-M stage with the same formation and
@@ -379,12 +405,7 @@ class FormationBenchMARLConfig:
     """torch threads of the whole run (collection and updates)."""
 
     def __post_init__(self) -> None:
-        if isinstance(self.critic_cells, list):
-            object.__setattr__(self, "critic_cells", tuple(self.critic_cells))
-        for name in ("reward_scale", "gamma", "lr"):
-            value = getattr(self, name)
-            if isinstance(value, int) and not isinstance(value, bool):
-                object.__setattr__(self, name, float(value))
+        self._normalise(("reward_scale", "gamma", "lr"))
         self.validate()
 
     # ------------------------------------------------------------------ derived
@@ -433,15 +454,6 @@ class FormationBenchMARLConfig:
 
         return task_config_for(self.stage())
 
-    def to_dict(self) -> dict:
-        d = dataclasses.asdict(self)
-        d["critic_cells"] = list(self.critic_cells)
-        return d
-
-    @classmethod
-    def from_dict(cls, d: dict) -> "FormationBenchMARLConfig":
-        return cls(**d)
-
     # ------------------------------------------------------------------ validation
     def validate(self) -> None:
         if self.algorithm not in FORMATION_ALGORITHMS:
@@ -460,9 +472,7 @@ class FormationBenchMARLConfig:
                 f"must be a multiple of the {self.frames_per_batch} frames of an iteration "
                 f"({self.n_envs} envs x {self.episodes_per_iteration} episodes x {self.episode_steps} steps)",
             )
-        _check_real("reward_scale", self.reward_scale, 0.0, 1e6, low_open=True)
-        _check_real("gamma", self.gamma, 0.0, 1.0)
-        _check_real("lr", self.lr, 0.0, MAX_LR, low_open=True)
+        self._check_optimisation()
         _check_int("updates", self.updates, 1, 1_000_000)
         _check_int("batch_size", self.batch_size, 1, 1_000_000)
         _check_int("memory_frames", self.memory_frames, 1, MAX_FRAMES)
@@ -475,16 +485,9 @@ class FormationBenchMARLConfig:
                 self.minibatch_size,
                 f"must be at most the {self.frames_per_batch} frames of an iteration",
             )
-        _check_int("hidden", self.hidden, 1, 4096)
-        if (
-            not isinstance(self.critic_cells, tuple)
-            or not self.critic_cells
-            or not all(isinstance(c, int) and not isinstance(c, bool) and 1 <= c <= 4096 for c in self.critic_cells)
-        ):
-            _fail("critic_cells", self.critic_cells, "must be a non-empty tuple of widths in [1, 4096]")
+        self._check_networks()
         _check_int("checkpoint_every", self.checkpoint_every, 1, 1_000_000)
-        _check_int("eval_episodes", self.eval_episodes, 0, 1000)
-        _check_int("threads", self.threads, 1, MAX_THREADS)
+        self._check_run()
 
 
 FORMATION_FLAG_OF_FIELD = {
@@ -525,11 +528,7 @@ def formation_config_from_args(args, budget_frames: int) -> FormationBenchMARLCo
     the config's defaults); a bad value raises ConfigError naming the flag."""
     from cefc_mj.train.config import flag_error
 
-    given = {
-        name: getattr(args, name)
-        for name in FORMATION_FLAG_OF_FIELD
-        if name != "budget_frames" and getattr(args, name, None) is not None
-    }
+    given = _given_flags(args, FORMATION_FLAG_OF_FIELD, "budget_frames")
     try:
         algorithm = given.get("algorithm", FormationBenchMARLConfig.algorithm)
         for name, algorithms in ALGORITHM_FIELDS.items():

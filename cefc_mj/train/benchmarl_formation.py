@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import csv
 import json
-import time
 from dataclasses import MISSING, dataclass
 from pathlib import Path
 
@@ -36,7 +35,7 @@ import torch
 from benchmarl.experiment.callback import Callback
 from benchmarl.models.common import Model, ModelConfig
 from tensordict import TensorDict, TensorDictBase
-from torchrl.data import Bounded, Composite, Unbounded
+from torchrl.data import Bounded, Unbounded
 from torchrl.envs import EnvBase
 
 from cefc_mj.env import BatchedCEFCEnv
@@ -51,17 +50,24 @@ from cefc_mj.train.benchmarl_common import (
     GROUP,
     CEFCTaskBase,
     Progress,
+    SeededBatchEnv,
     benchmarl_versions,
+    build,
+    card_tail,
     done_spec,
-    experiment_config,
+    env_output,
     experiment_settings,
-    progress_bar,
-    reset_mask,
+    group_spec,
+    reward_spec,
+    run_experiment,
+    run_folders,
+    torch_threads,
+    trained_weights,
 )
 from cefc_mj.train.benchmarl_config import FormationBenchMARLConfig
 from cefc_mj.train.config import PPOConfig
-from cefc_mj.train.model_card import display_path, table3_figures, write_model_card
-from cefc_mj.train.rollout import agent_rewards, iteration_seed
+from cefc_mj.train.model_card import table3_figures, write_model_card
+from cefc_mj.train.rollout import agent_rewards
 
 METRICS = ("F", "N", "C")
 """The episode metrics the env reports (so far in the episode) and progress.csv logs at episodes' ends."""
@@ -78,10 +84,8 @@ COLLISION_CREDIT = PPOConfig().collision_credit
 
 
 # ---------------------------------------------------------------------------- the task as a torchrl env
-class FormationEnv(EnvBase):
+class FormationEnv(SeededBatchEnv):
     """The batched formation task as a torchrl env (module docstring); batch_size [n_envs]."""
-
-    batch_locked = True
 
     def __init__(
         self,
@@ -99,58 +103,36 @@ class FormationEnv(EnvBase):
         self.task, self.reward_scale, self.collision_credit = task, float(reward_scale), collision_credit
         self.run_seed, self.resets = int(seed), 0
         b, n = n_envs, task.n_agents
-        self.full_observation_spec = Composite(
-            {
-                GROUP: Composite(
-                    {"observation": Unbounded((b, n, self.env.layout.size), dtype=torch.float32, device=device)},
-                    shape=(b, n),
-                ),
-                "state": Unbounded((b, self.env.state_size), dtype=torch.float32, device=device),
-                **{m: Unbounded((b, 1), dtype=torch.float32, device=device) for m in METRICS},
-            },
-            shape=(b,),
+        self.full_observation_spec = group_spec(
+            b,
+            n,
+            "observation",
+            Unbounded((b, n, self.env.layout.size), dtype=torch.float32, device=device),
+            state=Unbounded((b, self.env.state_size), dtype=torch.float32, device=device),
+            **{m: Unbounded((b, 1), dtype=torch.float32, device=device) for m in METRICS},
         )
         limit = float(task.accel_max)
-        self.full_action_spec = Composite(
-            {
-                GROUP: Composite(
-                    {"action": Bounded(-limit, limit, shape=(b, n, 2), dtype=torch.float32, device=device)},
-                    shape=(b, n),
-                )
-            },
-            shape=(b,),
+        self.full_action_spec = group_spec(
+            b, n, "action", Bounded(-limit, limit, shape=(b, n, 2), dtype=torch.float32, device=device)
         )
-        self.full_reward_spec = Composite(
-            {GROUP: Composite({"reward": Unbounded((b, n, 1), dtype=torch.float32, device=device)}, shape=(b, n))},
-            shape=(b,),
-        )
+        self.full_reward_spec = reward_spec(b, n, device)
         self.full_done_spec = done_spec(b, device)
+
+    def batched_env(self) -> BatchedCEFCEnv:
+        return self.env
 
     def _observation(self, obs: np.ndarray, done: np.ndarray | None = None) -> TensorDict:
         b, n = self.batch_size[0], self.task.n_agents
-        done_t = torch.zeros((b, 1), dtype=torch.bool) if done is None else torch.as_tensor(done).reshape(b, 1)
         metrics = self.env.episode_metrics()
-        return TensorDict(
-            {
-                GROUP: TensorDict({"observation": torch.from_numpy(obs.copy())}, batch_size=(b, n)),
-                "state": torch.from_numpy(self.env.global_state()),
-                **{m: torch.as_tensor(metrics[m], dtype=torch.float32).reshape(b, 1) for m in METRICS},
-                "done": done_t.clone(),
-                "terminated": done_t.clone(),
-                "truncated": torch.zeros((b, 1), dtype=torch.bool),
-            },
-            batch_size=(b,),
-            device=self.device,
+        return env_output(
+            torch.from_numpy(obs.copy()),
+            torch.from_numpy(self.env.global_state()),
+            done,
+            b,
+            n,
+            self.device,
+            **{m: torch.as_tensor(metrics[m], dtype=torch.float32).reshape(b, 1) for m in METRICS},
         )
-
-    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
-        mask = reset_mask(tensordict)
-        if mask is None:  # a new batch of episodes: those of iteration_seed(seed, k)
-            obs = self.env.reset(seed=iteration_seed(self.run_seed, self.resets))
-            self.resets += 1
-        else:
-            obs = self.env.reset(mask)
-        return self._observation(obs)
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         action = tensordict.get((GROUP, "action")).detach().cpu().numpy().astype(np.float64)
@@ -165,10 +147,6 @@ class FormationEnv(EnvBase):
         out = self._observation(obs, done)
         out.set((GROUP, "reward"), torch.from_numpy((own * np.float32(self.reward_scale))[..., None]))
         return out
-
-    def _set_seed(self, seed: int | None) -> None:
-        """Restart the episodes from iteration_seed(seed, 0) at the next full reset."""
-        self.run_seed, self.resets = (0 if seed is None else int(seed)), 0
 
 
 def make_formation_env(
@@ -296,9 +274,6 @@ class _EnvState(Callback):
 def build_experiment(cfg: FormationBenchMARLConfig, run_dir: Path, callbacks=(), restore_file: Path | None = None):
     """The BenchMARL Experiment of `cfg`, writing under run_dir (which must exist); `restore_file`: a
     checkpoint it continues."""
-    from benchmarl.experiment import Experiment
-    from benchmarl.models.mlp import MlpConfig
-
     task = cfg.task()
     frames = cfg.frames_per_batch
     settings = {
@@ -317,26 +292,14 @@ def build_experiment(cfg: FormationBenchMARLConfig, run_dir: Path, callbacks=(),
     }
     algorithm = algorithm_config(cfg)
     actor = ATMModelConfig(atm=actor_config(cfg, task).to_dict())
-    critic = MlpConfig(num_cells=list(cfg.critic_cells), layer_class=torch.nn.Linear, activation_class=torch.nn.Tanh)
-    experiment = Experiment(
-        task=make_task(cfg),
-        algorithm_config=algorithm,
-        model_config=actor,
-        critic_model_config=critic,
-        seed=cfg.seed,
-        config=experiment_config(settings),
-        callbacks=[*callbacks, _EnvState()],
-    )
-    recorded = {k: v for k, v in settings.items() if k != "restore_file"}
-    return experiment, {"experiment": recorded, "algorithm": dict(algorithm.__dict__)}
+    return build(make_task(cfg), algorithm, actor, cfg.critic_cells, cfg.seed, settings, [*callbacks, _EnvState()])
 
 
 def trained_model(experiment) -> tuple[object, ATMModel]:
     """(a context that loads the trained actor weights, BenchMARL's ATMModel): the weights the optimizers
     update are the loss module's actor parameters, loaded into its actor network for the duration."""
-    loss = experiment.losses[GROUP]
-    model = next(m for m in loss.actor_network.modules() if isinstance(m, ATMModel))
-    return loss.actor_network_params.to_module(loss.actor_network), model
+    model = next(m for m in experiment.losses[GROUP].actor_network.modules() if isinstance(m, ATMModel))
+    return trained_weights(experiment), model
 
 
 def deterministic_actions(experiment, observation: torch.Tensor) -> torch.Tensor:
@@ -434,9 +397,7 @@ def train_formation(
     optimizers, replay buffer, counters, exploration noise, the env's batch counter and torch's RNG);
     the episodes in flight at the checkpoint are not restored, so a resumed run is not bit-identical
     to an uninterrupted one. A larger budget on resume trains further."""
-    out_dir = Path(out_dir)
-    policies_dir = Path(policies_dir) if policies_dir is not None else out_dir / "policies"
-    run_dir = out_dir / cfg.name
+    out_dir, policies_dir, run_dir = run_folders(out_dir, policies_dir, cfg.name)
     task = cfg.task()
     found = checkpoints(run_dir) if run_dir.is_dir() else []
     if found and not resume:
@@ -465,17 +426,10 @@ def train_formation(
     )
     rows = _resumed_rows(run_dir / "progress.csv", restored["total_frames"]) if resume else []
     progress = Progress(run_dir / "progress.csv", cfg.reward_scale, metrics=METRICS, rows=rows)
-    threads = torch.get_num_threads()
-    torch.set_num_threads(cfg.threads)
-    try:
+    with torch_threads(cfg.threads):
         experiment, settings = build_experiment(cfg, run_dir, callbacks=[progress], restore_file=checkpoint)
-        start = time.perf_counter()
-        with progress_bar(show_progress):
-            experiment.run()
-        wall = time.perf_counter() - start
+        wall = run_experiment(experiment, show_progress)
         actor = export_actor(experiment, cfg, task)
-    finally:
-        torch.set_num_threads(threads)
     frames = int(experiment.total_frames)
     policy_path = save_policy(
         actor,
@@ -514,11 +468,7 @@ def train_formation(
         "agent_steps_per_s": round(frames * cfg.formation / train_s, 1) if train_s else None,
         "threads": cfg.threads,
         "resumed": bool(resume),
-        "benchmarl_versions": versions,
-        "benchmarl_folder": display_path(Path(experiment.folder_name)),
-        "run_dir": display_path(run_dir),
-        "command": command,
-        "last_iteration": progress.rows[-1] if progress.rows else {},
+        **card_tail(experiment, run_dir, versions, command, progress),
     }
     if cfg.eval_episodes:
         card["validation"] = validation_figures(policy_path, cfg)

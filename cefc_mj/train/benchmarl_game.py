@@ -27,13 +27,12 @@ baselines"). Needs the optional `benchmarl` extra (BenchMARL 1.5.2, torchrl 0.11
 from __future__ import annotations
 
 import json
-import time
 from pathlib import Path
 
 import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase
-from torchrl.data import Categorical, Composite, Unbounded
+from torchrl.data import Categorical, Unbounded
 from torchrl.envs import EnvBase
 
 from cefc_mj.errors import CheckpointError, ConfigError
@@ -50,16 +49,23 @@ from cefc_mj.train.benchmarl_common import (
     GROUP,
     CEFCTaskBase,
     Progress,
+    SeededBatchEnv,
     benchmarl_versions,
+    build,
+    card_tail,
     done_spec,
-    experiment_config,
+    env_output,
     experiment_settings,
-    progress_bar,
-    reset_mask,
+    group_spec,
+    reward_spec,
+    run_experiment,
+    run_folders,
+    tanh_mlp,
+    torch_threads,
+    trained_weights,
 )
 from cefc_mj.train.benchmarl_config import DECISION_INTERVAL, BenchMARLConfig
-from cefc_mj.train.mappo import iteration_seed
-from cefc_mj.train.model_card import display_path, display_paths, write_model_card
+from cefc_mj.train.model_card import display_paths, write_model_card
 
 METHODS = {
     "masac": "BenchMARL MASAC (maximum-entropy MARL; the stand-in for the paper's HASAC), no communication",
@@ -77,10 +83,8 @@ def selector_observation(obs: np.ndarray, task: TaskConfig, obs_scale: float) ->
     return np.asarray(obs, dtype=np.float32)[..., :size] * np.float32(obs_scale)
 
 
-class HighLevelGameEnv(EnvBase):
+class HighLevelGameEnv(SeededBatchEnv):
     """The batched high-level game as a torchrl env (module docstring); batch_size [n_envs]."""
-
-    batch_locked = True
 
     def __init__(
         self,
@@ -111,57 +115,32 @@ class HighLevelGameEnv(EnvBase):
             raise ConfigError("the CEFC layout does not start with the selector's parts; o_i is not a prefix")
         b, n = n_envs, task.n_agents
         self.obs_dim, self.n_anchors = s_cfg.obs_dim, self.game.n_anchors
-        self.full_observation_spec = Composite(
-            {
-                GROUP: Composite(
-                    {"observation": Unbounded((b, n, self.obs_dim), dtype=torch.float32, device=device)},
-                    shape=(b, n),
-                ),
-                "state": Unbounded((b, self.game.state_size), dtype=torch.float32, device=device),
-            },
-            shape=(b,),
+        self.full_observation_spec = group_spec(
+            b,
+            n,
+            "observation",
+            Unbounded((b, n, self.obs_dim), dtype=torch.float32, device=device),
+            state=Unbounded((b, self.game.state_size), dtype=torch.float32, device=device),
         )
-        self.full_action_spec = Composite(
-            {
-                GROUP: Composite(
-                    {"action": Categorical(self.n_anchors, shape=(b, n), dtype=torch.int64, device=device)},
-                    shape=(b, n),
-                )
-            },
-            shape=(b,),
+        self.full_action_spec = group_spec(
+            b, n, "action", Categorical(self.n_anchors, shape=(b, n), dtype=torch.int64, device=device)
         )
-        self.full_reward_spec = Composite(
-            {GROUP: Composite({"reward": Unbounded((b, n, 1), dtype=torch.float32, device=device)}, shape=(b, n))},
-            shape=(b,),
-        )
+        self.full_reward_spec = reward_spec(b, n, device)
         self.full_done_spec = done_spec(b, device)
+
+    def batched_env(self) -> HierarchicalCEFCEnv:
+        return self.game
 
     def _observation(self, obs: np.ndarray, done: np.ndarray | None = None) -> TensorDict:
         b, n = self.batch_size[0], self.task.n_agents
-        done_t = torch.zeros((b, 1), dtype=torch.bool) if done is None else torch.as_tensor(done).reshape(b, 1)
-        return TensorDict(
-            {
-                GROUP: TensorDict(
-                    {"observation": torch.from_numpy(selector_observation(obs, self.task, self.obs_scale))},
-                    batch_size=(b, n),
-                ),
-                "state": torch.as_tensor(self.game.global_state(), dtype=torch.float32),
-                "done": done_t.clone(),
-                "terminated": done_t.clone(),
-                "truncated": torch.zeros((b, 1), dtype=torch.bool),
-            },
-            batch_size=(b,),
-            device=self.device,
+        return env_output(
+            torch.from_numpy(selector_observation(obs, self.task, self.obs_scale)),
+            torch.as_tensor(self.game.global_state(), dtype=torch.float32),
+            done,
+            b,
+            n,
+            self.device,
         )
-
-    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
-        mask = reset_mask(tensordict)
-        if mask is None:  # a new batch of episodes: the games of iteration_seed(seed, k)
-            obs = self.game.reset(seed=iteration_seed(self.run_seed, self.resets))
-            self.resets += 1
-        else:
-            obs = self.game.reset(mask)
-        return self._observation(obs)
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         action = tensordict.get((GROUP, "action")).cpu().numpy().astype(np.int64)
@@ -174,10 +153,6 @@ class HighLevelGameEnv(EnvBase):
         )
         out.set((GROUP, "reward"), r.clone())
         return out
-
-    def _set_seed(self, seed: int | None) -> None:
-        """Restart the games from iteration_seed(seed, 0) at the next full reset."""
-        self.run_seed, self.resets = (0 if seed is None else int(seed)), 0
 
 
 def load_game(cfg: BenchMARLConfig) -> tuple[TaskConfig, LowLevel, object, dict]:
@@ -234,8 +209,6 @@ def make_task(cfg: BenchMARLConfig) -> CEFCGameTask:
 def build_experiment(cfg: BenchMARLConfig, run_dir: Path, callbacks=()):
     """The BenchMARL Experiment of `cfg`, writing under run_dir (which must exist)."""
     from benchmarl.algorithms import MappoConfig, MasacConfig
-    from benchmarl.experiment import Experiment
-    from benchmarl.models.mlp import MlpConfig
 
     frames = cfg.frames_per_batch
     settings = {
@@ -246,27 +219,15 @@ def build_experiment(cfg: BenchMARLConfig, run_dir: Path, callbacks=()):
         "off_policy_train_batch_size": cfg.masac_batch,
         "off_policy_memory_size": max(cfg.max_frames, frames),
     }
-    exp = experiment_config(settings)
     algorithm = (MasacConfig if cfg.algorithm == "masac" else MappoConfig).get_from_yaml()
-    actor = MlpConfig(num_cells=[cfg.hidden] * 3, layer_class=torch.nn.Linear, activation_class=torch.nn.Tanh)
-    critic = MlpConfig(num_cells=list(cfg.critic_cells), layer_class=torch.nn.Linear, activation_class=torch.nn.Tanh)
-    experiment = Experiment(
-        task=make_task(cfg),
-        algorithm_config=algorithm,
-        model_config=actor,
-        critic_model_config=critic,
-        seed=cfg.seed,
-        config=exp,
-        callbacks=list(callbacks),
-    )
-    return experiment, {"experiment": settings, "algorithm": dict(algorithm.__dict__)}
+    actor = tanh_mlp([cfg.hidden] * 3)
+    return build(make_task(cfg), algorithm, actor, cfg.critic_cells, cfg.seed, settings, callbacks)
 
 
 def _trained_actor(experiment):
     """(a context that loads the trained actor weights, the actor's Mlp model): the weights the optimizers
     update are the loss module's actor parameters, loaded into its actor network for the duration."""
-    loss = experiment.losses[GROUP]
-    return loss.actor_network_params.to_module(loss.actor_network), loss.actor_network.module[0]
+    return trained_weights(experiment), experiment.losses[GROUP].actor_network.module[0]
 
 
 def _actor_mlp(experiment) -> torch.nn.Module:
@@ -333,9 +294,7 @@ def train_benchmarl(
     BenchMARL writes its own folder (csv logs, config.pkl) inside <out_dir>/<name>/, beside our
     config.json, progress.csv and the final BenchMARL actor/critic weights (benchmarl_losses.pt). Runs
     are not resumable. Runs on the CPU with cfg.threads torch threads."""
-    out_dir = Path(out_dir)
-    policies_dir = Path(policies_dir) if policies_dir is not None else out_dir / "policies"
-    run_dir = out_dir / cfg.name
+    out_dir, policies_dir, run_dir = run_folders(out_dir, policies_dir, cfg.name)
     task, low_level, adversary_policy, adversary_record = load_game(cfg)  # checked before anything is written
     run_dir.mkdir(parents=True, exist_ok=True)
     policies_dir.mkdir(parents=True, exist_ok=True)
@@ -357,16 +316,9 @@ def train_benchmarl(
         + "\n",
     )
     progress = Progress(run_dir / "progress.csv", cfg.reward_scale)
-    threads = torch.get_num_threads()
-    torch.set_num_threads(cfg.threads)
-    try:
+    with torch_threads(cfg.threads):
         experiment, settings = build_experiment(cfg, run_dir, callbacks=[progress])
-        start = time.perf_counter()
-        with progress_bar(show_progress):
-            experiment.run()
-        wall = time.perf_counter() - start
-    finally:
-        torch.set_num_threads(threads)
+        wall = run_experiment(experiment, show_progress)
     torch.save({group: loss.state_dict() for group, loss in experiment.losses.items()}, run_dir / "benchmarl_losses.pt")
     policy = export_actor(experiment, cfg, task)
     policy_path = save_highlevel_policy(
@@ -411,11 +363,7 @@ def train_benchmarl(
         "decisions": int(experiment.total_frames) * task.n_agents,
         "train_wall_clock_s": round(wall, 1),
         "s_per_episode": round(wall / episodes, 3) if episodes else None,
-        "benchmarl_versions": versions,
-        "benchmarl_folder": display_path(Path(experiment.folder_name)),
-        "run_dir": display_path(run_dir),
-        "command": command,
-        "last_iteration": progress.rows[-1] if progress.rows else {},
+        **card_tail(experiment, run_dir, versions, command, progress),
     }
     if cfg.eval_episodes:
         card["evaluation"] = {
