@@ -17,6 +17,7 @@ import pytest
 
 from cefc_mj.cli import train_benchmarl_formation as cli_formation
 from cefc_mj.cli.train import main
+from cefc_mj.errors import CheckpointError
 from cefc_mj.train.benchmarl_config import FORMATION_EXTRA, FormationBenchMARLConfig, parse_frame_budget
 
 TINY = {"n_envs": 2, "episodes_per_iteration": 1, "budget_frames": 400, "eval_episodes": 2, "checkpoint_every": 1}
@@ -263,3 +264,26 @@ def test_a_run_resumes_from_its_checkpoint(formation, tmp_path, capsys):
     with (out / "benchmarl_maddpg_c6" / "progress.csv").open() as f:
         rows = list(csv.DictReader(f))
     assert [int(r["frames"]) for r in rows] == [200, 400, 600] and [r["iteration"] for r in rows] == ["1", "2", "3"]
+
+
+def test_a_damaged_benchmarl_checkpoint_is_skipped_and_none_left_is_one_line(formation, tmp_path):
+    """--resume reads BenchMARL's checkpoints through the project's one weights-only reader: a torn or
+    foreign newest checkpoint is passed over, and with nothing readable left the error is one line."""
+    import fractions
+
+    import torch
+
+    folder = tmp_path / "run" / "benchmarl" / "checkpoints"
+    folder.mkdir(parents=True)
+    torch.save({"state": {"total_frames": 400}}, folder / "checkpoint_400.pt")
+    whole = (folder / "checkpoint_400.pt").read_bytes()
+    (folder / "checkpoint_600.pt").write_bytes(whole[: len(whole) // 2])  # torn while being written
+    # newest: a pickle naming a global the weights-only unpickler refuses (never run, passed over)
+    torch.save({"state": {"total_frames": 800, "code": fractions.Fraction(1, 3)}}, folder / "checkpoint_800.pt")
+    path, state = formation.readable_checkpoint(tmp_path / "run")
+    assert path.name == "checkpoint_400.pt" and state == {"total_frames": 400}
+    (folder / "checkpoint_400.pt").write_text("not a checkpoint\n")
+    torch.save({"weights": torch.zeros(2)}, folder / "checkpoint_200.pt")  # no "state": another file
+    with pytest.raises(CheckpointError) as error:
+        formation.readable_checkpoint(tmp_path / "run")
+    assert "\n" not in str(error.value) and "no readable BenchMARL checkpoint" in str(error.value)

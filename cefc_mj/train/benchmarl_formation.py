@@ -42,7 +42,7 @@ from cefc_mj.env import BatchedCEFCEnv
 from cefc_mj.errors import CheckpointError, ConfigError
 from cefc_mj.fileio import write_atomic
 from cefc_mj.nn.atm import ATMActor, ATMConfig
-from cefc_mj.nn.policy_io import save_policy
+from cefc_mj.nn.policy_io import safe_torch_load, save_policy
 from cefc_mj.seeds import FORMATION_VALIDATION_SEED
 from cefc_mj.task.config import TaskConfig
 from cefc_mj.train import run_state
@@ -352,8 +352,8 @@ def readable_checkpoint(run_dir: Path) -> tuple[Path, dict]:
     killed while writing one leaves it torn; the one before it (BenchMARL keeps two) is used then."""
     for path in checkpoints(run_dir):
         try:
-            state = torch.load(path, map_location="cpu", weights_only=False)["state"]
-        except Exception:  # a torn file: any unpickling error  # noqa: BLE001
+            state = safe_torch_load(path)["state"]
+        except (CheckpointError, KeyError):  # a torn file (BenchMARL writes in place) or not its checkpoint
             continue
         return path, dict(state)
     raise CheckpointError(f"--resume: no readable BenchMARL checkpoint in {run_dir}")
