@@ -135,12 +135,14 @@ def add_parser(sub) -> None:
     )
     p.add_argument(
         "--schedule",
-        choices=("short", "paper"),  # train.highlevel_config.SCHEDULES
+        choices=("short", "paper", "paper-scaled"),  # train.highlevel_config.SCHEDULES
         default=None,
         help="the reading of the paper's training budget: short (default, the shipped runs': 75 iterations "
-        "of 20 envs, ConsMAC 200 steps after each; flags may change its numbers) or paper (1500 iterations of "
+        "of 20 envs, ConsMAC 200 steps after each; flags may change its numbers), paper (1500 iterations of "
         "20 envs, 1000 of them pre-training, ConsMAC 5000 steps of batch 2048 after every 20; those numbers are "
-        "fixed, so --budget, --envs, --pretrain-share and the --consmac-* flags must be left out or match)",
+        "fixed, so --budget, --envs, --pretrain-share and the --consmac-* flags must be left out or match) or "
+        "paper-scaled (paper's numbers shrunk to --budget Nit, required: N a multiple of 3 below 1500, the "
+        "first 2N/3 pre-training; a --resume keeps N)",
     )
     add_common_args(p, "highlevel", "75it")
     p.set_defaults(budget=None)  # the schedule's iterations (parse_budget)

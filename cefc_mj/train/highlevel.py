@@ -60,7 +60,7 @@ from cefc_mj.nn.highlevel_policy import (
 )
 from cefc_mj.nn.policy_io import atomic_torch_save
 from cefc_mj.train import run_state
-from cefc_mj.train.highlevel_config import HighLevelConfig
+from cefc_mj.train.highlevel_config import HighLevelConfig, check_resume_schedule
 from cefc_mj.train.highlevel_export import export_policy
 from cefc_mj.train.highlevel_trainer import HighLevelTrainer
 from cefc_mj.train.logger import RunLogger
@@ -115,6 +115,7 @@ def train_highlevel(
     saved = None
     if run_state.run_state_path(run_dir, resume) is not None:
         saved = read_state(state_path)
+        check_resume_schedule(saved["config"], cfg, state_path)
         run_state.check_same_run(saved["config"], cfg, state_path, free=("budget", "checkpoint_every", "eval_episodes"))
         if saved["low_level"]["finetune"] != display_paths(low_levels[1].describe()):
             raise ConfigError(

@@ -1,10 +1,11 @@
 """The high level's training config (`HighLevelConfig`, Algorithm 2's settings), the two readings of
-the paper's budget (`SCHEDULES`) and the `cefc-train highlevel` flags that fill it
-(`config_from_args`). The run is `cefc_mj.train.highlevel`."""
+the paper's budget (`SCHEDULES`, and the paper's scaled to fewer updates) and the `cefc-train
+highlevel` flags that fill it (`config_from_args`). The run is `cefc_mj.train.highlevel`."""
 
 from __future__ import annotations
 
 import copy
+import functools
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -42,6 +43,14 @@ SCHEDULES = {
         "consmac_steps": 5000,
         "consmac_batch": 2048,
     },
+    "paper-scaled": {
+        "iterations": None,
+        "n_envs": 20,
+        "pretrain_share": 2 / 3,
+        "consmac_every": 20,
+        "consmac_steps": 5000,
+        "consmac_batch": 2048,
+    },
 }
 """Two readings of the paper's training budget (Sec. V-A: the high level "is updated for 1,000
 episodes during pre-training and 500 episodes during fine-tuning", data "collected in 20 threads",
@@ -51,7 +60,15 @@ in each of the 20 envs followed by one update, as in the on-policy MAPPO code ba
 follows, so 1,500 iterations of 20 envs (1,000 pre-training), ConsMAC 5,000 steps after every 20
 iterations. "short": the project's first reading, 1,500 games in all (75 iterations of 20 envs)
 with 200 ConsMAC steps after each iteration; the shipped high levels were trained so. Under "paper"
-every number here is fixed; "short" only names the defaults, which flags may change."""
+every number here is fixed; "short" only names the defaults, which flags may change. "paper-scaled"
+is "paper" shrunk to N < 1,500 iterations (`--budget Nit`, N a multiple of 3; the budget ladder's
+shorter rungs) in its proportions: the first 2N/3 pre-training, ConsMAC 5,000 steps of 2,048 after
+every 20 iterations (so 250 steps per iteration, as in "paper"); every number but N is fixed. It is
+not the first N iterations of a "paper" run: the switch to fine-tuning comes at 2N/3, not at 1,000."""
+PAPER_UPDATES = SCHEDULES["paper"]["iterations"]
+"""The paper's 1,500 updates: "paper-scaled" takes fewer."""
+PAPER_SCALED_STEP = 3
+"""A "paper-scaled" N is a multiple of this, so its 2N/3 pre-training iterations are whole."""
 MAX_REPLAY = 1_000_000
 """Most ConsMAC replay tuples (about 2.5 GB)."""
 
@@ -144,8 +161,14 @@ class HighLevelConfig(BudgetPPODict):
     """Which reading of the paper's budget the run follows (SCHEDULES): "short" (the default and the
     shipped runs': its numbers are the other fields' defaults, free to change) or "paper" (1,500
     iterations of 20 envs, 1,000 of them pre-training, ConsMAC 5,000 steps of 2,048 after every 20;
-    those fields must then hold exactly the paper's values). Runs saved before this field existed
-    load as "short"."""
+    those fields must then hold exactly the paper's values) or "paper-scaled" (the paper's shrunk to
+    `paper_updates` iterations in its proportions). Runs saved before this field existed load as
+    "short"."""
+    paper_updates: int | None = None
+    """Under schedule "paper-scaled" only: the N iterations the paper's schedule is shrunk to (a multiple
+    of 3 from 3 to 1,497; the budget is exactly N iterations; the 1,500 themselves are schedule "paper").
+    Part of the run's identity: --resume keeps it (a longer N moves the switch to fine-tuning from 2N/3,
+    so a run is never extended to another N). None under the other schedules."""
 
     def __post_init__(self) -> None:
         if isinstance(self.pretrain_share, int) and not isinstance(self.pretrain_share, bool):
@@ -267,14 +290,21 @@ class HighLevelConfig(BudgetPPODict):
         self.check_schedule()
 
     def check_schedule(self) -> None:
-        """Under schedule "paper", every number of SCHEDULES["paper"] must be the config's."""
+        """Under schedule "paper" ("paper-scaled"), every number of SCHEDULES["paper"] must be the
+        config's (but the iterations, `paper_updates`)."""
         if self.schedule not in SCHEDULES:
             _fail("schedule", self.schedule, f"must be one of {', '.join(SCHEDULES)}")
-        if self.schedule != "paper":
-            return
+        if self.schedule != "paper-scaled":
+            if self.paper_updates is not None:
+                _fail("paper_updates", self.paper_updates, "is for schedule 'paper-scaled' only (None otherwise)")
+            if self.schedule == "short":
+                return
+        else:
+            _check_paper_updates(self.paper_updates)
         paper = SCHEDULES["paper"]
+        iterations = self.paper_updates or paper["iterations"]
         held = {
-            "budget": (self.budget, Budget(iterations=paper["iterations"])),
+            "budget": (self.budget, Budget(iterations=iterations)),
             "n_envs": (self.ppo.n_envs, paper["n_envs"]),
             "episodes_per_iteration": (self.ppo.episodes_per_iteration, 1),
             **{
@@ -288,12 +318,39 @@ class HighLevelConfig(BudgetPPODict):
             if value != expected:
                 if name == "budget":  # as --budget takes it
                     value = "".join(f"{v:g}{unit}" for v, unit in ((value.iterations, "it"), (value.seconds, "s")) if v)
-                    expected = f"{paper['iterations']} iterations"
+                    expected = f"{iterations} iterations"
                 _fail(
                     name,
                     value,
-                    f"schedule 'paper' fixes it to {expected} (paper Sec. V-A); leave it out or use schedule 'short'",
+                    f"schedule {self.schedule!r} fixes it to {expected} (paper Sec. V-A); leave it out or use "
+                    "schedule 'short'",
                 )
+
+
+def _check_paper_updates(n: object) -> None:
+    """N of schedule "paper-scaled": a multiple of PAPER_SCALED_STEP below the paper's 1,500."""
+    if not isinstance(n, int) or isinstance(n, bool) or not 0 < n < PAPER_UPDATES or n % PAPER_SCALED_STEP:
+        _fail(
+            "paper_updates",
+            n,
+            f"schedule 'paper-scaled' needs N iterations (--budget Nit), N a multiple of {PAPER_SCALED_STEP} "
+            f"from {PAPER_SCALED_STEP} to {PAPER_UPDATES - PAPER_SCALED_STEP} (the paper's {PAPER_UPDATES} "
+            "are schedule 'paper')",
+        )
+
+
+def check_resume_schedule(saved: dict, cfg: HighLevelConfig, path: Path) -> None:
+    """A resumed "paper-scaled" run keeps its N: ConfigError naming both where `cfg` asks for another
+    (continuing to a longer N would fly the navigation-only low level again between the old 2N/3 and
+    the new one). Other differences are `run_state.check_same_run`'s to report."""
+    if saved.get("schedule") != "paper-scaled" or cfg.schedule != "paper-scaled":
+        return
+    if saved.get("paper_updates") != cfg.paper_updates:
+        raise ConfigError(
+            f"--resume: {path} is the paper's schedule scaled to {saved.get('paper_updates')} iterations, not "
+            f"{cfg.paper_updates} (its switch to fine-tuning came at 2N/3, so it cannot be extended); train "
+            f"{cfg.paper_updates} iterations in another --out"
+        )
 
 
 # ---------------------------------------------------------------------------- command line
@@ -320,6 +377,7 @@ _FLAG_OF_FIELD = {
     "entropy_coef": "--entropy",
     "schedule": "--schedule",
     "budget": "--budget",
+    "paper_updates": "--budget",
 }
 """Config fields set by `cefc-train highlevel` flags: their errors name the flag the user typed."""
 CLI_FIELDS = (
@@ -344,14 +402,29 @@ CLI_PPO_FIELDS = ("n_envs", "epochs", "minibatches", "lr", "update_threads", "en
 
 def config_from_args(args, budget: Budget | None) -> HighLevelConfig:
     """The HighLevelConfig of `cefc-train highlevel` arguments (flags left out keep the config's
-    defaults, and take the numbers of `--schedule paper` under that schedule; budget None: the
-    schedule's iterations); a bad value raises ConfigError naming the flag."""
-    schedule = SCHEDULES[getattr(args, "schedule", None) or "short"]
+    defaults, and take the numbers of `--schedule paper` under that schedule and "paper-scaled";
+    budget None: the schedule's iterations, which "paper-scaled" does not have: its --budget Nit is
+    required); a bad value raises ConfigError naming the flag."""
+    name = getattr(args, "schedule", None) or "short"
+    schedule = SCHEDULES[name]
+    make = HighLevelConfig
+    if name == "paper-scaled":
+        if budget is None or budget.seconds is not None or budget.iterations is None:
+            given = (
+                "left out"
+                if budget is None
+                else "".join(f"{v:g}{unit}" for v, unit in ((budget.iterations, "it"), (budget.seconds, "s")) if v)
+            )
+            raise ConfigError(
+                f"--budget {given}: schedule 'paper-scaled' needs --budget Nit, N iterations (a multiple of "
+                f"{PAPER_SCALED_STEP} from {PAPER_SCALED_STEP} to {PAPER_UPDATES - PAPER_SCALED_STEP})"
+            )
+        make = functools.partial(HighLevelConfig, paper_updates=budget.iterations)
     if budget is None:
         budget = Budget(iterations=schedule["iterations"])
-    if getattr(args, "schedule", None) == "paper":
+    if name != "short":
         args = copy.copy(args)
-        for name in ("consmac_every", "consmac_steps", "consmac_batch", "n_envs"):
-            if getattr(args, name, None) is None:
-                setattr(args, name, schedule[name])
-    return config_from_flags(HighLevelConfig, args, budget, CLI_FIELDS, CLI_PPO_FIELDS, _paper_ppo(), _FLAG_OF_FIELD)
+        for field_name in ("consmac_every", "consmac_steps", "consmac_batch", "n_envs"):
+            if getattr(args, field_name, None) is None:
+                setattr(args, field_name, schedule[field_name])
+    return config_from_flags(make, args, budget, CLI_FIELDS, CLI_PPO_FIELDS, _paper_ppo(), _FLAG_OF_FIELD)

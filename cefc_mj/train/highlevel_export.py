@@ -119,7 +119,13 @@ def export_policy(
         "low_level": low_level_record,
         "adversary": trainer.adversary_record,
         "phases": phases[:1] if wo_ft else phases,
-        "schedule": {"name": cfg.schedule, **SCHEDULES[cfg.schedule], "fixed": cfg.schedule == "paper"},
+        "schedule": {
+            "name": cfg.schedule,
+            **SCHEDULES[cfg.schedule],
+            **({"iterations": cfg.paper_updates} if cfg.schedule == "paper-scaled" else {}),
+            "paper_updates": cfg.paper_updates,
+            "fixed": cfg.schedule != "short",
+        },
         "consmac_training": None
         if not cfg.supervised
         else {
