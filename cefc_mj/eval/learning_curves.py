@@ -128,8 +128,8 @@ def _smooth(x: np.ndarray, k: int) -> np.ndarray:
 
 
 def group_curves(runs: list[Run], smooth: int) -> dict[str, dict]:
-    """{group: {"seeds", "episodes", "phase_switch", metric: {"mean", "low", "high"}}} over the
-    iterations every seed of the group reached."""
+    """{group: {"seeds", "runs", "episodes", "iterations", "phase_switch" (in episodes), metric: {"mean",
+    "low", "high", "final"}}} over the iterations every seed of the group reached."""
     groups: dict[str, list[Run]] = {}
     for run in runs:
         groups.setdefault(run.group, []).append(run)
@@ -142,6 +142,7 @@ def group_curves(runs: list[Run], smooth: int) -> dict[str, dict]:
             "seeds": [r.seed for r in members],
             "runs": [r.folder.name for r in members],
             "episodes": first["episodes_total"][:length],
+            "iterations": first["iteration"][:length],
             "phase_switch": None,
         }
         phase = first.get("phase", np.zeros(0))[:length]
