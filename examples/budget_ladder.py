@@ -243,7 +243,7 @@ def plot_ladder(curves: dict[tuple[str, int], dict], path: Path, title: str) -> 
         ax.set_xscale("log")
         ax.set_xlabel("updates (iterations of 20 envs; log scale)")
         ax.set_ylabel(label)
-        ax.grid(alpha=0.3, which="both")
+        ax.grid(alpha=0.3)
     axes[0].legend(fontsize=7, loc="best")
     fig.suptitle(title, fontsize=10)
     buf = io.BytesIO()
@@ -271,7 +271,10 @@ def report(runs: list[LadderRun], figure: Path, smooth: int) -> list[str]:
             f"{name} {sum(v) / len(v):.4g} (seeds {', '.join(f'{x:.4g}' for x in v)})"
             for name, v in (("E", finals["metric/E"]), ("R_H", finals["episode_return"]))
         )
-        lines.append(f"  {method} at {rung} updates, last iteration {int(c['iterations'][-1])}: {cells}")
+        lines.append(
+            f"  {method} at {rung} updates, last iteration {int(c['iterations'][-1])} (mean of the last {smooth} "
+            f"updates; E in steps): {cells}"
+        )
     return lines + [f"  {note}" for note in notes]
 
 

@@ -147,6 +147,18 @@ def test_smoke_ladder_trains_resumably_and_reports(tmp_path):
     assert all(line.startswith("done") and "--resume" in line for line in again.stdout.splitlines()[:-1])
     nothing = subprocess.run(run, capture_output=True, text=True, timeout=120)  # every run done: none trained again
     assert nothing.returncode == 0 and "0 of 4 runs to train" in nothing.stdout
+    longer = subprocess.run(  # a finished 3-update run is not continued to 6: its switch came at 2
+        [
+            str(Path(sys.executable).with_name("cefc-train")),
+            *("highlevel --variant mappo --seed 300 --schedule paper-scaled --budget 6it --no-progress".split()),
+            *("--out", str(out / "u3"), "--policies-dir", str(tmp_path / "other"), "--resume"),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert longer.returncode == 2 and len(longer.stderr.strip().splitlines()) == 1, longer.stderr
+    assert "scaled to 3 iterations, not 6" in longer.stderr and not (tmp_path / "other").exists()
     drawn = subprocess.run(run + ["--report", "--smooth", "1"], capture_output=True, text=True, timeout=300)
     assert drawn.returncode == 0, drawn.stderr
     assert (out / "ladder.png").is_file() and "CI-HRL at 6 updates, last iteration 6" in drawn.stdout
