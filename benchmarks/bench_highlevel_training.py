@@ -11,8 +11,9 @@ and the new one alternating (benchmarks/bench_consmac.py's `StepPair`). From the
     iteration   = rollout + PPO update + (ConsMAC steps per round / rounds' spacing) x step
     whole run   = iterations x (rollout + update) + rounds x steps per round x step
 
-at the short schedule (75 iterations, 200 steps after each) and the paper's (1,500 iterations,
-5,000 steps after every 20; `cefc-train highlevel --schedule`), in core-hours.
+at the short schedule (75 iterations, 200 steps after each), the paper's (1,500 iterations,
+5,000 steps after every 20; `cefc-train highlevel --schedule`) and the paper's shrunk to 75 and 300
+iterations (paper-scaled, the budget ladder's shorter rungs), in core-hours.
 
     .venv/bin/python benchmarks/bench_highlevel_training.py
     .venv/bin/python benchmarks/bench_highlevel_training.py --iterations 3 --rounds 7
@@ -71,6 +72,22 @@ def run_cost(schedule: dict, pretrain_s: float, finetune_s: float, step_s: float
     return pretrain * pretrain_s + (iterations - pretrain) * finetune_s + rounds * schedule["consmac_steps"] * step_s
 
 
+PAPER_SCALED_SHOWN = (75, 300)
+"""Iterations at which the paper's schedule shrunk in its proportions ("paper-scaled", N from --budget)
+is costed: the budget ladder's shorter rungs (docs/research/budget_ladder.md)."""
+
+
+def schedule_costs() -> list[tuple[str, dict]]:
+    """(name, numbers) of every schedule to cost; "paper-scaled" once per PAPER_SCALED_SHOWN."""
+    out = []
+    for name, schedule in SCHEDULES.items():
+        if schedule["iterations"] is None:
+            out += [(f"{name} {n}", {**schedule, "iterations": n}) for n in PAPER_SCALED_SHOWN]
+        else:
+            out.append((name, schedule))
+    return out
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--iterations", type=int, default=2, help="timed iterations per phase (default 2)")
@@ -107,14 +124,14 @@ def main() -> None:
                 else ""
             )
         )
-        for name, schedule in SCHEDULES.items():
+        for name, schedule in schedule_costs():
             pre, fine = med["rollout_pretrain"] + med["update"], med["rollout_finetune"] + med["update"]
             per_it = {
                 k: (pre + fine) / 2 + schedule["consmac_steps"] / schedule["consmac_every"] * s
                 for k, s in steps.items()
             }
             cost = {k: run_cost(schedule, pre, fine, s) / 3600 for k, s in steps.items()}
-            line = f"  {name:5s} schedule: iteration {per_it['new']:.2f} s"
+            line = f"  {name} schedule: iteration {per_it['new']:.2f} s"
             if trainer.replay is not None:
                 line += f" (old {per_it['old']:.2f} s, {per_it['old'] / per_it['new']:.2f}x)"
             line += f"; whole run {cost['new']:.2f} core-hours"

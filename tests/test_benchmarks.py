@@ -47,6 +47,7 @@ CASES = {
             r"consmac-a: .*ConsMAC step old [\d.]+ ms, new [\d.]+ ms \([\d.]+x\)",
             r"paper schedule: iteration [\d.]+ s \(old [\d.]+ s, [\d.]+x\); whole run [\d.]+ core-hours",
             r"(?s)mappo: .*paper schedule: iteration [\d.]+ s; whole run [\d.]+ core-hours",
+            r"paper-scaled 300 schedule: iteration [\d.]+ s \(old [\d.]+ s, [\d.]+x\); whole run [\d.]+ core-hours",
         ],
     ),
     "rerun": (["bench_rerun.py", "--smoke"], [r"overhead vs a \d+ s episode at +\d+x real time .*: +[\d.]+ %"]),
