@@ -358,10 +358,10 @@ class FormationBenchMARLConfig(_BenchMARLRunConfig):
     Steps 2 and 3). Training always starts from random weights: there is no Step 3 merge."""
     seed: int = 0
     """BenchMARL's seed (networks, sampling) and the seed of every batch of training episodes."""
-    budget_frames: int = 1_200_000
-    """Training frames (env-steps, each c agent-steps), a multiple of frames_per_batch. 1.2M is the
-    proposed budget of Table III's MADDPG runs: 200 iterations, 200,000 gradient steps, 1.3-1.7
-    core-hours (docs/formation_benchmarl.md, "Budget proposal")."""
+    budget_frames: int = 600_000
+    """Training frames (env-steps, each c agent-steps), a multiple of frames_per_batch. 600k is the
+    budget of Table III's MADDPG runs: 100 iterations, 100,000 gradient steps, 0.6-0.8 core-hours
+    (docs/formation_benchmarl.md, "Budget")."""
     n_envs: int = 10
     """Envs stepped as one batch (BenchMARL's default)."""
     episodes_per_iteration: int = 6
@@ -386,7 +386,7 @@ class FormationBenchMARLConfig(_BenchMARLRunConfig):
     exploration_anneal_frames: int = 400_000
     """maddpg: frames over which its Gaussian exploration noise falls from sigma 0.8 to 0.01 m/s^2
     (BenchMARL's defaults). BenchMARL's own rule is a third of the budget; this is that third of the
-    proposed 1.2M frames, fixed so that a run trained in legs (--resume with a larger budget) follows
+    first proposed budget, 1.2M frames, fixed so that a run trained in legs (--resume with a larger budget) follows
     the schedule of one trained at once."""
     epochs: int = 45
     """ippo, mappo: passes over each iteration's frames (BenchMARL's on_policy_n_minibatch_iters)."""
