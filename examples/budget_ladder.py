@@ -4,6 +4,7 @@
     python examples/budget_ladder.py                     # train the runs not yet done, one after another
     python examples/budget_ladder.py --jobs 2            # two at a time (one core each)
     python examples/budget_ladder.py --report            # E and R_H against updates -> runs/ladder/ladder.png
+    python examples/budget_ladder.py --keep              # copy every run's progress into policies/ladder/ (tracked)
 
 CI-HRL (`--variant consmac-a`) and MAPPO+AT-M (`--variant mappo`) at 75, 300 and 1,500 updates of 20
 envs, training seeds 300, 301 and 302, against the pre-registered Table V's adversary over the default
@@ -15,6 +16,14 @@ Rung N's runs live in <out>/u<N>/ (their policies in <out>/u<N>/policies/, each 
 <out>/logs/). A run is done when its policy file is there; a run with a saved state but no policy
 (an interrupted session) is continued with --resume. Each run is claimed by a lock file, so two
 drivers never train the same run. The plan is fixed here; nothing chooses or drops a run by its results.
+
+The ladder outlives a session through a tracked copy, `policies/ladder/` (`--kept`): `--keep` copies
+each finished run's policy files and logs there, and each unfinished run's logs with its resumable
+state when that state leaves out the ConsMAC replay's rows (about 3 MB instead of 125 MB: a state
+saved while the replay is refilled before its next read, `HighLevelTrainer.replay_refilled_before_read`);
+a run whose newest state still holds the rows keeps its earlier copy. Training and --report start by
+copying back into <out> whatever the kept copy holds beyond it, so a fresh checkout continues
+where the kept copy stands.
 """
 
 from __future__ import annotations
@@ -36,6 +45,9 @@ from cefc_mj.eval.requests import check_output
 
 ROOT = Path(__file__).resolve().parent.parent
 OUT = Path("runs/ladder")
+KEPT = Path("policies/ladder")
+"""The tracked copy of the ladder's progress (--keep): u<N>/<policy files>, u<N>/runs/<stem>/ (logs, state)."""
+RUN_LOGS = ("config.json", "progress.csv")
 RUNGS = (75, 300, 1500)
 """Updates (iterations of 20 envs) of each rung; 1,500 is the paper's schedule."""
 SEEDS = (300, 301, 302)
@@ -92,6 +104,13 @@ class LadderRun:
 
     def done(self) -> bool:
         return self.policy.is_file()
+
+    def policy_files(self, folder: Path) -> list[Path]:
+        """The run's exported files in a policies folder: policy and card, and its wo-FT pair."""
+        return sorted(p for name in (self.stem, f"{self.stem}_wo_ft") for p in folder.glob(f"{name}.*"))
+
+    def kept_dir(self, kept: Path) -> Path:
+        return kept / f"u{self.rung}" / "runs" / self.stem
 
     def command(self, smoke: bool = False) -> list[str]:
         """The cefc-train command (run from the repository root), with --resume when the run has a saved state."""
@@ -189,6 +208,81 @@ def train(run: LadderRun, smoke: bool) -> int:
         return code
 
 
+# ---------------------------------------------------------------------------- the tracked copy
+def saved_trainer(state: Path) -> dict | None:
+    """The trainer part of a run's saved state, None when there is none."""
+    if not state.is_file():
+        return None
+    from cefc_mj.train.highlevel import STATE_FORMAT  # torch: only when a state is read
+    from cefc_mj.train.run_state import read_state
+
+    return read_state(state, STATE_FORMAT, "high-level training state")["trainer"]
+
+
+def saved_iteration(state: Path) -> int:
+    """The iteration a run's saved state stands at (-1 when there is none)."""
+    trainer = saved_trainer(state)
+    return -1 if trainer is None else int(trainer["counters"]["iteration"])
+
+
+def state_without_rows(state: Path) -> bool:
+    """Whether a saved state holds no ConsMAC replay rows (MAPPO+AT-M has no replay)."""
+    replay = saved_trainer(state)["replay"]
+    return replay is None or int(replay["size"]) == 0
+
+
+def copy_files(files: list[Path], folder: Path) -> None:
+    from cefc_mj.fileio import write_atomic
+
+    folder.mkdir(parents=True, exist_ok=True)
+    for f in files:
+        write_atomic(folder / f.name, f.read_bytes())
+
+
+def keep(runs: list[LadderRun], kept: Path) -> list[str]:
+    """Copy each run's progress into the tracked copy; the lines to print."""
+    lines = []
+    for run in runs:
+        target = run.kept_dir(kept)
+        if run.done():
+            copy_files(run.policy_files(run.policy.parent), kept / f"u{run.rung}")
+            copy_files([run.run_dir / n for n in RUN_LOGS if (run.run_dir / n).is_file()], target)
+            (target / "state.pt").unlink(missing_ok=True)  # done: the final state (with its rows) is not kept
+            lines.append(f"kept {run.stem} (u{run.rung}): done")
+        elif (run.run_dir / "state.pt").is_file():
+            state = run.run_dir / "state.pt"
+            local, there = saved_iteration(state), saved_iteration(target / "state.pt")
+            if local <= there:
+                lines.append(f"kept {run.stem} (u{run.rung}): unchanged at iteration {there}")
+            elif state_without_rows(state):
+                copy_files([state, *(run.run_dir / n for n in RUN_LOGS if (run.run_dir / n).is_file())], target)
+                lines.append(f"kept {run.stem} (u{run.rung}): iteration {local}")
+            else:
+                lines.append(
+                    f"kept {run.stem} (u{run.rung}): its state at iteration {local} holds the replay's rows; "
+                    f"the copy stays at iteration {there} (run --keep again after the next checkpoint)"
+                )
+    return lines
+
+
+def restore(runs: list[LadderRun], kept: Path) -> list[str]:
+    """Copy back from the tracked copy what it holds beyond <out>; the lines to print."""
+    lines = []
+    for run in runs:
+        if run.done():
+            continue
+        source = run.kept_dir(kept)
+        files = run.policy_files(kept / f"u{run.rung}")
+        if any(f.name == run.policy.name for f in files):
+            copy_files(files, run.policy.parent)
+            copy_files([source / n for n in RUN_LOGS if (source / n).is_file()], run.run_dir)
+            lines.append(f"restored {run.stem} (u{run.rung}): done")
+        elif saved_iteration(source / "state.pt") > saved_iteration(run.run_dir / "state.pt"):
+            copy_files([source / n for n in ("state.pt", *RUN_LOGS) if (source / n).is_file()], run.run_dir)
+            lines.append(f"restored {run.stem} (u{run.rung}): iteration {saved_iteration(run.run_dir / 'state.pt')}")
+    return lines
+
+
 # ---------------------------------------------------------------------------- report
 def ladder_curves(runs: list[LadderRun], smooth: int) -> tuple[dict[tuple[str, int], dict], list[str]]:
     """{(method, rung): `learning_curves.group_curves` entry} over the runs with a progress.csv, and the
@@ -284,6 +378,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--report", action="store_true", help="draw the learning curves of the runs there, then exit")
     p.add_argument("--out", type=Path, default=None, help=f"the ladder's folder (default {OUT} in the repository)")
     p.add_argument("--figure", type=Path, default=None, help="the report's figure (default <out>/ladder.png)")
+    p.add_argument("--keep", action="store_true", help="copy every run's progress into the tracked copy, then exit")
+    p.add_argument("--kept", type=Path, default=None, help=f"the tracked copy (default {KEPT} in the repository)")
     p.add_argument("--jobs", type=int, default=1, choices=(1, 2), help="runs trained at a time (default 1)")
     p.add_argument("--smooth", type=int, default=SMOOTH, help=f"moving average in updates (default {SMOOTH})")
     p.add_argument(
@@ -299,18 +395,25 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     out = ROOT / OUT if args.out is None else args.out.absolute()
     figure = out / "ladder.png" if args.figure is None else args.figure.absolute()
+    kept = ROOT / KEPT if args.kept is None else args.kept.absolute()
     try:
-        if args.list and args.report:
-            raise ConfigError("--list and --report: give one of them")
+        if args.list + args.report + args.keep > 1:
+            raise ConfigError("--list, --report and --keep: give one of them")
         if args.smooth < 1:
             raise ConfigError(f"--smooth {args.smooth}: must be >= 1")
         check_output("--out", out, is_dir=True)
+        check_output("--kept", kept, is_dir=True)
         if args.report:
             check_output("--figure", figure)
         runs = planned_runs(out, args.smoke)
         if args.list:
             print(list_runs(runs, args.smoke))
             return 0
+        if args.keep:
+            print("\n".join(keep(runs, kept)))
+            return 0
+        for line in restore(runs, kept):
+            print(f"ladder: {line}", flush=True)
         if args.report:
             print("\n".join(report(runs, figure, args.smooth)))
             return 0

@@ -7,6 +7,7 @@ import csv
 import importlib.util
 import json
 import math
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -107,11 +108,76 @@ def test_report_draws_the_mean_over_seeds_per_method_and_rung(tmp_path, capsys):
     assert not (out / "u1500").exists()  # the report writes nothing into the ladder's folders
 
 
+def write_state(run_dir: Path, iteration: int, replay_rows: int | None) -> None:
+    """A saved high-level state as the trainer writes it, as far as the tracked copy reads it."""
+    import torch
+
+    from cefc_mj.train.highlevel import STATE_FORMAT
+
+    replay = (
+        None if replay_rows is None else {"size": replay_rows, "next": 0, "data": {"obs": torch.zeros(replay_rows, 3)}}
+    )
+    trainer = {"counters": {"iteration": iteration}, "replay": replay}
+    run_dir.mkdir(parents=True, exist_ok=True)
+    torch.save({"format": STATE_FORMAT, "config": {}, "trainer": trainer}, run_dir / "state.pt")
+    (run_dir / "progress.csv").write_text("iteration\n" + "".join(f"{i}\n" for i in range(1, iteration + 1)))
+    (run_dir / "config.json").write_text("{}")
+
+
+def test_keep_copies_done_runs_and_states_without_replay_rows_and_a_fresh_checkout_restores_them(tmp_path, capsys):
+    module = load_script()
+    out, kept = tmp_path / "ladder", tmp_path / "kept"
+    runs = {(r.method, r.rung, r.seed): r for r in module.planned_runs(out)}
+    done, compact, full, mappo = (
+        runs["CI-HRL", 75, 300],
+        runs["CI-HRL", 75, 301],
+        runs["CI-HRL", 300, 300],
+        runs["MAPPO+AT-M", 1500, 302],
+    )
+    write_state(done.run_dir, 75, 40)
+    done.policy.parent.mkdir(parents=True, exist_ok=True)
+    for name in (done.policy, done.policy.with_suffix(".json"), done.policy.with_name(f"{done.stem}_wo_ft.pt")):
+        name.write_bytes(b"exported " + name.name.encode())
+    write_state(compact.run_dir, 12, 0)
+    write_state(full.run_dir, 15, 5)
+    write_state(mappo.run_dir, 300, None)
+    assert module.main(["--keep", "--out", str(out), "--kept", str(kept)]) == 0
+    printed = capsys.readouterr().out
+    assert f"kept {full.stem} (u300): its state at iteration 15 holds the replay's rows" in printed
+    u75 = kept / "u75"
+    assert {p.name for p in u75.iterdir() if p.is_file()} == {
+        f"{done.stem}.pt",
+        f"{done.stem}.json",
+        f"{done.stem}_wo_ft.pt",
+    }
+    assert {p.name for p in done.kept_dir(kept).iterdir()} == {"config.json", "progress.csv"}  # no final state
+    assert {p.name for p in compact.kept_dir(kept).iterdir()} == {"config.json", "progress.csv", "state.pt"}
+    assert not full.kept_dir(kept).exists() and (mappo.kept_dir(kept) / "state.pt").is_file()
+
+    # A fresh checkout (no <out>): training and --report start from the tracked copy.
+    shutil.rmtree(out)
+    printed = module.restore(list(runs.values()), kept)
+    assert done.done() and done.policy.read_bytes() == b"exported " + done.policy.name.encode()
+    assert (done.policy.parent / f"{done.stem}_wo_ft.pt").is_file()
+    assert module.saved_iteration(compact.run_dir / "state.pt") == 12 and not full.run_dir.exists()
+    assert module.saved_iteration(mappo.run_dir / "state.pt") == 300
+    assert f"restored {compact.stem} (u75): iteration 12" in printed and len(printed) == 3
+    # Later: the run goes on (a state with rows is not copied over the kept one; one without rows is).
+    write_state(compact.run_dir, 17, 40)
+    module.keep(list(runs.values()), kept)
+    assert module.saved_iteration(compact.kept_dir(kept) / "state.pt") == 12
+    write_state(compact.run_dir, 20, 0)
+    module.keep(list(runs.values()), kept)
+    assert module.saved_iteration(compact.kept_dir(kept) / "state.pt") == 20
+    assert module.restore(list(runs.values()), kept) == []  # nothing newer there than here
+
+
 @pytest.mark.parametrize(
     "argv, needle",
     [
         (["--jobs", "3"], "--jobs: invalid choice: 3"),
-        (["--list", "--report"], "--list and --report: give one of them"),
+        (["--list", "--report"], "--list, --report and --keep: give one of them"),
+        (["--keep", "--kept", "/proc/kept"], "--kept /proc/kept"),
         (["--report", "--smooth", "0"], "--smooth 0: must be >= 1"),
         (["--report", "--figure", "/proc/ladder/fig.png"], "--figure /proc/ladder/fig.png"),
         (["--report"], "--report: no ladder run has a progress.csv under"),
@@ -130,7 +196,7 @@ def test_bad_input_exits_2_with_one_line(argv, needle, tmp_path, capsys):
 @pytest.mark.slow
 def test_smoke_ladder_trains_resumably_and_reports(tmp_path):
     out = tmp_path / "ladder"
-    run = [sys.executable, str(SCRIPT), "--out", str(out), "--smoke"]
+    run = [sys.executable, str(SCRIPT), "--out", str(out), "--kept", str(tmp_path / "kept"), "--smoke"]
     done = subprocess.run(run, capture_output=True, text=True, timeout=1200)
     assert done.returncode == 0, done.stdout + done.stderr
     for rung in (3, 6):

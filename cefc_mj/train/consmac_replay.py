@@ -30,6 +30,8 @@ class ConsMACReplay:
         self.data = {name: torch.zeros((capacity, *shape), dtype=dtype) for name, (shape, dtype) in shapes.items()}
         self.size = 0
         self.next = 0
+        self.rows_added = 0
+        """Rows added since this buffer was built (not saved: a resumed buffer counts from 0)."""
 
     def add(self, rows: dict[str, torch.Tensor]) -> None:
         """Append rows (each [n, ...]); the oldest rows make room once the buffer is full."""
@@ -40,6 +42,7 @@ class ConsMACReplay:
             self.data[name][index] = rows[name][start:].to(self.data[name].dtype)
         self.next = int((self.next + n - start) % self.capacity)
         self.size = min(self.capacity, self.size + n - start)
+        self.rows_added += n
 
     def sample(self, batch: int, generator: torch.Generator) -> dict[str, torch.Tensor]:
         index = torch.randint(0, self.size, (batch,), generator=generator)
@@ -51,8 +54,13 @@ class ConsMACReplay:
         index = (self.next - n + torch.arange(n)) % self.capacity
         return {name: self.data[name][index] for name in self.FIELDS}
 
-    def state_dict(self) -> dict:
-        return {"size": self.size, "next": self.next, "data": {k: v[: self.size].clone() for k, v in self.data.items()}}
+    def state_dict(self, keep_rows: bool = True) -> dict:
+        """The buffer's rows and ring position. keep_rows=False saves the ring position only, as an
+        empty buffer: right for a caller that knows every row will be overwritten before the next
+        read (a ring refilled by `capacity` rows holds the same rows at the same places, and its size
+        is then `capacity` either way), and it makes the state about 125 MB smaller."""
+        size = self.size if keep_rows else 0
+        return {"size": size, "next": self.next, "data": {k: v[:size].clone() for k, v in self.data.items()}}
 
     def load_state_dict(self, state: dict) -> None:
         self.size, self.next = int(state["size"]), int(state["next"])

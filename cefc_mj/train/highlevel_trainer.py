@@ -105,6 +105,8 @@ class HighLevelTrainer:
         # wt-rl: the PPO step also steps ConsMAC, with ConsMAC's own optimizer (one Adam state for both losses)
         self.rl_step = _Joint(self.policy_opt, self.consmac_opt) if cfg.ablation == "wt-rl" else self.policy_opt
         self.replay = ConsMACReplay(cfg.replay_capacity, self.policy.comm.cfg) if cfg.supervised else None
+        self.replay_rows_per_iteration: int | None = None
+        """Rows one iteration's rollout adds to the replay (measured by the last iteration; None before one)."""
         self.generator = torch.Generator().manual_seed(cfg.seed)
         self.iteration = 0
         self.episodes = 0
@@ -364,7 +366,10 @@ class HighLevelTrainer:
         phase = self.enter_phase()
         env = self.envs[phase]
         torch.set_num_threads(cfg.ppo.rollout_threads)
+        rows_before = None if self.replay is None else self.replay.rows_added
         rollout = self.collect(env)
+        if self.replay is not None:
+            self.replay_rows_per_iteration = self.replay.rows_added - rows_before
         t1 = time.perf_counter()
         torch.set_num_threads(cfg.ppo.update_threads)
         stats = self.update(rollout)
@@ -404,7 +409,9 @@ class HighLevelTrainer:
             "policy_opt": self.policy_opt.state_dict(),
             "critic_opt": self.critic_opt.state_dict(),
             "consmac_opt": None if self.consmac_opt is None else self.consmac_opt.state_dict(),
-            "replay": None if self.replay is None else self.replay.state_dict(),
+            "replay": None
+            if self.replay is None
+            else self.replay.state_dict(keep_rows=not self.replay_refilled_before_read()),
             "generator": self.generator.get_state(),
             "progress": {"phase": self.progress["phase"], "iterations": list(self.progress["iterations"])},
             "pretrained": self.pretrained,
@@ -416,6 +423,23 @@ class HighLevelTrainer:
                 "consmac_steps": self.consmac_steps,
             },
         }
+
+    def replay_refilled_before_read(self) -> bool:
+        """Whether every row the replay holds now is overwritten before anything reads it again: the
+        iterations up to the next ConsMAC round (or the budget's last iteration, after which the
+        export reads the newest rows) add at least `replay_capacity` rows. At the paper's schedule
+        (a round every 20 iterations, the replay about 8 iterations deep) that holds for the
+        checkpoints of the first 12 iterations after each round, so their states leave the rows out
+        and a resumed run continues bit for bit (tests/test_highlevel.py)."""
+        if self.replay is None or not self.replay_rows_per_iteration:
+            return False
+        if self.cfg.budget.exhausted(self.iteration, self.elapsed):  # the final state: a re-export reads the rows
+            return False
+        every = self.cfg.consmac_every
+        next_read = (self.iteration // every + 1) * every
+        if self.cfg.budget.iterations is not None:
+            next_read = min(next_read, self.cfg.budget.iterations)
+        return (next_read - self.iteration) * self.replay_rows_per_iteration >= self.replay.capacity
 
     def load_state_dict(self, state: dict) -> None:
         self.policy.load_state_dict(state["policy"])
