@@ -49,6 +49,7 @@ from cefc_mj.task.deviation import sample_deviation
 from cefc_mj.task.estimator import FusedPositionEstimate
 from cefc_mj.task.formation import agent_group_error, connected_groups, group_formation_error
 from cefc_mj.task.observation import build_cefc_observation, build_low_level_observation, layout_for
+from cefc_mj.task.push_observer import PushObserver
 from cefc_mj.task.scenario import Scenario, check_scenario, sample_anchor, sample_scenario
 
 METRIC_NAMES = ("F", "N", "C", "E", "E_agents")
@@ -104,6 +105,12 @@ class BatchedCEFCEnv:
         """The position each agent acts on: its fix, or its fused estimate (config.position_estimator)."""
         self.estimate = FusedPositionEstimate(b, n) if config.position_estimator == "fused" else None
         self._last_true_pos = np.zeros((b, n, 2))
+        self.push_observer = (
+            PushObserver(b, n, config.push_observer_s, config.dt, config.accel_max)
+            if config.push_observer_s > 0
+            else None
+        )
+        """The agents' push observers (config.push_observer_s > 0), None for the paper's memoryless agent."""
         self.env_deviation = np.full(b, config.deviation)
         """Each env's sensing deviation d (m) this episode (drawn at reset with deviation_sampling='uniform')."""
         self.lidar = np.full((b, n, config.n_lidar_rays), config.lidar_range)
@@ -150,6 +157,8 @@ class BatchedCEFCEnv:
             full(scenario.obstacles, self.obstacles),
         )
         self.obstacles[mask] = scenario.obstacles
+        if self.push_observer is not None:
+            self.push_observer.reset(mask, self.world.agent_vel)
         if self.config.deviation_sampling == "uniform":
             self.env_deviation[mask] = self.rng.uniform(0.0, self.config.deviation, count)
         self.anchor[mask] = scenario.anchor
@@ -180,6 +189,8 @@ class BatchedCEFCEnv:
         if (self.t >= cfg.steps).any():
             raise ConfigError("step() called on a finished episode; call reset(mask=done) first")
         actions = np.clip(actions, -cfg.accel_max, cfg.accel_max)
+        if self.push_observer is not None:  # the agents' own setpoints: the command less the push they feel
+            actions = self.push_observer.setpoint(actions)
 
         if self.adversary_policy is not None:
             adversary_accel = np.asarray(self.adversary_policy(self.adversary_observation()), dtype=np.float64)
@@ -191,6 +202,8 @@ class BatchedCEFCEnv:
         else:
             adversary_accel = np.zeros((self.n_envs, 2))
         self.world.step(actions, adversary_accel)
+        if self.push_observer is not None:
+            self.push_observer.update(self.world.agent_vel)
         self.t += 1
         if cfg.anchor_redraw_steps is not None:
             redraw = (self.t % cfg.anchor_redraw_steps == 0) & (self.t < cfg.steps)

@@ -216,6 +216,11 @@ def load_low_level(spec: str, task: TaskConfig, policies_dir: Path | None = None
         return PerGroupPolicies(policies, spec)
     path = resolve_policy_path(spec, policies_dir)
     policy = load_policy(path, obs_dim=expected)
+    if policy.push_observer_s > 0:
+        raise ConfigError(
+            f"low level {spec!r} was trained with the agent's push observer, which the high level's game "
+            "does not fly; give a memoryless low level"
+        )
     if policy.lidar_sees_agents != task.lidar_sees_agents:
         sees = "obstacles and UAVs" if policy.lidar_sees_agents else "obstacles only"
         raise ConfigError(

@@ -243,6 +243,16 @@ def build_parser() -> argparse.ArgumentParser:
         "states none; docs/px4_interface.md); single and table8, not with --sitl-m or --drop",
     )
     p.add_argument(
+        "--push-observer",
+        type=float,
+        default=None,
+        metavar="S",
+        help="fly the agents with a push observer of this time constant (s), which cancels the "
+        "acceleration each feels beyond its own setpoint within the action bound; 0: none, the paper's "
+        "memoryless agent (default: as each policy was trained, none for the shipped ones; "
+        "docs/px4_interface.md); single and table8, not with --sitl-m or --drop",
+    )
+    p.add_argument(
         "--rotor-actuation",
         choices=("auto", "actuators", "external"),
         default=None,
@@ -390,6 +400,7 @@ def refuse_flags(args: argparse.Namespace) -> None:
                 ("--estimator", args.estimator is not None),
                 ("--offboard", args.offboard is not None),
                 ("--accel-max", args.accel_max is not None),
+                ("--push-observer", args.push_observer is not None),
                 ("--guard", args.guard is not None),
                 ("--fresh", args.fresh),
             )
@@ -417,14 +428,16 @@ def refuse_flags(args: argparse.Namespace) -> None:
         ):
             if on:
                 raise ConfigError(f"--offboard: not available with {flag} (single and table8 in one process only)")
-    if args.accel_max is not None:
+    for name, value in (("--accel-max", args.accel_max), ("--push-observer", args.push_observer)):
+        if value is None:
+            continue
         for flag, on in (
             ("--sitl-m", args.sitl_m),
             ("--drop", args.drop is not None),
             ("--protocol table3", proto == "table3"),
         ):
             if on:
-                raise ConfigError(f"--accel-max: not available with {flag} (single and table8 in one process only)")
+                raise ConfigError(f"{name}: not available with {flag} (single and table8 in one process only)")
     if args.rotor_actuation is not None:
         if particle:
             raise ConfigError("--rotor-actuation: the particle backend has no rotors; use --backend mujoco")
@@ -520,6 +533,7 @@ def to_request(args: argparse.Namespace) -> SingleRequest | Table8Request | Tabl
             offboard=args.offboard,
             rotor_actuation=args.rotor_actuation,
             accel_max=args.accel_max,
+            push_observer=args.push_observer,
         )
     )
     if proto == "table8":

@@ -78,6 +78,7 @@ def run(request: SingleRequest, prov: dict, command: str) -> int:
             wind_direction=where.wind_direction if wind else None,
             rotor_actuation=flight.rotor_actuation,
             accel_max=flight.accel_max,
+            push_observer=flight.push_observer,
         )
         for wind, dev in conditions
         for c in formations
@@ -157,6 +158,7 @@ def run(request: SingleRequest, prov: dict, command: str) -> int:
         "estimator": flight.estimator,
         "offboard": flight.offboard,
         "accel_max": flight.accel_max,
+        "push_observer": flight.push_observer,
         "guard": flight.guard,
         "airframe": flight.airframe,
         "rotor_actuation": flight.rotor_actuation,

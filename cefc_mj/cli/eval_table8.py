@@ -61,6 +61,7 @@ def run(request: Table8Request, prov: dict, command: str) -> int:
         request.wind_direction,
         flight.rotor_actuation,
         flight.accel_max,
+        flight.push_observer,
     )
     policy_sha256 = {c: prov["policies"][str(c)]["sha256"] for c in formations}
     cells = table8.plan_cells(specs, policy_sha256, prov["code_version"])
@@ -124,6 +125,7 @@ def run(request: Table8Request, prov: dict, command: str) -> int:
         "estimator": flight.estimator,
         "offboard": flight.offboard,
         "accel_max": flight.accel_max,
+        "push_observer": flight.push_observer,
         "guard": flight.guard,
         "airframe": flight.airframe,
         "wind_direction": request.wind_direction,

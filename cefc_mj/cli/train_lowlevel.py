@@ -46,6 +46,7 @@ FLAG_OF_FIELD = {
     "response_time": "--response-time",
     "velocity_noise": "--velocity-noise",
     "accel_max": "--accel-max",
+    "push_observer_s": "--push-observer",
     "collision_margin": "--collision-margin",
     "navigation_weight": "--navigation-weight",
     "anchor_periods": "--anchor-periods",
@@ -192,6 +193,16 @@ def _lowlevel_parser(sub) -> None:
         help="the action bound (m/s^2 per axis) the stage trains at, recorded in its model card; our "
         f"choice, the paper states none (default {_low('accel_max'):g}; docs/px4_interface.md). "
         "--init-from may start from a policy trained at another bound",
+    )
+    p.add_argument(
+        "--push-observer",
+        type=float,
+        default=_low("push_observer_s"),
+        metavar="S",
+        help="time constant (s) of the agent's push observer, which cancels the acceleration it feels "
+        "beyond its own setpoint (the wind's push) within the action bound; recorded in the policy "
+        f"file, and every evaluator flies the policy with it (default {_low('push_observer_s'):g}; 0 is none, "
+        "the paper's memoryless agent; docs/px4_interface.md)",
     )
     p.add_argument(
         "--collision-margin",
@@ -525,6 +536,7 @@ def _run_lowlevel(args, budget: Budget, command: str | None) -> tuple[list[dict]
         response_time=args.response_time,
         velocity_noise=args.velocity_noise,
         accel_max=args.accel_max,
+        push_observer_s=args.push_observer,
         collision_margin=args.collision_margin,
         navigation_weight=args.navigation_weight,
         anchor_periods=args.anchor_periods,

@@ -36,6 +36,7 @@ from cefc_mj.nn.registry import GAME_ADVERSARY, WITHDRAWN
 from cefc_mj.table3_protocol import TABLE3_EPISODES, TABLE3_STEPS
 from cefc_mj.task.config import MAX_ACCEL
 from cefc_mj.task.estimator import POSITION_ESTIMATORS
+from cefc_mj.task.push_observer import MAX_PUSH_OBSERVER_S
 
 MAX_EPISODES = 10_000
 """Seeds per cell at most (checked before any list of episodes is built)."""
@@ -256,7 +257,15 @@ class Flight:
     """--accel-max: the action bound (m/s^2 per axis) the agents fly at, in (0, MAX_ACCEL]; None: the
     bound each policy was trained at (its policy file's)."""
 
+    push_observer: float | None = None
+    """--push-observer: the time constant (s) of the agents' push observer, in [0, MAX_PUSH_OBSERVER_S]
+    (0: none); None: the one each policy was trained with (its policy file's)."""
+
     def __post_init__(self) -> None:
+        if self.push_observer is not None and not is_number_in(self.push_observer, 0.0, MAX_PUSH_OBSERVER_S):
+            raise ConfigError(
+                f"--push-observer {number_text(self.push_observer)}: must be a number in [0, {MAX_PUSH_OBSERVER_S:g}] s"
+            )
         if self.accel_max is not None and not (is_number_in(self.accel_max, 0.0, MAX_ACCEL) and self.accel_max > 0):
             raise ConfigError(
                 f"--accel-max {number_text(self.accel_max)}: must be a number in (0, {MAX_ACCEL:g}] m/s^2"

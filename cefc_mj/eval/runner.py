@@ -113,6 +113,9 @@ class EpisodeSpec:
     accel_max: float | None = None
     """The action bound (m/s^2 per axis) the agents fly at (the env's clip and the policy's); None:
     the bound the policy was trained at (its policy file's ATMConfig.accel_max)."""
+    push_observer: float | None = None
+    """Time constant (s) of the agents' push observer (0: none); None: the one the policy was trained
+    with (its policy file's ATMConfig.push_observer_s)."""
 
     @property
     def mujoco_airframe(self) -> str | None:
@@ -228,6 +231,8 @@ def episode_env(spec: EpisodeSpec, policy: Policy | None = None) -> tuple[Batche
         policy = load_policy_for(spec.policy, spec.formation)
     if spec.accel_max is not None:
         policy = policy.with_action_bound(spec.accel_max)
+    if spec.push_observer is not None:
+        policy = policy.with_push_observer(spec.push_observer)
     config = policy.task_for(spec.task_config())
     world = make_world(
         spec.backend,

@@ -77,10 +77,11 @@ def table8_specs(
     wind_direction: float | None = None,
     rotor_actuation: str = "auto",
     accel_max: float | None = None,
+    push_observer: float | None = None,
 ) -> list[EpisodeSpec]:
     """The grid, seeds seed .. seed+K-1 for every cell (the same layouts under every condition);
     `wind_direction` (degrees) points the Wind rows' wind (None: drawn per episode from the seed);
-    `accel_max` the action bound (None: each policy's own)."""
+    `accel_max` the action bound and `push_observer` the agents' push observer (None: each policy's own)."""
     return [
         EpisodeSpec(
             formation=c,
@@ -97,6 +98,7 @@ def table8_specs(
             wind_direction=wind_direction if wind else None,
             rotor_actuation=rotor_actuation,
             accel_max=accel_max,
+            push_observer=push_observer,
         )
         for c in formations
         for name, (wind, dev) in CONDITIONS.items()
@@ -425,6 +427,7 @@ def report_markdown(table: dict, meta: dict) -> str:
         + ", "
         f"{meta.get('estimator', 'raw')} position estimate, {meta.get('offboard', 'velocity')} offboard setpoints"
         + (f", action bound {meta['accel_max']:g} m/s^2" if meta.get("accel_max") is not None else "")
+        + (f", push observer {meta['push_observer']:g} s" if meta.get("push_observer") else "")
         + guard_text(meta),
         "",
         f"Command: `{meta['command']}`  ",

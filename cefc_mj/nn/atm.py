@@ -51,6 +51,9 @@ class ATMConfig:
     the free-space centring of F_a)."""
     accel_max: float = 2.0
     """Per-axis action bound (m/s^2); `Policy.act` clips the mean to it as the env does."""
+    push_observer_s: float = 0.0
+    """The agent's push observer the policy was trained with (TaskConfig.push_observer_s; 0: none, the
+    paper's memoryless agent); evaluators fly the policy with it (`Policy.task_for`)."""
     hidden: int = 128
     """Hidden width of every module (128 for AT-M teachers, 256 for the distilled student)."""
     act_dim: int = 2
@@ -97,6 +100,7 @@ class ATMConfig:
             lidar_range=task_cfg.lidar_range,
             lidar_sees_agents=task_cfg.lidar_sees_agents,
             accel_max=task_cfg.accel_max,
+            push_observer_s=task_cfg.push_observer_s,
             **overrides,
         )
 

@@ -337,14 +337,24 @@ class Policy:
         unless `with_action_bound` set another."""
         return self.actor.cfg.accel_max
 
+    @property
+    def push_observer_s(self) -> float:
+        """The time constant of the agent's push observer the policy was trained with (0: none)."""
+        return self.actor.cfg.push_observer_s
+
     def task_for(self, task):
-        """`task` (a TaskConfig) with the LiDAR and the action bound this policy was trained with: every
-        evaluator flies a policy with the sensing it learned on (an `_obstacle_lidar` stage's LiDAR sees
-        obstacles only) and clips the env's actions where the policy clips its own."""
-        sees, bound = self.lidar_sees_agents, self.accel_max
-        if (task.lidar_sees_agents, task.accel_max) == (sees, bound):
+        """`task` (a TaskConfig) with the LiDAR, the action bound and the push observer this policy was
+        trained with: every evaluator flies a policy with the sensing it learned on (an
+        `_obstacle_lidar` stage's LiDAR sees obstacles only), clips the env's actions where the policy
+        clips its own, and gives the agent the push observer it learned with."""
+        own = {
+            "lidar_sees_agents": self.lidar_sees_agents,
+            "accel_max": self.accel_max,
+            "push_observer_s": self.push_observer_s,
+        }
+        if all(getattr(task, name) == value for name, value in own.items()):
             return task
-        return dataclasses.replace(task, lidar_sees_agents=sees, accel_max=bound)
+        return dataclasses.replace(task, **own)
 
     def with_action_bound(self, accel_max: float) -> "Policy":
         """This policy flown at another action bound (m/s^2 per axis): the same weights, the network's
@@ -354,6 +364,16 @@ class Policy:
         actor = copy.deepcopy(self.actor)
         actor.__dict__.pop("_inference_plan", None)  # the compiled kernel's copy names the old bound
         actor.cfg = dataclasses.replace(actor.cfg, accel_max=float(accel_max))
+        return Policy(actor, self.meta, self.name)
+
+    def with_push_observer(self, time_constant: float) -> "Policy":
+        """This policy flown by an agent with the push observer of `time_constant` s (0: none) instead of
+        the one it was trained with; the same weights."""
+        if time_constant == self.push_observer_s:
+            return self
+        actor = copy.deepcopy(self.actor)
+        actor.__dict__.pop("_inference_plan", None)
+        actor.cfg = dataclasses.replace(actor.cfg, push_observer_s=float(time_constant))
         return Policy(actor, self.meta, self.name)
 
     def act(self, obs: np.ndarray | Mapping[str, np.ndarray]) -> np.ndarray | dict[str, np.ndarray]:

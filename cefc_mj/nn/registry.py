@@ -53,9 +53,16 @@ def clm_name(formation: int) -> str:
     return f"clm_c{formation}"
 
 
+FORMATION_PLACEHOLDER = "{c}"
+"""In a --policy name or path, stands for the group size c of each episode."""
+
+
 def policy_name_for(choice: str, formation: int) -> str:
     """The policy file name an alias stands for at group size c (anything else is a name or path, as
-    given); ConfigError with the reason for a withdrawn alias."""
+    given, with "{c}" replaced by c: `runs/mine/policies/atm_c{c}_mujoco.pt` names one file per c);
+    ConfigError with the reason for a withdrawn alias."""
+    if FORMATION_PLACEHOLDER in choice:
+        return choice.replace(FORMATION_PLACEHOLDER, str(formation))
     if choice in WITHDRAWN:
         raise ConfigError(f"--policy {choice}: {WITHDRAWN[choice]}")
     kind = ALIASES.get(choice)

@@ -181,6 +181,11 @@ class TaskConfig:
     """How an agent turns its noisy position fixes into the position it acts on (task/estimator.py):
     "raw" uses each fix as it is (the paper's memoryless agent); "fused" is an onboard Kalman filter
     that fuses the fixes with the agent's own measured velocity, as a drone's EKF does."""
+    push_observer_s: float = 0.0
+    """Time constant tau (s) of the agent's push observer (task/push_observer.py): an onboard estimate
+    of the acceleration the agent feels beyond its own setpoint (the wind's push), cancelled in the
+    setpoint it sends, within accel_max. 0: none, the paper's memoryless agent. Part of the agent,
+    applied in the env's step as the position estimate is."""
     separation_guard: bool = False
     """Each agent passes its policy's action through the separation guard (task/guard.py), a rule on
     its own observation that limits the closing speed towards neighbours and LiDAR hits so that a
@@ -266,6 +271,7 @@ class TaskConfig:
             "deviation",
             "response_time",
             "velocity_noise",
+            "push_observer_s",
         ):
             value = getattr(self, name)
             finite(name, value)

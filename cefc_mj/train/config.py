@@ -15,7 +15,13 @@ from dataclasses import dataclass, field
 
 from cefc_mj.errors import ConfigError
 from cefc_mj.nn.registry import DISTILL_TEACHER, clm_name, lowlevel_name
-from cefc_mj.task.config import FORMATION_EPISODE_STEPS, MAX_ACCEL, STRAGGLER_MAX_DISTANCE, STRAGGLER_MIN_DISTANCE
+from cefc_mj.task.config import (
+    FORMATION_EPISODE_STEPS,
+    MAX_ACCEL,
+    STRAGGLER_MAX_DISTANCE,
+    STRAGGLER_MIN_DISTANCE,
+)
+from cefc_mj.task.push_observer import MAX_PUSH_OBSERVER_S
 
 FORMATIONS = (3, 4, 5, 6, 7, 8)
 """The paper's formation sizes c (Fig. 3)."""
@@ -332,6 +338,10 @@ class LowLevelConfig(BudgetPPODict):
     """The action bound (m/s^2 per axis) the stage trains at (TaskConfig.accel_max): our choice, the
     paper states none. A policy file records it; `--init-from` may start from one trained at another
     bound (the bound clips the network's output, the weights keep their meaning)."""
+    push_observer_s: float = 0.0
+    """Time constant (s) of the agent's push observer during training (TaskConfig.push_observer_s,
+    task/push_observer.py); 0: none, the paper's memoryless agent. A policy file records it and every
+    evaluator flies the policy with it."""
     collision_margin: float = 0.0
     """Added (m) to both distances of the collision reward (delta_s and delta_a,c, RewardConfig) during
     training, so the policy keeps that much more clearance than the paper's reward asks; 0 is the paper's.
@@ -587,6 +597,14 @@ class LowLevelConfig(BudgetPPODict):
             or not 0 < self.accel_max <= MAX_ACCEL
         ):
             _fail("accel_max", self.accel_max, f"must be in (0, {MAX_ACCEL:g}] m/s^2")
+        if (
+            isinstance(self.push_observer_s, bool)
+            or not isinstance(self.push_observer_s, (int, float))
+            or not 0 <= self.push_observer_s <= MAX_PUSH_OBSERVER_S
+        ):
+            _fail("push_observer_s", self.push_observer_s, f"must be in [0, {MAX_PUSH_OBSERVER_S:g}] s")
+        if self.push_observer_s > 0 and self.step != 3:
+            _fail("push_observer_s", self.push_observer_s, "the push observer fine-tunes a Step 3 policy: use step 3")
         if self.obstacle_density is not None and (
             not isinstance(self.obstacle_density, (int, float)) or not 0 <= self.obstacle_density <= MAX_DENSITY
         ):

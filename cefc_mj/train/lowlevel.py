@@ -80,6 +80,7 @@ def task_config_for(cfg: LowLevelConfig, density: float | None = None) -> TaskCo
         response_time=cfg.response_time,
         velocity_noise=cfg.velocity_noise,
         accel_max=float(cfg.accel_max),
+        push_observer_s=float(cfg.push_observer_s),
         rewards=rewards,
         lidar_sees_agents=cfg.lidar_sees_uavs,
         straggler_fraction=float(cfg.straggler_fraction),
