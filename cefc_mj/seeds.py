@@ -75,6 +75,11 @@ never flown before the fine-tuned policy was chosen; then flown once per grid, b
 after (AT-M-MuJoCo) with the acceleration interface and no guard, and the new policy on the default
 path (docs/research/training_in_mujoco.md)."""
 
+TABLE8_PX4_TEST_SEEDS = TEST.seeds(20, offset=60_000)
+"""The test batch of Table VIII with the paper's agent on PX4's own acceleration interface (episode
+seeds 70000..70019 of every c and condition): flown once per grid after every policy and setting is
+chosen on validation seeds (examples/px4_exact_table8.py)."""
+
 
 def block_of(seed: int) -> str:
     """The name of the block holding `seed` ("outside" for a seed no block holds)."""
@@ -160,6 +165,13 @@ TEST_BATCHES = (
         TABLE8_MUJOCO_TEST_SEEDS[0],
         len(TABLE8_MUJOCO_TEST_SEEDS),
         "reserved: flown once per grid after the fine-tuned policy is chosen (docs/research/training_in_mujoco.md)",
+    ),
+    TestBatch(
+        "Table VIII on PX4's acceleration interface",
+        FORMATION_FAMILY,
+        TABLE8_PX4_TEST_SEEDS[0],
+        len(TABLE8_PX4_TEST_SEEDS),
+        "reserved: never flown; flown once per grid by examples/px4_exact_table8.py --fly",
     ),
 )
 """Every test batch a shipped or planned report uses, in one place."""
