@@ -96,6 +96,10 @@ BAD_INPUTS = [
     (["--accel-max", "12"], "--accel-max 12"),
     (["--accel-max", "nan"], "--accel-max nan"),
     (["--accel-max", "3", "--sitl-m"], "--accel-max: not available with --sitl-m"),
+    (["--push-observer", "-1"], "--push-observer -1: must be a number in [0, 10] s"),
+    (["--push-observer", "nan"], "--push-observer nan"),
+    (["--push-observer", "2", "--drop", "1"], "--push-observer: not available with --drop"),
+    (["--protocol", "table5", "--backend", "particle", "--push-observer", "2"], "--push-observer: --protocol table5"),
     (["--protocol", "table5", "--backend", "particle", "--accel-max", "3"], "--accel-max: --protocol table5"),
     (["--protocol", "table3", "--backend", "particle", "--deviation", "0.3"], "exact sensing"),
     (["--protocol", "table3", "--backend", "particle", "--workers", "2"], "one batch"),
@@ -141,6 +145,25 @@ def test_a_policy_flies_at_its_own_bound_or_at_accel_max(random_policy):
             assert np.abs(actions).max() == pytest.approx(bound)
     inside = np.abs(policy.act(obs)) < 2.0 - 1e-6
     np.testing.assert_allclose(wide.act(obs)[inside], policy.act(obs)[inside], rtol=1e-6)  # the same network
+
+
+def test_a_policy_flies_with_its_own_push_observer_or_the_one_asked_for(random_policy):
+    """The push observer is the policy's (none for one trained without) unless --push-observer says
+    another; {c} in a --policy path names one file per c."""
+    from cefc_mj.nn.registry import policy_name_for
+
+    policy = load_policy(random_policy)
+    spec = EpisodeSpec(formation=5, seed=0, backend="particle", steps=5, policy=str(random_policy))
+    env, _ = episode_env(spec, policy)
+    assert policy.push_observer_s == 0.0 and env.push_observer is None
+    env, _ = episode_env(dataclasses.replace(spec, push_observer=2.0), policy)
+    assert env.config.push_observer_s == 2.0 and env.push_observer is not None and policy.push_observer_s == 0.0
+    with_observer = policy.with_push_observer(2.0)
+    env, _ = episode_env(spec, with_observer)  # a policy trained with one flies with it
+    assert env.push_observer is not None and with_observer.task_for(env.config) == env.config
+    env, _ = episode_env(dataclasses.replace(spec, push_observer=0.0), with_observer)
+    assert env.push_observer is None
+    assert policy_name_for("runs/x/atm_c{c}_mujoco.pt", 7) == "runs/x/atm_c7_mujoco.pt"
 
 
 def test_checkpoint_for_another_observation_size(wrong_shape_policy, capsys):
