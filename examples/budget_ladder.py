@@ -329,7 +329,7 @@ def plot_ladder(curves: dict[tuple[str, int], dict], path: Path, title: str) -> 
                 color=colours[method],
                 ls=styles[rung],
                 lw=1.5,
-                label=f"{method}, {rung} updates ({len(c['seeds'])} seeds)",
+                label=f"{method}, {rung} updates ({len(c['seeds'])} seed{'s' * (len(c['seeds']) != 1)})",
             )
             ax.fill_between(x, c[metric]["low"], c[metric]["high"], color=line.get_color(), alpha=0.12, lw=0)
         for rung in rungs:
