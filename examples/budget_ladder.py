@@ -17,7 +17,8 @@ Rung N's runs live in <out>/u<N>/ (their policies in <out>/u<N>/policies/, each 
 (an interrupted session) is continued with --resume. Each run is claimed by a lock file, so two
 drivers never train the same run. The plan is fixed here; nothing chooses or drops a run by its results.
 
-The ladder outlives a session through a tracked copy, `policies/ladder/` (`--kept`): `--keep` copies
+The ladder outlives a session through a tracked copy, `policies/ladder/` (`--kept`; a ladder in
+another --out has none unless --kept names one): `--keep` copies
 each finished run's policy files and logs there, and each unfinished run's logs with its resumable
 state when that state leaves out the ConsMAC replay's rows (about 3 MB instead of 125 MB: a state
 saved while the replay is refilled before its next read, `HighLevelTrainer.replay_refilled_before_read`);
@@ -379,7 +380,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, default=None, help=f"the ladder's folder (default {OUT} in the repository)")
     p.add_argument("--figure", type=Path, default=None, help="the report's figure (default <out>/ladder.png)")
     p.add_argument("--keep", action="store_true", help="copy every run's progress into the tracked copy, then exit")
-    p.add_argument("--kept", type=Path, default=None, help=f"the tracked copy (default {KEPT} in the repository)")
+    p.add_argument(
+        "--kept",
+        type=Path,
+        default=None,
+        help=f"the tracked copy (default {KEPT} in the repository for the default --out, none for another)",
+    )
     p.add_argument("--jobs", type=int, default=1, choices=(1, 2), help="runs trained at a time (default 1)")
     p.add_argument("--smooth", type=int, default=SMOOTH, help=f"moving average in updates (default {SMOOTH})")
     p.add_argument(
@@ -395,14 +401,18 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     out = ROOT / OUT if args.out is None else args.out.absolute()
     figure = out / "ladder.png" if args.figure is None else args.figure.absolute()
-    kept = ROOT / KEPT if args.kept is None else args.kept.absolute()
+    # the tracked copy belongs to the repository's ladder: another --out uses one only when given
+    kept = (ROOT / KEPT if args.out is None else None) if args.kept is None else args.kept.absolute()
     try:
         if args.list + args.report + args.keep > 1:
             raise ConfigError("--list, --report and --keep: give one of them")
         if args.smooth < 1:
             raise ConfigError(f"--smooth {args.smooth}: must be >= 1")
         check_output("--out", out, is_dir=True)
-        check_output("--kept", kept, is_dir=True)
+        if kept is not None:
+            check_output("--kept", kept, is_dir=True)
+        elif args.keep:
+            raise ConfigError("--keep: with another --out, give the tracked copy's folder with --kept")
         if args.report:
             check_output("--figure", figure)
         runs = planned_runs(out, args.smoke)
@@ -412,7 +422,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.keep:
             print("\n".join(keep(runs, kept)))
             return 0
-        for line in restore(runs, kept):
+        for line in restore(runs, kept) if kept is not None else ():
             print(f"ladder: {line}", flush=True)
         if args.report:
             print("\n".join(report(runs, figure, args.smooth)))

@@ -178,6 +178,7 @@ def test_keep_copies_done_runs_and_states_without_replay_rows_and_a_fresh_checko
         (["--jobs", "3"], "--jobs: invalid choice: 3"),
         (["--list", "--report"], "--list, --report and --keep: give one of them"),
         (["--keep", "--kept", "/proc/kept"], "--kept /proc/kept"),
+        (["--keep"], "--keep: with another --out, give the tracked copy's folder with --kept"),
         (["--report", "--smooth", "0"], "--smooth 0: must be >= 1"),
         (["--report", "--figure", "/proc/ladder/fig.png"], "--figure /proc/ladder/fig.png"),
         (["--report"], "--report: no ladder run has a progress.csv under"),
