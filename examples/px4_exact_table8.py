@@ -9,6 +9,10 @@ flown on quadrotors for c = 5..8 in calm air, Wind-3/5/8 and Deviation-0.3/0.5/0
     push       AT-M-Nav fine-tuned in MuJoCo through PX4's interface with the push observer (2 s), 2 m/s^2
     bound3.5   AT-M fine-tuned at 3.5 m/s^2 (particle world, then MuJoCo with the push observer)
 
+and two candidates flown on validation seeds beside the trained ones: AT-M-Nav with the push observer
+at 2 m/s^2 (nav-push) and at 3.5 m/s^2 (nav-push-3.5), neither trained with it; TEST_GRIDS names
+the grids the test batch flies, chosen on the validation grids before the flight.
+
     python examples/px4_exact_table8.py --list           # the four cefc-eval commands, and whether each is flown
     python examples/px4_exact_table8.py --fly --validation   # the grids on validation seeds 200..204 (runs/, no ledger)
     python examples/px4_exact_table8.py --fly            # the test batch, once: 70000..70019 (eval/reports/px4_exact/)
@@ -33,12 +37,26 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 GRIDS = (
-    ("nav", "AT-M-Nav", "nav", 2.0),
-    ("mujoco", "AT-M-MuJoCo (trained on the earlier interface)", "mujoco", 2.0),
-    ("push", "AT-M-MuJoCo with the push observer", "policies/push/atm_c{c}_mujoco.pt", 2.0),
-    ("bound3.5", "AT-M at 3.5 m/s^2 with the push observer", "policies/bound3.5/atm_c{c}_mujoco.pt", 3.5),
+    ("nav", "AT-M-Nav", "nav", 2.0, ()),
+    ("mujoco", "AT-M-MuJoCo (trained on the earlier interface)", "mujoco", 2.0, ()),
+    ("push", "AT-M-MuJoCo with the push observer", "policies/push/atm_c{c}_mujoco.pt", 2.0, ()),
+    ("nav-push", "AT-M-Nav with the push observer (not trained with it)", "nav", 2.0, ("--push-observer", "2")),
+    ("bound3.5", "AT-M at 3.5 m/s^2 with the push observer", "policies/bound3.5/atm_c{c}_mujoco.pt", 3.5, ()),
+    (
+        "nav-push-3.5",
+        "AT-M-Nav at 3.5 m/s^2 with the push observer (trained at neither)",
+        "nav",
+        3.5,
+        ("--accel-max", "3.5", "--push-observer", "2"),
+    ),
 )
-"""(slug, label, --policy, action bound); the bound is each policy's own (recorded in its file)."""
+"""(slug, label, --policy, action bound, further cefc-eval flags); a policy file's bound and push observer
+are its own (recorded in the file) unless the flags say otherwise."""
+ROLES = {"push": ("push", "nav-push"), "bound3.5": ("bound3.5", "nav-push-3.5")}
+"""The two agents the targets are read against, each with its candidates: the one trained with the push
+observer and AT-M-Nav flown with one. The test batch flies the candidate chosen on validation seeds."""
+TEST_GRIDS = ("nav", "mujoco", "push", "bound3.5")
+"""The grids the test batch flies: chosen on the validation grids (docs/research/push_observer.md)."""
 FLIGHT = ("--protocol", "table8", "--backend", "mujoco", "--offboard", "acceleration", "--estimator", "raw")
 FLIGHT += ("--guard", "off", "--workers", "2")
 TEST_OUT = Path("eval/reports/px4_exact")
@@ -56,10 +74,10 @@ def test_seed() -> int:
 def command(slug: str, validation: bool) -> list[str]:
     from cefc_mj.seeds import TABLE8_PX4_TEST_SEEDS
 
-    policy = next(p for s, _, p, _ in GRIDS if s == slug)
+    policy, extra = next((p, x) for s, _, p, _, x in GRIDS if s == slug)
     out = (VALIDATION_OUT if validation else TEST_OUT) / slug
     seed, episodes = (VALIDATION_SEED, VALIDATION_EPISODES) if validation else (test_seed(), len(TABLE8_PX4_TEST_SEEDS))
-    return ["cefc-eval", *FLIGHT, "--policy", policy, "--seed", str(seed), "--episodes", str(episodes)] + [
+    return ["cefc-eval", *FLIGHT, "--policy", policy, *extra, "--seed", str(seed), "--episodes", str(episodes)] + [
         "--report-dir",
         str(out),
     ]
@@ -99,7 +117,7 @@ def report(validation: bool) -> tuple[str, dict]:
 
     out = VALIDATION_OUT if validation else TEST_OUT
     grids = {}
-    for slug, label, _, bound in GRIDS:
+    for slug, label, _, bound, _ in GRIDS:
         path = ROOT / out / slug / "table8.json"
         if path.is_file():
             grids[slug] = (label, bound, json.loads(path.read_text()))
@@ -153,32 +171,33 @@ def targets(numbers: dict) -> list[str]:
         values = [cells[c][cond][slug][key] for c in cells if slug in cells[c].get(cond, {})]
         return fn(values) if values and None not in values else None
 
-    for slug, cond, floor in (("push", "Wind-5", 0.85), ("push", "Wind-3", 0.90), ("bound3.5", "Wind-8", 0.85)):
-        got = worst(slug, cond, "retention")
-        if got is not None:
-            verdict = "met" if got >= floor else f"missed by {floor - got:.1%}"
-            out.append(f"{slug} {cond} keeps >= {floor:.0%}: lowest over c {got:.1%} ({verdict})")
-    for slug in ("push", "bound3.5"):
+    for role, cond, floor in (("push", "Wind-5", 0.85), ("push", "Wind-3", 0.90), ("bound3.5", "Wind-8", 0.85)):
+        for slug in ROLES[role]:
+            got = worst(slug, cond, "retention")
+            if got is not None:
+                verdict = "met" if got >= floor else f"missed by {floor - got:.1%}"
+                out.append(f"{slug} {cond} keeps >= {floor:.0%}: lowest over c {got:.1%} ({verdict})")
+    for slug in (*ROLES["push"], *ROLES["bound3.5"]):
         got = worst(slug, "SITL-S", "C", max)
         if got is not None:
             out.append(f"{slug} calm C 0: highest over c {got:.3f} % ({'met' if got == 0 else 'missed'})")
-    if any("bound3.5" in cells[c].get("SITL-S", {}) for c in cells):
+    for slug in ROLES["bound3.5"]:
+        if not any(slug in cells[c].get("SITL-S", {}) for c in cells):
+            continue
         for key in ("F", "N"):
             short = [
-                f"c = {c}: {cells[c]['SITL-S']['bound3.5'][key]:.0f} < {paper_cell(c, 'SITL-S')[key]:.0f}"
+                f"c = {c}: {cells[c]['SITL-S'][slug][key]:.0f} < {paper_cell(c, 'SITL-S')[key]:.0f}"
                 for c in cells
-                if paper_cell(c, "SITL-S") and cells[c]["SITL-S"]["bound3.5"][key] < paper_cell(c, "SITL-S")[key]
+                if paper_cell(c, "SITL-S") and cells[c]["SITL-S"][slug][key] < paper_cell(c, "SITL-S")[key]
             ]
-            out.append(
-                f"bound3.5 calm {key} at or above the paper's SITL-S: {'met' if not short else '; '.join(short)}"
-            )
+            out.append(f"{slug} calm {key} at or above the paper's SITL-S: {'met' if not short else '; '.join(short)}")
         high = [
-            f"c = {c}: {cells[c]['Deviation-0.8']['bound3.5']['C']:.3f} >= {paper_cell(c, 'Deviation-0.8')['C']:.2f}"
+            f"c = {c}: {cells[c]['Deviation-0.8'][slug]['C']:.3f} >= {paper_cell(c, 'Deviation-0.8')['C']:.2f}"
             for c in cells
             if paper_cell(c, "Deviation-0.8")
-            and cells[c]["Deviation-0.8"]["bound3.5"]["C"] >= paper_cell(c, "Deviation-0.8")["C"]
+            and cells[c]["Deviation-0.8"][slug]["C"] >= paper_cell(c, "Deviation-0.8")["C"]
         ]
-        out.append(f"bound3.5 Deviation-0.8 C below the paper's: {'met' if not high else '; '.join(high)}")
+        out.append(f"{slug} Deviation-0.8 C below the paper's: {'met' if not high else '; '.join(high)}")
     return out
 
 
@@ -189,9 +208,15 @@ def main(argv: list[str] | None = None) -> int:
     what.add_argument("--fly", action="store_true", help="fly the test batch, once per grid (ledger lines)")
     what.add_argument("--report", action="store_true", help="write the one table from the grids flown")
     p.add_argument("--validation", action="store_true", help="validation seeds 200..204 instead of the test batch")
-    p.add_argument("--grid", choices=[s for s, *_ in GRIDS], action="append", help="only these grids (repeatable)")
+    p.add_argument(
+        "--grid",
+        choices=[s for s, *_ in GRIDS],
+        action="append",
+        help=f"only these grids (repeatable; default: {', '.join(TEST_GRIDS)} for the test batch, every grid for "
+        "--validation)",
+    )
     args = p.parse_args(argv)
-    slugs = args.grid or [s for s, *_ in GRIDS]
+    slugs = args.grid or (list(TEST_GRIDS) if not args.validation else [s for s, *_ in GRIDS])
     if args.list:
         for slug in slugs:
             state = "" if args.validation else ("flown  " if flown_in_ledger(slug) else "todo   ")
