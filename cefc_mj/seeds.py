@@ -65,6 +65,11 @@ flight, and `cefc-eval` flies it only with --preregistered-flight. A batch seed 
 game study flew 20000..20099). The batches reserved before it, 30000 and 40000, were each flown once
 by accident before any new run's result was in (eval/test_ledger.jsonl, docs/research/preregistration.md
 "Deviations"), so they are spent (SPENT_PREREGISTERED_TEST_SEEDS)."""
+GAME_PAPER_SCHEDULE_TEST_SEED = 80_000
+"""The test batch of the second pre-registration, CI-HRL against MAPPO+AT-M at the paper's schedule
+(docs/research/preregistration_paper_schedule.md): 50 games drawn from this one batch seed, flown
+once after every planned run is in, with the first pre-registration's 75-update runs on the same games
+in the same flight. Reserved: `cefc-eval` refuses to fly it until that flight's tool exists."""
 SPENT_PREREGISTERED_TEST_SEEDS = (30_000, 40_000)
 """The pre-registration's earlier test batches, each flown once by accident (see GAME_PREREGISTERED_TEST_SEED)."""
 TABLE8_TEST_SEEDS = TEST.seeds(20)
@@ -150,6 +155,14 @@ TEST_BATCHES = (
             "(docs/research/preregistration.md, Deviations)",
         )
         for seed in SPENT_PREREGISTERED_TEST_SEEDS
+    ),
+    TestBatch(
+        "Table V at the paper's schedule (pre-registered)",
+        GAME_FAMILY,
+        GAME_PAPER_SCHEDULE_TEST_SEED,
+        1,
+        "reserved: never flown; flown once by the second pre-registration "
+        "(docs/research/preregistration_paper_schedule.md)",
     ),
     TestBatch(
         "SITL-M game fidelity",

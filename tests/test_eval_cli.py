@@ -96,6 +96,11 @@ BAD_INPUTS = [
     (["--accel-max", "12"], "--accel-max 12"),
     (["--accel-max", "nan"], "--accel-max nan"),
     (["--accel-max", "3", "--sitl-m"], "--accel-max: not available with --sitl-m"),
+    (
+        ["--protocol", "table5", "--backend", "particle", "--seed", "80000"],
+        "--seed 80000: the test batch of Table V at",
+    ),
+    (["--protocol", "table6", "--backend", "particle", "--seed", "80000"], "reserved for its pre-registered flight"),
     (["--push-observer", "-1"], "--push-observer -1: must be a number in [0, 10] s"),
     (["--push-observer", "nan"], "--push-observer nan"),
     (["--push-observer", "2", "--drop", "1"], "--push-observer: not available with --drop"),

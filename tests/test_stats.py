@@ -359,3 +359,43 @@ def test_table5_markdown_has_a_row_per_method_with_its_verdicts():
     primary_head = "Primary comparison (docs/research/preregistration.md; exploratory here: batch seed 10000"
     assert primary.startswith(primary_head)
     assert table5_markdown({"rows": {}}) == ""
+
+
+def test_interaction_is_the_difference_of_differences_with_the_welch_satterthwaite_t():
+    from cefc_mj.eval.stats import interaction
+
+    rng = np.random.default_rng(4)
+    groups = [
+        rng.normal(mu, sd, n) for mu, sd, n in ((10.0, 2.0, 12), (8.0, 1.0, 10), (13.0, 1.5, 20), (12.5, 2.5, 20))
+    ]
+    got = interaction(*groups)
+    means = [g.mean() for g in groups]
+    v = [g.var(ddof=1) / g.size for g in groups]
+    assert got.estimate == pytest.approx((means[0] - means[1]) - (means[2] - means[3]))
+    assert got.se == pytest.approx(np.sqrt(sum(v)))
+    assert got.df == pytest.approx(sum(v) ** 2 / sum(x**2 / (g.size - 1) for x, g in zip(v, groups)))
+    assert got.p == pytest.approx(2 * stats.t.sf(abs(got.estimate) / got.se, got.df))
+    assert got.ci_low < got.estimate < got.ci_high
+    # Two groups only (a2, b2 constant offsets of a1, b1 with the same spread): I is the Welch difference
+    # of (a1 - b1) less a known shift, so no interaction is found when the gap is the same in both.
+    same = interaction(groups[0], groups[1], groups[0] + 3.0, groups[1] + 3.0)
+    assert same.estimate == pytest.approx(0.0, abs=1e-12) and same.p == pytest.approx(1.0)
+    assert interaction([1.0], [2.0, 3.0], [1.0, 2.0], [2.0, 3.0]) is None
+
+
+def test_the_paper_schedule_sample_size_follows_its_pre_registered_rule():
+    from cefc_mj.eval.prereg import PAPER_MIN_SEEDS, paper_planned_runs, paper_seed_count
+    from cefc_mj.eval.stats import two_sample_power
+
+    assert paper_seed_count(0.5, 4) == PAPER_MIN_SEEDS == 10  # never fewer than 10
+    n = paper_seed_count(3.0, 4)
+    upper = 3.0 * np.sqrt(4 / stats.chi2.ppf(0.2, 4))  # the one-sided 80 % upper limit, a factor of 1.56
+    assert upper == pytest.approx(3.0 * 1.56, rel=0.01)
+    assert (
+        two_sample_power(4.3, n, n, upper, alpha=0.025) >= 0.9 > two_sample_power(4.3, n - 1, n - 1, upper, alpha=0.025)
+    )
+    runs = paper_planned_runs(n)
+    assert (
+        len(runs) == 2 * n and runs[0][0] == "cihrl_consmac_a_seed400" and runs[-1][0] == f"cihrl_mappo_seed{399 + n}"
+    )
+    assert all(args[:3] == ["highlevel", "--schedule", "paper"] for _, args in runs)

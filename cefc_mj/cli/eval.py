@@ -52,7 +52,7 @@ from cefc_mj.eval.requests import (
 )
 from cefc_mj.executors import ExecutorConfig
 from cefc_mj.nn.registry import GAME_ADVERSARY
-from cefc_mj.seeds import GAME_FAMILY, GAME_PREREGISTERED_TEST_SEED
+from cefc_mj.seeds import GAME_FAMILY, GAME_PAPER_SCHEDULE_TEST_SEED, GAME_PREREGISTERED_TEST_SEED
 from cefc_mj.sim.wind import MAX_WIND_SPEED
 from cefc_mj.task.config import ADVERSARY_RULES
 
@@ -338,6 +338,11 @@ def check_preregistered_batch(args: argparse.Namespace) -> None:
     --policy), the first flight of that batch (the test ledger holds none), every planned run's file in
     the folder. All checked before anything flies."""
     proto, seed = args.protocol, args.seed
+    if proto in GAME_TABLES and seed == GAME_PAPER_SCHEDULE_TEST_SEED:
+        raise ConfigError(
+            f"--seed {seed}: the test batch of Table V at the paper's schedule, reserved for its pre-registered "
+            "flight once every planned run is in (docs/research/preregistration_paper_schedule.md)"
+        )
     if proto in GAME_TABLES and seed == GAME_PREREGISTERED_TEST_SEED and not args.preregistered_flight:
         raise ConfigError(
             f"--seed {seed}: the pre-registered Table V's test batch, flown once after every planned run is in "

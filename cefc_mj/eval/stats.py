@@ -151,6 +151,43 @@ def welch_difference(values, reference, confidence: float = CONFIDENCE) -> Welch
     return WelchDifference(int(a.size), int(b.size), d, se, float(df), d - half, d + half)
 
 
+@dataclass(frozen=True)
+class Interaction:
+    """A difference of differences over four independent groups of per-seed values, with its Welch
+    interval and two-sided p (the budget x method interaction of the second pre-registration)."""
+
+    estimate: float
+    """(mean a1 - mean b1) - (mean a2 - mean b2)."""
+    se: float
+    """sqrt(sum over the four groups of s^2 / n)."""
+    df: float
+    """Welch-Satterthwaite degrees of freedom of that sum."""
+    ci_low: float
+    """Lower bound of its CONFIDENCE interval (Student's t with df)."""
+    ci_high: float
+    """Upper bound."""
+    p: float
+    """Two-sided p of H0: the interaction is 0."""
+
+
+def interaction(a1, b1, a2, b2, confidence: float = CONFIDENCE) -> Interaction | None:
+    """(a1 - b1) - (a2 - b2) on the groups' means, tested with the Welch-Satterthwaite t (the groups
+    independent, variances unequal); None with fewer than two seeds in a group or no variance."""
+    groups = [np.asarray(g, dtype=np.float64) for g in (a1, b1, a2, b2)]
+    if any(g.size < 2 for g in groups):
+        return None
+    v = [g.var(ddof=1) / g.size for g in groups]
+    if sum(v) == 0:
+        return None
+    se = math.sqrt(sum(v))
+    df = sum(v) ** 2 / sum(vi**2 / (g.size - 1) for vi, g in zip(v, groups))
+    means = [float(g.mean()) for g in groups]
+    estimate = (means[0] - means[1]) - (means[2] - means[3])
+    half = float(stats.t.ppf(0.5 + confidence / 2, df)) * se
+    p = float(2 * stats.t.sf(abs(estimate) / se, df))
+    return Interaction(estimate, se, float(df), estimate - half, estimate + half, p)
+
+
 def tost_p(values, reference, margin: float) -> float | None:
     """p of the two one-sided Welch tests (TOST) that |mean(values) - mean(reference)| < margin: the
     larger of the one-sided p's against H0 difference <= -margin and H0 difference >= +margin (p <
