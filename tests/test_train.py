@@ -83,6 +83,12 @@ def test_budget_and_config_validation():
     assert dataclasses.replace(task, episode_steps=None, anchor_redraw_steps=None) == task_config_for(nav)
     assert task_config_for(nav).anchor_redraw_steps is None
     assert periods.paper_differences()[1].startswith("episodes of 3 anchor periods of 100 steps")
+    observed = dataclasses.replace(nav, accel_max=3.5, push_observer_s=2.0)  # recorded in the card, flown by evaluators
+    assert observed.paper_differences()[1:] == [
+        "action bound 3.5 m/s^2 per axis (ours; the paper states none)",
+        "the agent's push observer, time constant 2 s (the paper's agent is memoryless)",
+    ]
+    assert (task_config_for(observed).accel_max, task_config_for(observed).push_observer_s) == (3.5, 2.0)
     for bad in (0, 21, 2.0, True):
         with pytest.raises(ConfigError, match="anchor_periods"):
             dataclasses.replace(nav, anchor_periods=bad)

@@ -504,6 +504,12 @@ class LowLevelConfig(BudgetPPODict):
                 f"episodes of {self.anchor_periods} anchor periods of {FORMATION_EPISODE_STEPS} steps, the anchor "
                 "redrawn at each (paper: one anchor per episode)"
             )
+        if self.accel_max != 2.0:
+            out.append(f"action bound {self.accel_max:g} m/s^2 per axis (ours; the paper states none)")
+        if self.push_observer_s:
+            out.append(
+                f"the agent's push observer, time constant {self.push_observer_s:g} s (the paper's agent is memoryless)"
+            )
         if self.straggler_fraction:
             out.append(
                 f"in {self.straggler_fraction:.0%} of the episodes one agent starts {STRAGGLER_MIN_DISTANCE:g}-"
