@@ -56,7 +56,14 @@ ROLES = {"push": ("push", "nav-push"), "bound3.5": ("bound3.5", "nav-push-3.5")}
 """The two agents the targets are read against, each with its candidates: the one trained with the push
 observer and AT-M-Nav flown with one. The test batch flies the candidate chosen on validation seeds."""
 TEST_GRIDS = ("nav", "mujoco", "push", "bound3.5")
-"""The grids the test batch flies: chosen on the validation grids (docs/research/push_observer.md)."""
+"""The grids the test batch flies, each role's candidate chosen on the validation grids by the rule
+below (docs/research/push_observer.md) and written here before the test flight."""
+CHOICE_RULE = (
+    "per role, the candidate that meets more of the role's targets on the validation grids (each target "
+    "counted once, read as `targets` reads it, lowest or highest over c); a tie goes to the higher mean over "
+    "c of the role's wind retentions (push: Wind-3 and Wind-5; bound3.5: Wind-8)"
+)
+"""How a role's candidate is chosen, fixed before the validation grids were read."""
 FLIGHT = ("--protocol", "table8", "--backend", "mujoco", "--offboard", "acceleration", "--estimator", "raw")
 FLIGHT += ("--guard", "off", "--workers", "2")
 TEST_OUT = Path("eval/reports/px4_exact")
