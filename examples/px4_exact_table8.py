@@ -55,7 +55,7 @@ are its own (recorded in the file) unless the flags say otherwise."""
 ROLES = {"push": ("push", "nav-push"), "bound3.5": ("bound3.5", "nav-push-3.5")}
 """The two agents the targets are read against, each with its candidates: the one trained with the push
 observer and AT-M-Nav flown with one. The test batch flies the candidate chosen on validation seeds."""
-TEST_GRIDS = ("nav", "mujoco", "push", "bound3.5")
+TEST_GRIDS = ("nav", "mujoco", "push", "nav-push-3.5")
 """The grids the test batch flies, each role's candidate chosen on the validation grids by the rule
 below (docs/research/push_observer.md) and written here before the test flight."""
 CHOICE_RULE = (
