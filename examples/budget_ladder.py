@@ -47,7 +47,7 @@ from cefc_mj.eval.requests import check_output
 ROOT = Path(__file__).resolve().parent.parent
 OUT = Path("runs/ladder")
 KEPT = Path("policies/ladder")
-"""The tracked copy of the ladder's progress (--keep): u<N>/<policy files>, u<N>/runs/<stem>/ (logs, state)."""
+"""The tracked copy of the ladder's progress (--keep): u<N>/<policy files>, u<N>/training/<stem>/ (logs, state)."""
 RUN_LOGS = ("config.json", "progress.csv")
 RUNGS = (75, 300, 1500)
 """Updates (iterations of 20 envs) of each rung; 1,500 is the paper's schedule."""
@@ -111,7 +111,7 @@ class LadderRun:
         return sorted(p for name in (self.stem, f"{self.stem}_wo_ft") for p in folder.glob(f"{name}.*"))
 
     def kept_dir(self, kept: Path) -> Path:
-        return kept / f"u{self.rung}" / "runs" / self.stem
+        return kept / f"u{self.rung}" / "training" / self.stem  # not "runs": .gitignore ignores every runs/
 
     def command(self, smoke: bool = False) -> list[str]:
         """The cefc-train command (run from the repository root), with --resume when the run has a saved state."""

@@ -229,3 +229,12 @@ def test_smoke_ladder_trains_resumably_and_reports(tmp_path):
     drawn = subprocess.run(run + ["--report", "--smooth", "1"], capture_output=True, text=True, timeout=300)
     assert drawn.returncode == 0, drawn.stderr
     assert (out / "ladder.png").is_file() and "CI-HRL at 6 updates, last iteration 6" in drawn.stdout
+
+
+def test_the_tracked_copy_is_not_ignored_by_git():
+    """The kept states and logs are committed: no .gitignore rule (such as runs/) may hide them."""
+    module = load_script()
+    run = module.planned_runs(module.ROOT / module.OUT)[0]
+    for path in (run.kept_dir(module.ROOT / module.KEPT) / "state.pt", module.ROOT / module.KEPT / "u75" / "x.pt"):
+        done = subprocess.run(["git", "check-ignore", "-q", str(path)], cwd=module.ROOT)
+        assert done.returncode == 1, path  # 1: not ignored
