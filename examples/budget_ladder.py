@@ -220,15 +220,16 @@ def saved_trainer(state: Path) -> dict | None:
     return read_state(state, STATE_FORMAT, "high-level training state")["trainer"]
 
 
-def saved_iteration(state: Path) -> int:
-    """The iteration a run's saved state stands at (-1 when there is none)."""
-    trainer = saved_trainer(state)
+def saved_iteration(state: Path, trainer: dict | None = None) -> int:
+    """The iteration a run's saved state stands at (-1 when there is none); `trainer`: its trainer part
+    when already read."""
+    trainer = saved_trainer(state) if trainer is None else trainer
     return -1 if trainer is None else int(trainer["counters"]["iteration"])
 
 
-def state_without_rows(state: Path) -> bool:
-    """Whether a saved state holds no ConsMAC replay rows (MAPPO+AT-M has no replay)."""
-    replay = saved_trainer(state)["replay"]
+def without_rows(trainer: dict) -> bool:
+    """Whether a saved trainer state holds no ConsMAC replay rows (MAPPO+AT-M has no replay)."""
+    replay = trainer["replay"]
     return replay is None or int(replay["size"]) == 0
 
 
@@ -252,10 +253,11 @@ def keep(runs: list[LadderRun], kept: Path) -> list[str]:
             lines.append(f"kept {run.stem} (u{run.rung}): done")
         elif (run.run_dir / "state.pt").is_file():
             state = run.run_dir / "state.pt"
-            local, there = saved_iteration(state), saved_iteration(target / "state.pt")
+            trainer = saved_trainer(state)  # read once: a state with its rows is 125 MB
+            local, there = saved_iteration(state, trainer), saved_iteration(target / "state.pt")
             if local <= there:
                 lines.append(f"kept {run.stem} (u{run.rung}): unchanged at iteration {there}")
-            elif state_without_rows(state):
+            elif without_rows(trainer):
                 copy_files([state, *(run.run_dir / n for n in RUN_LOGS if (run.run_dir / n).is_file())], target)
                 lines.append(f"kept {run.stem} (u{run.rung}): iteration {local}")
             else:
@@ -278,9 +280,9 @@ def restore(runs: list[LadderRun], kept: Path) -> list[str]:
             copy_files(files, run.policy.parent)
             copy_files([source / n for n in RUN_LOGS if (source / n).is_file()], run.run_dir)
             lines.append(f"restored {run.stem} (u{run.rung}): done")
-        elif saved_iteration(source / "state.pt") > saved_iteration(run.run_dir / "state.pt"):
+        elif (there := saved_iteration(source / "state.pt")) > saved_iteration(run.run_dir / "state.pt"):
             copy_files([source / n for n in ("state.pt", *RUN_LOGS) if (source / n).is_file()], run.run_dir)
-            lines.append(f"restored {run.stem} (u{run.rung}): iteration {saved_iteration(run.run_dir / 'state.pt')}")
+            lines.append(f"restored {run.stem} (u{run.rung}): iteration {there}")
     return lines
 
 

@@ -359,21 +359,20 @@ class Policy:
     def with_action_bound(self, accel_max: float) -> "Policy":
         """This policy flown at another action bound (m/s^2 per axis): the same weights, the network's
         output clipped to `accel_max` instead of the bound it was trained at."""
-        if accel_max == self.accel_max:
-            return self
-        actor = copy.deepcopy(self.actor)
-        actor.__dict__.pop("_inference_plan", None)  # the compiled kernel's copy names the old bound
-        actor.cfg = dataclasses.replace(actor.cfg, accel_max=float(accel_max))
-        return Policy(actor, self.meta, self.name)
+        return self._with_actor_settings(accel_max=float(accel_max))
 
     def with_push_observer(self, time_constant: float) -> "Policy":
         """This policy flown by an agent with the push observer of `time_constant` s (0: none) instead of
         the one it was trained with; the same weights."""
-        if time_constant == self.push_observer_s:
+        return self._with_actor_settings(push_observer_s=float(time_constant))
+
+    def _with_actor_settings(self, **changes) -> "Policy":
+        """This policy with its actor's config fields `changes` replaced (self where they are already so)."""
+        if all(getattr(self.actor.cfg, name) == value for name, value in changes.items()):
             return self
         actor = copy.deepcopy(self.actor)
-        actor.__dict__.pop("_inference_plan", None)
-        actor.cfg = dataclasses.replace(actor.cfg, push_observer_s=float(time_constant))
+        actor.__dict__.pop("_inference_plan", None)  # the compiled kernel's copy names the old settings
+        actor.cfg = dataclasses.replace(actor.cfg, **changes)
         return Policy(actor, self.meta, self.name)
 
     def act(self, obs: np.ndarray | Mapping[str, np.ndarray]) -> np.ndarray | dict[str, np.ndarray]:
