@@ -229,7 +229,7 @@ def test_table3_flies_maddpg_as_the_papers_row(formation, tmp_path):
     formation.train_formation(tiny(eval_episodes=0), tmp_path, show_progress=False)
     result = run_table3([6], episodes=1, policy="maddpg", policies_dir=tmp_path / "policies")
     row = result["6"]["MADDPG"]
-    assert row["policy"] == "benchmarl_maddpg_c6.pt" and row["paper"]["F"] == 58.12
+    assert row["seeds"][0]["policy"] == "benchmarl_maddpg_c6.pt" and row["paper"]["F"] == 58.12
     assert "MADDPG" in format_table3(result) and "58.12" in format_table3(result)
 
 

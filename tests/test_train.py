@@ -6,6 +6,7 @@ import json
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -311,6 +312,32 @@ def test_table3_rows_keyed_like_the_paper(tmp_path):
     assert "AT-M-Step3" in text and "missing policies" in text
     with pytest.raises(ConfigError):
         run_table3([9], policies_dir=tmp_path)
+
+
+def test_table3_maddpg_row_is_the_mean_and_spread_over_training_seeds(tmp_path):
+    """The MADDPG row flies every training seed's file and reports over seeds, not one seed's episodes."""
+    from cefc_mj.eval.table3 import MADDPG
+
+    task = TaskConfig(n_agents=6, mode="formation")
+    for i, name in enumerate(["benchmarl_maddpg_c6", "benchmarl_maddpg_c6_seed2", "benchmarl_maddpg_c6_seed1"]):
+        torch.manual_seed(i)
+        save_policy(ATMActor(ATMConfig.from_task(task)), tmp_path / f"{name}.pt")
+    torch.manual_seed(9)  # another scenario's file: not a seed of this row
+    save_policy(ATMActor(ATMConfig.from_task(task)), tmp_path / "benchmarl_maddpg_c6_step1_seed1.pt")
+    result = run_table3([6], episodes=3, seed=0, policy="maddpg", policies_dir=tmp_path)
+    row = result["6"][MADDPG]
+    assert [s["seed"] for s in row["seeds"]] == [0, 1, 2] and row["training_seeds"] == 3
+    assert [s["policy"] for s in row["seeds"]][1] == "benchmarl_maddpg_c6_seed1.pt"
+    means = {m: [] for m in ("R_L", "F", "N", "C")}
+    for name in ("benchmarl_maddpg_c6", "benchmarl_maddpg_c6_seed1", "benchmarl_maddpg_c6_seed2"):
+        episodes = evaluate_lowlevel_episodes(load_policy(tmp_path / f"{name}.pt"), 6, episodes=3, seed=0)
+        for m in means:
+            means[m].append(float(episodes[m].mean()))
+    for m, values in means.items():
+        assert row[m] == pytest.approx(np.mean(values)) and row[f"{m}_std"] == pytest.approx(np.std(values, ddof=1))
+    assert len(set(means["R_L"])) == 3  # three different policies, so the spread is not zero
+    assert len(row["per_episode"]["F"]) == 9 and row["paper"]["F"] == 58.12
+    assert "MADDPG (3 seeds)" in format_table3(result) and "training seeds" in format_table3(result)
 
 
 def test_shipped_paper_table3_matches_the_shared_transcription():

@@ -18,6 +18,7 @@ acts deterministically (Gaussian mean). Columns as the paper prints them:
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -58,6 +59,20 @@ MADDPG = "MADDPG"
 """The paper's MADDPG row: BenchMARL's MADDPG on the formation task (`cefc-train formation-benchmarl`,
 docs/formation_benchmarl.md), its policy files named MADDPG_FILE; not in METHODS until files ship."""
 MADDPG_FILE = "benchmarl_maddpg_c{c}"
+SEED_ROWS = frozenset({MADDPG})
+"""Rows flown from every training seed's file (`<stem>.pt` for seed 0, `<stem>_seed<k>.pt`) and reported
+as the mean and sample std over training seeds, not over one seed's episodes."""
+
+
+def training_seed_paths(stem: str, policies_dir: Path) -> list[tuple[int, Path]]:
+    """(seed, file) of each training seed's policy of one method in `policies_dir`, in seed order:
+    `<stem>.pt` is seed 0 and `<stem>_seed<k>.pt` seed k (the names `cefc-train` gives)."""
+    found = [(0, policies_dir / f"{stem}.pt")] if (policies_dir / f"{stem}.pt").is_file() else []
+    for path in policies_dir.glob(f"{stem}_seed*.pt"):
+        match = re.fullmatch(re.escape(stem) + r"_seed(\d+)", path.stem)
+        if match:
+            found.append((int(match.group(1)), path))
+    return sorted(found)
 
 
 def _paper_table3() -> dict[str, dict[str, dict[str, float]]]:
@@ -147,6 +162,23 @@ def _row(per_episode: dict[str, np.ndarray], c: int, method: str) -> dict:
     return {**episode_stats(per_episode), "paper": PAPER_TABLE3.get(str(c), {}).get(PAPER_ROW.get(method, method))}
 
 
+def _seeds_row(per_seed: list[tuple[int, Path, dict[str, np.ndarray]]], c: int, method: str) -> dict:
+    """One row from several training seeds: each metric's mean over the seeds' episode means and its sample
+    std over seeds (`<metric>_std`, None for one seed), the seeds' own means, files and SHA-256 under
+    "seeds", every episode under "per_episode" (seed after seed)."""
+    from cefc_mj.eval.runner import _mean_std
+
+    seeds = [
+        {"seed": k, "policy": path.name, "sha256": file_sha256(path), **{m: float(np.mean(v)) for m, v in ep.items()}}
+        for k, path, ep in per_seed
+    ]
+    row: dict = {"spread": "training seeds", "training_seeds": len(seeds)}
+    for m in per_seed[0][2]:
+        row[m], row[f"{m}_std"] = _mean_std([s[m] for s in seeds])
+    row["per_episode"] = {m: [float(v) for _, _, ep in per_seed for v in ep[m]] for m in per_seed[0][2]}
+    return {**row, "seeds": seeds, "paper": PAPER_TABLE3.get(str(c), {}).get(PAPER_ROW.get(method, method))}
+
+
 def _orca_row(c: int, episodes: int, seed: int, steps: int, required: bool, progress=None) -> dict | None:
     """ORCA-F's row (same episodes as the policies'), or None when pyrvo is missing and not required."""
     from cefc_mj.baselines.orca import PYRVO_MISSING, evaluate_orca_episodes, pyrvo_available
@@ -195,7 +227,9 @@ def run_table3(
     other name or .pt path = one row under the policy file's name (no paper row). Returns
     {"schema", "schema_version", "protocol": {...}, "6": {"AT-M-Step3": {"R_L", "F", "N", "C"
     (means), "R_L_std", ... (sample std over episodes), "per_episode": {metric: [...]}, "paper":
-    {...} or None, "policy": file name, "sha256"}, ...}, ...}. A method whose policy file is missing
+    {...} or None, "policy": file name, "sha256"}, ...}, ...}. A row of SEED_ROWS is flown from every training
+    seed's file and holds the mean and sample std over training seeds instead ("spread": "training
+    seeds", each seed's means, file and SHA-256 under "seeds"). A method whose policy file is missing
     is left out (listed in protocol["missing"]). `provenance` (library versions, commit) rides
     along. Writes the same dict as JSON to json_path if given. `progress` (a tqdm bar, or anything
     with its `reset(total)`, `update(n)` and `set_postfix_str(text)`) counts the episodes as each
@@ -255,6 +289,26 @@ def run_table3(
                     rows[method] = row
                     _advance(progress, episodes)
                 continue
+            if method in SEED_ROWS:
+                seed_files = training_seed_paths(name, policies_dir)
+                if seed_files:
+                    if progress is not None:  # one batch per training seed
+                        progress.total += episodes * (len(seed_files) - 1)
+                    per_seed = []
+                    for k, path in seed_files:
+                        _flying(progress, c, f"{method} seed {k}")
+                        per_seed.append(
+                            (
+                                k,
+                                path,
+                                evaluate_lowlevel_episodes(
+                                    load_policy(path), c, episodes=episodes, seed=seed, steps=steps
+                                ),
+                            )
+                        )
+                        _advance(progress, episodes)
+                    rows[method] = {**_seeds_row(per_seed, c, method), "policy": f"{name}[_seed<k>].pt"}
+                    continue
             try:
                 path = resolve_policy_path(name, policies_dir)
             except CheckpointError:
@@ -289,6 +343,11 @@ def format_table3(result: dict) -> str:
         "navigation term summed over the agents, the form the paper's R_L values match.",
         "ours: mean ± sample std over episodes; paper: the paper's Table III row ('-': the paper has none).",
     ]
+    if any(row.get("spread") == "training seeds" for c, rows in result.items() if c.isdigit() for row in rows.values()):
+        lines.append(
+            "A row marked (n seeds): mean ± sample std over n training seeds, each seed's value its mean over "
+            "the episodes."
+        )
     if proto["steps"] != TABLE3_STEPS:
         lines.append(f"F, N over {proto['steps']} steps; the paper's are over {TABLE3_STEPS}: not comparable.")
     table = [["c", "method", "", "R_L/step", "R_L^a/step", "F (steps)", "N (steps)", "C (%)"]]
@@ -297,8 +356,9 @@ def format_table3(result: dict) -> str:
             continue
         for method, row in rows.items():
             paper = row.get("paper") or {}
+            label = f"{method} ({row['training_seeds']} seeds)" if row.get("spread") == "training seeds" else method
             table.append(
-                [c, method, "ours"]
+                [c, label, "ours"]
                 + [
                     format_mean_std(row[m], row.get(f"{m}_std"), ".2f") if m in row else "-"
                     for m in ("R_L", "R_L_agents", *COLUMNS[1:])
