@@ -136,7 +136,7 @@ def test_results_finetune_rows_and_counts_are_the_report():
     report = _rows(_text(REPORTS / "mujoco_ft" / "acceleration_paired.md"))
     section = _section(_text(DOCS / "results.md"), "Table VIII with the paper's agent")
     quoted = _rows(section)
-    assert quoted[0] == report[0] and set(quoted[1:]) <= set(report[1:]) and len(quoted) > 15
+    assert quoted[0] == report[0] and set(quoted[1:]) <= set(report[1:]) and len(quoted) > 10
     cells = [[cell.strip() for cell in row.strip("|").split("|")] for row in report[1:]]
     prose = " ".join(section.split())
     c_better = sum(row[6] == "better" for row in cells)
@@ -171,6 +171,30 @@ def test_results_table3_is_the_report():
             cells = [f"{row[k]:.{p}f} ± {row[k + '_std']:.{p}f}" for k, p in (("F", 1), ("N", 1), ("C", 2))]
             expected.append(f"| {c} | {method} | {' | '.join(cells)} | {theirs} |")
     assert quoted == expected
+
+
+def test_results_px4_exact_tables_are_the_report():
+    """The PX4-interface section's two tables, rebuilt from px4_exact.json and the paper's cells."""
+    from cefc_mj.eval.table8 import paper_cell
+
+    cells = json.loads(_text(REPORTS / "px4_exact" / "px4_exact.json"))["cells"]
+    quoted = _rows(_section(_text(DOCS / "results.md"), "Table VIII with the paper's agent on PX4's"))
+    grids = ("nav", "mujoco", "push", "nav-push-3.5")
+    expected = []
+    for c in "5678":
+        for cond in ("Wind-3", "Wind-5", "Wind-8"):
+            kept = " | ".join(f"{cells[c][cond][g]['retention']:.1%}" for g in grids)
+            expected.append(f"| {c} | {cond} | {kept} | {paper_cell(c, cond)['retention']:.1%} |")
+    for c in "5678":
+        push, bound, dev = (
+            cells[c][k][g] for k, g in (("SITL-S", "push"), ("SITL-S", grids[3]), ("Deviation-0.8", grids[3]))
+        )
+        calm, paper_dev = paper_cell(c, "SITL-S"), paper_cell(c, "Deviation-0.8")
+        expected.append(
+            f"| {c} | {push['F']:.0f} / {push['N']:.0f} / {push['C']:.3f} | {bound['F']:.0f} / {bound['N']:.0f} / "
+            f"{bound['C']:.3f} | {dev['C']:.3f} | {calm['F']:.0f} / {calm['N']:.0f}, {paper_dev['C']:.2f} |"
+        )
+    assert [row for row in quoted if row[2] in "5678"] == expected
 
 
 def test_results_table5_decisions_quote_the_report():
@@ -213,11 +237,26 @@ def test_readme_results_summary_quotes_the_reports():
     assert f"(paper: {paper[7].rstrip(' %')} % and {paper[11].rstrip(' %')} %)" in summary
     collisions = [by_c[c][i].split(" ± ")[0] for c in "5678" for i in (3, 6, 10)]
     assert f"C at most {max(collisions, key=float)} %" in summary and f"Deviation-0.8: {paper[10]})" in summary
-    paired = _report_rows(REPORTS / "mujoco_ft" / "acceleration_paired.md")
-    nav_wind8 = [float(paired[(c, "Wind-8")][4].split(" ± ")[0]) for c in "5678"]
-    assert f"AT-M-Nav keeps {min(nav_wind8)}-{max(nav_wind8)} % at Wind-8" in summary
-    better = sum(cells[6] == "better" for cells in paired.values())
-    assert f"C lower in {better} of {len(paired)} cells" in summary
+    from cefc_mj.eval.table8 import paper_cell
+
+    px4 = json.loads(_text(REPORTS / "px4_exact" / "px4_exact.json"))["cells"]
+
+    def span(grid: str, cond: str, key: str = "retention", scale: float = 100, digits: int = 1) -> str:
+        values = [px4[c][cond][grid][key] * scale for c in "5678"]
+        return f"{min(values):.{digits}f}-{max(values):.{digits}f}"
+
+    def paper_span(cond: str) -> str:
+        values = [paper_cell(c, cond)["retention"] * 100 for c in "5678"]
+        return f"{min(values):.1f}-{max(values):.1f}"
+
+    assert (
+        f"AT-M-Nav keeps {span('nav', 'Wind-3')} % of its calm F+N at Wind-3 and {span('nav', 'Wind-8')} %" in summary
+    )
+    assert f"keeps {span('push', 'Wind-3')} % at Wind-3 (paper {paper_span('Wind-3')} %)" in summary
+    assert f"and {span('push', 'Wind-5')} % at Wind-5 (paper {paper_span('Wind-5')} %)" in summary
+    assert f"keeps {span('nav-push-3.5', 'Wind-8')} % at Wind-8 (paper {paper_span('Wind-8')} %)" in summary
+    dev = span("nav-push-3.5", "Deviation-0.8", "C", 1)
+    assert f"(Deviation-0.8 C {dev} %, paper 1.2-3.0)" in summary
     table3 = json.loads(_text(REPORTS / "table3.json"))
     step3 = [table3[c]["AT-M-Step3"] for c in "678"]
     f_ours = [f"{row['F']:.1f}" for row in step3]
