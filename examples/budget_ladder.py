@@ -18,13 +18,10 @@ Rung N's runs live in <out>/u<N>/ (their policies in <out>/u<N>/policies/, each 
 drivers never train the same run. The plan is fixed here; nothing chooses or drops a run by its results.
 
 The ladder outlives a session through a tracked copy, `policies/ladder/` (`--kept`; a ladder in
-another --out has none unless --kept names one): `--keep` copies
-each finished run's policy files and logs there, and each unfinished run's logs with its resumable
-state when that state leaves out the ConsMAC replay's rows (about 3 MB instead of 125 MB: a state
-saved while the replay is refilled before its next read, `HighLevelTrainer.replay_refilled_before_read`);
-a run whose newest state still holds the rows keeps its earlier copy. Training and --report start by
-copying back into <out> whatever the kept copy holds beyond it, so a fresh checkout continues
-where the kept copy stands.
+another --out has none unless --kept names one): `--keep` copies each finished run's policy files and
+logs there, and each unfinished run's logs with its resumable state when that state leaves out the
+ConsMAC replay's rows (`cefc_mj.train.kept_runs`). Training and --report start by copying back into
+<out> whatever the kept copy holds beyond it, so a fresh checkout continues where the kept copy stands.
 """
 
 from __future__ import annotations
@@ -32,23 +29,21 @@ from __future__ import annotations
 import argparse
 import csv
 import dataclasses
-import fcntl
 import shlex
-import subprocess
 import sys
-import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 from cefc_mj.errors import CefcError, ConfigError, OneLineParser
 from cefc_mj.eval.learning_curves import group_curves, read_run, write_csv
 from cefc_mj.eval.requests import check_output
+from cefc_mj.train import kept_runs
+from cefc_mj.train.kept_runs import keep, restore, saved_iteration  # noqa: F401 - the script's API
 
 ROOT = Path(__file__).resolve().parent.parent
 OUT = Path("runs/ladder")
 KEPT = Path("policies/ladder")
 """The tracked copy of the ladder's progress (--keep): u<N>/<policy files>, u<N>/training/<stem>/ (logs, state)."""
-RUN_LOGS = ("config.json", "progress.csv")
 RUNGS = (75, 300, 1500)
 """Updates (iterations of 20 envs) of each rung; 1,500 is the paper's schedule."""
 SEEDS = (300, 301, 302)
@@ -100,6 +95,14 @@ class LadderRun:
         return self.out / "logs" / f"u{self.rung}_{self.stem}.log"
 
     @property
+    def label(self) -> str:
+        return f"{self.stem} (u{self.rung})"
+
+    @property
+    def claim_dir(self) -> Path:
+        return self.rung_dir
+
+    @property
     def core_hours(self) -> float:
         return CORE_HOURS_AT_PAPER[self.method] * self.rung / RUNGS[-1]
 
@@ -112,6 +115,9 @@ class LadderRun:
 
     def kept_dir(self, kept: Path) -> Path:
         return kept / f"u{self.rung}" / "training" / self.stem  # not "runs": .gitignore ignores every runs/
+
+    def kept_policy_dir(self, kept: Path) -> Path:
+        return kept / f"u{self.rung}"
 
     def command(self, smoke: bool = False) -> list[str]:
         """The cefc-train command (run from the repository root), with --resume when the run has a saved state."""
@@ -175,115 +181,9 @@ def list_runs(runs: list[LadderRun], smoke: bool) -> str:
     return "\n".join(lines)
 
 
-def claim(run: LadderRun):
-    """An open, exclusively locked claim file for the run, or None when another driver holds it."""
-    run.rung_dir.mkdir(parents=True, exist_ok=True)
-    handle = open(run.rung_dir / f"{run.stem}.lock", "w")  # noqa: SIM115 - held for the run's duration
-    try:
-        fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except BlockingIOError:
-        handle.close()
-        return None
-    if run.done():  # finished by another driver between our check and the lock
-        handle.close()
-        return None
-    return handle
-
-
 def train(run: LadderRun, smoke: bool) -> int:
     """Train one run (output to its log file); its exit code, 0 when another driver holds it."""
-    handle = claim(run)
-    if handle is None:
-        return 0
-    with handle:
-        cmd = run.command(smoke)
-        run.log.parent.mkdir(parents=True, exist_ok=True)
-        print(f"ladder: {shlex.join(cmd)}  > {run.log}", flush=True)
-        start = time.monotonic()
-        script = Path(sys.executable).with_name("cefc-train")  # this environment's, not another on PATH
-        with run.log.open("a") as log:
-            code = subprocess.run(
-                [str(script) if script.is_file() else cmd[0], *cmd[1:]], cwd=ROOT, stdout=log, stderr=subprocess.STDOUT
-            ).returncode
-        print(f"ladder: {run.stem} (u{run.rung}) exited {code} after {time.monotonic() - start:.0f} s", flush=True)
-        return code
-
-
-# ---------------------------------------------------------------------------- the tracked copy
-def saved_trainer(state: Path) -> dict | None:
-    """The trainer part of a run's saved state, None when there is none."""
-    if not state.is_file():
-        return None
-    from cefc_mj.train.highlevel import STATE_FORMAT  # torch: only when a state is read
-    from cefc_mj.train.run_state import read_state
-
-    return read_state(state, STATE_FORMAT, "high-level training state")["trainer"]
-
-
-def saved_iteration(state: Path, trainer: dict | None = None) -> int:
-    """The iteration a run's saved state stands at (-1 when there is none); `trainer`: its trainer part
-    when already read."""
-    trainer = saved_trainer(state) if trainer is None else trainer
-    return -1 if trainer is None else int(trainer["counters"]["iteration"])
-
-
-def without_rows(trainer: dict) -> bool:
-    """Whether a saved trainer state holds no ConsMAC replay rows (MAPPO+AT-M has no replay)."""
-    replay = trainer["replay"]
-    return replay is None or int(replay["size"]) == 0
-
-
-def copy_files(files: list[Path], folder: Path) -> None:
-    from cefc_mj.fileio import write_atomic
-
-    folder.mkdir(parents=True, exist_ok=True)
-    for f in files:
-        write_atomic(folder / f.name, f.read_bytes())
-
-
-def keep(runs: list[LadderRun], kept: Path) -> list[str]:
-    """Copy each run's progress into the tracked copy; the lines to print."""
-    lines = []
-    for run in runs:
-        target = run.kept_dir(kept)
-        if run.done():
-            copy_files(run.policy_files(run.policy.parent), kept / f"u{run.rung}")
-            copy_files([run.run_dir / n for n in RUN_LOGS if (run.run_dir / n).is_file()], target)
-            (target / "state.pt").unlink(missing_ok=True)  # done: the final state (with its rows) is not kept
-            lines.append(f"kept {run.stem} (u{run.rung}): done")
-        elif (run.run_dir / "state.pt").is_file():
-            state = run.run_dir / "state.pt"
-            trainer = saved_trainer(state)  # read once: a state with its rows is 125 MB
-            local, there = saved_iteration(state, trainer), saved_iteration(target / "state.pt")
-            if local <= there:
-                lines.append(f"kept {run.stem} (u{run.rung}): unchanged at iteration {there}")
-            elif without_rows(trainer):
-                copy_files([state, *(run.run_dir / n for n in RUN_LOGS if (run.run_dir / n).is_file())], target)
-                lines.append(f"kept {run.stem} (u{run.rung}): iteration {local}")
-            else:
-                lines.append(
-                    f"kept {run.stem} (u{run.rung}): its state at iteration {local} holds the replay's rows; "
-                    f"the copy stays at iteration {there} (run --keep again after the next checkpoint)"
-                )
-    return lines
-
-
-def restore(runs: list[LadderRun], kept: Path) -> list[str]:
-    """Copy back from the tracked copy what it holds beyond <out>; the lines to print."""
-    lines = []
-    for run in runs:
-        if run.done():
-            continue
-        source = run.kept_dir(kept)
-        files = run.policy_files(kept / f"u{run.rung}")
-        if any(f.name == run.policy.name for f in files):
-            copy_files(files, run.policy.parent)
-            copy_files([source / n for n in RUN_LOGS if (source / n).is_file()], run.run_dir)
-            lines.append(f"restored {run.stem} (u{run.rung}): done")
-        elif (there := saved_iteration(source / "state.pt")) > saved_iteration(run.run_dir / "state.pt"):
-            copy_files([source / n for n in ("state.pt", *RUN_LOGS) if (source / n).is_file()], run.run_dir)
-            lines.append(f"restored {run.stem} (u{run.rung}): iteration {there}")
-    return lines
+    return kept_runs.train(run, run.command(smoke), ROOT, "ladder")
 
 
 # ---------------------------------------------------------------------------- report
