@@ -31,7 +31,6 @@ import csv
 import dataclasses
 import shlex
 import sys
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 from cefc_mj.errors import CefcError, ConfigError, OneLineParser
@@ -181,11 +180,6 @@ def list_runs(runs: list[LadderRun], smoke: bool) -> str:
     return "\n".join(lines)
 
 
-def train(run: LadderRun, smoke: bool) -> int:
-    """Train one run (output to its log file); its exit code, 0 when another driver holds it."""
-    return kept_runs.train(run, run.command(smoke), ROOT, "ladder")
-
-
 # ---------------------------------------------------------------------------- report
 def ladder_curves(runs: list[LadderRun], smooth: int) -> tuple[dict[tuple[str, int], dict], list[str]]:
     """{(method, rung): `learning_curves.group_curves` entry} over the runs with a progress.csv, and the
@@ -332,14 +326,7 @@ def main(argv: list[str] | None = None) -> int:
     except CefcError as e:
         p.error(str(e))
     todo = [run for run in runs if not run.done()]
-    print(f"ladder: {len(todo)} of {len(runs)} runs to train, {args.jobs} at a time", flush=True)
-    with ThreadPoolExecutor(max_workers=args.jobs) as pool:
-        codes = list(pool.map(lambda run: train(run, args.smoke), todo))
-    failed = [f"{run.stem} (u{run.rung}): exit {code}" for run, code in zip(todo, codes) if code]
-    if failed:
-        print(f"ladder: {len(failed)} runs failed: {'; '.join(failed)}", file=sys.stderr)
-        return 1
-    return 0
+    return kept_runs.train_all(todo, len(runs), args.jobs, lambda run: run.command(args.smoke), ROOT, "ladder")
 
 
 if __name__ == "__main__":

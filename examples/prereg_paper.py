@@ -20,7 +20,6 @@ from __future__ import annotations
 import dataclasses
 import shlex
 import sys
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 from cefc_mj.errors import CefcError, ConfigError, OneLineParser
@@ -163,14 +162,7 @@ def main(argv: list[str] | None = None) -> int:
     except CefcError as e:
         p.error(str(e))
     todo = [run for run in runs if not run.done()][: args.runs]
-    print(f"prereg_paper: {len(todo)} of {len(runs)} runs to train, {args.jobs} at a time", flush=True)
-    with ThreadPoolExecutor(max_workers=args.jobs) as pool:
-        codes = list(pool.map(lambda run: kept_runs.train(run, run.command(), ROOT, "prereg_paper"), todo))
-    failed = [f"{run.stem}: exit {code}" for run, code in zip(todo, codes) if code]
-    if failed:
-        print(f"prereg_paper: {len(failed)} runs failed: {'; '.join(failed)}", file=sys.stderr)
-        return 1
-    return 0
+    return kept_runs.train_all(todo, len(runs), args.jobs, PaperRun.command, ROOT, "prereg_paper")
 
 
 if __name__ == "__main__":

@@ -145,3 +145,18 @@ def train(run, cmd: list[str], root: Path, prog: str) -> int:
             ).returncode
         print(f"{prog}: {run.label} exited {code} after {time.monotonic() - start:.0f} s", flush=True)
         return code
+
+
+def train_all(todo: list, planned: int, jobs: int, command_of, root: Path, prog: str) -> int:
+    """Train the runs of `todo` (of `planned` in the plan), `jobs` at a time, each with
+    `command_of(run)`; 0, or 1 after one line naming every run that failed."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    print(f"{prog}: {len(todo)} of {planned} runs to train, {jobs} at a time", flush=True)
+    with ThreadPoolExecutor(max_workers=jobs) as pool:
+        codes = list(pool.map(lambda run: train(run, command_of(run), root, prog), todo))
+    failed = [f"{run.label}: exit {code}" for run, code in zip(todo, codes) if code]
+    if failed:
+        print(f"{prog}: {len(failed)} runs failed: {'; '.join(failed)}", file=sys.stderr)
+        return 1
+    return 0
