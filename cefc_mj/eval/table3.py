@@ -159,7 +159,12 @@ def _row(per_episode: dict[str, np.ndarray], c: int, method: str) -> dict:
     """Means, sample std and per-episode values of each metric, with the paper's row."""
     from cefc_mj.eval.runner import episode_stats
 
-    return {**episode_stats(per_episode), "paper": PAPER_TABLE3.get(str(c), {}).get(PAPER_ROW.get(method, method))}
+    return {**episode_stats(per_episode), "paper": _paper_row(c, method)}
+
+
+def _paper_row(c: int, method: str) -> dict | None:
+    """The paper's Table III row a method of ours stands beside, None where the paper has none."""
+    return PAPER_TABLE3.get(str(c), {}).get(PAPER_ROW.get(method, method))
 
 
 def _seeds_row(per_seed: list[tuple[int, Path, dict[str, np.ndarray]]], c: int, method: str) -> dict:
@@ -176,7 +181,7 @@ def _seeds_row(per_seed: list[tuple[int, Path, dict[str, np.ndarray]]], c: int, 
     for m in per_seed[0][2]:
         row[m], row[f"{m}_std"] = _mean_std([s[m] for s in seeds])
     row["per_episode"] = {m: [float(v) for _, _, ep in per_seed for v in ep[m]] for m in per_seed[0][2]}
-    return {**row, "seeds": seeds, "paper": PAPER_TABLE3.get(str(c), {}).get(PAPER_ROW.get(method, method))}
+    return {**row, "seeds": seeds, "paper": _paper_row(c, method)}
 
 
 def _orca_row(c: int, episodes: int, seed: int, steps: int, required: bool, progress=None) -> dict | None:
@@ -297,13 +302,12 @@ def run_table3(
                     per_seed = []
                     for k, path in seed_files:
                         _flying(progress, c, f"{method} seed {k}")
+                        policy_k = load_policy(path)
                         per_seed.append(
                             (
                                 k,
                                 path,
-                                evaluate_lowlevel_episodes(
-                                    load_policy(path), c, episodes=episodes, seed=seed, steps=steps
-                                ),
+                                evaluate_lowlevel_episodes(policy_k, c, episodes=episodes, seed=seed, steps=steps),
                             )
                         )
                         _advance(progress, episodes)
