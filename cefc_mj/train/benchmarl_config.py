@@ -358,9 +358,9 @@ class FormationBenchMARLConfig(_BenchMARLRunConfig):
     Steps 2 and 3). Training always starts from random weights: there is no Step 3 merge."""
     seed: int = 0
     """BenchMARL's seed (networks, sampling) and the seed of every batch of training episodes."""
-    budget_frames: int = 600_000
-    """Training frames (env-steps, each c agent-steps), a multiple of frames_per_batch. 600k is the
-    budget of Table III's MADDPG runs: 100 iterations, 100,000 gradient steps, 0.6-0.8 core-hours
+    budget_frames: int = 1_200_000
+    """Training frames (env-steps, each c agent-steps), a multiple of frames_per_batch. 1.2M is the
+    budget of Table III's MADDPG runs: 200 iterations, 200,000 gradient steps, 1.5-1.9 core-hours
     (docs/formation_benchmarl.md, "Budget")."""
     n_envs: int = 10
     """Envs stepped as one batch (BenchMARL's default)."""
