@@ -27,7 +27,6 @@ ConsMAC replay's rows (`cefc_mj.train.kept_runs`). Training and --report start b
 from __future__ import annotations
 
 import argparse
-import csv
 import dataclasses
 import shlex
 import sys
@@ -109,8 +108,7 @@ class LadderRun:
         return self.policy.is_file()
 
     def policy_files(self, folder: Path) -> list[Path]:
-        """The run's exported files in a policies folder: policy and card, and its wo-FT pair."""
-        return sorted(p for name in (self.stem, f"{self.stem}_wo_ft") for p in folder.glob(f"{name}.*"))
+        return kept_runs.exported_files(self.stem, folder)
 
     def kept_dir(self, kept: Path) -> Path:
         return kept / f"u{self.rung}" / "training" / self.stem  # not "runs": .gitignore ignores every runs/
@@ -146,14 +144,7 @@ class LadderRun:
         ]
 
     def state(self) -> str:
-        if self.done():
-            return "done"
-        progress = self.run_dir / "progress.csv"
-        if progress.is_file():
-            with progress.open() as handle:
-                rows = sum(1 for _ in csv.DictReader(handle))
-            return f"{rows}/{self.rung} it"
-        return "todo"
+        return kept_runs.progress_state(self, self.rung)
 
 
 def planned_runs(out: Path, smoke: bool = False) -> list[LadderRun]:

@@ -65,8 +65,7 @@ class PaperRun:
         return self.policy.is_file()
 
     def policy_files(self, folder: Path) -> list[Path]:
-        """The run's exported files in a policies folder: policy and card, and its wo-FT pair."""
-        return sorted(p for name in (self.stem, f"{self.stem}_wo_ft") for p in folder.glob(f"{name}.*"))
+        return kept_runs.exported_files(self.stem, folder)
 
     def kept_dir(self, kept: Path) -> Path:
         return kept / "training" / self.stem  # not "runs": .gitignore ignores every runs/
@@ -93,12 +92,7 @@ class PaperRun:
         ]
 
     def state(self) -> str:
-        if self.done():
-            return "done"
-        progress = self.run_dir / "progress.csv"
-        if progress.is_file():
-            return f"{len(progress.read_text().splitlines()) - 1}/1500 it"
-        return "todo"
+        return kept_runs.progress_state(self, 1500)
 
 
 def planned_runs(seeds: int, out: Path, policies: Path) -> list[PaperRun]:

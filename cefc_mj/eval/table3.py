@@ -171,17 +171,22 @@ def _seeds_row(per_seed: list[tuple[int, Path, dict[str, np.ndarray]]], c: int, 
     """One row from several training seeds: each metric's mean over the seeds' episode means and its sample
     std over seeds (`<metric>_std`, None for one seed), the seeds' own means, files and SHA-256 under
     "seeds", every episode under "per_episode" (seed after seed)."""
-    from cefc_mj.eval.runner import _mean_std
+    from cefc_mj.eval.runner import episode_stats
 
     seeds = [
         {"seed": k, "policy": path.name, "sha256": file_sha256(path), **{m: float(np.mean(v)) for m, v in ep.items()}}
         for k, path, ep in per_seed
     ]
-    row: dict = {"spread": "training seeds", "training_seeds": len(seeds)}
-    for m in per_seed[0][2]:
-        row[m], row[f"{m}_std"] = _mean_std([s[m] for s in seeds])
-    row["per_episode"] = {m: [float(v) for _, _, ep in per_seed for v in ep[m]] for m in per_seed[0][2]}
-    return {**row, "seeds": seeds, "paper": _paper_row(c, method)}
+    metrics = list(per_seed[0][2])
+    row = episode_stats({m: [s[m] for s in seeds] for m in metrics})  # one value per seed: stats over seeds
+    row["per_episode"] = {m: [float(v) for _, _, ep in per_seed for v in ep[m]] for m in metrics}
+    return {
+        "spread": "training seeds",
+        "training_seeds": len(seeds),
+        **row,
+        "seeds": seeds,
+        "paper": _paper_row(c, method),
+    }
 
 
 def _orca_row(c: int, episodes: int, seed: int, steps: int, required: bool, progress=None) -> dict | None:
@@ -302,14 +307,10 @@ def run_table3(
                     per_seed = []
                     for k, path in seed_files:
                         _flying(progress, c, f"{method} seed {k}")
-                        policy_k = load_policy(path)
-                        per_seed.append(
-                            (
-                                k,
-                                path,
-                                evaluate_lowlevel_episodes(policy_k, c, episodes=episodes, seed=seed, steps=steps),
-                            )
+                        flown = evaluate_lowlevel_episodes(
+                            load_policy(path), c, episodes=episodes, seed=seed, steps=steps
                         )
+                        per_seed.append((k, path, flown))
                         _advance(progress, episodes)
                     rows[method] = {**_seeds_row(per_seed, c, method), "policy": f"{name}[_seed<k>].pt"}
                     continue

@@ -18,6 +18,7 @@ files there).
 
 from __future__ import annotations
 
+import csv
 import fcntl
 import shlex
 import subprocess
@@ -58,6 +59,23 @@ def copy_files(files: list[Path], folder: Path) -> None:
     folder.mkdir(parents=True, exist_ok=True)
     for f in files:
         write_atomic(folder / f.name, f.read_bytes())
+
+
+def exported_files(stem: str, folder: Path) -> list[Path]:
+    """A high-level run's exported files in a policies folder: policy and card, and its wo-FT pair."""
+    return sorted(p for name in (stem, f"{stem}_wo_ft") for p in folder.glob(f"{name}.*"))
+
+
+def progress_state(run, iterations: int) -> str:
+    """ "done", "<k>/<iterations> it" (the iterations its progress.csv holds) or "todo"."""
+    if run.done():
+        return "done"
+    progress = run.run_dir / "progress.csv"
+    if progress.is_file():
+        with progress.open() as handle:
+            rows = sum(1 for _ in csv.DictReader(handle))
+        return f"{rows}/{iterations} it"
+    return "todo"
 
 
 def _logs(folder: Path) -> list[Path]:
@@ -106,9 +124,7 @@ def restore(runs: list, kept: Path) -> list[str]:
             copy_files(_logs(source), run.run_dir)
             lines.append(f"restored {run.label}: done")
         elif (there := saved_iteration(source / "state.pt")) > saved_iteration(run.run_dir / "state.pt"):
-            copy_files(
-                [*([source / "state.pt"] if (source / "state.pt").is_file() else []), *_logs(source)], run.run_dir
-            )
+            copy_files([source / "state.pt", *_logs(source)], run.run_dir)  # there >= 0: the state is there
             lines.append(f"restored {run.label}: iteration {there}")
     return lines
 
