@@ -28,12 +28,13 @@ Bad input ends in one line on stderr and exit code 2, before anything is flown.
 
 from __future__ import annotations
 
-import argparse
 import json
 import shlex
 import subprocess
 import sys
 from pathlib import Path
+
+from cefc_mj.errors import OneLineParser
 
 ROOT = Path(__file__).resolve().parent.parent
 GRIDS = (
@@ -209,7 +210,7 @@ def targets(numbers: dict) -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="px4_exact_table8.py", description=__doc__.splitlines()[0])
+    p = OneLineParser(prog="px4_exact_table8.py", description=__doc__.splitlines()[0])
     what = p.add_mutually_exclusive_group(required=True)
     what.add_argument("--list", action="store_true", help="print the four cefc-eval commands, then exit")
     what.add_argument("--fly", action="store_true", help="fly the test batch, once per grid (ledger lines)")
