@@ -361,7 +361,8 @@ def format_table3(result: dict) -> str:
             continue
         for method, row in rows.items():
             paper = row.get("paper") or {}
-            label = f"{method} ({row['training_seeds']} seeds)" if row.get("spread") == "training seeds" else method
+            n = row.get("training_seeds")
+            label = f"{method} ({n} seed{'s' * (n != 1)})" if row.get("spread") == "training seeds" else method
             table.append(
                 [c, label, "ours"]
                 + [
